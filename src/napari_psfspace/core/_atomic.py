@@ -1,0 +1,116 @@
+"""Atomic file writing.
+
+A file is written to a temporary file in the destination directory and moved
+onto the destination with :func:`os.replace` only once it has been written
+completely (and flushed to disk). If anything fails, the temporary file is
+removed and an existing file at the destination is left untouched, so users
+never end up with a half-written file.
+
+Two entry points are provided:
+
+* :func:`atomic_open`, a context manager yielding an open file object;
+* :func:`atomic_write`, a function calling ``writer_fn(file_object)``.
+
+Examples
+--------
+>>> with atomic_open("model.npz") as fh:          # doctest: +SKIP
+...     np.savez_compressed(fh, a=np.zeros(3))
+>>> atomic_write("notes.txt", lambda fh: fh.write("hi"), mode="w")  # doctest: +SKIP
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from collections.abc import Callable, Iterator
+from typing import IO, Any
+
+__all__ = ["atomic_open", "atomic_write"]
+
+
+def _current_umask() -> int:
+    """Return the process umask (``os.umask`` can only be read by setting it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+@contextlib.contextmanager
+def atomic_open(
+    path: str | os.PathLike[str], mode: str = "wb", **open_kwargs: Any
+) -> Iterator[IO[Any]]:
+    """Open a temporary file that atomically replaces ``path`` on success.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination file. Its parent directory must exist.
+    mode : {"wb", "w"}
+        Binary (default) or text mode.
+    **open_kwargs
+        Passed to :func:`open` (e.g. ``encoding="utf-8"`` for text mode).
+
+    Yields
+    ------
+    file object
+        Open temporary file living in the same directory as ``path``.
+
+    Raises
+    ------
+    ValueError
+        If ``mode`` is not a write mode.
+    OSError
+        If the temporary file cannot be created or the final rename fails; an
+        existing file at ``path`` is then left untouched.
+    """
+    if mode not in ("wb", "w"):
+        raise ValueError(f"`mode` must be 'wb' or 'w', got {mode!r}")
+    path = os.fspath(path)
+    directory = os.path.dirname(os.path.abspath(path))
+    fd, tmp_path = tempfile.mkstemp(
+        dir=directory, prefix="." + os.path.basename(path) + ".", suffix=".tmp"
+    )
+    try:
+        with os.fdopen(fd, mode, **open_kwargs) as fh:
+            yield fh
+            fh.flush()
+            os.fsync(fh.fileno())
+        # mkstemp creates files with mode 0600: keep the permissions of the file
+        # being replaced, or use the usual default (0666 & ~umask) for a new file.
+        try:
+            perms = os.stat(path).st_mode & 0o7777
+        except OSError:
+            perms = 0o666 & ~_current_umask()
+        with contextlib.suppress(OSError):
+            os.chmod(tmp_path, perms)
+        os.replace(tmp_path, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp_path)
+        raise
+
+
+def atomic_write(
+    path: str | os.PathLike[str],
+    writer_fn: Callable[[IO[Any]], Any],
+    mode: str = "wb",
+    **open_kwargs: Any,
+) -> None:
+    """Write ``path`` atomically by calling ``writer_fn(file_object)``.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination file. Its parent directory must exist.
+    writer_fn : callable
+        Called once with an open (temporary) file object; it must write the whole
+        content. Any exception it raises propagates and the destination is left
+        untouched.
+    mode : {"wb", "w"}
+        Binary (default) or text mode.
+    **open_kwargs
+        Passed to :func:`open`.
+    """
+    with atomic_open(path, mode, **open_kwargs) as fh:
+        writer_fn(fh)

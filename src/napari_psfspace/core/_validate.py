@@ -1,0 +1,92 @@
+"""Input checks shared by the core: one place for uniform, explicit error messages.
+
+Every message names the parameter, what was expected and what was received.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
+    """Check a 2-D single-plane image and return it as a floating array.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Any real dtype. Integer and boolean images become float32; float32 and
+        float64 are kept (float16 becomes float32).
+    name : str
+        Parameter name used in error messages.
+    dtype : dtype, optional
+        Force this floating dtype.
+
+    Returns
+    -------
+    ndarray of shape (M, N), floating
+
+    Raises
+    ------
+    ValueError
+        Wrong number of dimensions (a 3-D stack gets a hint to pass one slice),
+        an empty image, complex values, NaN or infinite values.
+    """
+    arr = np.asarray(image)
+    if arr.dtype.kind == "c":
+        raise ValueError(f"`{name}` must be real-valued, got complex dtype {arr.dtype}.")
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
+    if arr.ndim == 3:
+        best = int(np.argmax(arr.reshape(arr.shape[0], -1).astype(np.float32).std(axis=1)))
+        raise ValueError(
+            f"`{name}` must be a 2-D image (rows, columns), got a 3-D stack of shape {arr.shape}. "
+            f"3-D support has not landed yet: pass one slice, e.g. `{name}[{best}]` "
+            f"(slice {best} has the highest contrast, likely the one in focus)."
+        )
+    if arr.ndim != 2:
+        raise ValueError(
+            f"`{name}` must be a 2-D image (rows, columns), got {arr.ndim} dimension(s) "
+            f"with shape {arr.shape}."
+        )
+    if arr.size == 0 or min(arr.shape) < 2:
+        raise ValueError(f"`{name}` must be a non-empty 2-D image, got shape {arr.shape}.")
+    if dtype is None:
+        dtype = np.float64 if arr.dtype == np.float64 else np.float32
+    out = arr.astype(dtype, copy=False)
+    if arr.dtype.kind == "f":
+        finite = np.isfinite(out)
+        if not finite.all():
+            n_bad = int(out.size - np.count_nonzero(finite))
+            raise ValueError(
+                f"`{name}` contains {n_bad} NaN or infinite pixel(s); expected only finite "
+                "values. Mask or inpaint them before estimating the PSF."
+            )
+    return out
+
+
+def check_positive(value, name: str, *, allow_zero: bool = False) -> float:
+    """Return ``float(value)`` after checking it is finite and positive."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number, got {value!r}.") from None
+    if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
+        expected = ">= 0" if allow_zero else "> 0"
+        raise ValueError(f"`{name}` must be finite and {expected}, got {value!r}.")
+    return v
+
+
+def check_psf_radius(psf_radius, shape: tuple[int, int]) -> float:
+    """Check the PSF radius (pixels) against the image shape."""
+    r = check_positive(psf_radius, "psf_radius")
+    if r < 1.5:
+        raise ValueError(
+            f"`psf_radius` must be at least 1.5 pixels (the PSF must span several pixels), "
+            f"got {psf_radius!r}."
+        )
+    if 2 * r + 1 > min(shape):
+        raise ValueError(
+            f"`psf_radius` = {psf_radius!r} pixels is too large for an image of shape {shape}: "
+            f"expected 2 * psf_radius + 1 <= {min(shape)}."
+        )
+    return r

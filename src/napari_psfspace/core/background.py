@@ -1,0 +1,67 @@
+"""Per-patch background removal by a low-order polynomial (paper, Appendix B).
+
+The pixels farther than ``r`` from the patch centre hold only background and noise; a
+polynomial of order 2 (monomials 1, x, y, xy, x², y²) is fitted to them by least squares
+and subtracted from the whole patch. The fit is one pseudo-inverse shared by all
+patches, so it costs one matrix product for any number of beads.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .window import radial_distance
+
+
+def monomials(size: int, order: int = 2) -> np.ndarray:
+    """Monomials ``x**a * y**b`` with ``a + b <= order`` on a patch, coordinates in [-1, 1].
+
+    Returns
+    -------
+    ndarray of shape (size * size, n_monomials)
+    """
+    if order < 0:
+        raise ValueError(f"`order` must be >= 0, got {order}.")
+    u = np.linspace(-1.0, 1.0, size)
+    yy, xx = np.meshgrid(u, u, indexing="ij")
+    cols = [xx**a * yy**b for total in range(order + 1) for a in range(total + 1)
+            for b in [total - a]]
+    return np.stack([c.ravel() for c in cols], axis=1)
+
+
+def fit_background(patches: np.ndarray, r: float, *, order: int = 2) -> np.ndarray:
+    """Fit and return the polynomial background of each patch.
+
+    Parameters
+    ----------
+    patches : ndarray of shape (K, P, P)
+        Patches centred on the beads (centre pixel ``P // 2``).
+    r : float
+        Radius in pixels beyond which a patch holds background only.
+    order : int
+        Polynomial order (2 in the paper).
+
+    Returns
+    -------
+    ndarray of shape (K, P, P), same dtype as ``patches``
+        The fitted background of each patch, evaluated on the whole patch.
+
+    Raises
+    ------
+    ValueError
+        When fewer pixels lie outside ``r`` than the polynomial has coefficients.
+    """
+    k, p, p2 = patches.shape
+    if p != p2:
+        raise ValueError(f"`patches` must be square, got shape {patches.shape}.")
+    design = monomials(p, order)
+    outside = radial_distance(p).ravel() > r
+    if np.count_nonzero(outside) < 2 * design.shape[1]:
+        raise ValueError(
+            f"Patch of size {p} has only {np.count_nonzero(outside)} pixels outside the PSF "
+            f"radius {r:g}: too few to fit a background polynomial of order {order}."
+        )
+    pinv = np.linalg.pinv(design[outside])  # (n_monomials, n_outside)
+    flat = patches.reshape(k, p * p)
+    coef = flat[:, outside] @ pinv.T  # (K, n_monomials)
+    return (coef @ design.T).reshape(k, p, p).astype(patches.dtype, copy=False)

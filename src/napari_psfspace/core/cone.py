@@ -1,0 +1,158 @@
+"""Keep interpolated PSF coefficients inside the cone of the observed ones.
+
+Paper, Appendix C, "Enforcing realistic PSFs": the coefficients interpolated
+independently by thin-plate splines can leave the set of plausible PSFs (negative
+lobes far from the beads). Each interpolated vector ``a`` is projected onto the conic
+hull of the observed coefficients, ``min_{lambda >= 0} 1/2 ||G^T lambda - a||^2``. The
+cone is first reduced to a few generators by a greedy algorithm (start from the mean,
+add the observed vector farthest in angle from the current cone, stop below an angle or
+at a maximum count). The projection is exact (active-set NNLS per point of the coarse
+grid); an accelerated projected gradient vectorised over points is available too.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.optimize import nnls
+
+
+def project_onto_cone(
+    points: np.ndarray,
+    generators: np.ndarray,
+    *,
+    method: str = "nnls",
+    max_iter: int = 2000,
+    tol: float = 1e-7,
+) -> np.ndarray:
+    """Euclidean projection of each point onto ``cone(generators)``.
+
+    Parameters
+    ----------
+    points : ndarray of shape (N, I)
+        Vectors to project.
+    generators : ndarray of shape (k, I)
+        Generators of the cone (rows).
+    method : {"nnls", "apg"}
+        "nnls": exact active-set solution per point (Lawson-Hanson,
+        ``scipy.optimize.nnls``, ~15 us per point for k = 20, I = 5): the default,
+        since the maps are projected on a coarse grid. "apg": accelerated projected
+        gradient vectorised over all points (paper), for very many points; with
+        rank-deficient generators it converges only sublinearly (measured: 2e-2
+        relative error after 2000 iterations, k = 20, I = 5).
+    max_iter, tol : int, float
+        Iteration limit and relative tolerance of "apg".
+
+    Returns
+    -------
+    ndarray of shape (N, I)
+        The projections.
+    """
+    a = np.asarray(points, dtype=np.float64)
+    g = np.asarray(generators, dtype=np.float64)
+    if a.ndim != 2 or g.ndim != 2 or a.shape[1] != g.shape[1]:
+        raise ValueError(
+            f"`points` (N, I) and `generators` (k, I) must share I, got {a.shape} and {g.shape}."
+        )
+    if method == "nnls":
+        gt = np.ascontiguousarray(g.T)
+        return np.array([nnls(gt, row)[0] for row in a]).reshape(len(a), len(g)) @ g
+    if method != "apg":
+        raise ValueError(f"`method` must be 'nnls' or 'apg', got {method!r}.")
+    lam = nonnegative_weights(a, g, max_iter=max_iter, tol=tol)
+    proj = lam @ g
+    scale = np.maximum(np.linalg.norm(a, axis=1), 1e-300)
+    inside = np.linalg.norm(proj - a, axis=1) <= 10 * tol * scale
+    proj[inside] = a[inside]
+    return proj
+
+
+def nonnegative_weights(a, g, *, max_iter: int = 2000, tol: float = 1e-7) -> np.ndarray:
+    """Solve ``min_{lambda >= 0} 1/2 ||lambda g - a||^2`` row-wise by FISTA with restart.
+
+    Parameters
+    ----------
+    a : ndarray of shape (N, I)
+    g : ndarray of shape (k, I)
+
+    Returns
+    -------
+    ndarray of shape (N, k), non-negative
+    """
+    ggt = g @ g.T
+    lip = float(np.linalg.eigvalsh(ggt).max())
+    if lip <= 0:
+        return np.zeros((len(a), len(g)))
+    agt = a @ g.T
+    lam = np.clip(a @ np.linalg.pinv(g), 0, None)  # warm start
+    y = lam.copy()
+    t = 1.0
+    scale = np.maximum(np.linalg.norm(a, axis=1), 1e-300) / np.sqrt(lip)
+    for _ in range(max_iter):
+        new = np.clip(y - (y @ ggt - agt) / lip, 0, None)
+        step = new - lam
+        t_new = 0.5 * (1 + np.sqrt(1 + 4 * t * t))
+        y = new + ((t - 1) / t_new) * step
+        # adaptive restart (O'Donoghue & Candes) where momentum points uphill
+        uphill = np.einsum("ij,ij->i", y - new, step) > 0
+        if uphill.any():
+            y[uphill] = new[uphill]
+        lam, t = new, (1.0 if uphill.all() else t_new)
+        if np.max(np.linalg.norm(step, axis=1) / scale) < tol:
+            break
+    return lam
+
+
+@dataclass
+class Cone:
+    """A polyhedral cone given by a few generators (rows, unit norm)."""
+
+    generators: np.ndarray
+
+    def project(self, points: np.ndarray) -> np.ndarray:
+        """Project points (N, I) onto the cone."""
+        return project_onto_cone(points, self.generators)
+
+    def angle(self, points: np.ndarray) -> np.ndarray:
+        """Angle (radians) between each point (N, I) and the cone."""
+        p = np.asarray(points, dtype=np.float64)
+        proj = project_onto_cone(p, self.generators)
+        cos = np.linalg.norm(proj, axis=1) / np.maximum(np.linalg.norm(p, axis=1), 1e-300)
+        return np.arccos(np.clip(cos, -1.0, 1.0))
+
+
+def reduce_cone(
+    coefficients: np.ndarray,
+    *,
+    max_generators: int = 20,
+    angle_tol: float = np.deg2rad(0.5),
+) -> Cone:
+    """Greedy reduced conic hull of observed coefficient vectors.
+
+    Parameters
+    ----------
+    coefficients : ndarray of shape (M, I)
+        Observed PSF coefficients ``beta`` (one row per bead).
+    max_generators : int
+        Maximum number of generators (paper: about 20).
+    angle_tol : float
+        Stop when every observed vector is within this angle (radians) of the cone.
+
+    Returns
+    -------
+    Cone
+    """
+    b = np.asarray(coefficients, dtype=np.float64)
+    if b.ndim != 2 or len(b) == 0:
+        raise ValueError(f"`coefficients` must have shape (M, I) with M > 0, got {b.shape}.")
+    unit = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300)
+    mean = unit.mean(axis=0)
+    gens = [mean / max(np.linalg.norm(mean), 1e-300)]
+    while len(gens) < max_generators:
+        ang = Cone(np.array(gens)).angle(unit)
+        worst = int(np.argmax(ang))
+        if ang[worst] <= angle_tol:
+            break
+        gens.append(unit[worst])
+    return Cone(np.array(gens))

@@ -1,0 +1,275 @@
+"""Rough bead detection and rejection of beads that cannot give a clean PSF patch.
+
+Paper, Appendix A: beads are the maxima of the Laplacian of a smoothed image above a
+threshold; beads closer than ``r`` to the border or ``2 r`` to another bead are
+rejected, so every kept patch holds one isolated PSF.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.feature import peak_local_max
+
+from ._validate import as_image, check_positive, check_psf_radius
+
+#: Status codes of a bead, in the order in which they are assigned.
+KEPT = "kept"
+SATURATED = "saturated"
+BORDER = "border"
+NEIGHBOUR = "neighbour"
+FAINT = "faint"
+OUTLIER = "outlier"
+STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER)
+
+
+class NoBeadsError(ValueError):
+    """Raised when an image holds no usable bead."""
+
+
+@dataclass
+class Beads:
+    """Detected beads and why each was kept or rejected.
+
+    Attributes
+    ----------
+    positions : ndarray of shape (M, 2), float64
+        Bead centres (row, column) in pixels; integer peaks after detection,
+        sub-pixel after :func:`~napari_psfspace.core.centering.refine_centers`.
+    response : ndarray of shape (M,)
+        Detection strength: the scale-normalised negative Laplacian of Gaussian at the
+        peak, in units of its robust noise standard deviation.
+    status : ndarray of shape (M,), str
+        One of :data:`STATUSES` for each bead.
+    """
+
+    positions: np.ndarray
+    response: np.ndarray
+    status: np.ndarray = field(default=None)
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 2)
+        self.response = np.asarray(self.response, dtype=np.float64).reshape(-1)
+        if self.status is None:
+            self.status = np.full(len(self.positions), KEPT, dtype="<U10")
+        self.status = np.asarray(self.status, dtype="<U10")
+        if not (len(self.positions) == len(self.response) == len(self.status)):
+            raise ValueError(
+                "`positions`, `response` and `status` must have the same length, got "
+                f"{len(self.positions)}, {len(self.response)} and {len(self.status)}."
+            )
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @property
+    def kept(self) -> np.ndarray:
+        """Boolean mask of the beads kept for estimation, shape (M,)."""
+        return self.status == KEPT
+
+    def counts(self) -> dict[str, int]:
+        """Number of beads per status."""
+        return {s: int(np.count_nonzero(self.status == s)) for s in STATUSES}
+
+    def summary(self) -> str:
+        c = self.counts()
+        parts = [f"{v} {k}" for k, v in c.items() if v]
+        return f"{len(self)} beads detected: " + ", ".join(parts)
+
+
+def log_response(image, sigma: float) -> np.ndarray:
+    """Scale-normalised negative Laplacian of Gaussian, in robust noise units.
+
+    Parameters
+    ----------
+    image : ndarray of shape (M, N)
+    sigma : float
+        Gaussian scale in pixels.
+
+    Returns
+    -------
+    ndarray of shape (M, N), float32
+        ``-sigma**2 * LoG(image)`` divided by its robust standard deviation (MAD) and
+        shifted so that its median is 0: a bead of detection strength 10 stands ten
+        noise standard deviations above the filtered background.
+    """
+    img = as_image(image, dtype=np.float32)
+    resp = ndi.gaussian_laplace(img, sigma, mode="reflect")
+    resp *= -(sigma**2)
+    # Robust noise level from a subsample: median and MAD are O(N) but slow on 5 Mpx.
+    step = max(1, int(np.sqrt(resp.size / 250_000)))
+    sample = resp[::step, ::step]
+    med = float(np.median(sample))
+    mad = float(np.median(np.abs(sample - med))) * 1.4826
+    if not np.isfinite(mad) or mad <= 0:
+        spread = float(sample.std())
+        mad = spread if spread > 0 else 1.0
+    resp -= med
+    resp /= mad
+    return resp
+
+
+def detect_beads(
+    image,
+    psf_radius: float,
+    *,
+    threshold: float = 8.0,
+    sigma: float | None = None,
+    saturation: float | None = None,
+    border: float | None = None,
+    min_separation: float | None = None,
+) -> Beads:
+    """Find beads and flag those that cannot give a clean, isolated PSF patch.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Bead image, any real dtype.
+    psf_radius : float
+        Upper bound ``r`` of the PSF radius in pixels (the radius beyond which the PSF
+        is lost in the noise).
+    threshold : float, optional
+        Detection threshold in robust noise standard deviations of the filtered image
+        (see :func:`log_response`). Lower finds fainter beads.
+    sigma : float, optional
+        Scale of the Laplacian of Gaussian in pixels; default ``max(1, r / 4)``.
+    saturation : float, optional
+        Pixel value at or above which the detector is saturated. Default: the maximum
+        of the dtype for integer images, none for floating images.
+    border : float, optional
+        Beads whose centre lies closer than this to the border are rejected. Default
+        ``ceil(1.2 r) + 2``: the PSF patch (radius ``1.2 r``, Appendix A) must fit in
+        the image with room for sub-pixel re-sampling.
+    min_separation : float, optional
+        Beads closer than this to another bead are rejected (both). Default ``2 r``.
+
+    Returns
+    -------
+    Beads
+        All detections with their status (kept, saturated, border, neighbour).
+
+    Raises
+    ------
+    NoBeadsError
+        When nothing stands above the threshold; the message gives the strongest
+        response found so that the user knows how far to lower ``threshold``.
+    """
+    raw = np.asarray(image)
+    img = as_image(raw, dtype=np.float32)
+    r = check_psf_radius(psf_radius, img.shape)
+    threshold = check_positive(threshold, "threshold")
+    sigma = max(1.0, r / 4.0) if sigma is None else check_positive(sigma, "sigma")
+    if border is None:
+        border = np.ceil(1.2 * r) + 2
+    if min_separation is None:
+        min_separation = 2.0 * r
+    if saturation is None and raw.dtype.kind in "ui":
+        saturation = float(np.iinfo(raw.dtype).max)
+
+    if float(img.max()) == float(img.min()):
+        raise NoBeadsError(
+            f"`image` is constant (every pixel equals {float(img.min()):g}): no beads to "
+            "detect. Check that the right image or slice was passed."
+        )
+
+    resp = log_response(img, sigma)
+    peaks = peak_local_max(
+        resp,
+        min_distance=max(1, int(round(r / 2))),
+        threshold_abs=threshold,
+        exclude_border=False,
+    )
+    if len(peaks) == 0:
+        raise NoBeadsError(
+            f"No beads found: no maximum of the filtered image reaches `threshold` = "
+            f"{threshold:g} noise standard deviations (the strongest reaches "
+            f"{float(resp.max()):.3g}). Lower `threshold`, or check `psf_radius` = {r:g} px."
+        )
+    strength = resp[peaks[:, 0], peaks[:, 1]].astype(np.float64)
+    order = np.argsort(-strength, kind="stable")
+    peaks, strength = peaks[order], strength[order]
+    peaks, strength = _merge_secondary_maxima(peaks, strength, r)
+
+    beads = Beads(peaks.astype(np.float64), strength)
+    flag_unusable(beads, img, r, saturation=saturation, border=border,
+                  min_separation=min_separation)
+    return beads
+
+
+def _merge_secondary_maxima(peaks, strength, r):
+    """Drop weak maxima within ``r`` of a much stronger one (rings of one defocused PSF)."""
+    from scipy.spatial import cKDTree
+
+    if len(peaks) < 2:
+        return peaks, strength
+    tree = cKDTree(peaks)
+    drop = np.zeros(len(peaks), dtype=bool)
+    for i, j in sorted(tree.query_pairs(r)):
+        # peaks are sorted by decreasing strength, so i is the stronger one
+        if not drop[i] and strength[j] < 0.5 * strength[i]:
+            drop[j] = True
+    return peaks[~drop], strength[~drop]
+
+
+def flag_unusable(
+    beads: Beads,
+    image: np.ndarray,
+    psf_radius: float,
+    *,
+    saturation: float | None,
+    border: float,
+    min_separation: float,
+) -> Beads:
+    """Set the status of beads that are saturated, at the border or crowded (in place).
+
+    Only beads whose status is ``kept`` are re-examined, so statuses set by a user
+    (e.g. a rejected outlier) are preserved. Neighbours are counted among all
+    detections, whatever their status: a rejected bead still spoils its neighbour.
+
+    Returns
+    -------
+    Beads
+        The same object, for chaining.
+    """
+    from scipy.spatial import cKDTree
+
+    pos = beads.positions
+    h, w = image.shape
+    keep = beads.status == KEPT
+    if saturation is not None and len(pos):
+        iy = np.clip(np.round(pos[:, 0]).astype(int), 0, h - 1)
+        ix = np.clip(np.round(pos[:, 1]).astype(int), 0, w - 1)
+        core = max(1, int(round(psf_radius / 3)))
+        d = np.arange(-core, core + 1)
+        rows = np.clip(iy[:, None, None] + d[None, :, None], 0, h - 1)
+        cols = np.clip(ix[:, None, None] + d[None, None, :], 0, w - 1)
+        sat = image[rows, cols].reshape(len(pos), -1).max(axis=1) >= saturation
+        beads.status[keep & sat] = SATURATED
+        keep &= ~sat
+    at_border = (
+        (pos[:, 0] < border)
+        | (pos[:, 1] < border)
+        | (pos[:, 0] > h - 1 - border)
+        | (pos[:, 1] > w - 1 - border)
+    )
+    beads.status[keep & at_border] = BORDER
+    keep &= ~at_border
+    if len(pos) > 1:
+        tree = cKDTree(pos)
+        dist, _ = tree.query(pos, k=2)
+        crowded = dist[:, 1] < min_separation
+        beads.status[keep & crowded] = NEIGHBOUR
+    return beads
+
+
+def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
+    """Raise :class:`NoBeadsError` when fewer than ``minimum`` beads are kept."""
+    n = int(np.count_nonzero(beads.kept))
+    if n < minimum:
+        raise NoBeadsError(
+            f"Too few usable beads: {n} kept, need at least {minimum} {reason}. "
+            f"{beads.summary()}. Lower `threshold`, check `psf_radius`, or image a "
+            "denser bead slide."
+        )

@@ -1,0 +1,341 @@
+"""Estimate a product-convolution operator from one image of beads (paper, sec. 2.3).
+
+detect -> centre -> extract patches (background, window, normalise) -> PCA with z-score
+rejection -> weighted thin-plate splines of the coefficients on a coarse grid -> cone
+projection -> :class:`~napari_psfspace.core.operator.ProductConvolution`.
+
+The work is a generator (:func:`iter_estimate`) that yields :class:`Progress` records and
+returns an :class:`Estimation`; :func:`estimate_operator` drains it and returns the
+operator. A GUI runs the generator in a worker thread and can stop between steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._validate import as_image, check_positive, check_psf_radius
+from .centering import refine_centers
+from .cone import Cone, reduce_cone
+from .detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
+from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
+from .operator import ProductConvolution
+from .patches import Patches, extract_patches
+from .pca import PsfBasis, learn_basis, min_beads_for
+from .tps import ThinPlateSpline
+from .voronoi import voronoi_areas
+from .window import radial_distance
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One step of a long computation.
+
+    Attributes
+    ----------
+    stage : str
+        Short name of the step that just finished.
+    fraction : float
+        Fraction of the whole computation done, in [0, 1].
+    message : str
+        Human-readable detail.
+    """
+
+    stage: str
+    fraction: float
+    message: str = ""
+
+
+@dataclass
+class Estimation:
+    """Everything an estimation produced, for review and diagnostics.
+
+    Attributes
+    ----------
+    operator : ProductConvolution
+        The model fitted on all usable beads.
+    beads : Beads
+        Every detection with its final status (kept, border, neighbour, saturated,
+        faint, outlier).
+    patches : Patches
+        Patches of the beads that entered the PCA (status kept or outlier), in the
+        order of ``patch_index``.
+    patch_index : ndarray of shape (K,)
+        Index into ``beads`` of each patch.
+    basis : PsfBasis
+        The PCA result (basis, coefficients, z-scores, singular values).
+    cone : Cone
+        Reduced cone of the observed coefficients.
+    heldout : HeldoutResiduals or None
+        Residuals on held-out beads of a model fitted without them.
+    """
+
+    operator: ProductConvolution
+    beads: Beads
+    patches: Patches
+    patch_index: np.ndarray
+    basis: PsfBasis
+    cone: Cone
+    heldout: HeldoutResiduals | None = None
+    info: dict = field(default_factory=dict)
+
+
+def _coarse_grid(shape: tuple[int, int], step: float) -> tuple[np.ndarray, np.ndarray]:
+    """Node coordinates spanning the image with spacing at most ``step`` pixels."""
+    nodes = [np.linspace(0.0, n - 1.0, max(2, int(np.ceil((n - 1) / step)) + 1)) for n in shape]
+    return nodes[0], nodes[1]
+
+
+def fit_field(
+    basis: PsfBasis,
+    patches: Patches,
+    shape: tuple[int, int],
+    *,
+    smoothing=None,
+    grid_step: float = 32.0,
+    metadata: dict | None = None,
+) -> tuple[ProductConvolution, Cone, ThinPlateSpline]:
+    """Interpolate the PSF coefficients over the field and build the operator.
+
+    Parameters
+    ----------
+    basis : PsfBasis
+        PSF basis and the coefficients of the inlier patches.
+    patches : Patches
+        The patches the basis was learnt from (``basis.inliers`` selects the inliers).
+    shape : tuple of int
+        Image shape (rows, columns).
+    smoothing : float or None
+        Thin-plate smoothing ``eta``; ``None`` chooses it per coefficient by GCV.
+    grid_step : float
+        Spacing in pixels of the coarse grid on which the maps are evaluated (they are
+        bilinear in between, which keeps them in the cone).
+
+    Returns
+    -------
+    operator, cone, spline
+    """
+    centers = patches.centers[basis.inliers]
+    beta = basis.coefficients
+    weights = voronoi_areas(centers, shape)
+    spline = ThinPlateSpline(centers, beta, weights=weights, smoothing=smoothing,
+                             scale=0.5 * float(np.hypot(*shape)))
+    gy, gx = _coarse_grid(shape, grid_step)
+    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+    coarse = spline(nodes)  # (G, I)
+    cone = reduce_cone(beta)
+    coarse = cone.project(coarse)
+    sums = basis.basis.sum(axis=(1, 2))  # (I,)
+    total = coarse @ sums
+    bad = total <= 1e-12 * np.abs(coarse).sum(axis=1).clip(1e-300)
+    if bad.any():  # projected to the apex: fall back to the mean observed PSF
+        mean = beta.mean(axis=0)
+        coarse[bad] = mean
+        total[bad] = mean @ sums
+    coarse = coarse / total[:, None]
+    maps = coarse.T.reshape(basis.n_psf, len(gy), len(gx))
+    op = ProductConvolution(basis.basis, maps, shape=shape, grid=(gy, gx), metadata=metadata)
+    return op, cone, spline
+
+
+def iter_estimate(
+    image,
+    *,
+    psf_radius: float,
+    n_psf: int | str | None = None,
+    smoothing: float | None = None,
+    threshold: float = 8.0,
+    beads: Beads | None = None,
+    holdout: float | None = 0.2,
+    grid_step: float = 32.0,
+    saturation: float | None = None,
+    z_threshold: float = 3.0,
+) -> Generator[Progress, None, Estimation]:
+    """Generator form of :func:`estimate_operator`: yields progress, returns the result.
+
+    Parameters are those of :func:`estimate_operator`, plus ``beads`` (a :class:`Beads`
+    table, e.g. edited by hand, used instead of detection: its ``kept`` beads are used)
+    and ``holdout`` (fraction of beads held out to measure the model's error, then
+    refitted on all beads; ``None`` or 0 skips it).
+
+    Returns
+    -------
+    Estimation
+        (as the generator's return value, ``StopIteration.value``)
+    """
+    raw = np.asarray(image)
+    img = as_image(raw)
+    shape = img.shape
+    r = check_psf_radius(psf_radius, shape)
+    grid_step = check_positive(grid_step, "grid_step")
+    if n_psf is not None and not isinstance(n_psf, str) and (int(n_psf) != n_psf or n_psf < 1):
+        raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
+                         f"got {n_psf!r}.")
+    fixed_n = n_psf if isinstance(n_psf, (int, np.integer)) else None
+    if smoothing is not None:
+        check_positive(smoothing, "smoothing", allow_zero=True)
+
+    if beads is None:
+        beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
+    else:
+        beads = Beads(beads.positions.copy(), beads.response.copy(), beads.status.copy())
+        if saturation is None and raw.dtype.kind in "ui":
+            saturation = float(np.iinfo(raw.dtype).max)
+        flag_unusable(beads, img, r, saturation=saturation, border=np.ceil(1.2 * r) + 2,
+                      min_separation=2 * r)
+    yield Progress("detect", 0.15, beads.summary())
+
+    need = min_beads_for(fixed_n or 1)
+    kept = np.flatnonzero(beads.kept)
+    if len(kept) < need:
+        raise NoBeadsError(
+            f"Too few usable beads: {len(kept)} kept, need at least {need} for a basis of "
+            f"`n_psf` = {fixed_n or 1}. {beads.summary()}. Lower `threshold`, check "
+            f"`psf_radius` = {r:g} px, or image a denser bead slide."
+        )
+    sigma = max(1.0, r / 4.0)
+    beads.positions[kept] = refine_centers(img, beads.positions[kept], sigma=sigma,
+                                           half=int(np.ceil(r)))
+    # a bead may have moved closer to the border while being centred
+    flag_unusable(beads, img, r, saturation=None, border=np.ceil(1.2 * r) + 2,
+                  min_separation=2 * r)
+    kept = np.flatnonzero(beads.kept)
+    yield Progress("centre", 0.3, f"{len(kept)} beads centred to sub-pixel precision")
+
+    patches = extract_patches(img, beads.positions[kept], r)
+    faint = patches.flux <= 0
+    if faint.any():
+        beads.status[kept[faint]] = FAINT
+        kept, patches = kept[~faint], patches.subset(~faint)
+    if len(kept) < need:
+        raise NoBeadsError(
+            f"Too few usable beads after background removal: {len(kept)}, need {need}. "
+            f"{beads.summary()}."
+        )
+    yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
+
+    support = radial_distance(patches.size) < patches.r_ext
+
+    def fit(sub: Patches, meta: dict | None):
+        b = learn_basis(sub.psf, n_psf, support=support, positions=sub.centers,
+                        z_threshold=z_threshold)
+        op, cone, spline = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
+                                     metadata=meta)
+        return b, op, cone, spline
+
+    heldout = None
+    if holdout:
+        held = split_holdout(patches.centers, shape, holdout)
+        if np.count_nonzero(~held) >= need and np.count_nonzero(held) >= 1:
+            _, op_train, _, _ = fit(patches.subset(~held), None)
+            heldout = heldout_residuals(op_train, patches.subset(held))
+            yield Progress("held-out", 0.7,
+                           f"held-out residual {heldout.summary()['residual_mean']:.3f} on "
+                           f"{int(held.sum())} beads")
+
+    basis, op, cone, spline = fit(patches, None)
+    beads.status[kept[~basis.inliers]] = OUTLIER
+    meta = {
+        "psf_radius": r,
+        "r_ext": patches.r_ext,
+        "n_psf": basis.n_psf,
+        "n_psf_rule": basis.n_psf_rule,
+        "n_psf_requested": n_psf,
+        "heldout_error_by_n_psf": (None if basis.heldout_errors is None
+                                   else [float(v) for v in basis.heldout_errors]),
+        "smoothing": [float(s) for s in spline.smoothing],
+        "smoothing_requested": smoothing,
+        "effective_dof": [float(d) for d in spline.effective_dof],
+        "threshold": threshold,
+        "z_threshold": z_threshold,
+        "grid_step": grid_step,
+        "image_shape": list(shape),
+        "image_dtype": str(raw.dtype),
+        "bead_counts": beads.counts(),
+        "n_beads_used": int(basis.inliers.sum()),
+        "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
+        "cone_generators": int(len(cone.generators)),
+        "heldout": heldout.summary() if heldout is not None else None,
+    }
+    op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
+    yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads")
+    return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+def run_with_progress(gen: Generator, progress: Callable[[Progress], None] | None = None):
+    """Drain a progress generator, calling ``progress`` on each record; return its value."""
+    while True:
+        try:
+            rec = next(gen)
+        except StopIteration as stop:
+            return stop.value
+        if progress is not None:
+            progress(rec)
+
+
+def estimate_operator(
+    image,
+    *,
+    psf_radius: float,
+    n_psf: int | str | None = None,
+    smoothing: float | None = None,
+    threshold: float = 8.0,
+    holdout: float | None = 0.2,
+    grid_step: float = 32.0,
+    saturation: float | None = None,
+    progress: Callable[[Progress], None] | None = None,
+) -> ProductConvolution:
+    """Learn the space-varying PSF of a microscope from one image of beads.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Image of scattered sub-resolution beads, any real dtype. A 3-D stack is
+        refused with a hint to pass one slice.
+    psf_radius : float
+        Upper bound ``r`` of the PSF radius in pixels: beyond it the PSF is lost in
+        the noise. Beads closer than ``2 r`` to each other are not used.
+    n_psf : int, "heldout", "rule" or None
+        Size ``I`` of the PSF basis. Default (None, "heldout"): the size with the
+        lowest leave-one-bead-out error of the whole model. "rule": the
+        Gavish-Donoho threshold ``omega(beta) sigma_med`` on the singular values
+        (2.858 sigma_med for a square matrix, section 2.5 of the paper).
+    smoothing : float, optional
+        Thin-plate smoothing ``eta`` (coordinates scaled to the half-diagonal of the
+        image). Default: chosen per coefficient by leave-one-bead-out
+        cross-validation.
+    threshold : float
+        Detection threshold in noise standard deviations of the filtered image.
+    holdout : float or None
+        Fraction of the beads held out to measure the model's residual (stored in
+        ``operator.metadata['heldout']``); the returned model is refitted on all beads.
+    grid_step : float
+        Spacing (pixels) of the grid on which the coefficient maps are stored.
+    saturation : float, optional
+        Pixel value at which the detector saturates (default: the dtype maximum for
+        integer images); beads touching it are not used.
+    progress : callable, optional
+        Called with a :class:`Progress` record after each step.
+
+    Returns
+    -------
+    ProductConvolution
+        ``H u = sum_i h_i * (alpha_i u)``; ``psf_at(y, x)`` gives the PSF anywhere.
+
+    Raises
+    ------
+    ValueError
+        Bad input (wrong dimensions, NaN, parameters out of range), and
+        :class:`~napari_psfspace.core.detect.NoBeadsError` (a ValueError) when there are
+        no beads or too few usable beads for the basis size.
+    """
+    gen = iter_estimate(image, psf_radius=psf_radius, n_psf=n_psf, smoothing=smoothing,
+                        threshold=threshold, holdout=holdout, grid_step=grid_step,
+                        saturation=saturation)
+    return run_with_progress(gen, progress).operator
+
+
+__all__ = ["KEPT", "Estimation", "Progress", "estimate_operator", "iter_estimate",
+           "run_with_progress", "fit_field"]

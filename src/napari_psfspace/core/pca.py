@@ -1,0 +1,268 @@
+"""Low-dimensional PSF basis by principal component analysis (paper, App. A, sec. 2.5).
+
+The patches (sum 1, then l2-normalised so that every bead weighs the same) are
+decomposed by an SVD. Without centring, the first component carries the mean PSF,
+so every PSF is ``sum_i beta_i h_i`` with no separate mean term, as the
+product-convolution model needs. A z-score test at 3 sigma on the coefficients
+removes unlikely patches (doublets, debris), then the PCA is recomputed.
+
+The basis size follows Gavish & Donoho's optimal hard threshold for an unknown noise
+level: keep the singular values above ``omega(beta) * sigma_med``, where
+``omega(1) = 2.858`` is the value quoted in the paper (square matrices) and
+``omega(beta)`` its published polynomial approximation for an aspect ratio ``beta``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .tps import ThinPlateSpline
+
+
+@dataclass
+class PsfBasis:
+    """Result of :func:`learn_basis`.
+
+    Attributes
+    ----------
+    basis : ndarray of shape (I, P, P)
+        Orthonormal PSF basis ``h_i`` (l2 norm 1 each).
+    coefficients : ndarray of shape (K_in, I)
+        ``beta_{i,m} = <p_m, h_i>`` of the sum-1 patches of the inliers.
+    inliers : ndarray of shape (K,), bool
+        Patches kept after the z-score test.
+    zscores : ndarray of shape (K,)
+        Largest absolute z-score of each patch's coefficients (first PCA).
+    singular_values : ndarray
+        Singular values of the inlier matrix (second PCA), decreasing.
+    rank_threshold : float
+        Gavish-Donoho threshold on the singular values.
+    n_psf_rule : int
+        Basis size that the threshold rule gives (whether or not it was used).
+    heldout_errors : ndarray of shape (I_max,) or None
+        Relative leave-one-bead-out error for each basis size, when ``n_psf`` was
+        chosen by held-out beads.
+    """
+
+    basis: np.ndarray
+    coefficients: np.ndarray
+    inliers: np.ndarray
+    zscores: np.ndarray
+    singular_values: np.ndarray
+    rank_threshold: float
+    n_psf_rule: int
+    heldout_errors: np.ndarray | None = None
+
+    @property
+    def n_psf(self) -> int:
+        return self.basis.shape[0]
+
+
+def omega(beta: float) -> float:
+    """Gavish-Donoho optimal hard-threshold factor for unknown noise (aspect ``beta`` <= 1)."""
+    return 0.56 * beta**3 - 0.95 * beta**2 + 1.82 * beta + 1.43
+
+
+def rank_by_threshold(singular_values: np.ndarray, shape: tuple[int, int]) -> tuple[int, float]:
+    """Number of singular values above ``omega(beta) * median``, and that threshold."""
+    m, n = shape
+    beta = min(m, n) / max(m, n)
+    s = np.asarray(singular_values)
+    tau = omega(beta) * float(np.median(s))
+    return max(1, int(np.count_nonzero(s > tau))), tau
+
+
+def min_beads_for(n_psf: int) -> int:
+    """Fewest usable beads for a basis of ``n_psf`` elements: ``max(5, 2 n_psf + 2)``."""
+    return max(5, 2 * n_psf + 2)
+
+
+def _svd(x: np.ndarray, k: int | None, method: str, seed: int = 0):
+    """Thin SVD, full or randomized (Halko et al.) when ``k`` is given."""
+    if method == "full" or k is None:
+        _, s, vt = np.linalg.svd(x, full_matrices=False)
+        return s, vt
+    rng = np.random.default_rng(seed)
+    q = min(k + 10, min(x.shape))
+    y = x @ rng.standard_normal((x.shape[1], q))
+    for _ in range(4):  # power iterations, re-orthonormalised
+        y, _ = np.linalg.qr(y)
+        y, _ = np.linalg.qr(x @ (x.T @ y))
+    b = y.T @ x
+    _, s, vt = np.linalg.svd(b, full_matrices=False)
+    return s, vt
+
+
+def _orient(vt: np.ndarray) -> np.ndarray:
+    """Deterministic signs: the first component sums positive, the others have a positive
+    largest-magnitude entry."""
+    vt = vt.copy()
+    if vt[0].sum() < 0:
+        vt[0] = -vt[0]
+    for i in range(1, len(vt)):
+        if vt[i, np.argmax(np.abs(vt[i]))] < 0:
+            vt[i] = -vt[i]
+    return vt
+
+
+def learn_basis(
+    psfs: np.ndarray,
+    n_psf: int | str | None = None,
+    *,
+    support: np.ndarray | None = None,
+    positions: np.ndarray | None = None,
+    z_threshold: float = 3.0,
+    svd: str = "auto",
+    max_psf: int = 12,
+) -> PsfBasis:
+    """Learn an orthonormal PSF basis from sum-normalised patches.
+
+    Parameters
+    ----------
+    psfs : ndarray of shape (K, P, P)
+        Background-free PSF patches, each summing to 1.
+    n_psf : int, "heldout", "rule" or None
+        Basis size ``I``. "heldout" (the default when ``positions`` are given): the
+        ``I`` with the lowest leave-one-bead-out error of the whole model (basis and
+        thin-plate interpolation), see :func:`heldout_basis_errors`; the smallest
+        ``I`` within 1 % of that minimum is kept. "rule" (the default without
+        positions): the Gavish-Donoho threshold. Both are capped at ``max_psf`` and at
+        what the number of beads supports.
+    support : ndarray of shape (P, P), bool, optional
+        Pixels where the windowed patches can be non-zero (the window support). Only
+        these enter the rank rule's aspect ratio and median. Default: all pixels.
+    positions : ndarray of shape (K, 2), optional
+        Bead positions (row, column). When given, the z-score test is applied to the
+        leave-one-out residuals of a thin-plate fit of the coefficients over the field
+        (a patch is an outlier if it differs from what its neighbours predict), rather
+        than to the coefficients themselves: with field-dependent aberrations the
+        paper's global test rejects the legitimately extreme beads at the field edges
+        and leaves the corners to extrapolation.
+    z_threshold : float
+        Patches with a coefficient (or residual) more than ``z_threshold`` standard
+        deviations from the mean are rejected (paper: 3).
+    svd : {"auto", "full", "randomized"}
+        SVD method. "auto" uses the full SVD unless both dimensions exceed 2000
+        and ``n_psf`` is given.
+    max_psf : int
+        Upper bound of the automatic basis size.
+
+    Returns
+    -------
+    PsfBasis
+
+    Raises
+    ------
+    ValueError
+        Too few patches for the requested basis size.
+    """
+    psfs = np.asarray(psfs, dtype=np.float64)
+    if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
+        raise ValueError(f"`psfs` must have shape (K, P, P), got {psfs.shape}.")
+    k, p, _ = psfs.shape
+    if svd not in ("auto", "full", "randomized"):
+        raise ValueError(f"`svd` must be 'auto', 'full' or 'randomized', got {svd!r}.")
+    if n_psf is None:
+        n_psf = "heldout" if positions is not None else "rule"
+    if isinstance(n_psf, str):
+        if n_psf not in ("heldout", "rule"):
+            raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
+                             f"got {n_psf!r}.")
+        if n_psf == "heldout" and positions is None:
+            raise ValueError("`n_psf` = 'heldout' needs the bead `positions`.")
+        select, n_psf = n_psf, None
+    else:
+        select = None
+        if int(n_psf) != n_psf or n_psf < 1:
+            raise ValueError(f"`n_psf` must be a positive integer or None, got {n_psf!r}.")
+        n_psf = int(n_psf)
+    if k < min_beads_for(n_psf or 1):
+        if n_psf is None:
+            raise ValueError(
+                f"Too few beads to learn a PSF basis: need at least {min_beads_for(1)} usable "
+                f"beads, got {k}."
+            )
+        raise ValueError(
+            f"Too few beads for a basis of `n_psf` = {n_psf}: need at least "
+            f"{min_beads_for(n_psf)} usable beads, got {k}. Lower `n_psf` or use more beads."
+        )
+    pos = None if positions is None else np.asarray(positions, dtype=np.float64).reshape(k, 2)
+    mask = np.ones((p, p), bool) if support is None else np.asarray(support, bool)
+    x = psfs[:, mask]
+    norms = np.linalg.norm(x, axis=1)
+    if np.any(norms <= 0):
+        raise ValueError("`psfs` holds an all-zero patch; drop faint beads first.")
+    xn = x / norms[:, None]
+    method = svd
+    if svd == "auto":
+        method = "randomized" if (min(xn.shape) > 2000 and n_psf is not None) else "full"
+
+    def n_from_rule(s, shape, count):
+        rule, tau = rank_by_threshold(s, shape)
+        cap = max(1, (count - 2) // 2)
+        return rule, tau, min(rule, max_psf, cap)
+
+    # First PCA, z-score test on the coefficients (at most 5: doublets and debris show
+    # in the leading components; more tests only add false alarms).
+    s, vt = _svd(xn, n_psf, method)
+    n_first = n_psf if n_psf is not None else min(5, n_from_rule(s, xn.shape, k)[2])
+    coef = xn @ vt[:n_first].T
+    if pos is not None:
+        coef = ThinPlateSpline(pos, coef).loo_residuals
+    std = coef.std(axis=0)
+    std[std == 0] = 1.0
+    z = np.abs(coef - coef.mean(axis=0)) / std
+    zmax = z.max(axis=1)
+    inliers = zmax <= z_threshold
+    if np.count_nonzero(inliers) < min_beads_for(n_psf or 1):
+        inliers[:] = True  # too few left: keep everything rather than fail
+    # Second PCA on the inliers.
+    n_in = int(np.count_nonzero(inliers))
+    s, vt = _svd(xn[inliers], n_psf, method)
+    rule, tau, capped = n_from_rule(s, xn[inliers].shape, n_in)
+    heldout_errors = None
+    if n_psf is not None:
+        n_final = n_psf
+    elif select == "rule":
+        n_final = capped
+    else:
+        n_max = min(max_psf, max(1, (n_in - 2) // 2), len(vt))
+        heldout_errors = heldout_basis_errors(psfs[inliers][:, mask], vt[:n_max], pos[inliers])
+        best = float(heldout_errors.min())
+        n_final = int(np.flatnonzero(heldout_errors <= 1.01 * best)[0]) + 1
+    vt = _orient(vt[:n_final])
+    basis = np.zeros((n_final, p, p))
+    basis[:, mask] = vt
+    beta = psfs[inliers][:, mask] @ vt.T
+    return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors)
+
+
+def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Leave-one-bead-out error of the model for each basis size ``I = 1 .. len(vt)``.
+
+    For bead ``m`` held out, its coefficients are predicted by the thin-plate splines
+    fitted to the other beads (exact leave-one-out residuals of a linear smoother), and
+    the error is that of the predicted PSF against the bead's patch. With an
+    orthonormal basis it has the closed form
+    ``||p_m||^2 - sum_{i<=I} beta_{m,i}^2 + sum_{i<=I} (beta_{m,i} - beta_hat_{-m,i})^2``.
+
+    Parameters
+    ----------
+    x : ndarray of shape (K, n)
+        Sum-normalised patches (support pixels only).
+    vt : ndarray of shape (I_max, n)
+        Orthonormal basis rows.
+    positions : ndarray of shape (K, 2)
+
+    Returns
+    -------
+    ndarray of shape (I_max,)
+        Mean squared error relative to the mean squared patch norm.
+    """
+    beta = x @ vt.T
+    loo = ThinPlateSpline(positions, beta).loo_residuals
+    norm2 = (x**2).sum(axis=1)
+    err = norm2[:, None] - np.cumsum(beta**2, axis=1) + np.cumsum(loo**2, axis=1)
+    return err.mean(axis=0) / norm2.mean()
