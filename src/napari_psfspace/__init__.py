@@ -1,3 +1,44 @@
-"""napari-psfspace: learn space-varying PSF operators from micro-bead images."""
+"""napari-psfspace: learn space-varying PSF operators from images of micro-beads.
+
+The public API is headless (numpy / scipy / scikit-image); the napari widgets sit on
+top of it. Typical use::
+
+    import napari_psfspace as ps
+
+    image, truth = ps.simulate_beads((1024, 1024), n_beads=150, seed=0)
+    op = ps.estimate_operator(image, psf_radius=truth.psf_radius)
+    psf = op.psf_at(100.0, 900.0)        # PSF at row 100, column 900, sums to 1
+    blurred = op.apply(image.astype("float32"))
+    op.save("model.npz")
+    op = ps.load_operator("model.npz")
+"""
 
 __version__ = "0.1.0"
+
+from .core.detect import Beads, NoBeadsError, detect_beads
+from .core.estimate import Estimation, Progress, estimate_operator, iter_estimate
+from .core.metrics import psf_error
+from .core.operator import ProductConvolution, load_operator
+from .core.patches import Patches, extract_patches
+from .core.simulate import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
+
+__all__ = [
+    "Beads",
+    "Estimation",
+    "FieldAberrations",
+    "NoBeadsError",
+    "Optics",
+    "Patches",
+    "ProductConvolution",
+    "Progress",
+    "SimulationTruth",
+    "__version__",
+    "detect_beads",
+    "estimate_operator",
+    "extract_patches",
+    "iter_estimate",
+    "load_operator",
+    "psf_error",
+    "simulate_beads",
+    "simulate_psf",
+]

@@ -146,3 +146,38 @@ def shift_invariant_errors(truth, size: int, shape, n: int = 8, *, align: bool =
     mean = true.mean(axis=(0, 1))
     return np.array([[psf_error(mean, true[i, j], align=align) for j in range(n)]
                      for i in range(n)])
+
+
+def evaluate_against_truth(operator, truth, n: int = 8) -> dict:
+    """Error table of an estimated operator against a simulation's ground truth.
+
+    Parameters
+    ----------
+    operator : ProductConvolution
+    truth : SimulationTruth (anything with ``psf_at(y, x, size)``)
+    n : int
+        The PSFs are compared on an ``n x n`` grid of field positions spanning the
+        image (at least half a patch from the border).
+
+    Returns
+    -------
+    dict
+        ``aligned`` and ``unaligned`` errors of the estimate and ``shift_invariant``
+        errors of the best single PSF (the mean of the true PSFs), each with ``mean``
+        and ``max``; ``ratio`` = aligned mean / shift-invariant mean; and the ``grid``
+        of aligned errors (n x n list).
+    """
+    aligned = grid_errors(operator, truth, n)
+    unaligned = grid_errors(operator, truth, n, align=False)
+    invariant = shift_invariant_errors(truth, operator.psf_size, operator.shape, n)
+
+    def stats(e):
+        return {"mean": float(e.mean()), "max": float(e.max())}
+
+    return {
+        "aligned": stats(aligned),
+        "unaligned": stats(unaligned),
+        "shift_invariant": stats(invariant),
+        "ratio": float(aligned.mean() / invariant.mean()),
+        "grid": aligned.round(5).tolist(),
+    }

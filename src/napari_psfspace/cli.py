@@ -1,0 +1,204 @@
+"""Command line: ``psfspace simulate | estimate | psf | apply | demo``.
+
+Run ``psfspace COMMAND --help`` for the options of each command. Errors in the input
+(no beads, a stack without a slice, a model for another image size...) end with a
+one-line message and exit status 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from . import __version__
+
+
+def _progress_printer(stream=sys.stderr):
+    start = time.perf_counter()
+
+    def show(p):
+        print(f"[{100 * p.fraction:5.1f}% {time.perf_counter() - start:6.1f}s] {p.stage}: "
+              f"{p.message}", file=stream, flush=True)
+
+    return show
+
+
+def _cmd_simulate(args) -> int:
+    from .core.simulate import simulate_beads
+    from .io import write_tiff
+
+    image, truth = simulate_beads(tuple(args.shape), args.beads, aberrations=args.aberrations,
+                                  seed=args.seed)
+    meta = {"psf_radius": truth.psf_radius, "n_beads": int(len(truth.positions)),
+            "aberrations": args.aberrations, "seed": args.seed}
+    write_tiff(args.output, image, pixel_size=truth.optics.pixel_size, metadata=meta)
+    print(f"wrote {args.output}: {image.shape[0]}x{image.shape[1]} {image.dtype}, "
+          f"{len(truth.positions)} beads, suggested --psf-radius {truth.psf_radius}")
+    if args.truth_grid:
+        ys, xs, psfs = truth.psf_grid(8, 8)
+        write_tiff(args.truth_grid, psfs.reshape(-1, *psfs.shape[2:]))
+        print(f"wrote {args.truth_grid}: true PSFs on an 8x8 grid")
+    return 0
+
+
+def _psf_radius_px(args, info) -> float:
+    if args.psf_radius is not None:
+        return args.psf_radius
+    if args.psf_radius_um is not None:
+        if not info.pixel_size:
+            raise ValueError(
+                "--psf-radius-um needs the pixel size, which the file does not give: "
+                "pass --psf-radius in pixels instead."
+            )
+        return args.psf_radius_um / info.pixel_size
+    raise ValueError("give the PSF radius: --psf-radius (pixels) or --psf-radius-um.")
+
+
+def _cmd_estimate(args) -> int:
+    from .core.estimate import iter_estimate, run_with_progress
+    from .io import read_image
+
+    image, info = read_image(args.image, index=args.slice)
+    r = _psf_radius_px(args, info)
+    n_psf = args.n_psf
+    if n_psf is not None and n_psf not in ("heldout", "rule"):
+        n_psf = int(n_psf)
+    gen = iter_estimate(image, psf_radius=r, n_psf=n_psf, smoothing=args.smoothing,
+                        threshold=args.threshold, holdout=args.holdout or None)
+    est = run_with_progress(gen, None if args.quiet else _progress_printer())
+    op = est.operator
+    if info.pixel_size:
+        op = type(op)(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+                      metadata={**op.metadata, "pixel_size_um": info.pixel_size,
+                                "source": str(args.image), "slice": args.slice})
+    op.save(args.output)
+    meta = op.metadata
+    print(f"wrote {args.output}: basis of {op.n_psf} PSFs of {op.psf_size} px from "
+          f"{meta['n_beads_used']} beads; {est.beads.summary()}")
+    h = meta.get("heldout")
+    if h and h.get("n_beads"):
+        print(f"held-out beads: {h['n_beads']}, relative residual mean {h['residual_mean']:.4f} "
+              f"(median {h['residual_median']:.4f}), noise floor {h['noise_floor_mean']:.4f}")
+    return 0
+
+
+def _cmd_psf(args) -> int:
+    from .core.operator import load_operator
+    from .io import write_tiff
+
+    op = load_operator(args.model)
+    y, x = args.at
+    h, w = op.shape
+    if not (0 <= y <= h - 1 and 0 <= x <= w - 1):
+        raise ValueError(f"--at {y} {x} lies outside the model's field of {h}x{w} pixels.")
+    psf = op.psf_at(y, x)
+    write_tiff(args.output, psf, pixel_size=op.metadata.get("pixel_size_um"),
+               metadata={"row": y, "column": x})
+    print(f"wrote {args.output}: PSF at row {y}, column {x} ({psf.shape[0]}x{psf.shape[1]}, "
+          "sum 1)")
+    return 0
+
+
+def _cmd_apply(args) -> int:
+    from .core.operator import load_operator
+    from .io import read_image, write_tiff
+
+    op = load_operator(args.model)
+    image, info = read_image(args.image, index=args.slice)
+    t0 = time.perf_counter()
+    out = op.adjoint(image.astype(np.float32)) if args.adjoint else op.apply(
+        image.astype(np.float32))
+    write_tiff(args.output, out, pixel_size=info.pixel_size)
+    print(f"wrote {args.output}: {'adjoint' if args.adjoint else 'blurred'} image "
+          f"({time.perf_counter() - t0:.2f} s)")
+    return 0
+
+
+def _cmd_demo(args) -> int:
+    from .demo import format_table, run_demo
+
+    result = run_demo(args.out, scene=args.scene, seed=args.seed,
+                      progress=None if args.quiet else _progress_printer())
+    print(format_table(result))
+    print(f"\nfigures, TIFFs, model and errors.json in {args.out}/")
+    if args.json:
+        print(json.dumps(result["errors"], indent=2))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="psfspace",
+        description="Learn space-varying PSF operators from images of fluorescent beads.",
+    )
+    p.add_argument("--version", action="version", version=f"napari-psfspace {__version__}")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("simulate", help="simulate a bead image with a known PSF field")
+    s.add_argument("-o", "--output", required=True, help="output TIFF")
+    s.add_argument("--shape", type=int, nargs=2, default=(1024, 1024), metavar=("ROWS", "COLS"))
+    s.add_argument("--beads", type=int, default=150, help="number of beads (default 150)")
+    s.add_argument("--aberrations", choices=("none", "moderate", "strong"), default="moderate")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--truth-grid", help="also write the true PSFs on an 8x8 grid to this TIFF")
+    s.set_defaults(func=_cmd_simulate)
+
+    e = sub.add_parser("estimate", help="estimate the operator from a bead image")
+    e.add_argument("image", help="TIFF bead image (2-D, or a stack with --slice)")
+    e.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
+    g = e.add_mutually_exclusive_group()
+    g.add_argument("--psf-radius", type=float, help="PSF radius r in pixels")
+    g.add_argument("--psf-radius-um", type=float,
+                   help="PSF radius in micrometres (needs the pixel size in the TIFF)")
+    e.add_argument("--slice", type=int, help="slice of a stack to use")
+    e.add_argument("--n-psf", help="basis size I, or 'heldout' (default) or 'rule'")
+    e.add_argument("--smoothing", type=float, help="thin-plate smoothing eta (default: LOO CV)")
+    e.add_argument("--threshold", type=float, default=8.0,
+                   help="detection threshold in noise standard deviations (default 8)")
+    e.add_argument("--holdout", type=float, default=0.2,
+                   help="fraction of beads held out to measure the error (0 to skip)")
+    e.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    e.set_defaults(func=_cmd_estimate)
+
+    f = sub.add_parser("psf", help="write the PSF of a model at a field position")
+    f.add_argument("model", help="model file (.npz)")
+    f.add_argument("--at", type=float, nargs=2, required=True, metavar=("ROW", "COL"))
+    f.add_argument("-o", "--output", required=True, help="output TIFF")
+    f.set_defaults(func=_cmd_psf)
+
+    a = sub.add_parser("apply", help="blur an image with a model (H u), or --adjoint")
+    a.add_argument("model", help="model file (.npz)")
+    a.add_argument("image", help="TIFF image of the model's shape")
+    a.add_argument("-o", "--output", required=True, help="output TIFF (float32)")
+    a.add_argument("--slice", type=int, help="slice of a stack to use")
+    a.add_argument("--adjoint", action="store_true", help="apply the adjoint H^T instead")
+    a.set_defaults(func=_cmd_apply)
+
+    d = sub.add_parser("demo", help="simulate a wide field, estimate, report errors, draw")
+    d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
+    d.add_argument("--scene", choices=("wide", "moderate", "small"), default="wide",
+                   help="wide: 2048x2048, 400 beads, strong aberrations (default)")
+    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--json", action="store_true", help="also print the errors as JSON")
+    d.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    d.set_defaults(func=_cmd_demo)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point of ``psfspace``; returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return args.func(args)
+    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
+        print(f"psfspace {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,168 @@
+"""Reading and writing images: TIFF with physical sampling, PNG figures.
+
+Every writer is atomic (a temporary file renamed on success), so an interrupted run
+never leaves a half-written file where a user's file was.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+import tifffile
+
+from .core._atomic import atomic_open
+
+
+@dataclass(frozen=True)
+class ImageInfo:
+    """What a TIFF says about its sampling.
+
+    Attributes
+    ----------
+    pixel_size : float or None
+        Pixel size in micrometres (from the ImageJ metadata or the resolution tags).
+    z_spacing : float or None
+        Distance between slices in micrometres.
+    shape : tuple of int
+        Shape of the full array in the file.
+    axes : str
+        Axes as tifffile reports them (e.g. "ZYX").
+    """
+
+    pixel_size: float | None
+    z_spacing: float | None
+    shape: tuple[int, ...]
+    axes: str
+
+
+def _pixel_size_from_tags(page) -> float | None:
+    tag = page.tags.get("XResolution")
+    unit = page.tags.get("ResolutionUnit")
+    if tag is None:
+        return None
+    num, den = tag.value
+    if num <= 0 or den <= 0:
+        return None
+    per_unit = num / den  # pixels per unit
+    if per_unit == 1.0:  # the default when nothing was set
+        return None
+    unit_value = getattr(unit, "value", 1) if unit is not None else 1
+    size = 1.0 / per_unit
+    if int(unit_value) == 3:  # centimetre
+        return size * 1e4
+    if int(unit_value) == 2:  # inch
+        return size * 25400.0
+    return size  # ImageJ writes micrometres with no unit (value 1)
+
+
+def read_image(path: str | os.PathLike, *, index: int | None = None):
+    """Read a 2-D image (or one slice of a stack) and its sampling from a TIFF file.
+
+    Parameters
+    ----------
+    path : str or path-like
+        TIFF file.
+    index : int, optional
+        Slice of a 3-D stack to return. Required for stacks; a 2-D file ignores it.
+
+    Returns
+    -------
+    image : ndarray of shape (M, N)
+        Pixel values in the file's dtype.
+    info : ImageInfo
+
+    Raises
+    ------
+    ValueError
+        A stack without ``index``, an index out of range, or more than 3 dimensions.
+    """
+    with tifffile.TiffFile(path) as tif:
+        series = tif.series[0]
+        data = series.asarray()
+        ij = tif.imagej_metadata or {}
+        pixel = _pixel_size_from_tags(tif.pages[0])
+        unit = str(ij.get("unit", "um")).lower().replace("\\u00b5", "u").replace("µ", "u")
+        if pixel is not None and unit in ("nm", "nanometer"):
+            pixel /= 1000.0
+        z = ij.get("spacing")
+        info = ImageInfo(pixel, float(z) if z else None, tuple(data.shape), series.axes)
+    data = np.squeeze(data) if data.ndim > 3 else data
+    if data.ndim == 2:
+        return data, info
+    if data.ndim != 3:
+        raise ValueError(
+            f"{os.fspath(path)!r} holds an array of shape {data.shape}; expected a 2-D image "
+            "or a 3-D stack (Z, Y, X)."
+        )
+    if index is None:
+        sharpness = data.reshape(data.shape[0], -1).astype(np.float32).std(axis=1)
+        best = int(np.argmax(sharpness))
+        raise ValueError(
+            f"{os.fspath(path)!r} is a stack of {data.shape[0]} slices of {data.shape[1:]}: "
+            f"choose one with the slice option (slice {best} has the highest contrast, "
+            "likely the one in focus)."
+        )
+    if not -data.shape[0] <= index < data.shape[0]:
+        raise ValueError(
+            f"slice index {index} is out of range for a stack of {data.shape[0]} slices."
+        )
+    return data[index], info
+
+
+def best_focus_index(stack: np.ndarray) -> int:
+    """Index of the slice with the highest standard deviation (the sharpest, usually)."""
+    stack = np.asarray(stack)
+    if stack.ndim != 3:
+        raise ValueError(f"`stack` must be 3-D (Z, Y, X), got shape {stack.shape}.")
+    return int(np.argmax(stack.reshape(stack.shape[0], -1).astype(np.float32).std(axis=1)))
+
+
+def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float | None = None,
+               metadata: dict | None = None) -> None:
+    """Write an array as an ImageJ-compatible TIFF, atomically.
+
+    Parameters
+    ----------
+    path : str or path-like
+    data : ndarray of 2 or 3 dimensions
+        Image (Y, X) or stack (Z, Y, X). float64 is stored as float32 (ImageJ).
+    pixel_size : float, optional
+        Pixel size in micrometres, stored as resolution tags.
+    metadata : dict, optional
+        Extra JSON-serialisable information, stored in the ImageJ "Info" field.
+    """
+    arr = np.asarray(data)
+    if arr.dtype == np.float64:
+        arr = arr.astype(np.float32)
+    ij = {"unit": "um", "axes": "ZYX" if arr.ndim == 3 else "YX"}
+    if metadata:
+        ij["Info"] = json.dumps(metadata)
+    kwargs = {}
+    if pixel_size:
+        kwargs["resolution"] = (1.0 / pixel_size, 1.0 / pixel_size)
+    buf = io.BytesIO()  # tifffile needs a named or in-memory file
+    tifffile.imwrite(buf, arr, imagej=True, metadata=ij, **kwargs)
+    with atomic_open(path) as fh:
+        fh.write(buf.getbuffer())
+
+
+def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Write a 2-D (grey) or (M, N, 3) (RGB) array as an 8-bit PNG, atomically.
+
+    Floating images are scaled from their [min, max] to [0, 255].
+    """
+    import imageio.v3 as iio
+
+    arr = np.asarray(image)
+    if arr.dtype != np.uint8:
+        a = arr.astype(np.float64)
+        lo, hi = float(np.nanmin(a)), float(np.nanmax(a))
+        a = (a - lo) / (hi - lo) if hi > lo else np.zeros_like(a)
+        arr = np.round(255 * np.clip(a, 0, 1)).astype(np.uint8)
+    data = iio.imwrite("<bytes>", arr, extension=".png")
+    with atomic_open(path) as fh:
+        fh.write(data)
