@@ -105,7 +105,37 @@ def psf_error(estimate: np.ndarray, truth: np.ndarray, *, align: bool = True) ->
     return best_shift(estimate, truth)[1]
 
 
-def grid_errors(operator, truth, n: int = 8, *, align: bool = True) -> np.ndarray:
+def grid_positions(shape, n: int = 8, *, layout: str = "cells", margin: float = 0.0):
+    """Field positions of an ``n x n`` evaluation grid.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Image shape (rows, columns).
+    n : int
+        Grid size.
+    layout : {"cells", "edges"}
+        "cells": the centres of an ``n x n`` tiling of the field (midpoint rule: the mean
+        over the grid estimates the mean over the field). "edges": from ``margin`` to
+        the opposite border, so the outer ring of the grid lies on the field's edge
+        (stresses extrapolation beyond the outermost beads).
+    margin : float
+        Distance to the border of the "edges" layout, in pixels.
+
+    Returns
+    -------
+    ys, xs : ndarray of shape (n,)
+    """
+    h, w = shape
+    if layout == "cells":
+        return (np.arange(n) + 0.5) * h / n - 0.5, (np.arange(n) + 0.5) * w / n - 0.5
+    if layout == "edges":
+        return np.linspace(margin, h - 1 - margin, n), np.linspace(margin, w - 1 - margin, n)
+    raise ValueError(f"`layout` must be 'cells' or 'edges', got {layout!r}.")
+
+
+def grid_errors(operator, truth, n: int = 8, *, align: bool = True,
+                layout: str = "cells") -> np.ndarray:
     """Errors of ``operator.psf_at`` against ``truth.psf_at`` on an ``n x n`` grid.
 
     Parameters
@@ -113,16 +143,17 @@ def grid_errors(operator, truth, n: int = 8, *, align: bool = True) -> np.ndarra
     operator : ProductConvolution
     truth : object with ``psf_at(y, x, size)`` (e.g. the simulator's ``SimulationTruth``)
     n : int
-        Grid size; positions are spread evenly at least one patch radius from the border.
+        Grid size.
+    align : bool
+        Minimise over a sub-pixel translation too.
+    layout : {"cells", "edges"}
+        See :func:`grid_positions` ("edges" uses a margin of half a patch).
 
     Returns
     -------
     ndarray of shape (n, n)
     """
-    h, w = operator.shape
-    m = operator.psf_size // 2
-    ys = np.linspace(m, h - 1 - m, n)
-    xs = np.linspace(m, w - 1 - m, n)
+    ys, xs = grid_positions(operator.shape, n, layout=layout, margin=operator.psf_size // 2)
     err = np.empty((n, n))
     for i, y in enumerate(ys):
         for j, x in enumerate(xs):
@@ -131,17 +162,15 @@ def grid_errors(operator, truth, n: int = 8, *, align: bool = True) -> np.ndarra
     return err
 
 
-def shift_invariant_errors(truth, size: int, shape, n: int = 8, *, align: bool = True):
+def shift_invariant_errors(truth, size: int, shape, n: int = 8, *, align: bool = True,
+                           layout: str = "cells"):
     """Errors of the best single shift-invariant PSF (the mean of the true PSFs).
 
     Returns
     -------
     ndarray of shape (n, n)
     """
-    h, w = shape
-    m = size // 2
-    ys = np.linspace(m, h - 1 - m, n)
-    xs = np.linspace(m, w - 1 - m, n)
+    ys, xs = grid_positions(shape, n, layout=layout, margin=size // 2)
     true = np.array([[truth.psf_at(y, x, size) for x in xs] for y in ys])
     mean = true.mean(axis=(0, 1))
     return np.array([[psf_error(mean, true[i, j], align=align) for j in range(n)]
@@ -156,20 +185,22 @@ def evaluate_against_truth(operator, truth, n: int = 8) -> dict:
     operator : ProductConvolution
     truth : SimulationTruth (anything with ``psf_at(y, x, size)``)
     n : int
-        The PSFs are compared on an ``n x n`` grid of field positions spanning the
-        image (at least half a patch from the border).
+        The PSFs are compared on an ``n x n`` grid of field positions: the centres of
+        an ``n x n`` tiling of the field (see :func:`grid_positions`).
 
     Returns
     -------
     dict
         ``aligned`` and ``unaligned`` errors of the estimate and ``shift_invariant``
         errors of the best single PSF (the mean of the true PSFs), each with ``mean``
-        and ``max``; ``ratio`` = aligned mean / shift-invariant mean; and the ``grid``
-        of aligned errors (n x n list).
+        and ``max``; ``ratio`` = aligned mean / shift-invariant mean; ``edges``: the
+        aligned errors on a grid reaching the field's border (half a patch from it);
+        and the ``grid`` of aligned errors (n x n list).
     """
     aligned = grid_errors(operator, truth, n)
     unaligned = grid_errors(operator, truth, n, align=False)
     invariant = shift_invariant_errors(truth, operator.psf_size, operator.shape, n)
+    edges = grid_errors(operator, truth, n, layout="edges")
 
     def stats(e):
         return {"mean": float(e.mean()), "max": float(e.max())}
@@ -178,6 +209,7 @@ def evaluate_against_truth(operator, truth, n: int = 8) -> dict:
         "aligned": stats(aligned),
         "unaligned": stats(unaligned),
         "shift_invariant": stats(invariant),
-        "ratio": float(aligned.mean() / invariant.mean()),
+        "ratio": float(aligned.mean() / invariant.mean()) if invariant.mean() > 1e-6 else None,
+        "edges": stats(edges),
         "grid": aligned.round(5).tolist(),
     }

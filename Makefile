@@ -1,0 +1,31 @@
+# Two commands on a fresh machine:
+#   make demo   simulate a wide bead field, estimate its PSF operator, print the errors,
+#               write figures and TIFFs into demo-output/
+#   make test   run the test suite
+PYTHON ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+
+.PHONY: demo test install lint bench
+
+$(BIN)/psfspace: pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -e ".[testing]"
+	touch $@
+
+install: $(BIN)/psfspace
+
+demo: install
+	$(BIN)/psfspace demo --out demo-output
+
+test: install
+	$(BIN)/python -m pytest
+
+lint: install
+	$(BIN)/ruff check src tests bench
+
+bench: install
+	$(BIN)/python bench/bench_accuracy.py
+	$(BIN)/python bench/bench_speed.py
+	$(BIN)/python bench/bench_apply.py

@@ -1,0 +1,184 @@
+"""Tests of the smoothing thin-plate spline (core/tps.py, paper Appendix C, eq. 8)."""
+
+import numpy as np
+import pytest
+
+from napari_psfspace.core.tps import ThinPlateSpline
+
+M = 60
+NOISE = 0.05
+
+
+def _f(p):
+    return np.sin(p[:, 0] / 30.0) * np.cos(p[:, 1] / 25.0)
+
+
+def _data(seed, m=M, noise=NOISE):
+    rng = np.random.default_rng(seed)
+    pts = rng.uniform(0, 100, (m, 2))
+    return pts, _f(pts) + noise * rng.standard_normal(m), rng
+
+
+def _weighted_loo_score(spline, weights):
+    """The selection score (weights normalised to mean 1) from the closed-form LOO."""
+    w = weights / weights.mean()
+    return float((w * spline.loo_residuals**2).sum() / len(w))
+
+
+def test_interpolates_without_smoothing():
+    pts, y, rng = _data(0)
+    w = rng.uniform(0.5, 2.0, M)
+    for weights in (None, w):
+        sp = ThinPlateSpline(pts, y, weights=weights, smoothing=0.0)
+        # measured 2.3e-14 on seed 0
+        assert np.abs(sp(pts) - y).max() < 1e-8
+        assert sp.effective_dof[0] == M
+        assert np.all(sp.loo_residuals == 0)  # documented: zero where it interpolates
+
+
+@pytest.mark.parametrize("eta", [0.0, 1e-4, 1e-1, 10.0, 1e4])
+def test_affine_reproduced_for_any_smoothing(eta):
+    pts, _, rng = _data(1)
+    affine = lambda p: 0.7 - 0.02 * p[:, 0] + 0.05 * p[:, 1]  # noqa: E731
+    sp = ThinPlateSpline(pts, affine(pts), smoothing=eta)
+    test = rng.uniform(-20, 120, (200, 2))  # includes extrapolation
+    # affine functions are in the null space of the penalty: measured 4e-15
+    assert np.abs(sp(test) - affine(test)).max() < 1e-8
+
+
+def test_large_smoothing_gives_affine_fit():
+    pts, y, _ = _data(2)
+    sp = ThinPlateSpline(pts, y, smoothing=1e12)
+    a = np.column_stack([np.ones(M), pts])
+    coef = np.linalg.lstsq(a, y, rcond=None)[0]
+    # measured 2e-12 difference from least squares; dof -> 3
+    assert np.abs(sp(pts) - a @ coef).max() < 1e-6
+    assert abs(sp.effective_dof[0] - 3) < 1e-6
+
+
+@pytest.mark.parametrize("criterion", ["loo", "gcv"])
+def test_recovers_smooth_function_below_noise(criterion):
+    pts, y, _ = _data(3, m=200)
+    sp = ThinPlateSpline(pts, y, criterion=criterion)
+    g = np.stack(np.meshgrid(np.linspace(5, 95, 50), np.linspace(5, 95, 50),
+                             indexing="ij"), -1).reshape(-1, 2)
+    rms = float(np.sqrt(np.mean((sp(g) - _f(g)) ** 2)))
+    # measured rms 0.0227 (loo, 67 dof) and 0.0216 (gcv, 54 dof) on seed 3, noise 0.05
+    assert rms < 0.7 * NOISE
+    assert 3 < sp.effective_dof[0] < 200
+    assert np.isfinite(sp.score[0])
+
+
+def _brute_loo(pts, y, weights, eta, scale, *, compensate=True, fixed_scale=True):
+    out = np.empty(len(pts))
+    for m in range(len(pts)):
+        keep = np.arange(len(pts)) != m
+        w = None if weights is None else weights[keep]
+        e = eta
+        if compensate and weights is not None:
+            # the spline divides its weights by their mean: refitting on M - 1 points
+            # with the same eta would change the balance between fit and penalty
+            e = eta * weights.mean() / weights[keep].mean()
+        sp = ThinPlateSpline(pts[keep], y[keep], weights=w, smoothing=e,
+                             scale=scale if fixed_scale else None)
+        out[m] = y[m] - sp(pts[m:m + 1])[0]
+    return out
+
+
+@pytest.mark.parametrize("eta", [1e-3, 1e-1])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_loo_residuals_equal_brute_force(eta, weighted):
+    pts, y, rng = _data(4)
+    w = rng.uniform(0.5, 2.0, M) if weighted else None
+    sp = ThinPlateSpline(pts, y, weights=w, smoothing=eta)
+    brute = _brute_loo(pts, y, w, eta, sp._scale)
+    # measured max relative difference 1e-13 (eta 1e-3) and 4e-15 (eta 0.1) on seed 4
+    assert np.abs(sp.loo_residuals - brute).max() < 1e-8 * np.abs(brute).max()
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "finding: `smoothing` is relative to the mean weight and to the bounding box of the "
+    "points, so refitting without bead m with the same `smoothing` (and the same "
+    "weights for the others, or the default scale) is not the model whose residual "
+    "loo_residuals reports; measured relative differences 6.2e-4 (weights) and 6.0e-4 "
+    "(scale) on seed 4"))
+@pytest.mark.parametrize("variant", ["weights", "default_scale"])
+def test_loo_residuals_equal_naive_refit(variant):
+    pts, y, rng = _data(4)
+    w = rng.uniform(0.5, 2.0, M) if variant == "weights" else None
+    eta = 1e-3
+    sp = ThinPlateSpline(pts, y, weights=w, smoothing=eta)
+    brute = _brute_loo(pts, y, w, eta, sp._scale, compensate=False,
+                       fixed_scale=variant != "default_scale")
+    assert np.abs(sp.loo_residuals - brute).max() < 1e-8 * np.abs(brute).max()
+
+
+def test_loo_criterion_is_near_the_best_eta():
+    pts, y, rng = _data(5)
+    w = rng.uniform(0.5, 2.0, M)
+    sp = ThinPlateSpline(pts, y, weights=w, criterion="loo")
+    chosen = _weighted_loo_score(sp, w)
+    assert chosen == pytest.approx(sp.score[0], rel=1e-9)
+    grid = np.logspace(-8, 4, 241)  # 20 points per decade
+    scores = [_weighted_loo_score(ThinPlateSpline(pts, y, weights=w, smoothing=e), w)
+              for e in grid]
+    # measured chosen / best-on-fine-grid = 1.00003 on seed 5 (eta 0.0106 vs 0.01)
+    assert chosen <= 1.01 * min(scores)
+    # and the best eta is interior (not an end of the fine grid)
+    assert 0 < int(np.argmin(scores)) < len(grid) - 1
+
+
+def test_vector_values_get_their_own_smoothing():
+    pts, y, rng = _data(6)
+    noisy = _f(pts) + 0.5 * rng.standard_normal(M)  # much noisier column
+    sp = ThinPlateSpline(pts, np.column_stack([y, noisy]))
+    assert sp(pts[:3]).shape == (3, 2)
+    assert sp.loo_residuals.shape == (M, 2)
+    # the noisier column is smoothed more: measured eta 0.017 vs 0.30 (ratio 18),
+    # dof 36 vs 14.5
+    assert sp.smoothing[1] > 5 * sp.smoothing[0]
+    assert sp.effective_dof[1] < sp.effective_dof[0]
+    # each column equals its scalar fit with the same eta
+    for j, col in enumerate((y, noisy)):
+        single = ThinPlateSpline(pts, col, smoothing=sp.smoothing[j])
+        assert np.abs(single(pts) - sp(pts)[:, j]).max() < 1e-10  # measured 1e-15
+
+
+def test_weights_pull_the_fit():
+    pts, y, _ = _data(7)
+    w = np.ones(M)
+    w[0] = 1e4
+    heavy = ThinPlateSpline(pts, y, weights=w, smoothing=1.0)
+    plain = ThinPlateSpline(pts, y, smoothing=1.0)
+    # measured: residual at the heavy point 130x smaller (ratio 0.0078)
+    assert abs(heavy.residuals[0, 0]) < 0.1 * abs(plain.residuals[0, 0])
+    # weights are relative: scaling all of them changes nothing
+    scaled = ThinPlateSpline(pts, y, weights=7.0 * w, smoothing=1.0)
+    assert np.abs(scaled(pts) - heavy(pts)).max() < 1e-10
+
+
+def test_collinear_points_raise():
+    pts = np.column_stack([np.linspace(0, 10, 8), 2 * np.linspace(0, 10, 8) + 1])
+    with pytest.raises(ValueError, match="collinear"):
+        ThinPlateSpline(pts, np.arange(8.0))
+
+
+def test_fewer_than_four_points_raise():
+    with pytest.raises(ValueError, match="at least 4 points, got 3"):
+        ThinPlateSpline([[0, 0], [1, 0], [0, 1]], [1.0, 2.0, 3.0])
+
+
+def test_invalid_arguments_raise():
+    pts, y, _ = _data(8, m=10)
+    with pytest.raises(ValueError, match="`criterion`"):
+        ThinPlateSpline(pts, y, criterion="aic")
+    with pytest.raises(ValueError, match="`weights`"):
+        ThinPlateSpline(pts, y, weights=np.r_[0.0, np.ones(9)])
+    with pytest.raises(ValueError, match="`weights`"):
+        ThinPlateSpline(pts, y, weights=np.ones(5))
+    with pytest.raises(ValueError, match="`smoothing`"):
+        ThinPlateSpline(pts, y, smoothing=-1.0)
+    bad = y.copy()
+    bad[2] = np.nan
+    with pytest.raises(ValueError, match="`values`"):
+        ThinPlateSpline(pts, bad)
