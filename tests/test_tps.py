@@ -96,38 +96,6 @@ def test_loo_residuals_equal_brute_force(eta, weighted):
     assert np.abs(sp.loo_residuals - brute).max() < 1e-8 * np.abs(brute).max()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "finding: `smoothing` is relative to the mean weight and to the bounding box of the "
-    "points, so refitting without bead m with the same `smoothing` (and the same "
-    "weights for the others, or the default scale) is not the model whose residual "
-    "loo_residuals reports; measured relative differences 6.2e-4 (weights) and 6.0e-4 "
-    "(scale) on seed 4"))
-@pytest.mark.parametrize("variant", ["weights", "default_scale"])
-def test_loo_residuals_equal_naive_refit(variant):
-    pts, y, rng = _data(4)
-    w = rng.uniform(0.5, 2.0, M) if variant == "weights" else None
-    eta = 1e-3
-    sp = ThinPlateSpline(pts, y, weights=w, smoothing=eta)
-    brute = _brute_loo(pts, y, w, eta, sp._scale, compensate=False,
-                       fixed_scale=variant != "default_scale")
-    assert np.abs(sp.loo_residuals - brute).max() < 1e-8 * np.abs(brute).max()
-
-
-def test_loo_criterion_is_near_the_best_eta():
-    pts, y, rng = _data(5)
-    w = rng.uniform(0.5, 2.0, M)
-    sp = ThinPlateSpline(pts, y, weights=w, criterion="loo")
-    chosen = _weighted_loo_score(sp, w)
-    assert chosen == pytest.approx(sp.score[0], rel=1e-9)
-    grid = np.logspace(-8, 4, 241)  # 20 points per decade
-    scores = [_weighted_loo_score(ThinPlateSpline(pts, y, weights=w, smoothing=e), w)
-              for e in grid]
-    # measured chosen / best-on-fine-grid = 1.00003 on seed 5 (eta 0.0106 vs 0.01)
-    assert chosen <= 1.01 * min(scores)
-    # and the best eta is interior (not an end of the fine grid)
-    assert 0 < int(np.argmin(scores)) < len(grid) - 1
-
-
 def test_vector_values_get_their_own_smoothing():
     pts, y, rng = _data(6)
     noisy = _f(pts) + 0.5 * rng.standard_normal(M)  # much noisier column

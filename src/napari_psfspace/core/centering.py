@@ -64,8 +64,9 @@ def refine_centers(
     Returns
     -------
     ndarray of shape (K, 2), float64
-        Refined centres. A centre never moves more than ``half`` pixels from its start;
-        beads whose window has no signal above the local background keep their start.
+        Refined centres. A centre stays within ``half`` pixels of the pixel nearest its
+        start; beads whose window has no signal above the local background keep their
+        start exactly.
     """
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
     if len(centers) == 0:
@@ -79,8 +80,8 @@ def refine_centers(
     )
     win = np.clip(win - np.median(edge, axis=1)[:, None, None], 0, None)
     grid = np.arange(-half, half + 1, dtype=np.float64)
-    base = np.round(centers)
-    offset = np.zeros_like(centers)
+    base = np.round(centers)  # the windows are centred on these pixels
+    offset = centers - base  # start where the caller said, so a bead without signal stays
     inv2s2 = 0.5 / sigma**2
     for _ in range(max_iter):
         gy = np.exp(-((grid[None, :] - offset[:, :1]) ** 2) * inv2s2)  # (K, n)

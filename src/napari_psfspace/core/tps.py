@@ -40,7 +40,9 @@ class ThinPlateSpline:
     values : array_like of shape (M,) or (M, K)
         Sample values; each column is fitted independently.
     weights : array_like of shape (M,), optional
-        Positive data weights ``w_m`` (e.g. Voronoi areas); normalised to mean 1.
+        Positive data weights ``w_m`` (e.g. Voronoi areas); normalised to mean 1, so
+        ``eta`` is relative to the mean weight (refitting a subset with the same
+        ``eta`` is a slightly different model unless the weights are rescaled).
     smoothing : float, sequence of float, or None
         ``eta`` per column (or one for all), in the normalised units below; ``None``
         picks each column's ``eta`` by ``criterion``.

@@ -1,0 +1,22 @@
+"""Shared helpers of the benchmark scripts (run from the repository root or bench/)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+if str(SRC) not in sys.path:
+    sys.path.insert(0, str(SRC))
+
+
+def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:
+    """Plain-text table: ``columns`` is a list of (key, format) pairs."""
+    heads = [k for k, _ in columns]
+    cells = [[format(r[k], f) if r.get(k) is not None else "-" for k, f in columns]
+             for r in rows]
+    widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(heads)]
+    line = " | ".join(h.rjust(w) for h, w in zip(heads, widths, strict=True))
+    out = [line, "-" * len(line)]
+    out += [" | ".join(c.rjust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
+    return "\n".join(out)
