@@ -29,11 +29,16 @@ from typing import IO, Any
 __all__ = ["atomic_open", "atomic_write"]
 
 
-def _current_umask() -> int:
+def _read_umask() -> int:
     """Return the process umask (``os.umask`` can only be read by setting it)."""
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+# Read once at import: setting and restoring the umask is not thread-safe, and saves
+# may run in worker threads (napari widgets).
+_UMASK = _read_umask()
 
 
 @contextlib.contextmanager
@@ -81,7 +86,7 @@ def atomic_open(
         try:
             perms = os.stat(path).st_mode & 0o7777
         except OSError:
-            perms = 0o666 & ~_current_umask()
+            perms = 0o666 & ~_UMASK
         with contextlib.suppress(OSError):
             os.chmod(tmp_path, perms)
         os.replace(tmp_path, path)

@@ -43,11 +43,15 @@ class Beads:
         peak, in units of its robust noise standard deviation.
     status : ndarray of shape (M,), str
         One of :data:`STATUSES` for each bead.
+    amplitude : ndarray of shape (M,)
+        Peak value above the local background (median of the window edge), image
+        units; NaN where unknown (e.g. beads added by hand).
     """
 
     positions: np.ndarray
     response: np.ndarray
     status: np.ndarray = field(default=None)
+    amplitude: np.ndarray = field(default=None)
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 2)
@@ -55,10 +59,15 @@ class Beads:
         if self.status is None:
             self.status = np.full(len(self.positions), KEPT, dtype="<U10")
         self.status = np.asarray(self.status, dtype="<U10")
-        if not (len(self.positions) == len(self.response) == len(self.status)):
+        if self.amplitude is None:
+            self.amplitude = np.full(len(self.positions), np.nan)
+        self.amplitude = np.asarray(self.amplitude, dtype=np.float64).reshape(-1)
+        n = {len(self.positions), len(self.response), len(self.status), len(self.amplitude)}
+        if len(n) != 1:
             raise ValueError(
-                "`positions`, `response` and `status` must have the same length, got "
-                f"{len(self.positions)}, {len(self.response)} and {len(self.status)}."
+                "`positions`, `response`, `status` and `amplitude` must have the same length, "
+                f"got {len(self.positions)}, {len(self.response)}, {len(self.status)} and "
+                f"{len(self.amplitude)}."
             )
 
     def __len__(self) -> int:
@@ -192,10 +201,23 @@ def detect_beads(
     peaks, strength = peaks[order], strength[order]
     peaks, strength = _merge_secondary_maxima(peaks, strength, r)
 
-    beads = Beads(peaks.astype(np.float64), strength)
+    beads = Beads(peaks.astype(np.float64), strength,
+                  amplitude=peak_amplitude(img, peaks, int(np.ceil(r))))
     flag_unusable(beads, img, r, saturation=saturation, border=border,
                   min_separation=min_separation)
     return beads
+
+
+def peak_amplitude(image: np.ndarray, peaks: np.ndarray, half: int) -> np.ndarray:
+    """Peak value above the median of the edge of a ``(2 half + 1)`` window, shape (M,)."""
+    from .centering import gather_windows
+
+    if len(peaks) == 0:
+        return np.zeros(0)
+    win = gather_windows(image, np.asarray(peaks, dtype=np.float64), half)
+    edge = np.concatenate([win[:, 0, :], win[:, -1, :], win[:, 1:-1, 0], win[:, 1:-1, -1]],
+                          axis=1)
+    return (win[:, half, half] - np.median(edge, axis=1)).astype(np.float64)
 
 
 def _merge_secondary_maxima(peaks, strength, r):

@@ -180,7 +180,8 @@ def iter_estimate(
     if beads is None:
         beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
     else:
-        beads = Beads(beads.positions.copy(), beads.response.copy(), beads.status.copy())
+        beads = Beads(beads.positions.copy(), beads.response.copy(), beads.status.copy(),
+                      beads.amplitude.copy())
         if saturation is None and raw.dtype.kind in "ui":
             saturation = float(np.iinfo(raw.dtype).max)
         flag_unusable(beads, img, r, saturation=saturation, border=np.ceil(1.2 * r) + 2,

@@ -1,0 +1,97 @@
+"""npe2 readers: model files (``.npz``) and TIFF images with their pixel size.
+
+No napari import: readers return layer-data tuples.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+
+import numpy as np
+
+from .core.operator import FORMAT_NAME, load_operator
+
+
+def _single_path(path) -> str | None:
+    if isinstance(path, (list, tuple)):
+        if len(path) != 1:
+            return None
+        path = path[0]
+    return os.fspath(path) if isinstance(path, (str, os.PathLike)) else None
+
+
+def is_model_file(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a napari-psfspace model: an .npz whose header has our format."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "header" not in data.files:
+                return False
+            raw = data["header"]
+            if raw.dtype != np.uint8 or raw.ndim != 1:
+                return False
+            header = json.loads(raw.tobytes().decode("utf-8"))
+    except (OSError, ValueError, EOFError, UnicodeDecodeError, AttributeError, TypeError):
+        return False
+    return isinstance(header, dict) and header.get("format") == FORMAT_NAME
+
+
+def get_model_reader(path) -> Callable | None:
+    """npe2 reader contribution for model files; None for anything else."""
+    p = _single_path(path)
+    if p is None or not p.lower().endswith(".npz") or not is_model_file(p):
+        return None
+    return read_model
+
+
+def read_model(path) -> list[tuple]:
+    """Layer-data tuples of a model: PSF-grid mosaic, basis stack, coefficient maps.
+
+    The maps get the model's pixel size (``metadata["pixel_size_um"]``) as scale when
+    it is known; the PSF-grid layer carries the operator, so saving that layer as
+    ``.npz`` writes the model back.
+    """
+    from ._widgets._layers import Frame, operator_layers
+
+    p = _single_path(path)
+    op = load_operator(p)
+    px = op.metadata.get("pixel_size_um")
+    frame = Frame(op.shape, (px, px) if px else (1.0, 1.0))
+    name = os.path.splitext(os.path.basename(p))[0]
+    out = []
+    for data, kwargs, kind in operator_layers(op, frame):
+        kwargs = {**kwargs, "name": f"{kwargs['name']} [{name}]"}
+        out.append((data, kwargs, kind))
+    return out
+
+
+def get_tiff_reader(path) -> Callable | None:
+    """npe2 reader contribution: a 2-D or 3-D TIFF with its pixel size as scale."""
+    p = _single_path(path)
+    if p is None or not p.lower().endswith((".tif", ".tiff")) or not os.path.isfile(p):
+        return None
+    return read_tiff
+
+
+def read_tiff(path) -> list[tuple]:
+    """A TIFF as an image layer scaled in micrometres (z spacing for stacks).
+
+    napari's builtin reader ignores the pixel size; this one reads it from the ImageJ
+    metadata or the resolution tags (see :func:`napari_psfspace.io.read_image`).
+    """
+    import tifffile
+
+    from .io import read_image
+
+    p = _single_path(path)
+    with tifffile.TiffFile(p) as tif:
+        data = tif.series[0].asarray()
+    data = np.squeeze(data) if data.ndim > 3 else data
+    _, info = read_image(p, index=0) if data.ndim == 3 else read_image(p)
+    px = info.pixel_size
+    meta = {"pixel_size_um": px, "z_spacing_um": info.z_spacing}
+    kwargs = {"name": os.path.splitext(os.path.basename(p))[0], "metadata": meta}
+    if px:
+        kwargs["scale"] = ((info.z_spacing or px, px, px) if data.ndim == 3 else (px, px))
+    return [(data, kwargs, "image")]

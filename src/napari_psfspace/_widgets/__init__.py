@@ -1,0 +1,24 @@
+"""napari dock widgets over the headless core: pick beads, review patches, learn.
+
+One module per dock widget; ``_layers`` converts between layers and core objects and
+``_worker`` runs core generators off the GUI thread. The manifest (``napari.yaml``)
+names the classes directly, so importing this package stays cheap.
+"""
+
+__all__ = ["LearnOperatorWidget", "PickBeadsWidget", "ReviewPatchesWidget"]
+
+
+def __getattr__(name: str):
+    if name == "PickBeadsWidget":
+        from ._pick_beads import PickBeadsWidget
+
+        return PickBeadsWidget
+    if name == "ReviewPatchesWidget":
+        from ._review_patches import ReviewPatchesWidget
+
+        return ReviewPatchesWidget
+    if name == "LearnOperatorWidget":
+        from ._learn_operator import LearnOperatorWidget
+
+        return LearnOperatorWidget
+    raise AttributeError(name)

@@ -1,0 +1,353 @@
+"""Conversions between napari layers and the core's objects.
+
+Layer data travel as napari *layer-data tuples* ``(data, kwargs, layer_type)``, so this
+module imports neither napari nor Qt (the model reader uses it too). Layers are read
+duck-typed (``layer.data``, ``layer.scale``, ``layer.features``).
+
+Layout of the result layers in world coordinates (the image's units), so that nothing
+hides anything else::
+
+    [ image | coefficient maps (on the image) ]  [ PSF grid mosaic ]  [ PSF basis ]
+    [ patch gallery                            ]  [ PSF at (y, x)   ]
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ..core.detect import KEPT, STATUSES, Beads
+from ..core.mosaic import mosaic
+
+#: Status given by a user who rejects a bead in the review (not used for the model).
+REJECTED = "rejected"
+#: Every status a bead of the Points layer can have.
+ALL_STATUSES = (*STATUSES, REJECTED)
+#: Ring colour of each status in the Points layer.
+STATUS_COLORS = {
+    "kept": "#3cff3c",
+    "saturated": "#ff9900",
+    "border": "#ffe135",
+    "neighbour": "#29c8ff",
+    "faint": "#a0a0a0",
+    "outlier": "#ff40ff",
+    REJECTED: "#ff2020",
+}
+#: Human-readable meaning of each status (shown in the widgets).
+STATUS_MEANING = {
+    "kept": "kept",
+    "saturated": "saturated",
+    "border": "too close to the border",
+    "neighbour": "too close to a neighbour",
+    "faint": "no signal above the background",
+    "outlier": "z-score outlier",
+    REJECTED: "rejected by hand",
+}
+#: Names of the layers the plugin creates.
+BEADS = "beads"
+GALLERY = "bead patches"
+PSF_GRID = "PSF grid"
+BASIS = "PSF basis h_i"
+MAPS = "coefficient maps alpha_i"
+HELDOUT = "held-out residual"
+PSF_AT = "PSF at position"
+#: Key of the layer metadata that holds the operator (read by the model writer).
+OPERATOR_KEY = "psfspace_operator"
+
+LayerTuple = tuple[Any, dict, str]
+
+
+@dataclass(frozen=True)
+class Frame:
+    """Where an image lies in world coordinates.
+
+    Attributes
+    ----------
+    shape : tuple of int
+        (rows, columns) of the image plane.
+    scale : tuple of float
+        World units per pixel along rows and columns (micrometres when known).
+    translate : tuple of float
+        World position of pixel (0, 0).
+    """
+
+    shape: tuple[int, int]
+    scale: tuple[float, float] = (1.0, 1.0)
+    translate: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def height(self) -> float:
+        return self.shape[0] * self.scale[0]
+
+    @property
+    def width(self) -> float:
+        return self.shape[1] * self.scale[1]
+
+    @property
+    def pixel_size(self) -> float | None:
+        """Pixel size in micrometres, or None for a unit (uncalibrated) scale."""
+        return None if np.allclose(self.scale, 1.0) else float(self.scale[-1])
+
+
+def image_plane(layer, world_point=None) -> tuple[np.ndarray, Frame]:
+    """The 2-D plane of an image layer and its frame, as plain values.
+
+    Parameters
+    ----------
+    layer : napari.layers.Image
+        A 2-D image, or a 3-D stack (Z, Y, X) of which the slice at ``world_point`` is taken.
+    world_point : sequence of float, optional
+        The viewer's current point (``viewer.dims.point``), used for stacks.
+
+    Returns
+    -------
+    plane : ndarray of shape (M, N)
+        A copy, safe to hand to a worker thread.
+    frame : Frame
+
+    Raises
+    ------
+    ValueError
+        An RGB image, or more than 3 dimensions.
+    """
+    if getattr(layer, "rgb", False):
+        raise ValueError(f"Layer {layer.name!r} is an RGB image: choose a single-channel "
+                         "bead image (split the channels first).")
+    data = np.asarray(layer.data)
+    scale, translate = np.asarray(layer.scale, float), np.asarray(layer.translate, float)
+    if data.ndim == 3:
+        z = 0
+        if world_point is not None:
+            z = int(round((float(world_point[-3]) - translate[0]) / scale[0]))
+        data = data[int(np.clip(z, 0, data.shape[0] - 1))]
+    elif data.ndim != 2:
+        raise ValueError(f"Layer {layer.name!r} has {data.ndim} dimensions: choose a 2-D "
+                         "bead image or a 3-D stack (Z, Y, X).")
+    frame = Frame(tuple(data.shape), tuple(scale[-2:].tolist()), tuple(translate[-2:].tolist()))
+    return np.array(data, copy=True), frame
+
+
+# ------------------------------------------------------------------ beads <-> Points
+def beads_layer(beads: Beads, frame: Frame, psf_radius: float, *,
+                name: str = BEADS) -> LayerTuple:
+    """Points layer-data tuple of detected beads, coloured by status.
+
+    The features are ``id`` (0..M-1), ``amplitude`` and ``status`` (categorical over
+    :data:`ALL_STATUSES`); a point added by hand gets status "kept" (its id is set by
+    :func:`fix_ids`).
+    """
+    features = {
+        "id": np.arange(len(beads), dtype=np.int64),
+        "amplitude": np.asarray(beads.amplitude, float),
+        "status": _categorical(beads.status),
+    }
+    kwargs = {
+        "name": name,
+        "features": features,
+        "feature_defaults": {"id": -1, "amplitude": np.nan, "status": KEPT},
+        "scale": frame.scale,
+        "translate": frame.translate,
+        "size": 2.0 * float(psf_radius),
+        "symbol": "ring",
+        "face_color": "status",
+        "face_color_cycle": STATUS_COLORS,
+        "border_width": 0,
+        "opacity": 0.9,
+    }
+    return beads.positions.copy(), kwargs, "points"
+
+
+def _categorical(status):
+    import pandas as pd
+
+    return pd.Categorical(np.asarray(status, dtype=str), categories=list(ALL_STATUSES))
+
+
+def fix_ids(ids) -> np.ndarray:
+    """Give every missing (negative, NaN) or repeated id a new one above the maximum.
+
+    Parameters
+    ----------
+    ids : array_like of shape (M,)
+
+    Returns
+    -------
+    ndarray of shape (M,), int64
+        The first occurrence of an id keeps it.
+    """
+    ids = np.asarray(ids, dtype=float)
+    out = np.where(np.isfinite(ids), ids, -1).astype(np.int64)
+    seen: set[int] = set()
+    nxt = int(out.max(initial=-1)) + 1
+    for k, v in enumerate(out):
+        if v < 0 or v in seen:
+            out[k] = nxt
+            nxt += 1
+        seen.add(int(out[k]))
+    return out
+
+
+def beads_from_points(layer, frame: Frame) -> tuple[Beads, np.ndarray]:
+    """The Points layer as a :class:`Beads` table in the image's pixel coordinates.
+
+    Parameters
+    ----------
+    layer : napari.layers.Points
+        Points edited by hand or not; features ``status`` (default "kept") and
+        ``amplitude`` / ``id`` when present.
+    frame : Frame
+        The image the beads belong to (points are mapped through world coordinates,
+        so a Points layer with another scale works).
+
+    Returns
+    -------
+    beads : Beads
+    ids : ndarray of shape (M,), int64
+    """
+    data = np.asarray(layer.data, float)[:, -2:]
+    world = data * np.asarray(layer.scale, float)[-2:] + np.asarray(layer.translate, float)[-2:]
+    pos = (world - np.asarray(frame.translate)) / np.asarray(frame.scale)
+    feats = layer.features
+    n = len(pos)
+    status = (np.asarray(feats["status"], dtype=str) if "status" in feats
+              else np.full(n, KEPT))
+    status = np.where(np.isin(status, ALL_STATUSES), status, KEPT)
+    amp = np.asarray(feats["amplitude"], float) if "amplitude" in feats else np.full(n, np.nan)
+    ids = fix_ids(feats["id"]) if "id" in feats else np.arange(n)
+    return Beads(pos, np.full(n, np.nan), status, amp), ids
+
+
+def set_statuses(layer, ids, status) -> None:
+    """Set the ``status`` of the points with the given ids and refresh their colours."""
+    feats = layer.features
+    where = {int(v): k for k, v in enumerate(np.asarray(feats["id"]))}
+    col = np.asarray(feats["status"], dtype=object)
+    for i, s in zip(np.asarray(ids).tolist(), np.asarray(status).tolist(), strict=True):
+        if int(i) in where:
+            col[where[int(i)]] = str(s)
+    feats["status"] = _categorical(col)
+    layer.features = feats
+    layer.refresh_colors(update_color_mapping=False)
+
+
+# ------------------------------------------------------------------ results
+def _beside(frame: Frame, column: float, row: float = 0.0) -> tuple[float, float]:
+    gap = 0.04 * max(frame.height, frame.width)
+    return (frame.translate[0] + row * (frame.height + gap),
+            frame.translate[1] + column * (frame.width + gap))
+
+
+def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
+    """Layer-data tuples showing a model: PSF grid mosaic, basis stack, coefficient maps.
+
+    Parameters
+    ----------
+    op : ProductConvolution
+    frame : Frame
+        The image's frame (the maps get its scale and position).
+    grid : int
+        The PSF mosaic shows ``grid x grid`` field positions.
+
+    Returns
+    -------
+    list of (data, kwargs, layer_type)
+        The PSF-grid layer's metadata holds the operator under :data:`OPERATOR_KEY`,
+        which the model writer saves.
+    """
+    ys, xs, psfs = op.psf_grid(grid, grid)
+    tiles = mosaic(psfs, gap=1, normalize="each", gamma=0.5)
+    s_mosaic = frame.height / tiles.shape[0]
+    y0, x0 = _beside(frame, 1.0)
+    meta = {OPERATOR_KEY: op, "pixel_size_um": frame.pixel_size,
+            "psf_grid_rows": ys.tolist(), "psf_grid_columns": xs.tolist(),
+            "about": f"PSF at {grid}x{grid} field positions, each scaled to its maximum, "
+                     "gamma 0.5. Save this layer as .npz to save the model."}
+    basis = np.asarray(op.basis, np.float32)
+    s_basis = 0.45 * frame.height / basis.shape[-1]
+    maps = op.coefficient_maps()
+    return [
+        (maps, {"name": MAPS, "scale": (1.0, *frame.scale),
+                "translate": (0.0, *frame.translate),
+                "colormap": "viridis", "opacity": 0.8, "visible": False,
+                "metadata": {"about": "alpha_i: weight of h_i at each pixel"}}, "image"),
+        (tiles.astype(np.float32), {"name": PSF_GRID, "scale": (s_mosaic, s_mosaic),
+                                    "translate": (y0, x0), "colormap": "magma",
+                                    "metadata": meta}, "image"),
+        (basis, {"name": BASIS, "scale": (1.0, s_basis, s_basis),
+                 "translate": (0.0, y0, x0 + tiles.shape[1] * s_mosaic + 0.04 * frame.width),
+                 "colormap": "twilight_shifted",
+                 "contrast_limits": _symmetric(basis),
+                 "metadata": {"about": "orthonormal PSF basis h_i (slider: i)"}}, "image"),
+    ]
+
+
+def _symmetric(a: np.ndarray) -> tuple[float, float]:
+    m = float(np.abs(a).max()) or 1.0
+    return (-m, m)
+
+
+def heldout_layer(heldout, frame: Frame) -> LayerTuple:
+    """Points at the held-out beads, coloured by their residual (``HeldoutResiduals``)."""
+    features = {"residual": np.asarray(heldout.residual, float),
+                "noise_floor": np.asarray(heldout.noise_floor, float)}
+    return (np.asarray(heldout.positions, float),
+            {"name": HELDOUT, "features": features, "scale": frame.scale,
+             "translate": frame.translate, "size": 20, "symbol": "square",
+             "face_color": "residual", "face_colormap": "plasma", "border_width": 0,
+             "opacity": 0.6, "text": {"string": "{residual:.2f}", "color": "white",
+                                      "size": 8, "anchor": "upper_left"}},
+            "points")
+
+
+def psf_layer(psf: np.ndarray, y: float, x: float, frame: Frame) -> LayerTuple:
+    """The PSF at pixel (y, x) as an image layer (saved as TIFF by the plugin's writer)."""
+    y0, x0 = _beside(frame, 1.0, 1.0)
+    s = 0.45 * frame.height / psf.shape[-1]
+    return (np.asarray(psf, np.float32),
+            {"name": PSF_AT, "scale": (s, s), "translate": (y0, x0), "colormap": "magma",
+             "metadata": {"pixel_size_um": frame.pixel_size, "psf_row": float(y),
+                          "psf_column": float(x)}}, "image")
+
+
+def gallery_layer(stack: np.ndarray, frame: Frame, *, view: str) -> LayerTuple:
+    """The patches (K, P, P) as a stack below the image (slider: bead)."""
+    y0, x0 = _beside(frame, 0.0, 1.0)
+    s = 0.45 * frame.height / stack.shape[-1]
+    return (np.asarray(stack, np.float32),
+            {"name": GALLERY, "scale": (1.0, s, s), "translate": (0.0, y0, x0),
+             "colormap": "gray",
+             "metadata": {"view": view}}, "image")
+
+
+def show_layers(viewer, tuples: list[LayerTuple]) -> list:
+    """Add the layers to the viewer, or update those of the same name in place."""
+    out = []
+    for data, kwargs, kind in tuples:
+        name = kwargs["name"]
+        if name in viewer.layers and type(viewer.layers[name]).__name__.lower() == kind:
+            layer = viewer.layers[name]
+            if np.ndim(layer.data) != np.ndim(data) and kind == "image":
+                viewer.layers.remove(layer)
+            else:
+                _update(layer, data, kwargs)
+                out.append(layer)
+                continue
+        out.append(getattr(viewer, f"add_{kind}")(data, **kwargs))
+    return out
+
+
+def _update(layer, data, kwargs: dict) -> None:
+    if "features" in kwargs:  # points: data and features must change together
+        layer.data = data
+        layer.features = kwargs["features"]
+    else:
+        layer.data = data
+    for key in ("scale", "translate", "metadata", "contrast_limits"):
+        if key in kwargs:
+            setattr(layer, key, kwargs[key])
+    if "contrast_limits" not in kwargs and hasattr(layer, "reset_contrast_limits"):
+        layer.reset_contrast_limits()
+    if hasattr(layer, "refresh_colors"):
+        layer.refresh_colors()

@@ -1,0 +1,185 @@
+"""Dock widget 3: learn the product-convolution operator, show it, save it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    PushButton,
+    SpinBox,
+)
+from napari.layers import Image, Points
+from napari.utils.notifications import show_info
+
+from ..core.estimate import iter_estimate
+from ..core.operator import ProductConvolution
+from ._layers import (
+    PSF_GRID,
+    beads_from_points,
+    beads_layer,
+    heldout_layer,
+    image_plane,
+    operator_layers,
+    psf_layer,
+    set_statuses,
+    show_layers,
+)
+from ._worker import CoreTask, RadiusEdit, layer_choices
+
+if TYPE_CHECKING:
+    import napari
+
+N_PSF_MODES = {"auto (held-out beads)": None, "auto (rank rule)": "rule", "fixed": "fixed"}
+
+
+def _learn(plane, frame, source: str, **kwargs):
+    """iter_estimate, then stamp the image's pixel size and name on the model."""
+    est = yield from iter_estimate(plane, **kwargs)
+    op = est.operator
+    meta = {**op.metadata, "pixel_size_um": frame.pixel_size, "image": source}
+    est.operator = ProductConvolution(op.basis, op.coefficients, shape=op.shape,
+                                      grid=op.grid, metadata=meta)
+    return est
+
+
+class LearnOperatorWidget(Container):
+    """Learn the space-varying PSF from the beads of a Points layer and save the model.
+
+    Shows the PSF basis ``h_i`` (a stack), the coefficient maps ``alpha_i`` (a stack
+    over the image, hidden at first), a mosaic of the PSF at 8x8 field positions and the
+    held-out residual of each held-out bead.
+    """
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        self._viewer = viewer
+        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.points = ComboBox(label="beads", choices=self._points_choices)
+        self.radius = RadiusEdit()
+        self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
+                                      label="threshold", visible=False)
+        self.n_psf_mode = ComboBox(label="basis size I", choices=list(N_PSF_MODES))
+        self.n_psf = SpinBox(value=4, min=1, max=50, label="I", visible=False)
+        self.auto_smoothing = CheckBox(value=True, text="automatic smoothing")
+        self.smoothing = FloatSpinBox(value=1e-3, min=0.0, max=1e6, step=1e-3,
+                                      label="smoothing", visible=False)
+        self.smoothing.tooltip = "Thin-plate smoothing eta (0 interpolates the beads)."
+        self.save_path = FileEdit(mode="w", filter="*.npz", label="save model to")
+        self.learn = PushButton(text="Learn operator")
+        self.task = CoreTask(self.learn)
+        self.result = Label(value="")
+        self.psf_y = FloatSpinBox(label="PSF at row", min=0.0, max=1e9, step=1.0)
+        self.psf_x = FloatSpinBox(label="PSF at column", min=0.0, max=1e9, step=1.0)
+        self.show_psf = PushButton(text="Show PSF at this position", enabled=False)
+        super().__init__(widgets=[
+            self.image, self.points, self.radius, self.threshold, self.n_psf_mode,
+            self.n_psf, self.auto_smoothing, self.smoothing, self.save_path, self.learn,
+            self.task, self.result, self.psf_y, self.psf_x, self.show_psf])
+        self.operator: ProductConvolution | None = None
+        self._frame = None
+        self.n_psf_mode.changed.connect(
+            lambda v: setattr(self.n_psf, "visible", v == "fixed"))
+        self.auto_smoothing.changed.connect(
+            lambda v: setattr(self.smoothing, "visible", not v))
+        self.points.changed.connect(self._on_inputs)
+        self.image.changed.connect(self._on_inputs)
+        self.learn.changed.connect(self.run)
+        self.show_psf.changed.connect(self.psf_here)
+        viewer.layers.events.inserted.connect(self.reset_choices)
+        viewer.layers.events.removed.connect(self.reset_choices)
+        self.reset_choices()
+        self._on_inputs()
+
+    def _points_choices(self, _widget=None) -> list:
+        return [("(detect automatically)", None),
+                *layer_choices(self._viewer, Points)()]
+
+    def _on_inputs(self, *_) -> None:
+        img, pts = self.image.value, self.points.value
+        self.threshold.visible = pts is None
+        if img is None:
+            return
+        meta = img.metadata or {}
+        scale = float(img.scale[-1])
+        px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
+        r = (pts.metadata or {}).get("psf_radius_px") if pts is not None else None
+        self.radius.set_calibration(px, r if r is not None else meta.get("psf_radius"))
+        src = getattr(getattr(img, "source", None), "path", None)
+        folder = Path(src).parent if src else Path.cwd()
+        stem = Path(src).stem if src else img.name.replace(" ", "_")
+        self.save_path.value = folder / f"{stem}_psf_model.npz"
+        h, w = img.data.shape[-2:]
+        self.psf_y.value, self.psf_x.value = (h - 1) / 2, (w - 1) / 2
+
+    def run(self, *_) -> None:
+        """Learn the operator in a worker thread; show and save it when done."""
+        img, pts = self.image.value, self.points.value
+        if img is None:
+            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+            return
+        try:
+            plane, frame = image_plane(img, self._viewer.dims.point)
+        except ValueError as exc:
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            return
+        beads, ids = beads_from_points(pts, frame) if pts is not None else (None, None)
+        mode = N_PSF_MODES[self.n_psf_mode.value]
+        n_psf = int(self.n_psf.value) if mode == "fixed" else mode
+        smoothing = None if self.auto_smoothing.value else float(self.smoothing.value)
+        path = Path(self.save_path.value) if str(self.save_path.value) not in ("", ".") else None
+        r = self.radius.pixels
+        gen = _learn(plane, frame, img.name, psf_radius=r, n_psf=n_psf, smoothing=smoothing,
+                     threshold=float(self.threshold.value), beads=beads)
+
+        def on_result(est) -> None:
+            self.operator, self._frame = est.operator, frame
+            if pts is None:
+                show_layers(self._viewer, [beads_layer(est.beads, frame, r)])
+            else:
+                set_statuses(pts, ids, est.beads.status)
+            tuples = operator_layers(est.operator, frame)
+            if est.heldout is not None and len(est.heldout.residual):
+                tuples.append(heldout_layer(est.heldout, frame))
+            show_layers(self._viewer, tuples)
+            self._viewer.layers.selection.active = self._viewer.layers[PSF_GRID]
+            self.show_psf.enabled = True
+            self.result.value = self._describe(est)
+            if path is not None:
+                est.operator.save(path)
+                show_info(f"Model saved to {path}")
+                self.result.value += f"\nsaved to {path}"
+
+        self.task.run(gen, on_result)
+
+    @staticmethod
+    def _describe(est) -> str:
+        meta = est.operator.metadata
+        text = (f"basis of I = {meta['n_psf']} PSFs from {meta['n_beads_used']} beads\n"
+                f"{est.beads.summary()}")
+        h = meta.get("heldout") or {}
+        if h.get("n_beads"):
+            text += (f"\nheld-out residual {h['residual_mean']:.3f} on {h['n_beads']} beads "
+                     f"(noise floor {h['noise_floor_mean']:.3f})")
+        return text
+
+    def psf_here(self, *_) -> None:
+        """Show the PSF at (row, column) as a layer (File > Save Layer... writes a TIFF)."""
+        if self.operator is None:
+            return
+        y, x = float(self.psf_y.value), float(self.psf_x.value)
+        try:
+            psf = self.operator.psf_at(y, x)
+        except ValueError as exc:
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            return
+        show_layers(self._viewer, [psf_layer(psf, y, x, self._frame)])

@@ -1,0 +1,123 @@
+"""Dock widget 1: detect beads into a Points layer the user can edit."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
+from napari.layers import Image
+
+from ..core.detect import detect_beads
+from ..core.estimate import Progress
+from ._layers import (
+    BEADS,
+    STATUS_COLORS,
+    STATUS_MEANING,
+    beads_layer,
+    fix_ids,
+    image_plane,
+    show_layers,
+)
+from ._worker import CoreTask, RadiusEdit, layer_choices
+
+if TYPE_CHECKING:
+    import napari
+
+DEFAULT_RADIUS_PX = 10.0
+
+
+def _detect(plane, psf_radius: float, threshold: float):
+    yield Progress("detect", 0.1, "detecting beads...")
+    return detect_beads(plane, psf_radius, threshold=threshold)
+
+
+def legend_html() -> str:
+    """Coloured status legend for a Label."""
+    return "<br>".join(f'<span style="color:{STATUS_COLORS[s]}">&#9711;</span> '
+                       f"{STATUS_MEANING[s]}" for s in STATUS_COLORS)
+
+
+def watch_points(layer) -> None:
+    """Give points added by hand status "kept" (feature default) and a new unique id."""
+    if getattr(layer, "_psfspace_watched", False):
+        return
+
+    def on_data(event=None) -> None:
+        if getattr(event, "action", "added") not in ("added", None):
+            return
+        feats = layer.features
+        if "id" in feats and len(feats):
+            ids = fix_ids(feats["id"])
+            if (ids != feats["id"].to_numpy()).any():
+                feats["id"] = ids
+                layer.features = feats
+
+    layer.events.data.connect(on_data)
+    layer._psfspace_watched = True
+
+
+class PickBeadsWidget(Container):
+    """Detect beads in an image layer; the result is a Points layer named "beads".
+
+    Each point has the features ``id``, ``amplitude`` and ``status`` (its colour). Add,
+    delete or move points with napari's Points tools: the other widgets read the layer.
+    """
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        self._viewer = viewer
+        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.radius = RadiusEdit()
+        self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
+                                      label="threshold")
+        self.threshold.tooltip = ("Detection threshold in noise standard deviations of the "
+                                  "filtered image: lower finds fainter beads.")
+        self.detect = PushButton(text="Detect beads")
+        self.task = CoreTask(self.detect)
+        self.legend = Label(value=legend_html())
+        self.help = Label(value="Edit the points by hand: add (+), delete, move.\n"
+                                "Rejected beads are not used to learn the PSF.")
+        super().__init__(widgets=[self.image, self.radius, self.threshold, self.detect,
+                                  self.task, self.legend, self.help])
+        self.image.changed.connect(self._on_image)
+        self.detect.changed.connect(self.run)
+        viewer.layers.events.inserted.connect(self.reset_choices)
+        viewer.layers.events.removed.connect(self.reset_choices)
+        self.reset_choices()
+        self._on_image()
+
+    def _on_image(self, *_) -> None:
+        layer = self.image.value
+        if layer is None:
+            return
+        meta = layer.metadata or {}
+        scale = float(layer.scale[-1])
+        px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
+        self.radius.set_calibration(px, meta.get("psf_radius", DEFAULT_RADIUS_PX))
+
+    def run(self, *_) -> None:
+        """Detect beads in the chosen image (in a worker thread)."""
+        layer = self.image.value
+        if layer is None:
+            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+            return
+        try:
+            plane, frame = image_plane(layer, self._viewer.dims.point)
+        except ValueError as exc:
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            return
+        r = self.radius.pixels
+
+        def on_result(beads) -> None:
+            (points,) = show_layers(self._viewer, [beads_layer(beads, frame, r)])
+            points.metadata.update({"psf_radius_px": r, "image": layer.name,
+                                    "threshold": float(self.threshold.value)})
+            watch_points(points)
+            self._viewer.layers.selection.active = points
+            self.task.status.value = beads.summary()
+
+        self.task.run(_detect(plane, r, float(self.threshold.value)), on_result)
+
+
+__all__ = ["BEADS", "PickBeadsWidget"]

@@ -1,0 +1,158 @@
+"""Dock widget 2: review the bead patches, accept or reject beads."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+from magicgui.widgets import ComboBox, Container, Label, PushButton, SpinBox
+from napari.layers import Image, Points
+
+from ..core.review import VIEWS, PatchReview, iter_patch_review
+from ._layers import (
+    GALLERY,
+    REJECTED,
+    STATUS_MEANING,
+    beads_from_points,
+    gallery_layer,
+    image_plane,
+    set_statuses,
+    show_layers,
+)
+from ._worker import CoreTask, RadiusEdit, layer_choices
+
+if TYPE_CHECKING:
+    import napari
+
+
+class ReviewPatchesWidget(Container):
+    """A gallery of bead patches (a stack: the slider picks the bead) with their flags.
+
+    Accept / Reject set the bead's status in the Points layer, which the operator
+    learning reads. Views: raw, background removed, windowed.
+    """
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        self._viewer = viewer
+        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.points = ComboBox(label="beads", choices=layer_choices(viewer, Points))
+        self.radius = RadiusEdit()
+        self.extract = PushButton(text="Extract patches")
+        self.task = CoreTask(self.extract)
+        self.view = ComboBox(label="view", choices=list(VIEWS), value="background removed")
+        self.patch = SpinBox(label="patch", min=0, max=0, enabled=False)
+        self.info = Label(value="")
+        self.accept = PushButton(text="Accept bead", enabled=False)
+        self.reject = PushButton(text="Reject bead", enabled=False)
+        super().__init__(widgets=[
+            self.image, self.points, self.radius, self.extract, self.task, self.view,
+            self.patch, self.info, Container(widgets=[self.accept, self.reject],
+                                             layout="horizontal", labels=False)])
+        self.review: PatchReview | None = None
+        self._ids = np.zeros(0, np.int64)
+        self._frame = None
+        self.extract.changed.connect(self.run)
+        self.view.changed.connect(self._show_gallery)
+        self.patch.changed.connect(self._go_to)
+        self.accept.changed.connect(lambda: self.set_status("kept"))
+        self.reject.changed.connect(lambda: self.set_status(REJECTED))
+        self.points.changed.connect(self._on_points)
+        self.image.changed.connect(self._on_points)
+        viewer.dims.events.current_step.connect(self._on_step)
+        viewer.layers.events.inserted.connect(self.reset_choices)
+        viewer.layers.events.removed.connect(self.reset_choices)
+        self.reset_choices()
+        self._on_points()
+
+    def _on_points(self, *_) -> None:
+        img, pts = self.image.value, self.points.value
+        px = None
+        if img is not None:
+            scale = float(img.scale[-1])
+            px = (img.metadata or {}).get("pixel_size_um") or (scale if scale != 1.0 else None)
+        r = None if pts is None else (pts.metadata or {}).get("psf_radius_px")
+        if r is None and img is not None:
+            r = (img.metadata or {}).get("psf_radius")
+        self.radius.set_calibration(px, r)
+
+    def run(self, *_) -> None:
+        """Extract the patches of the beads of the Points layer (in a worker thread)."""
+        img, pts = self.image.value, self.points.value
+        if img is None or pts is None:
+            self.task.status.value = "Choose an image and its beads (Pick beads first)."
+            return
+        try:
+            plane, frame = image_plane(img, self._viewer.dims.point)
+        except ValueError as exc:
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            return
+        beads, ids = beads_from_points(pts, frame)
+        gen = iter_patch_review(plane, beads, self.radius.pixels)
+
+        def on_result(review: PatchReview) -> None:
+            self.review, self._ids, self._frame = review, ids[review.index], frame
+            self._show_gallery()
+            self.patch.max = len(review) - 1
+            self.patch.enabled = self.accept.enabled = self.reject.enabled = True
+            self.task.status.value = f"{len(review)} patches; the slider or 'patch' picks one."
+            self._go_to()
+
+        self.task.run(gen, on_result)
+
+    def _show_gallery(self, *_) -> None:
+        if self.review is None:
+            return
+        stack = self.review.views[self.view.value]
+        show_layers(self._viewer, [gallery_layer(stack, self._frame, view=self.view.value)])
+
+    def current(self) -> int:
+        """Index of the patch on display."""
+        return int(self.patch.value)
+
+    def _go_to(self, *_) -> None:
+        if self.review is None:
+            return
+        k = self.current()
+        if int(round(self._viewer.dims.point[0])) != k and self._viewer.dims.ndim >= 3:
+            self._viewer.dims.set_point(0, k)
+        self._describe(k)
+
+    def _on_step(self, *_) -> None:
+        if self.review is None or GALLERY not in self._viewer.layers:
+            return
+        k = int(np.clip(round(self._viewer.dims.point[0]), 0, len(self.review) - 1))
+        if k != self.current():
+            self.patch.value = k
+
+    def _status_of(self, bead_id: int) -> str:
+        pts = self.points.value
+        if pts is None:
+            return "deleted"
+        hit = np.flatnonzero(np.asarray(pts.features["id"]) == bead_id)
+        return str(pts.features["status"].iloc[hit[0]]) if len(hit) else "deleted"
+
+    def _describe(self, k: int) -> None:
+        bead_id = int(self._ids[k])
+        status = self._status_of(bead_id)
+        flags = self.review.flags(k)
+        z = self.review.zscore[k]
+        text = (f"bead {bead_id} ({k + 1}/{len(self.review)}): "
+                f"{STATUS_MEANING.get(status, status)}"
+                + ("" if np.isnan(z) else f", z = {z:.1f}")
+                + ("\nflags: " + ", ".join(flags) if flags else "\nno flags"))
+        self.info.value = text
+        self._viewer.text_overlay.text = text
+        self._viewer.text_overlay.visible = True
+        pts = self.points.value
+        if pts is not None:
+            rows = np.flatnonzero(np.asarray(pts.features["id"]) == bead_id)
+            pts.selected_data = set(rows.tolist())
+
+    def set_status(self, status: str) -> None:
+        """Accept ("kept") or reject the bead on display, in the Points layer."""
+        if self.review is None or self.points.value is None:
+            return
+        set_statuses(self.points.value, [int(self._ids[self.current()])], [status])
+        self._describe(self.current())

@@ -1,0 +1,214 @@
+"""Run a core generator off the GUI thread with a progress bar, a Cancel button and
+notifications.
+
+The core's long computations are generators that yield
+:class:`~napari_psfspace.core.estimate.Progress` records and return their result. A
+:class:`CoreTask` runs one with :func:`napari.qt.threading.thread_worker`:
+
+* ``yielded`` moves the progress bar and the status line;
+* Cancel calls ``worker.quit()``: the generator stops at its next ``yield`` and the
+  result handler is never called (so nothing is added or saved);
+* a ``ValueError`` from the core (bad parameter, no beads, ...) is caught *in the
+  worker* and shown with :func:`napari.utils.notifications.show_error` as its message,
+  which says what to change, never as a traceback;
+* the result handler runs in the GUI thread (``returned``): only it touches the viewer.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import dataclass
+from typing import Any
+
+from magicgui.widgets import Container, Label, ProgressBar, PushButton
+from napari.qt.threading import GeneratorWorker, thread_worker
+from napari.utils.notifications import show_error
+
+
+@dataclass(frozen=True)
+class Failure:
+    """A core error caught in the worker: its message is for the user."""
+
+    message: str
+
+
+def _guarded(gen: Generator) -> Generator[Any, None, Any]:
+    try:
+        return (yield from gen)
+    except ValueError as exc:  # the core's input errors (incl. NoBeadsError)
+        return Failure(str(exc))
+
+
+class CoreTask(Container):
+    """A progress bar, a status line and a Cancel button that run one job at a time.
+
+    Parameters
+    ----------
+    start_button : PushButton
+        The button that starts the job; disabled while it runs.
+    """
+
+    def __init__(self, start_button: PushButton) -> None:
+        self._start_button = start_button
+        self.progress = ProgressBar(value=0, min=0, max=100, label="progress", visible=False)
+        self.cancel = PushButton(text="Cancel", visible=False)
+        self.status = Label(value="")
+        super().__init__(widgets=[self.progress, self.cancel, self.status], labels=False)
+        self.cancel.changed.connect(self.request_cancel)
+        self.worker: GeneratorWorker | None = None
+
+    @property
+    def running(self) -> bool:
+        """True while a job is under way."""
+        return self.worker is not None
+
+    def run(self, gen: Generator, on_result: Callable[[Any], None],
+            *, on_cancel: Callable[[], None] | None = None) -> GeneratorWorker:
+        """Run ``gen`` in a worker thread and call ``on_result(value)`` in the GUI thread.
+
+        Parameters
+        ----------
+        gen : generator
+            A core generator (not started) yielding ``Progress`` records.
+        on_result : callable
+            Receives the generator's return value unless it failed or was cancelled.
+        on_cancel : callable, optional
+            Called in the GUI thread after a cancellation.
+
+        Returns
+        -------
+        GeneratorWorker
+            Already started.
+        """
+        if self.worker is not None:
+            raise RuntimeError("a job is already running")
+        worker = thread_worker(_guarded, start_thread=False)(gen)
+        self.worker = worker
+        worker.yielded.connect(self._on_progress)
+        worker.returned.connect(lambda value: self._on_returned(value, on_result))
+        worker.aborted.connect(lambda: self._on_aborted(on_cancel))
+        worker.finished.connect(self._on_finished)
+        self.progress.value = 0
+        self.progress.visible = self.cancel.visible = True
+        self.cancel.enabled = True
+        self._start_button.enabled = False
+        self.status.value = "starting..."
+        worker.start()
+        return worker
+
+    def request_cancel(self) -> None:
+        """Ask the running job to stop at its next step."""
+        if self.worker is not None:
+            self.status.value = "cancelling..."
+            self.cancel.enabled = False
+            self.worker.quit()
+
+    def _on_progress(self, rec) -> None:
+        fraction = getattr(rec, "fraction", None)
+        if fraction is not None:
+            self.progress.value = int(round(100 * float(fraction)))
+        self.status.value = str(getattr(rec, "message", rec))
+
+    def _on_returned(self, value, on_result) -> None:
+        if isinstance(value, Failure):
+            self.status.value = "failed: see the notification"
+            show_error(value.message)
+            return
+        try:
+            on_result(value)
+        except ValueError as exc:  # e.g. saving to a bad path
+            self.status.value = "failed: see the notification"
+            show_error(str(exc))
+        except OSError as exc:
+            self.status.value = "failed: see the notification"
+            show_error(f"Could not save: {exc}")
+
+    def _on_aborted(self, on_cancel) -> None:
+        self.status.value = "cancelled: nothing was changed"
+        if on_cancel is not None:
+            on_cancel()
+
+    def _on_finished(self) -> None:
+        self.worker = None
+        self.progress.visible = self.cancel.visible = False
+        self._start_button.enabled = True
+
+
+# ------------------------------------------------------------------ shared widget parts
+def layer_choices(viewer, kind: type) -> Callable[[Any], list]:
+    """A ``choices`` callable for a ComboBox listing the viewer's layers of one kind."""
+
+    def choices(_widget=None) -> list:
+        return [(layer.name, layer) for layer in viewer.layers if isinstance(layer, kind)]
+
+    return choices
+
+
+def bead_layer_choices(viewer, *, allow_none: bool = False) -> Callable[[Any], list]:
+    """Choices for a Points ComboBox: layers with a bead ``status`` first (the default)."""
+    from napari.layers import Points
+
+    def choices(_widget=None) -> list:
+        pts = [layer for layer in viewer.layers if isinstance(layer, Points)]
+        beads = [(p.name, p) for p in pts if "status" in p.features]
+        others = [(p.name, p) for p in pts if "status" not in p.features]
+        auto = [("(detect automatically)", None)] if allow_none else []
+        return beads + auto + others
+
+    return choices
+
+
+def prefer_beads(combo) -> None:
+    """After the layers changed, select the newest bead layer unless one is chosen."""
+    value = combo.value
+    if value is not None and "status" in value.features:
+        return
+    for _name, layer in combo.choices if isinstance(combo.choices[0], tuple) else []:
+        pass
+    options = [v for v in combo.choices if v is not None and "status" in v.features]
+    if options:
+        combo.value = options[-1]
+
+
+class RadiusEdit(Container):
+    """The PSF radius, in micrometres when the image is calibrated, else in pixels.
+
+    ``pixels`` gives the value in pixels whatever the display unit.
+    """
+
+    def __init__(self, label: str = "PSF radius") -> None:
+        from magicgui.widgets import FloatSpinBox
+
+        self._pixel_size: float | None = None
+        self._base_label = label
+        self.value_edit = FloatSpinBox(value=10.0, min=0.01, max=10000.0, step=0.5,
+                                       label=f"{label} (px)")
+        self.value_edit.tooltip = (
+            "Upper bound of the PSF radius: beyond it the PSF is lost in the noise "
+            "(about 3x the FWHM). Beads closer than twice this to each other are not used.")
+        self.hint = Label(value="")
+        super().__init__(widgets=[self.value_edit, self.hint], labels=True)
+        self.value_edit.changed.connect(self._update_hint)
+
+    @property
+    def pixels(self) -> float:
+        v = float(self.value_edit.value)
+        return v / self._pixel_size if self._pixel_size else v
+
+    def set_calibration(self, pixel_size: float | None, radius_px: float | None = None) -> None:
+        """Switch units for an image with this pixel size (µm) and show ``radius_px``."""
+        r = self.pixels if radius_px is None else float(radius_px)
+        self._pixel_size = pixel_size
+        if pixel_size:
+            self.value_edit.label = f"{self._base_label} (µm)"
+            self.value_edit.step = round(float(pixel_size), 4)
+            self.value_edit.value = round(r * pixel_size, 4)
+        else:
+            self.value_edit.label = f"{self._base_label} (px)"
+            self.value_edit.step = 0.5
+            self.value_edit.value = round(r, 2)
+        self._update_hint()
+
+    def _update_hint(self, *_: Any) -> None:
+        self.hint.value = (f"= {self.pixels:.1f} px at {self._pixel_size:g} µm/px"
+                           if self._pixel_size else "")
