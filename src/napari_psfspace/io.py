@@ -103,8 +103,8 @@ def read_image(path: str | os.PathLike, *, index: int | None = None):
         best = int(np.argmax(sharpness))
         raise ValueError(
             f"{os.fspath(path)!r} is a stack of {data.shape[0]} slices of {data.shape[1:]}: "
-            f"choose one with the slice option (slice {best} has the highest contrast, "
-            "likely the one in focus)."
+            f"choose one (`index`, or --slice on the command line), e.g. --slice {best}: "
+            f"slice {best} has the highest contrast, likely the one in focus."
         )
     if not -data.shape[0] <= index < data.shape[0]:
         raise ValueError(

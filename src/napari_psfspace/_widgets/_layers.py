@@ -219,11 +219,31 @@ def beads_from_points(layer, frame: Frame) -> tuple[Beads, np.ndarray]:
     return Beads(pos, np.full(n, np.nan), status, amp), ids
 
 
+def ensure_bead_features(layer) -> None:
+    """Give a Points layer made by hand the bead features (id, amplitude, status)."""
+    feats = layer.features
+    n = len(layer.data)
+    changed = False
+    if "status" not in feats:
+        feats["status"] = _categorical(np.full(n, KEPT))
+        changed = True
+    if "amplitude" not in feats:
+        feats["amplitude"] = np.full(n, np.nan)
+        changed = True
+    ids = fix_ids(feats["id"]) if "id" in feats else np.arange(n)
+    if "id" not in feats or (ids != feats["id"].to_numpy()).any():
+        feats["id"] = ids
+        changed = True
+    if changed:
+        layer.features = feats
+        layer.feature_defaults = {"id": -1, "amplitude": np.nan, "status": KEPT}
+
+
 def set_statuses(layer, ids, status) -> None:
     """Set the ``status`` of the points with the given ids and refresh their colours."""
     feats = layer.features
     where = {int(v): k for k, v in enumerate(np.asarray(feats["id"]))}
-    col = np.asarray(feats["status"], dtype=object)
+    col = np.array(feats["status"], dtype=object)
     for i, s in zip(np.asarray(ids).tolist(), np.asarray(status).tolist(), strict=True):
         if int(i) in where:
             col[where[int(i)]] = str(s)

@@ -15,7 +15,7 @@ from magicgui.widgets import (
     PushButton,
     SpinBox,
 )
-from napari.layers import Image, Points
+from napari.layers import Image
 from napari.utils.notifications import show_info
 
 from ..core.estimate import iter_estimate
@@ -24,6 +24,7 @@ from ._layers import (
     PSF_GRID,
     beads_from_points,
     beads_layer,
+    ensure_bead_features,
     heldout_layer,
     image_plane,
     operator_layers,
@@ -31,7 +32,7 @@ from ._layers import (
     set_statuses,
     show_layers,
 )
-from ._worker import CoreTask, RadiusEdit, layer_choices
+from ._worker import CoreTask, RadiusEdit, bead_layer_choices, layer_choices, prefer_beads
 
 if TYPE_CHECKING:
     import napari
@@ -60,7 +61,7 @@ class LearnOperatorWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
         self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
-        self.points = ComboBox(label="beads", choices=self._points_choices)
+        self.points = ComboBox(label="beads", choices=bead_layer_choices(viewer, allow_none=True))
         self.radius = RadiusEdit()
         self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
                                       label="threshold", visible=False)
@@ -91,14 +92,14 @@ class LearnOperatorWidget(Container):
         self.image.changed.connect(self._on_inputs)
         self.learn.changed.connect(self.run)
         self.show_psf.changed.connect(self.psf_here)
-        viewer.layers.events.inserted.connect(self.reset_choices)
-        viewer.layers.events.removed.connect(self.reset_choices)
-        self.reset_choices()
+        viewer.layers.events.inserted.connect(self._on_layers)
+        viewer.layers.events.removed.connect(self._on_layers)
+        self._on_layers()
         self._on_inputs()
 
-    def _points_choices(self, _widget=None) -> list:
-        return [("(detect automatically)", None),
-                *layer_choices(self._viewer, Points)()]
+    def _on_layers(self, *_) -> None:
+        self.reset_choices()
+        prefer_beads(self.points)
 
     def _on_inputs(self, *_) -> None:
         img, pts = self.image.value, self.points.value
@@ -130,7 +131,10 @@ class LearnOperatorWidget(Container):
 
             show_error(str(exc))
             return
-        beads, ids = beads_from_points(pts, frame) if pts is not None else (None, None)
+        beads, ids = None, None
+        if pts is not None:
+            ensure_bead_features(pts)
+            beads, ids = beads_from_points(pts, frame)
         mode = N_PSF_MODES[self.n_psf_mode.value]
         n_psf = int(self.n_psf.value) if mode == "fixed" else mode
         smoothing = None if self.auto_smoothing.value else float(self.smoothing.value)

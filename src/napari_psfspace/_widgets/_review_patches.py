@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from magicgui.widgets import ComboBox, Container, Label, PushButton, SpinBox
-from napari.layers import Image, Points
+from napari.layers import Image
 
 from ..core.review import VIEWS, PatchReview, iter_patch_review
 from ._layers import (
@@ -14,12 +14,13 @@ from ._layers import (
     REJECTED,
     STATUS_MEANING,
     beads_from_points,
+    ensure_bead_features,
     gallery_layer,
     image_plane,
     set_statuses,
     show_layers,
 )
-from ._worker import CoreTask, RadiusEdit, layer_choices
+from ._worker import CoreTask, RadiusEdit, bead_layer_choices, layer_choices, prefer_beads
 
 if TYPE_CHECKING:
     import napari
@@ -35,7 +36,7 @@ class ReviewPatchesWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
         self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
-        self.points = ComboBox(label="beads", choices=layer_choices(viewer, Points))
+        self.points = ComboBox(label="beads", choices=bead_layer_choices(viewer))
         self.radius = RadiusEdit()
         self.extract = PushButton(text="Extract patches")
         self.task = CoreTask(self.extract)
@@ -59,10 +60,14 @@ class ReviewPatchesWidget(Container):
         self.points.changed.connect(self._on_points)
         self.image.changed.connect(self._on_points)
         viewer.dims.events.current_step.connect(self._on_step)
-        viewer.layers.events.inserted.connect(self.reset_choices)
-        viewer.layers.events.removed.connect(self.reset_choices)
-        self.reset_choices()
+        viewer.layers.events.inserted.connect(self._on_layers)
+        viewer.layers.events.removed.connect(self._on_layers)
+        self._on_layers()
         self._on_points()
+
+    def _on_layers(self, *_) -> None:
+        self.reset_choices()
+        prefer_beads(self.points)
 
     def _on_points(self, *_) -> None:
         img, pts = self.image.value, self.points.value
@@ -88,6 +93,7 @@ class ReviewPatchesWidget(Container):
 
             show_error(str(exc))
             return
+        ensure_bead_features(pts)
         beads, ids = beads_from_points(pts, frame)
         gen = iter_patch_review(plane, beads, self.radius.pixels)
 

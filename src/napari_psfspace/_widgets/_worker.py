@@ -163,8 +163,6 @@ def prefer_beads(combo) -> None:
     value = combo.value
     if value is not None and "status" in value.features:
         return
-    for _name, layer in combo.choices if isinstance(combo.choices[0], tuple) else []:
-        pass
     options = [v for v in combo.choices if v is not None and "status" in v.features]
     if options:
         combo.value = options[-1]
