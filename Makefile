@@ -23,7 +23,7 @@ test: install
 	$(BIN)/python -m pytest
 
 lint: install
-	$(BIN)/ruff check src tests bench
+	$(BIN)/ruff check src tests bench docs
 
 bench: install
 	$(BIN)/python bench/bench_accuracy.py

@@ -18,13 +18,12 @@ from typing import Any
 
 import numpy as np
 
-from ..core.detect import KEPT, STATUSES, Beads
+from ..core.detect import HELDOUT, KEPT, REJECTED, STATUSES, Beads
 from ..core.mosaic import mosaic
 
-#: Status given by a user who rejects a bead in the review (not used for the model).
-REJECTED = "rejected"
-#: Every status a bead of the Points layer can have.
-ALL_STATUSES = (*STATUSES, REJECTED)
+#: Every status a bead of the Points layer can have ("rejected": by the user in the
+#: review; not used for the model).
+ALL_STATUSES = STATUSES
 #: Ring colour of each status in the Points layer.
 STATUS_COLORS = {
     "kept": "#3cff3c",
@@ -34,6 +33,7 @@ STATUS_COLORS = {
     "faint": "#a0a0a0",
     "outlier": "#ff40ff",
     REJECTED: "#ff2020",
+    HELDOUT: "#ffffff",
 }
 #: Human-readable meaning of each status (shown in the widgets).
 STATUS_MEANING = {
@@ -44,6 +44,7 @@ STATUS_MEANING = {
     "faint": "no signal above the background",
     "outlier": "z-score outlier",
     REJECTED: "rejected by hand",
+    HELDOUT: "held out of the fit",
 }
 #: Names of the layers the plugin creates.
 BEADS = "beads"
@@ -316,8 +317,7 @@ def heldout_layer(heldout, frame: Frame) -> LayerTuple:
             {"name": HELDOUT, "features": features, "scale": frame.scale,
              "translate": frame.translate, "size": 20, "symbol": "square",
              "face_color": "residual", "face_colormap": "plasma", "border_width": 0,
-             "opacity": 0.6, "text": {"string": "{residual:.2f}", "color": "white",
-                                      "size": 8, "anchor": "upper_left"}},
+             "opacity": 0.6},
             "points")
 
 

@@ -82,6 +82,7 @@ class LearnOperatorWidget(Container):
             self.image, self.points, self.radius, self.threshold, self.n_psf_mode,
             self.n_psf, self.auto_smoothing, self.smoothing, self.save_path, self.learn,
             self.task, self.result, self.psf_y, self.psf_x, self.show_psf])
+        self.result.native.setWordWrap(True)
         self.operator: ProductConvolution | None = None
         self._frame = None
         self.n_psf_mode.changed.connect(
@@ -154,6 +155,7 @@ class LearnOperatorWidget(Container):
                 tuples.append(heldout_layer(est.heldout, frame))
             show_layers(self._viewer, tuples)
             self._viewer.layers.selection.active = self._viewer.layers[PSF_GRID]
+            self._viewer.reset_view()
             self.show_psf.enabled = True
             self.result.value = self._describe(est)
             if path is not None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import weakref
 from typing import TYPE_CHECKING
 
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
@@ -24,6 +25,7 @@ if TYPE_CHECKING:
     import napari
 
 DEFAULT_RADIUS_PX = 10.0
+_WATCHED: weakref.WeakSet = weakref.WeakSet()  # Points layers whose ids we maintain
 
 
 def _detect(plane, psf_radius: float, threshold: float):
@@ -39,7 +41,7 @@ def legend_html() -> str:
 
 def watch_points(layer) -> None:
     """Give points added by hand status "kept" (feature default) and a new unique id."""
-    if getattr(layer, "_psfspace_watched", False):
+    if layer in _WATCHED:
         return
 
     def on_data(event=None) -> None:
@@ -53,7 +55,7 @@ def watch_points(layer) -> None:
                 layer.features = feats
 
     layer.events.data.connect(on_data)
-    layer._psfspace_watched = True
+    _WATCHED.add(layer)
 
 
 class PickBeadsWidget(Container):

@@ -101,6 +101,7 @@ class ReviewPatchesWidget(Container):
             self.review, self._ids, self._frame = review, ids[review.index], frame
             self._show_gallery()
             self.patch.max = len(review) - 1
+            self._viewer.reset_view()
             self.patch.enabled = self.accept.enabled = self.reject.enabled = True
             self.task.status.value = f"{len(review)} patches; the slider or 'patch' picks one."
             self._go_to()
@@ -149,12 +150,18 @@ class ReviewPatchesWidget(Container):
                 + ("" if np.isnan(z) else f", z = {z:.1f}")
                 + ("\nflags: " + ", ".join(flags) if flags else "\nno flags"))
         self.info.value = text
-        self._viewer.text_overlay.text = text
-        self._viewer.text_overlay.visible = True
+        overlay = self._text_overlay()
+        overlay.text, overlay.position, overlay.visible = text, "top_left", True
         pts = self.points.value
         if pts is not None:
             rows = np.flatnonzero(np.asarray(pts.features["id"]) == bead_id)
             pts.selected_data = set(rows.tolist())
+
+    def _text_overlay(self):
+        canvas = getattr(self._viewer, "canvas", None)  # napari >= 0.9
+        if canvas is not None and "text" in getattr(canvas, "overlays", {}):
+            return canvas.overlays["text"]
+        return self._viewer.text_overlay
 
     def set_status(self, status: str) -> None:
         """Accept ("kept") or reject the bead on display, in the Points layer."""

@@ -53,6 +53,7 @@ class CoreTask(Container):
         self.progress = ProgressBar(value=0, min=0, max=100, label="progress", visible=False)
         self.cancel = PushButton(text="Cancel", visible=False)
         self.status = Label(value="")
+        self.status.native.setWordWrap(True)
         super().__init__(widgets=[self.progress, self.cancel, self.status], labels=False)
         self.cancel.changed.connect(self.request_cancel)
         self.worker: GeneratorWorker | None = None

@@ -22,7 +22,9 @@ BORDER = "border"
 NEIGHBOUR = "neighbour"
 FAINT = "faint"
 OUTLIER = "outlier"
-STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER)
+REJECTED = "rejected"  # by the user (napari widgets)
+HELDOUT = "heldout"  # held out of a fit, still counted as a neighbour
+STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT)
 
 
 class NoBeadsError(ValueError):

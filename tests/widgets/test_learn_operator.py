@@ -1,0 +1,110 @@
+"""Learn operator: end to end from detection to the saved model; cancel; errors."""
+
+import numpy as np
+
+from conftest import wait_task
+from napari_psfspace import load_operator
+from napari_psfspace._widgets._layers import BASIS, BEADS, HELDOUT, MAPS, PSF_AT, PSF_GRID
+from napari_psfspace._widgets._learn_operator import LearnOperatorWidget
+from napari_psfspace._widgets._pick_beads import PickBeadsWidget
+from napari_psfspace._widgets._review_patches import ReviewPatchesWidget
+
+
+def _detect(viewer, qtbot):
+    pick = PickBeadsWidget(viewer)
+    pick.detect.clicked()
+    wait_task(qtbot, pick.task)
+    return viewer.layers[BEADS]
+
+
+def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
+    pts = _detect(viewer, qtbot)
+    review = ReviewPatchesWidget(viewer)
+    review.extract.clicked()
+    wait_task(qtbot, review.task)
+    review.patch.value = 0
+    rejected_id = int(review._ids[0])
+    review.reject.clicked()
+
+    w = LearnOperatorWidget(viewer)
+    assert w.points.value is pts
+    path = tmp_path / "model.npz"
+    w.save_path.value = path
+    w.learn.clicked()
+    wait_task(qtbot, w.task)
+
+    for name in (PSF_GRID, BASIS, MAPS, HELDOUT):
+        assert name in viewer.layers, name
+    op = load_operator(path)
+    image = viewer.layers["beads image"]
+    assert op.shape == image.data.shape
+    assert np.isclose(op.metadata["pixel_size_um"], image.scale[-1])
+    assert viewer.layers[BASIS].data.shape == op.basis.shape
+    maps = viewer.layers[MAPS]
+    assert maps.data.shape == (op.n_psf, *image.data.shape)
+    assert np.allclose(maps.scale[1:], image.scale)
+    # the rejected bead was not used; the Points layer got the final statuses
+    used = np.asarray(op.metadata["bead_positions"])
+    row = np.flatnonzero(pts.features["id"] == rejected_id)[0]
+    assert pts.features["status"].iloc[row] == "rejected"
+    assert np.min(np.hypot(*(used - pts.data[row]).T)) > 1.0
+    assert op.metadata["n_beads_used"] <= int((pts.features["status"] == "kept").sum())
+    assert "held-out residual" in w.result.value and str(path) in w.result.value
+
+    w.psf_y.value, w.psf_x.value = 50.0, 300.0
+    w.show_psf.clicked()
+    assert np.allclose(viewer.layers[PSF_AT].data, op.psf_at(50.0, 300.0), atol=1e-6)
+
+
+def test_deleted_and_moved_points_are_respected(viewer, qtbot, tmp_path):
+    pts = _detect(viewer, qtbot)
+    kept = np.flatnonzero(pts.features["status"] == "kept")
+    pts.selected_data = {int(kept[0])}
+    gone = pts.data[kept[0]].copy()
+    pts.remove_selected()
+    w = LearnOperatorWidget(viewer)
+    w.save_path.value = tmp_path / "m.npz"
+    w.learn.clicked()
+    wait_task(qtbot, w.task)
+    used = np.asarray(load_operator(tmp_path / "m.npz").metadata["bead_positions"])
+    assert np.min(np.hypot(*(used - gone).T)) > 3.0
+
+
+def test_cancel_leaves_viewer_usable_and_file_untouched(viewer, qtbot, tmp_path):
+    _detect(viewer, qtbot)
+    path = tmp_path / "model.npz"
+    path.write_bytes(b"previous model")
+    w = LearnOperatorWidget(viewer)
+    w.save_path.value = path
+    n_layers = len(viewer.layers)
+    w.learn.clicked()
+    assert w.task.running and not w.learn.enabled
+    with qtbot.waitSignal(w.task.worker.aborted, timeout=30_000):
+        w.task.cancel.clicked()
+    wait_task(qtbot, w.task)
+    assert path.read_bytes() == b"previous model"
+    assert len(viewer.layers) == n_layers and PSF_GRID not in viewer.layers
+    assert "cancelled" in w.task.status.value
+    assert w.learn.enabled
+    assert not list(tmp_path.glob(".*tmp"))
+    # still usable: learn again
+    w.learn.clicked()
+    wait_task(qtbot, w.task)
+    assert PSF_GRID in viewer.layers
+    assert load_operator(path).n_psf >= 1
+
+
+def test_too_few_beads_is_a_notification(viewer, qtbot, tmp_path, monkeypatch):
+    import napari_psfspace._widgets._worker as worker_mod
+
+    shown = []
+    monkeypatch.setattr(worker_mod, "show_error", shown.append)
+    pts = _detect(viewer, qtbot)
+    pts.selected_data = set(range(len(pts.data) - 3))
+    pts.remove_selected()
+    w = LearnOperatorWidget(viewer)
+    w.save_path.value = tmp_path / "m.npz"
+    w.learn.clicked()
+    wait_task(qtbot, w.task)
+    assert len(shown) == 1 and "Too few usable beads" in shown[0]
+    assert not (tmp_path / "m.npz").exists()

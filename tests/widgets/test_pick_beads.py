@@ -1,0 +1,58 @@
+"""Pick beads: detection fills an editable Points layer coloured by status."""
+
+import numpy as np
+
+from conftest import wait_task
+from napari_psfspace._widgets._layers import BEADS, STATUS_COLORS
+from napari_psfspace._widgets._pick_beads import PickBeadsWidget
+
+
+def test_radius_in_micrometres_for_a_calibrated_image(viewer):
+    w = PickBeadsWidget(viewer)
+    assert w.image.value is viewer.layers["beads image"]
+    assert "µm" in w.radius.value_edit.label
+    assert np.isclose(w.radius.pixels, 14.0, atol=0.05)
+    viewer.add_image(np.zeros((64, 64)), name="uncalibrated")
+    w.image.value = viewer.layers["uncalibrated"]
+    assert "px" in w.radius.value_edit.label
+
+
+def test_detect_fills_points_layer_with_features_and_colours(viewer, qtbot):
+    w = PickBeadsWidget(viewer)
+    w.detect.clicked()
+    wait_task(qtbot, w.task)
+    pts = viewer.layers[BEADS]
+    assert len(pts.data) >= 20
+    assert list(pts.features.columns[:3]) == ["id", "amplitude", "status"]
+    assert set(pts.features["status"]) <= {"kept", "border", "neighbour", "saturated"}
+    assert np.array_equal(pts.features["id"], np.arange(len(pts.data)))
+    kept = np.flatnonzero(pts.features["status"] == "kept")[0]
+    from napari.utils.colormaps.standardize_color import transform_color
+
+    assert np.allclose(pts.face_color[kept], transform_color(STATUS_COLORS["kept"])[0])
+    assert np.allclose(pts.scale, viewer.layers["beads image"].scale)
+    assert "kept" in w.task.status.value
+
+    # a point added by hand is kept, with a new id
+    pts.add([100.0, 100.0])
+    assert pts.features["status"].iloc[-1] == "kept"
+    assert pts.features["id"].iloc[-1] == len(pts.data) - 1
+    assert pts.features["id"].is_unique
+
+
+def test_detection_error_is_a_notification_naming_threshold(make_napari_viewer, qtbot,
+                                                           noise_image, monkeypatch):
+    shown = []
+    import napari_psfspace._widgets._worker as worker_mod
+
+    monkeypatch.setattr(worker_mod, "show_error", shown.append)
+    v = make_napari_viewer()
+    v.add_image(noise_image, name="noise")
+    w = PickBeadsWidget(v)
+    w.threshold.value = 50.0
+    w.detect.clicked()
+    wait_task(qtbot, w.task)
+    assert len(shown) == 1 and "`threshold`" in shown[0]
+    assert "Traceback" not in shown[0]
+    assert BEADS not in v.layers
+    assert w.detect.enabled  # usable again
