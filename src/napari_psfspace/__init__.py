@@ -15,7 +15,7 @@ top of it. Typical use::
 
 __version__ = "0.1.0"
 
-from .core.detect import Beads, NoBeadsError, detect_beads
+from .core.detect import Beads, NoBeadsError, detect_beads, suggest_psf_radius
 from .core.estimate import Estimation, Progress, estimate_operator, iter_estimate
 from .core.metrics import psf_error
 from .core.operator import ProductConvolution, load_operator
@@ -41,4 +41,5 @@ __all__ = [
     "psf_error",
     "simulate_beads",
     "simulate_psf",
+    "suggest_psf_radius",
 ]

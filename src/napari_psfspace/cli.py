@@ -45,7 +45,7 @@ def _cmd_simulate(args) -> int:
     return 0
 
 
-def _psf_radius_px(args, info) -> float:
+def _psf_radius_px(args, info) -> float | None:
     if args.psf_radius is not None:
         return args.psf_radius
     if args.psf_radius_um is not None:
@@ -55,7 +55,7 @@ def _psf_radius_px(args, info) -> float:
                 "pass --psf-radius in pixels instead."
             )
         return args.psf_radius_um / info.pixel_size
-    raise ValueError("give the PSF radius: --psf-radius (pixels) or --psf-radius-um.")
+    return None
 
 
 def _cmd_estimate(args) -> int:
@@ -64,6 +64,12 @@ def _cmd_estimate(args) -> int:
 
     image, info = read_image(args.image, index=args.slice)
     r = _psf_radius_px(args, info)
+    if r is None:
+        from .core.detect import suggest_psf_radius
+
+        r = suggest_psf_radius(image)
+        print(f"no --psf-radius given: using {r:g} px, measured from the image "
+              "(see suggest_psf_radius)", file=sys.stderr)
     n_psf = args.n_psf
     if n_psf is not None and n_psf not in ("heldout", "rule"):
         n_psf = int(n_psf)
@@ -151,7 +157,8 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("image", help="TIFF bead image (2-D, or a stack with --slice)")
     e.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     g = e.add_mutually_exclusive_group()
-    g.add_argument("--psf-radius", type=float, help="PSF radius r in pixels")
+    g.add_argument("--psf-radius", type=float,
+                   help="PSF radius r in pixels (default: suggested from the image)")
     g.add_argument("--psf-radius-um", type=float,
                    help="PSF radius in micrometres (needs the pixel size in the TIFF)")
     e.add_argument("--slice", type=int, help="slice of a stack to use")

@@ -56,3 +56,17 @@ def test_detection_error_is_a_notification_naming_threshold(make_napari_viewer, 
     assert "Traceback" not in shown[0]
     assert BEADS not in v.layers
     assert w.detect.enabled  # usable again
+
+
+def test_suggest_radius_sets_a_usable_radius(make_napari_viewer, qtbot, bead_image):
+    """A user's own image without metadata: the radius starts at the default; Suggest
+    measures it (the sample's true radius is 14 px; the suggestion is within range)."""
+    image, truth = bead_image
+    v = make_napari_viewer()
+    v.add_image(image, name="my beads")
+    w = PickBeadsWidget(v)
+    assert "px" in w.radius.value_edit.label
+    w.suggest.clicked()
+    wait_task(qtbot, w.task)
+    assert "suggested PSF radius" in w.task.status.value
+    assert 0.4 * truth.psf_radius <= w.radius.pixels <= 1.6 * truth.psf_radius

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
 from napari.layers import Image
 
-from ..core.detect import detect_beads
+from ..core.detect import detect_beads, suggest_psf_radius
 from ..core.estimate import Progress
 from ._layers import (
     BEADS,
@@ -31,6 +31,11 @@ _WATCHED: weakref.WeakSet = weakref.WeakSet()  # Points layers whose ids we main
 def _detect(plane, psf_radius: float, threshold: float):
     yield Progress("detect", 0.1, "detecting beads...")
     return detect_beads(plane, psf_radius, threshold=threshold)
+
+
+def _suggest(plane):
+    yield Progress("suggest", 0.1, "measuring the widths of bright spots...")
+    return suggest_psf_radius(plane)
 
 
 def legend_html() -> str:
@@ -69,6 +74,9 @@ class PickBeadsWidget(Container):
         self._viewer = viewer
         self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
         self.radius = RadiusEdit()
+        self.suggest = PushButton(text="Suggest radius from the image")
+        self.suggest.tooltip = ("Measure the enclosed energy of bright spots across the "
+                                "field and propose a radius that bounds the widest PSFs.")
         self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
                                       label="threshold")
         self.threshold.tooltip = ("Detection threshold in noise standard deviations of the "
@@ -78,10 +86,11 @@ class PickBeadsWidget(Container):
         self.legend = Label(value=legend_html())
         self.help = Label(value="Edit the points by hand: add (+), delete, move.\n"
                                 "Rejected beads are not used to learn the PSF.")
-        super().__init__(widgets=[self.image, self.radius, self.threshold, self.detect,
-                                  self.task, self.legend, self.help])
+        super().__init__(widgets=[self.image, self.radius, self.suggest, self.threshold,
+                                  self.detect, self.task, self.legend, self.help])
         self.image.changed.connect(self._on_image)
         self.detect.changed.connect(self.run)
+        self.suggest.changed.connect(self.run_suggest)
         viewer.layers.events.inserted.connect(self.reset_choices)
         viewer.layers.events.removed.connect(self.reset_choices)
         self.reset_choices()
@@ -95,6 +104,25 @@ class PickBeadsWidget(Container):
         scale = float(layer.scale[-1])
         px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
         self.radius.set_calibration(px, meta.get("psf_radius", DEFAULT_RADIUS_PX))
+
+    def run_suggest(self, *_) -> None:
+        """Suggest the PSF radius from the chosen image (in a worker thread)."""
+        layer = self.image.value
+        if layer is None or self.task.running:
+            return
+        try:
+            plane, _ = image_plane(layer, self._viewer.dims.point)
+        except ValueError as exc:
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            return
+
+        def on_result(radius: float) -> None:
+            self.radius.set_calibration(self.radius.pixel_size, radius)
+            self.task.status.value = f"suggested PSF radius: {radius:g} px"
+
+        self.task.run(_suggest(plane), on_result)
 
     def run(self, *_) -> None:
         """Detect beads in the chosen image (in a worker thread)."""

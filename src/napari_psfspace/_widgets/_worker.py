@@ -194,6 +194,11 @@ class RadiusEdit(Container):
         v = float(self.value_edit.value)
         return v / self._pixel_size if self._pixel_size else v
 
+    @property
+    def pixel_size(self) -> float | None:
+        """Pixel size (µm) of the image, or None when it has none."""
+        return self._pixel_size
+
     def set_calibration(self, pixel_size: float | None, radius_px: float | None = None) -> None:
         """Switch units for an image with this pixel size (µm) and show ``radius_px``."""
         r = self.pixels if radius_px is None else float(radius_px)

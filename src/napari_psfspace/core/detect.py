@@ -297,3 +297,75 @@ def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
             f"{beads.summary()}. Lower `threshold`, check `psf_radius`, or image a "
             "denser bead slide."
         )
+
+
+def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
+                       max_radius: float | None = None) -> float:
+    """Suggest the PSF radius ``r`` (pixels) from the bright isolated spots of an image.
+
+    The spots are maxima of a Laplacian-of-Gaussian response (scale 2 px, at least 10
+    noise sd, 8 px apart), the strongest few in each cell of a 4 x 4 tiling of the field
+    (the PSF varies over the field). For each, the azimuthal median profile above
+    the local background gives the enclosed energy; its radius is where it reaches
+    ``energy`` of the total within the signal's extent (the profile above 3 noise sd of
+    a ring median). The radius must bound the widest PSFs of the field, so the 75th
+    percentile over the spots (robust to a few aggregates), plus one pixel, is returned.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+    n_beads : int
+        About how many spots are used (spread over the field).
+    energy : float
+        Enclosed-energy fraction that defines a spot's radius.
+    max_radius : float, optional
+        Largest radius considered; default ``min(M, N) / 8``.
+
+    Returns
+    -------
+    float
+        Suggested radius in pixels, at least 3.
+
+    Raises
+    ------
+    NoBeadsError
+        No spot stands out of the noise.
+    """
+    img = as_image(image, dtype=np.float32)
+    h, w = img.shape
+    rmax = int(max_radius or max(6, min(h, w) // 8))
+    resp = log_response(img, 2.0)
+    peaks = peak_local_max(resp, min_distance=8, exclude_border=rmax, threshold_abs=10.0)
+    if len(peaks):  # the strongest few in each cell of a 4 x 4 tiling: the whole field
+        cell = (peaks[:, 0] * 4 // h) * 4 + peaks[:, 1] * 4 // w
+        strength = resp[peaks[:, 0], peaks[:, 1]]
+        order = np.lexsort((-strength, cell))
+        rank = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
+        peaks = peaks[order[rank < max(1, n_beads // 16 + 1)]]
+    if len(peaks) == 0:
+        raise NoBeadsError("No bright spot stands out of the noise: cannot suggest a "
+                           "`psf_radius`; check the image, or give the radius yourself.")
+    yy, xx = np.mgrid[-rmax:rmax + 1, -rmax:rmax + 1]
+    dist = np.hypot(yy, xx).round().astype(int)
+    counts = np.bincount(dist.ravel(), minlength=rmax + 1)[:rmax + 1]
+    tail = max(3, rmax // 5)
+    radii = []
+    for y, x in peaks:
+        win = img[y - rmax:y + rmax + 1, x - rmax:x + rmax + 1].astype(np.float64)
+        prof = np.asarray(ndi.median(win, labels=dist, index=np.arange(rmax + 1)))
+        edge = win[dist >= rmax - tail]
+        bg = float(np.median(edge))
+        sd = 1.4826 * float(np.median(np.abs(edge - bg)))
+        prof = prof - bg
+        # the median of a ring of ~2 pi rho pixels has sd ~ 1.25 sd / sqrt(2 pi rho)
+        ring_sd = 1.25 * sd / np.sqrt(2 * np.pi * np.maximum(np.arange(rmax + 1), 1))
+        low = np.flatnonzero(prof < 3 * ring_sd)
+        extent = int(low[0]) if len(low) else rmax
+        if extent < 1 or prof[0] <= 0:
+            continue
+        enclosed = np.cumsum(np.clip(prof[:extent + 1], 0, None) * counts[:extent + 1])
+        radii.append(int(np.searchsorted(enclosed, energy * enclosed[-1])))
+    if not radii:
+        raise NoBeadsError("Could not measure the width of any bright spot: give "
+                           "`psf_radius` yourself.")
+    return float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
