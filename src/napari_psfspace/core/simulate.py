@@ -33,6 +33,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from math import ceil
+from typing import Any
 
 import numpy as np
 from scipy import fft as sfft
@@ -40,6 +41,7 @@ from scipy import fft as sfft
 from .zernike import zernike
 
 __all__ = [
+    "EFFECTS",
     "FieldAberrations",
     "Optics",
     "SimulationTruth",
@@ -380,6 +382,9 @@ def _psf_stack(
     shifts: np.ndarray,
     optics: Optics,
     size: int,
+    *,
+    diameters: np.ndarray | None = None,
+    drift: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Pixel-integrated PSFs for many aberration vectors and sub-pixel shifts.
 
@@ -400,12 +405,26 @@ def _psf_stack(
     optics : Optics
     size : int
         Side of the output windows (odd).
+    diameters : ndarray, shape (B,), or None
+        Diameters (µm) of uniform fluorescent spheres imaged instead of point
+        sources (:func:`_sphere_transfer`); ``None``: points.
+    drift : (float, float) or None
+        Linear motion ``(dy, dx)`` (pixels) during the exposure, centred on
+        the PSF position (:func:`_drift_transfer`); ``None``: no motion.
 
     Returns
     -------
     ndarray, shape (B, size, size), float64
         Non-negative pixel values: integrals over each pixel of the intensity
         normalised to unit integral over the plane.
+
+    Notes
+    -----
+    Bead size and drift are real, even object filters multiplying the
+    spectrum of the finely sampled intensity (band limited and Nyquist
+    sampled, so the product is the exact convolution up to the periodic
+    wrap-around of the fine window, which callers keep away from the output
+    with :func:`_object_pad`).
     """
     shifts = np.asarray(shifts, float).reshape(-1, 2)
     coefs = np.asarray(coefs, float).reshape(len(shifts), len(noll))
@@ -434,9 +453,69 @@ def _psf_stack(
         amplitude = (dft @ half).reshape(n, b, n).transpose(1, 0, 2)  # y transform
         intensity = amplitude.real**2 + amplitude.imag**2
         spectrum = sfft.rfft2(intensity, workers=-1) * transfer
+        if diameters is not None or drift is not None:
+            spectrum *= _object_transfer(
+                optics, n, None if diameters is None else diameters[sl], drift
+            )
         image = sfft.irfft2(spectrum, s=(n, n), workers=-1)
         out[sl] = image[:, samples][:, :, samples] * scale
     return np.maximum(out, 0.0, out=out)  # clear FFT round-off negatives (~1e-18)
+
+
+def _sphere_transfer(k: np.ndarray, diameter) -> np.ndarray:
+    """2-D Fourier transform of the projected (chord-length) profile of a uniform sphere.
+
+    The projection of a ball onto the image plane is, in Fourier space, the
+    3-D transform of the ball on the plane ``k_z = 0``:
+    ``3 (sin q - q cos q) / q^3`` with ``q = π d |k|`` (``d`` in µm, ``|k|``
+    in cycles/µm), normalised to 1 at ``k = 0`` (unit total intensity).
+    """
+    q = np.pi * np.asarray(diameter, float) * np.asarray(k, float)
+    small = np.abs(q) < 0.1  # series: avoids the cancellation of sin q - q cos q
+    safe = np.where(small, 1.0, q)
+    exact = 3.0 * (np.sin(safe) - safe * np.cos(safe)) / safe**3
+    return np.where(small, 1.0 - q**2 / 10.0 + q**4 / 280.0, exact)
+
+
+def _drift_transfer(ky: np.ndarray, kx: np.ndarray, drift_um: tuple[float, float]) -> np.ndarray:
+    """Transform ``sinc(k . d)`` of the uniform average along the segment ``[-d/2, d/2]``."""
+    return np.sinc(ky * drift_um[0] + kx * drift_um[1])
+
+
+def _object_transfer(
+    optics: Optics,
+    n: int,
+    diameters: np.ndarray | None,
+    drift: tuple[float, float] | None,
+) -> np.ndarray:
+    """Product of the bead-size and drift filters on the rfft grid of the fine window.
+
+    Returns an array broadcastable to ``(B, n, n // 2 + 1)``.
+    """
+    spacing = optics.pixel_size / optics.oversampling
+    ky = sfft.fftfreq(n, spacing)[:, None]
+    kx = sfft.rfftfreq(n, spacing)[None, :]
+    out = np.ones((1, n, n // 2 + 1))
+    if diameters is not None:
+        k = np.hypot(ky, kx)
+        out = out * _sphere_transfer(k[None], np.asarray(diameters, float)[:, None, None])
+    if drift is not None:
+        out = out * _drift_transfer(
+            ky, kx, (drift[0] * optics.pixel_size, drift[1] * optics.pixel_size)
+        )
+    return out
+
+
+def _object_pad(
+    optics: Optics, diameters: np.ndarray | None, drift: tuple[float, float] | None
+) -> int:
+    """Extra window radius (pixels) that holds the spread of the bead-size/drift filters."""
+    half = 0.0
+    if diameters is not None and len(diameters):
+        half += float(np.max(diameters)) / optics.pixel_size / 2.0
+    if drift is not None:
+        half += float(np.hypot(*drift)) / 2.0
+    return int(ceil(half)) + 1 if half > 0 else 0
 
 
 def _split_zernike(zernike_coefs: Mapping[int, float] | None) -> tuple[tuple[int, ...], np.ndarray]:
@@ -558,6 +637,10 @@ class SimulationTruth:
         Per-bead peak SNR ``peak / sqrt(peak + background + read_noise^2)``
         with ``peak`` the expected photons in the brightest pixel of the bead,
         in photo-electrons.
+    effects : dict
+        Ground truth of the injected effects (see the ``effects`` parameter
+        of :func:`simulate_beads`): each switched-on effect's parameter under
+        its own key plus the arrays that define it. Empty without effects.
     """
 
     shape: tuple[int, int]
@@ -571,6 +654,7 @@ class SimulationTruth:
     read_noise: float
     psf_radius: int
     peak_snr: np.ndarray
+    effects: dict[str, Any] = field(default_factory=dict)
 
     def _psfs(self, ys: np.ndarray, xs: np.ndarray, size: int | None) -> np.ndarray:
         """Centred true PSFs at ``(ys, xs)`` (flat arrays), each normalised to sum 1."""
@@ -598,6 +682,56 @@ class SimulationTruth:
             to sum 1 over the window.
         """
         return self._psfs(np.array([float(y)]), np.array([float(x)]), size)[0]
+
+    def observed_psf_at(
+        self, y: float, x: float, size: int | None = None, *, diameter: float | None = None
+    ) -> np.ndarray:
+        """Image of a bead at ``(y, x)`` as the camera sees it, apart from noise.
+
+        The optical PSF (:meth:`psf_at`) convolved with the projected bead
+        profile and averaged along the drift, when those effects were
+        simulated; camera effects (illumination, nonlinearity, offsets, hot
+        pixels, saturation) are not included.
+
+        Parameters
+        ----------
+        y, x : float
+            Row and column of the field position, pixels.
+        size : int or None
+            Odd window side; default ``2 * psf_radius + 1``.
+        diameter : float or None
+            Bead diameter, µm; default the mean simulated diameter (0 without
+            the ``"bead_size"`` effect).
+
+        Returns
+        -------
+        ndarray, shape (size, size), float64
+            Centred on pixel ``size // 2``, normalised to sum 1 over the window.
+            Equals :meth:`psf_at` for point beads without drift.
+        """
+        if diameter is None:
+            diameter = float(np.mean(self.effects.get("bead_size", (0.0, 0.0))))
+        diameter = float(diameter)
+        if not np.isfinite(diameter) or diameter < 0:
+            raise ValueError(f"diameter must be >= 0 and finite, got {diameter!r}")
+        drift = self.effects.get("drift")
+        if diameter == 0 and drift is None:
+            return self.psf_at(y, x, size)
+        size = _check_size(2 * self.psf_radius + 1 if size is None else size)
+        diameters = np.array([diameter]) if diameter > 0 else None
+        pad = _object_pad(self.optics, diameters, drift)
+        coefs = self.aberrations.coefficient_matrix(float(y), float(x), self.shape)[None]
+        psf = _psf_stack(
+            self.aberrations.noll_indices,
+            coefs,
+            np.zeros((1, 2)),
+            self.optics,
+            size + 2 * pad,
+            diameters=diameters,
+            drift=drift,
+        )[0]
+        psf = psf[pad : pad + size, pad : pad + size]
+        return psf / psf.sum()
 
     def psf_grid(
         self,
@@ -714,12 +848,17 @@ def _render_beads(
     aberrations: FieldAberrations,
     optics: Optics,
     radius: int,
+    diameters: np.ndarray | None = None,
+    drift: tuple[float, float] | None = None,
 ) -> np.ndarray:
     """Add ``amplitude * PSF`` of each bead into ``image`` (in place); return each PSF's peak value.
 
     Each PSF uses the Zernike coefficients at the bead's own position and its
     sub-pixel offset; windows of side ``2 radius + 1`` are clipped at the border.
+    ``diameters`` (µm, per bead) and ``drift`` (pixels) are passed to
+    :func:`_psf_stack`; the window radius then grows by :func:`_object_pad`.
     """
+    radius += _object_pad(optics, diameters, drift)
     size = 2 * radius + 1
     centres = np.rint(positions).astype(int)
     offsets = positions - centres
@@ -728,7 +867,18 @@ def _render_beads(
     chunk = 64  # bounds the memory of the PSF stack
     for start in range(0, len(positions), chunk):
         sl = slice(start, start + chunk)
-        psfs = _psf_stack(aberrations.noll_indices, coefs[sl], offsets[sl], optics, size)
+        if diameters is None and drift is None:
+            psfs = _psf_stack(aberrations.noll_indices, coefs[sl], offsets[sl], optics, size)
+        else:
+            psfs = _psf_stack(
+                aberrations.noll_indices,
+                coefs[sl],
+                offsets[sl],
+                optics,
+                size,
+                diameters=None if diameters is None else diameters[sl],
+                drift=drift,
+            )
         for k, psf in enumerate(psfs, start):
             peaks[k] = psf.max()
             (y0, x0), (y1, x1) = centres[k] - radius, centres[k] + radius + 1
@@ -736,6 +886,29 @@ def _render_beads(
             ey, ex = min(y1, image.shape[0]), min(x1, image.shape[1])
             image[sy:ey, sx:ex] += amplitudes[k] * psf[sy - y0 : ey - y0, sx - x0 : ex - x0]
     return peaks
+
+
+def _camera_adu(
+    rng: np.random.Generator,
+    photons: np.ndarray,
+    gain: float,
+    offset: float,
+    read_noise: float,
+) -> np.ndarray:
+    """Poisson shot noise, gain, offset, Gaussian read noise: float64 ADU."""
+    adu = gain * rng.poisson(photons).astype(np.float64) + offset
+    adu += rng.normal(0.0, read_noise * gain, photons.shape)
+    return adu
+
+
+def _digitise(adu: np.ndarray, dtype: np.dtype, level: float | None = None) -> np.ndarray:
+    """Integer dtypes rounded and clipped to their range; everything clipped at ``level``."""
+    if np.issubdtype(dtype, np.integer):
+        info = np.iinfo(dtype)
+        adu = np.clip(np.rint(adu), info.min, info.max if level is None else level)
+    elif level is not None:
+        adu = np.minimum(adu, level)
+    return adu.astype(dtype)
 
 
 def _camera(
@@ -747,12 +920,7 @@ def _camera(
     dtype: np.dtype,
 ) -> np.ndarray:
     """Poisson shot noise, gain, offset, Gaussian read noise; integer dtypes rounded, clipped."""
-    adu = gain * rng.poisson(photons).astype(np.float64) + offset
-    adu += rng.normal(0.0, read_noise * gain, photons.shape)
-    if np.issubdtype(dtype, np.integer):
-        info = np.iinfo(dtype)
-        adu = np.clip(np.rint(adu), info.min, info.max)
-    return adu.astype(dtype)
+    return _digitise(_camera_adu(rng, photons, gain, offset, read_noise), dtype)
 
 
 def _as_range(value: float | tuple[float, float], name: str) -> tuple[float, float]:
@@ -760,6 +928,248 @@ def _as_range(value: float | tuple[float, float], name: str) -> tuple[float, flo
     if not 0 <= low <= high:
         raise ValueError(f"{name} must satisfy 0 <= low <= high, got {value!r}")
     return low, high
+
+
+# ---------------------------------------------------------------------------
+# Injectable effects (the ``effects`` argument of simulate_beads)
+# ---------------------------------------------------------------------------
+
+#: Effect keys, in the order of the child generators spawned for them.
+EFFECTS = (
+    "illumination",
+    "row_offsets",
+    "column_offsets",
+    "hot_pixels",
+    "saturation",
+    "nonlinearity",
+    "neighbours",
+    "bead_size",
+    "drift",
+    "background_structure",
+)
+_ILLUMINATION_MAX_SHIFT = 0.2  # random shift of the illumination centre, fraction of the field
+_HOT_PIXEL_RANGE = (0.2, 1.0)  # hot-pixel values, fraction of the typical bead peak (ADU)
+_COMPANION_DISTANCE = (0.6, 1.6)  # companion distance, units of psf_radius
+_COMPANION_AMPLITUDE = (0.3, 1.0)  # companion amplitude, fraction of its bead's
+_BLOB_SIGMA = (0.3, 0.6)  # background-structure blob sigma, units of psf_radius
+_BLOB_SPACING = 3.0  # one blob per (_BLOB_SPACING * psf_radius)^2 of field
+
+
+def _scalar(
+    effect: str,
+    value: Any,
+    low: float,
+    high: float,
+    *,
+    open_low: bool = True,
+    open_high: bool = False,
+) -> float:
+    """``value`` as a float in the interval ``(low, high]`` (bounds open/closed as told)."""
+    try:
+        if isinstance(value, bool):
+            raise TypeError
+        out = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"effect {effect!r}: expected a number, got {value!r}") from None
+    above = out > low if open_low else out >= low
+    below = out < high if open_high else out <= high
+    if not (np.isfinite(out) and above and below):
+        lo, hi = "(" if open_low else "[", ")" if open_high else "]"
+        raise ValueError(
+            f"effect {effect!r}: value must lie in {lo}{low:g}, {high:g}{hi}, got {value!r}"
+        )
+    return out
+
+
+def _pair(effect: str, value: Any) -> tuple[float, float]:
+    try:
+        a, b = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"effect {effect!r}: expected two numbers, got {value!r}") from None
+    if not (np.isfinite(a) and np.isfinite(b)):
+        raise ValueError(f"effect {effect!r}: expected finite numbers, got {value!r}")
+    return a, b
+
+
+def _check_effects(
+    effects: Mapping[str, Any] | None,
+    shape: tuple[int, int],
+    dtype: np.dtype,
+    offset: float,
+) -> dict[str, Any]:
+    """Validated, normalised effect parameters (see :func:`simulate_beads`)."""
+    if effects is None:
+        return {}
+    if not isinstance(effects, Mapping):
+        raise ValueError(f"effects must be a mapping or None, got {type(effects).__name__}")
+    unknown = [k for k in effects if k not in EFFECTS]
+    if unknown:
+        raise ValueError(f"unknown effect {unknown[0]!r}; valid effects: {', '.join(EFFECTS)}")
+    out: dict[str, Any] = {}
+    inf = np.inf
+    for key, value in effects.items():
+        if key == "illumination":
+            if np.isscalar(value):
+                out[key] = (_scalar(key, value, 0.0, 1.0, open_high=True), None)
+            else:
+                try:
+                    strength, centre = value
+                except (TypeError, ValueError):
+                    raise ValueError(
+                        f"effect {key!r}: expected s or (s, (row, col)), got {value!r}"
+                    ) from None
+                out[key] = (_scalar(key, strength, 0.0, 1.0, open_high=True), _pair(key, centre))
+        elif key in ("row_offsets", "column_offsets", "background_structure"):
+            out[key] = _scalar(key, value, 0.0, inf, open_low=False, open_high=True)
+        elif key == "hot_pixels":
+            if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+                count = int(value)
+            else:
+                count = round(_scalar(key, value, 0.0, 1.0, open_high=True) * shape[0] * shape[1])
+            if not 0 <= count <= shape[0] * shape[1]:
+                raise ValueError(
+                    f"effect {key!r}: count must lie in [0, {shape[0] * shape[1]}], got {value!r}"
+                )
+            out[key] = count
+        elif key == "saturation":
+            top = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else inf
+            level = _scalar(key, value, offset, top, open_high=True)
+            out[key] = float(np.floor(level)) if np.issubdtype(dtype, np.integer) else level
+        elif key == "nonlinearity":
+            out[key] = _scalar(key, value, 0.0, 0.5)
+        elif key == "neighbours":
+            out[key] = _scalar(key, value, 0.0, 1.0)
+        elif key == "bead_size":
+            low, high = (value, value) if np.isscalar(value) else _pair(key, value)
+            low = _scalar(key, low, 0.0, inf, open_low=False, open_high=True)
+            high = _scalar(key, high, 0.0, inf, open_low=False, open_high=True)
+            if low > high:
+                raise ValueError(f"effect {key!r}: need d_min <= d_max, got {value!r}")
+            out[key] = (low, high)
+        elif key == "drift":
+            out[key] = _pair(key, value)
+    return out
+
+
+def _illumination_map(
+    rng: np.random.Generator, shape: tuple[int, int], strength: float, centre
+) -> tuple[np.ndarray, Any]:
+    """Centre of ``I = 1 - s rho^2`` and a function evaluating it at ``(y, x)``.
+
+    ``rho`` is the distance to the centre divided by the distance from the
+    centre to the farthest image corner (the half-diagonal for a centred
+    field), so ``1 - s <= I <= 1``. Without an explicit centre, the field
+    centre is shifted by a uniform random fraction (up to 20 %) of the field.
+    """
+    if centre is None:
+        shift = rng.uniform(-_ILLUMINATION_MAX_SHIFT, _ILLUMINATION_MAX_SHIFT, 2)
+        centre = (np.array(shape) - 1) / 2.0 + shift * np.array(shape)
+    centre = np.asarray(centre, float)
+    corners = np.array([[0, 0], [0, shape[1] - 1], [shape[0] - 1, 0], [shape[0] - 1, shape[1] - 1]])
+    scale = max(float(np.hypot(*(corners - centre).T).max()), 1.0)
+
+    def evaluate(y, x):
+        rho2 = (np.asarray(y, float) - centre[0]) ** 2 + (np.asarray(x, float) - centre[1]) ** 2
+        return 1.0 - strength * rho2 / scale**2
+
+    return centre, evaluate
+
+
+def _fixed_pattern(rng: np.random.Generator, n: int, sd: float) -> np.ndarray:
+    """Per-row (or per-column) offsets, ADU, normal with standard deviation ``sd``."""
+    return rng.normal(0.0, sd, n)
+
+
+def _hot_pixels(
+    rng: np.random.Generator, shape: tuple[int, int], count: int, typical_peak_adu: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` distinct pixels ``(row, col)`` with values uniform in [20 %, 100 %] of the peak."""
+    flat = rng.choice(shape[0] * shape[1], size=count, replace=False)
+    where = np.stack(np.unravel_index(np.sort(flat), shape), axis=1)
+    values = typical_peak_adu * rng.uniform(*_HOT_PIXEL_RANGE, size=count)
+    return where, values
+
+
+def _nonlinear(electrons: np.ndarray, c: float, e_ref: float) -> np.ndarray:
+    """Compressive response ``e (1 - c e / e_ref)``, monotone.
+
+    Increasing for ``e <= e_ref / (2 c)`` (which holds up to ``e_ref`` since
+    ``c <= 0.5``); held at its maximum ``e_ref / (4 c)`` beyond.
+    """
+    e = np.minimum(electrons, e_ref / (2.0 * c))
+    return e * (1.0 - c * e / e_ref)
+
+
+def _companions(
+    rng: np.random.Generator, positions: np.ndarray, fraction: float, radius: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Owner index, position and relative amplitude of companion beads.
+
+    ``round(fraction * M)`` distinct beads each get one companion at a
+    distance uniform in ``[0.6, 1.6] * radius`` in a uniform direction, with
+    an amplitude factor uniform in ``[0.3, 1]``.
+    """
+    count = round(fraction * len(positions))
+    owners = np.sort(rng.choice(len(positions), size=count, replace=False))
+    distance = radius * rng.uniform(*_COMPANION_DISTANCE, size=count)
+    angle = rng.uniform(0.0, 2.0 * np.pi, size=count)
+    factor = rng.uniform(*_COMPANION_AMPLITUDE, size=count)
+    where = positions[owners] + distance[:, None] * np.stack([np.sin(angle), np.cos(angle)], 1)
+    return owners, where, factor
+
+
+def _bead_diameters(
+    rng: np.random.Generator, n: int, d_range: tuple[float, float]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Diameters (µm) uniform in ``d_range`` and brightness factors ``d^3 / E[d^3]``."""
+    low, high = d_range
+    diameters = rng.uniform(low, high, size=n) if high > low else np.full(n, low)
+    mean_cube = (high**4 - low**4) / (4.0 * (high - low)) if high > low else low**3
+    factors = diameters**3 / mean_cube if mean_cube > 0 else np.ones(n)
+    return diameters, factors
+
+
+def _background_structure(
+    rng: np.random.Generator, shape: tuple[int, int], peak: float, radius: float
+) -> np.ndarray:
+    """Sum of Gaussian blobs of peak ``peak`` photons, sigma in ``[0.3, 0.6] * radius``.
+
+    Uniform centres over the field, about one per ``(3 radius)^2`` pixels:
+    structure at the scale of a bead patch, wider than the PSF core. On
+    ``2 r x 2 r`` patches an order-2 polynomial leaves about half of its rms
+    (wider blobs, sigma up to ``r``, are mostly absorbed: a third).
+    """
+    count = max(1, round(shape[0] * shape[1] / (_BLOB_SPACING * radius) ** 2))
+    centres = rng.uniform((0.0, 0.0), (shape[0] - 1.0, shape[1] - 1.0), size=(count, 2))
+    sigmas = radius * rng.uniform(*_BLOB_SIGMA, size=count)
+    out = np.zeros(shape)
+    for (cy, cx), sigma in zip(centres, sigmas, strict=True):
+        half = ceil(4.0 * sigma)
+        y0, y1 = max(int(cy) - half, 0), min(int(cy) + half + 1, shape[0])
+        x0, x1 = max(int(cx) - half, 0), min(int(cx) + half + 1, shape[1])
+        gy = np.exp(-0.5 * ((np.arange(y0, y1) - cy) / sigma) ** 2)
+        gx = np.exp(-0.5 * ((np.arange(x0, x1) - cx) / sigma) ** 2)
+        out[y0:y1, x0:x1] += peak * np.outer(gy, gx)
+    return out.astype(np.float32)
+
+
+def _typical_peak(
+    amplitudes: np.ndarray, peaks: np.ndarray, amp_range, aberrations, optics, shape
+) -> float:
+    """Median expected bead peak, photons (mean amplitude x PSF peak at the centre if no bead)."""
+    if len(amplitudes):
+        return float(np.median(amplitudes * peaks))
+    centre = aberrations.coefficient_matrix((shape[0] - 1) / 2.0, (shape[1] - 1) / 2.0, shape)
+    psf = _psf_stack(aberrations.noll_indices, centre[None], np.zeros((1, 2)), optics, 9)
+    return float(np.mean(amp_range) * psf.max())
+
+
+def _spawn(rng: np.random.Generator, n: int) -> list[np.random.Generator]:
+    """``n`` independent child generators of ``rng`` without drawing from its stream."""
+    try:
+        return rng.spawn(n)
+    except (AttributeError, TypeError, ValueError):  # bit generator without a seed sequence
+        return [np.random.default_rng(s) for s in rng.integers(0, 2**63, size=n)]
 
 
 def simulate_beads(
@@ -778,6 +1188,7 @@ def simulate_beads(
     dtype: np.dtype | type = np.uint16,
     seed: int | np.random.Generator | None = 0,
     psf_energy: float = PSF_ENERGY_FRACTION,
+    effects: Mapping[str, Any] | None = None,
 ) -> tuple[np.ndarray, SimulationTruth]:
     """Simulate a camera image of fluorescent beads seen through a space-varying PSF.
 
@@ -816,6 +1227,77 @@ def simulate_beads(
         everything (positions, amplitudes, background, noise).
     psf_energy : float
         Energy fraction defining ``truth.psf_radius``.
+    effects : Mapping[str, Any] or None
+        Effects beyond the PSF model to inject, each key switching one on
+        (``r`` below is ``truth.psf_radius``); all recorded in
+        ``truth.effects``:
+
+        ``"illumination": s`` (``0 < s < 1``) or ``(s, (row, col))``
+            Non-uniform excitation ``I = 1 - s rho^2`` (``rho``: distance to
+            the centre over the distance from the centre to the farthest
+            corner, so ``I >= 1 - s``) multiplying the bead amplitudes (at
+            each bead) and the smooth background. The centre is the field
+            centre shifted by a random fraction (up to 20 %) of the field, or
+            ``(row, col)`` pixels. Truth: ``illumination_centre``,
+            ``illumination_map`` (H, W) float32, ``illumination_factors`` (M,).
+        ``"row_offsets": sd``, ``"column_offsets": sd`` (ADU)
+            Fixed-pattern offsets, normal with standard deviation ``sd``, per
+            row / column, added to the ADU image after the noise. Truth:
+            ``row_offset_values`` (H,), ``column_offset_values`` (W,).
+        ``"hot_pixels": n`` (int) or fraction of the pixels (float < 1)
+            Distinct random pixels with an extra dark signal uniform in
+            [20 %, 100 %] of the median expected bead peak (ADU), added
+            (noiseless) to the ADU image after the noise. Truth:
+            ``hot_pixels`` (the count), ``hot_pixel_positions`` (n, 2) int
+            ``(row, col)``, ``hot_pixel_values`` (n,) ADU.
+        ``"saturation": level`` (ADU, above ``offset``, below the dtype max)
+            The final image is clipped at ``level`` (rounded down for
+            integer dtypes). Truth: ``saturation`` (the level),
+            ``saturated_pixels`` (number of pixels at the level).
+        ``"nonlinearity": c`` (``0 < c <= 0.5``)
+            Compressive response ``e (1 - c e / e_ref)`` applied to the
+            expected electrons before the shot noise, with ``e_ref`` the
+            brightest expected pixel (a bead peak, background included), which
+            loses the fraction ``c``; increasing up to ``e_ref / (2 c) >=
+            e_ref`` and held constant beyond, so monotone. Truth:
+            ``nonlinearity_reference`` (``e_ref``, electrons).
+        ``"neighbours": f`` (``0 < f <= 1``)
+            ``round(f M)`` random beads get a companion at a distance uniform
+            in ``[0.6 r, 1.6 r]`` in a random direction, amplitude uniform in
+            [0.3, 1] times the bead's (before illumination), same diameter,
+            rendered with the PSF at its own position (the minimum
+            separation is violated on purpose). ``truth.positions`` stays
+            the primary beads. Truth: ``companion_positions`` (K, 2),
+            ``companion_amplitudes`` (K,) photons, ``companion_of`` (K,)
+            index of the primary bead.
+        ``"bead_size": d`` or ``(d_min, d_max)`` (µm)
+            Beads are uniform spheres of diameter ``d`` (or uniform in
+            ``[d_min, d_max]``, with amplitude times ``d^3 / E[d^3]``): the
+            optical PSF convolved with the projected sphere. Truth:
+            ``bead_size`` ``(d_min, d_max)``, ``bead_diameters`` (M,) µm,
+            ``companion_diameters`` (K,) with ``"neighbours"``.
+        ``"drift": (dy, dx)`` (pixels)
+            Linear sample motion during the exposure: each bead image is the
+            PSF averaged along the segment from ``-(dy, dx) / 2`` to
+            ``+(dy, dx) / 2`` about its (mid-exposure) position. Truth:
+            ``drift``; :meth:`SimulationTruth.observed_psf_at` includes it.
+        ``"background_structure": a`` (photons)
+            Additive sum of Gaussian blobs of peak ``a``, sigma uniform in
+            ``[0.3 r, 0.6 r]``, uniform centres, about one per ``(3 r)^2``
+            pixels (structure at the scale of a bead patch that an order-2
+            polynomial per patch does not describe). Not illuminated. Truth:
+            ``background_structure_map`` (H, W) float32.
+
+        Invalid keys or values raise ValueError. The randomness of each effect
+        comes from its own child of the seeded generator
+        (:meth:`numpy.random.Generator.spawn`, one per key of ``EFFECTS`` in
+        that order), so effects draw nothing from the main stream: positions,
+        amplitude factors and smooth background equal those of
+        ``effects=None``, each effect's realisation does not depend on the
+        other effects, and effects that do not change the expected photons
+        (offsets, hot pixels, saturation) leave the noise realisation
+        unchanged. ``effects=None`` (or ``{}``) is bit-identical to not
+        passing it.
 
     Returns
     -------
@@ -823,12 +1305,17 @@ def simulate_beads(
         Camera image in ADU.
     truth : SimulationTruth
         Positions, amplitudes, background, optics, aberrations, camera
-        parameters, recommended PSF radius and per-bead peak SNR.
+        parameters, recommended PSF radius, per-bead peak SNR and effects.
+        With effects, ``amplitudes`` are the photons collected from each
+        primary bead (bead-size and illumination factors included) and
+        ``background`` is the expected background photons in the image
+        (illuminated smooth background plus background structure).
 
     Raises
     ------
     ValueError
-        If the beads cannot be placed with the requested separation/border.
+        If the beads cannot be placed with the requested separation/border,
+        or for an unknown effect or an invalid effect value.
 
     Notes
     -----
@@ -845,6 +1332,7 @@ def simulate_beads(
     amp_range = _as_range(amplitude, "amplitude")
     bg_range = _as_range(background, "background")
     dtype = np.dtype(dtype)
+    effect_params = _check_effects(effects, shape, dtype, offset)
     rng = np.random.default_rng(seed)
 
     psf_radius = _field_psf_radius(aberrations, optics, shape, psf_energy)
@@ -854,6 +1342,23 @@ def simulate_beads(
     positions = _place_beads(rng, shape, n_beads, min_separation, border)
     amplitudes = rng.uniform(*amp_range, size=n_beads)
     bg = _smooth_background(rng, shape, *bg_range)
+    if effect_params:
+        return _simulate_with_effects(
+            rng,
+            effect_params,
+            shape,
+            positions,
+            amplitudes,
+            bg,
+            aberrations,
+            optics,
+            amp_range,
+            gain,
+            offset,
+            read_noise,
+            dtype,
+            psf_radius,
+        )
 
     photons = bg.astype(np.float64)
     peaks = _render_beads(
@@ -876,5 +1381,143 @@ def simulate_beads(
         read_noise=float(read_noise),
         psf_radius=psf_radius,
         peak_snr=peak / np.sqrt(peak + local_bg + read_noise**2),
+    )
+    return image, truth
+
+
+def _simulate_with_effects(
+    rng: np.random.Generator,
+    params: dict[str, Any],
+    shape: tuple[int, int],
+    positions: np.ndarray,
+    amplitudes: np.ndarray,
+    bg: np.ndarray,
+    aberrations: FieldAberrations,
+    optics: Optics,
+    amp_range: tuple[float, float],
+    gain: float,
+    offset: float,
+    read_noise: float,
+    dtype: np.dtype,
+    psf_radius: int,
+) -> tuple[np.ndarray, SimulationTruth]:
+    """The rest of :func:`simulate_beads` with the validated ``params`` effects injected.
+
+    Order: bead sizes (amplitude factors), companions, illumination (beads
+    and smooth background), background structure, rendering (bead size,
+    drift), nonlinearity, camera noise (main generator, as without effects),
+    row/column offsets, hot pixels, saturation and digitisation.
+    """
+    rngs = dict(zip(EFFECTS, _spawn(rng, len(EFFECTS)), strict=True))
+    fx: dict[str, Any] = {}
+    n = len(positions)
+    amplitudes = amplitudes.astype(np.float64)
+    diameters = None
+    if "bead_size" in params:
+        diameters, factors = _bead_diameters(rngs["bead_size"], n, params["bead_size"])
+        amplitudes = amplitudes * factors
+        fx.update(bead_size=params["bead_size"], bead_diameters=diameters)
+
+    all_pos, all_amp, all_diam = positions, amplitudes, diameters
+    if "neighbours" in params:
+        owners, comp_pos, comp_factor = _companions(
+            rngs["neighbours"], positions, params["neighbours"], psf_radius
+        )
+        all_pos = np.concatenate([positions, comp_pos])
+        all_amp = np.concatenate([amplitudes, comp_factor * amplitudes[owners]])
+        if diameters is not None:
+            all_diam = np.concatenate([diameters, diameters[owners]])
+
+    background = bg.astype(np.float64)
+    if "illumination" in params:
+        strength, centre = params["illumination"]
+        centre, illumination = _illumination_map(rngs["illumination"], shape, strength, centre)
+        field_map = illumination(np.arange(shape[0])[:, None], np.arange(shape[1])[None, :])
+        factors = illumination(all_pos[:, 0], all_pos[:, 1])
+        all_amp = all_amp * factors
+        background *= field_map
+        fx.update(
+            illumination=strength,
+            illumination_centre=centre,
+            illumination_map=field_map.astype(np.float32),
+            illumination_factors=factors[:n],
+        )
+    if "background_structure" in params:
+        structure = _background_structure(
+            rngs["background_structure"], shape, params["background_structure"], psf_radius
+        )
+        background += structure
+        fx.update(
+            background_structure=params["background_structure"],
+            background_structure_map=structure,
+        )
+    if "neighbours" in params:
+        fx.update(
+            neighbours=params["neighbours"],
+            companion_positions=all_pos[n:],
+            companion_amplitudes=all_amp[n:],
+            companion_of=owners,
+        )
+        if diameters is not None:
+            fx["companion_diameters"] = all_diam[n:]
+    drift = params.get("drift")
+    if drift is not None:
+        fx["drift"] = drift
+
+    photons = background.copy()
+    peaks = _render_beads(
+        photons,
+        all_pos,
+        all_amp,
+        aberrations,
+        optics,
+        RENDER_RADIUS_FACTOR * psf_radius,
+        all_diam,
+        drift,
+    )[:n]
+    amplitudes = all_amp[:n]
+
+    if "nonlinearity" in params:
+        e_ref = float(photons.max())
+        photons = _nonlinear(photons, params["nonlinearity"], e_ref)
+        fx.update(nonlinearity=params["nonlinearity"], nonlinearity_reference=e_ref)
+    adu = _camera_adu(rng, photons, gain, offset, read_noise)
+    if "row_offsets" in params:
+        rows = _fixed_pattern(rngs["row_offsets"], shape[0], params["row_offsets"])
+        adu += rows[:, None]
+        fx.update(row_offsets=params["row_offsets"], row_offset_values=rows)
+    if "column_offsets" in params:
+        cols = _fixed_pattern(rngs["column_offsets"], shape[1], params["column_offsets"])
+        adu += cols[None, :]
+        fx.update(column_offsets=params["column_offsets"], column_offset_values=cols)
+    if "hot_pixels" in params:
+        typical = gain * _typical_peak(amplitudes, peaks, amp_range, aberrations, optics, shape)
+        where, values = _hot_pixels(rngs["hot_pixels"], shape, params["hot_pixels"], typical)
+        adu[where[:, 0], where[:, 1]] += values
+        fx.update(
+            hot_pixels=params["hot_pixels"], hot_pixel_positions=where, hot_pixel_values=values
+        )
+    level = params.get("saturation")
+    if level is not None:
+        rounded = np.rint(adu) if np.issubdtype(dtype, np.integer) else adu
+        fx.update(saturation=level, saturated_pixels=int(np.count_nonzero(rounded >= level)))
+    image = _digitise(adu, dtype, level)
+
+    peak = amplitudes * peaks
+    centres = np.clip(np.rint(positions).astype(int), 0, np.array(shape) - 1)
+    local_bg = background[centres[:, 0], centres[:, 1]]
+    truth = SimulationTruth(
+        shape=shape,
+        positions=positions,
+        amplitudes=amplitudes,
+        background=background.astype(np.float32),
+        optics=optics,
+        aberrations=aberrations,
+        gain=float(gain),
+        offset=float(offset),
+        read_noise=float(read_noise),
+        psf_radius=psf_radius,
+        peak_snr=peak / np.sqrt(peak + local_bg + read_noise**2),
+        effects=fx,
     )
     return image, truth

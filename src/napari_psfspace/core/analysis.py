@@ -1,0 +1,358 @@
+"""Residual analysis: statistical tests that point at what a PSF model lacks.
+
+Each test turns the residuals of a model into one statistic ``z`` in units of its
+standard deviation under the null hypothesis "the model and the noise model explain the
+image", and compares it with a threshold calibrated on effect-free simulated images
+(``bench/bench_diagnose.py``). A test with ``z > threshold`` is *evidence*; the effects
+(:mod:`napari_psfspace.core.effects`) read it.
+
+Tests (name: what it looks at)
+
+* ``trend_<variable>``: rank correlation (Spearman, Fisher z) between each bead's
+  excess relative error (residual energy minus its noise floor, relative to the bead's
+  signal) and ``amplitude``, ``background``, ``subpixel``
+  (distance of the centre to the pixel centre), ``neighbour`` (distance to the nearest
+  detection), ``radius`` (distance to the field centre), ``row``, ``column``.
+* ``core_vs_amplitude``: rank correlation between amplitude and the mean normalised
+  residual of the PSF core (flattened bright cores: saturation, nonlinear response).
+* ``mean_residual``: chi-square of the mean normalised residual patch (a bias common to
+  all beads: the PSF model is wrong everywhere the same way).
+* ``coherent_residual``: largest singular value of the matrix of normalised residual
+  patches against the Marchenko-Pastur edge of pure noise (structure that varies from
+  bead to bead: basis or field model too small).
+* ``pixel_outliers``: single pixels far above all their neighbours (hot pixels, cosmic
+  rays), counted over the whole image.
+* ``row_pattern`` / ``column_pattern``: excess variance of the row / column medians of
+  the bead-free background (fixed-pattern offsets).
+* ``background_structure``: chi-square per dof of order-2 polynomials fitted to
+  bead-free windows of a patch's size, after removing a smooth background (structure
+  at the scale of a patch that the per-patch polynomial cannot describe).
+* ``amplitude_field``: F-test of a quadratic trend of log amplitude over the field
+  (non-uniform illumination).
+* ``saturation``: pixels at the image's maximum value inside bead cores.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage as ndi
+from scipy import stats
+
+from .background import monomials
+from .noise import NoiseModel
+from .residuals import BeadResiduals
+from .window import radial_distance
+
+#: Default thresholds (z units), calibrated on effect-free simulations.
+THRESHOLDS: dict[str, float] = {
+    "trend": 4.0,
+    "core_vs_amplitude": 4.0,
+    "mean_residual": 5.0,
+    "coherent_residual": 5.0,
+    "pixel_outliers": 3.0,
+    "row_pattern": 6.0,
+    "column_pattern": 6.0,
+    "background_structure": 6.0,
+    "amplitude_field": 4.0,
+    "saturation": 3.0,
+}
+
+TREND_VARIABLES = ("amplitude", "background", "subpixel", "neighbour", "radius", "row",
+                   "column")
+
+
+@dataclass(frozen=True)
+class TestResult:
+    """One residual test.
+
+    Attributes
+    ----------
+    name : str
+    z : float
+        Statistic in null standard deviations (signed for correlations).
+    threshold : float
+    detail : dict
+        Test-specific numbers (JSON-ready).
+    """
+
+    name: str
+    z: float
+    threshold: float
+    detail: dict = field(default_factory=dict)
+    two_sided: bool = False
+
+    @property
+    def strength(self) -> float:
+        """``|z|`` for two-sided tests, ``max(z, 0)`` for one-sided ones."""
+        if not np.isfinite(self.z):
+            return 0.0
+        return abs(self.z) if self.two_sided else max(self.z, 0.0)
+
+    @property
+    def significant(self) -> bool:
+        return self.strength > self.threshold
+
+    @property
+    def evidence(self) -> float:
+        """``strength / threshold``: above 1 is significant; used to rank effects."""
+        return float(self.strength / self.threshold)
+
+    def to_dict(self) -> dict:
+        return {"name": self.name, "z": float(self.z), "threshold": self.threshold,
+                "two_sided": self.two_sided, "significant": self.significant, **self.detail}
+
+
+@dataclass
+class Analysis:
+    """All test results, by name."""
+
+    tests: dict[str, TestResult]
+
+    def __getitem__(self, name: str) -> TestResult:
+        return self.tests[name]
+
+    def significant(self) -> list[TestResult]:
+        """Significant tests, strongest first."""
+        return sorted((t for t in self.tests.values() if t.significant),
+                      key=lambda t: -t.evidence)
+
+    def to_dict(self) -> dict:
+        return {k: t.to_dict() for k, t in self.tests.items()}
+
+
+def _spearman_z(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """Spearman rho and its Fisher z (approximately N(0, 1) under independence)."""
+    ok = np.isfinite(x) & np.isfinite(y)
+    n = int(ok.sum())
+    if n < 8 or np.ptp(x[ok]) == 0 or np.ptp(y[ok]) == 0:
+        return 0.0, 0.0
+    rho = float(stats.spearmanr(x[ok], y[ok]).statistic)
+    rho = float(np.clip(rho, -0.999999, 0.999999))
+    return rho, float(np.arctanh(rho) * np.sqrt((n - 3) / 1.06))
+
+
+def _chi2_to_z(chi2: float, dof: float) -> float:
+    """Wilson-Hilferty normal approximation of a chi-square statistic."""
+    if dof <= 0:
+        return 0.0
+    a = 2.0 / (9.0 * dof)
+    return float(((chi2 / dof) ** (1.0 / 3.0) - (1 - a)) / np.sqrt(a))
+
+
+def bead_covariates(res: BeadResiduals, shape, all_positions=None) -> dict[str, np.ndarray]:
+    """Per-bead variables the trend tests correlate with, each of shape (K,)."""
+    pos = res.positions
+    h, w = shape
+    frac = pos - np.round(pos)
+    ref = pos if all_positions is None else np.asarray(all_positions, float).reshape(-1, 2)
+    if len(ref) > 1:
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(ref).query(pos, k=2)
+        nn = np.where(d[:, 0] < 1e-6, d[:, 1], d[:, 0])
+    else:
+        nn = np.full(len(pos), np.inf)
+    return {
+        "amplitude": res.amplitude,
+        "background": res.background,
+        "subpixel": np.hypot(frac[:, 0], frac[:, 1]),
+        "neighbour": nn,
+        "radius": np.hypot(pos[:, 0] - (h - 1) / 2, pos[:, 1] - (w - 1) / 2),
+        "row": pos[:, 0],
+        "column": pos[:, 1],
+    }
+
+
+def _pixel_outliers(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> dict:
+    """Pixels more than ``k`` sd above their local background and > 3x their brightest
+    neighbour's excess: a sampled PSF never has such a single-pixel spike."""
+    foot = np.ones((3, 3), bool)
+    foot[1, 1] = False
+    nb_max = ndi.maximum_filter(img, footprint=foot, mode="nearest")
+    bg = ndi.median_filter(img, size=7, mode="nearest")
+    excess = img - bg
+    sd = np.sqrt(noise.variance(bg))
+    hot = (excess > k * sd) & (excess > 3 * np.maximum(nb_max - bg, 0))
+    ys, xs = np.nonzero(hot)
+    return {"count": int(hot.sum()), "positions": np.column_stack([ys, xs]).tolist()[:200]}
+
+
+def _smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.ndarray:
+    """Normalised (masked) Gaussian smoothing of the bead-free pixels."""
+    num = ndi.gaussian_filter(np.where(free, img, 0.0), sigma, mode="nearest")
+    den = ndi.gaussian_filter(free.astype(np.float64), sigma, mode="nearest")
+    return num / np.maximum(den, 1e-6)
+
+
+def _line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
+                  axis: int) -> dict:
+    """Excess variance of the medians of bead-free, detrended pixels along rows (axis=1)
+    or columns (axis=0)."""
+    data = np.where(free, resid, np.nan)
+    med = np.nanmedian(data, axis=axis)
+    lev = np.nanmedian(np.where(free, level, np.nan), axis=axis)
+    count = np.sum(free, axis=axis)
+    ok = (count >= 20) & np.isfinite(med)
+    if ok.sum() < 10:
+        return {"z": 0.0, "n_lines": int(ok.sum())}
+    m = med[ok]
+    # a fixed pattern is line-to-line jitter: compare each median with the mean of its
+    # +-4 neighbours (slow trends of the background left by the smoothing cancel out)
+    kern = np.ones(9) / 8.0
+    kern[4] = 0.0
+    local = ndi.convolve1d(m, kern, mode="reflect")
+    dev = m - local
+    var_med = (np.pi / 2) * noise.variance(lev[ok]) / count[ok]
+    chi2 = float(np.sum(dev**2 / (var_med * (1 + 1 / 8))))
+    return {"z": _chi2_to_z(chi2, int(ok.sum())), "n_lines": int(ok.sum()),
+            "rms_adu": float(np.sqrt(np.mean(dev**2)))}
+
+
+def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
+                      noise: NoiseModel, size: int) -> dict:
+    """Order-2 polynomial fits on bead-free windows of a patch's size: median chi2/dof."""
+    design = monomials(size, 2)
+    pinv = np.linalg.pinv(design)
+    h, w = resid.shape
+    ratios = []
+    for y0 in range(0, h - size + 1, size):
+        for x0 in range(0, w - size + 1, size):
+            if not free[y0:y0 + size, x0:x0 + size].all():
+                continue
+            d = resid[y0:y0 + size, x0:x0 + size].ravel()
+            fit = design @ (pinv @ d)
+            var = noise.variance(level[y0:y0 + size, x0:x0 + size].ravel())
+            ratios.append(float(np.sum((d - fit) ** 2 / var)) / (d.size - design.shape[1]))
+    if len(ratios) < 5:
+        return {"z": 0.0, "windows": len(ratios)}
+    dof = size * size - design.shape[1]
+    med = float(np.median(ratios))
+    z = (med - 1.0) / np.sqrt(2.0 / dof) * np.sqrt(len(ratios) / 1.57)
+    return {"z": z, "windows": len(ratios), "median_chi2_dof": med}
+
+
+def analyse(
+    res: BeadResiduals,
+    image: np.ndarray,
+    noise: NoiseModel,
+    *,
+    psf_radius: float,
+    all_positions=None,
+    bead_mask: np.ndarray | None = None,
+    thresholds: dict[str, float] | None = None,
+) -> Analysis:
+    """Run every residual test.
+
+    Parameters
+    ----------
+    res : BeadResiduals
+        Per-bead fits of the model (from :func:`~napari_psfspace.core.residuals.fit_beads`).
+    image : ndarray of shape (M, N)
+        The raw image in ADU.
+    noise : NoiseModel
+    psf_radius : float
+        PSF radius in pixels.
+    all_positions : array_like of shape (L, 2), optional
+        Every detection (for the nearest-neighbour distances).
+    bead_mask : ndarray of shape (M, N), bool, optional
+        True near beads (excluded from the background tests). Default: disks of
+        ``1.5 psf_radius`` around ``all_positions`` (or the fitted beads).
+    thresholds : dict, optional
+        Overrides of :data:`THRESHOLDS`.
+
+    Returns
+    -------
+    Analysis
+    """
+    th = {**THRESHOLDS, **(thresholds or {})}
+    img = np.asarray(image, dtype=np.float64)
+    tests: dict[str, TestResult] = {}
+    k = len(res)
+    # the model's own relative error per bead, noise removed: independent of the bead's
+    # brightness when the model is merely imperfect, growing with it (say) when the
+    # detector saturates
+    excess = res.rel_energy - res.floor
+    cov = bead_covariates(res, img.shape, all_positions)
+    for name in TREND_VARIABLES:
+        rho, z = _spearman_z(cov[name], excess)
+        tests[f"trend_{name}"] = TestResult(f"trend_{name}", z, th["trend"], {"rho": rho},
+                                            two_sided=True)
+
+    nres = np.where(res.fit_mask, res.normalised_residual, np.nan)
+    p = nres.shape[-1]
+    core = radial_distance(p) <= max(1.5, psf_radius / 4)
+    core_mean = np.nanmean(nres[:, core], axis=1)
+    rho, z = _spearman_z(res.amplitude, core_mean)
+    tests["core_vs_amplitude"] = TestResult("core_vs_amplitude", z, th["core_vs_amplitude"],
+                                            {"rho": rho}, two_sided=True)
+
+    common = np.all(res.fit_mask, axis=0)
+    flat = np.nan_to_num(nres[:, common])  # (K, n_pix)
+    if k >= 5:
+        mean = flat.mean(axis=0)
+        chi2 = float(np.sum(mean**2 * k))
+        tests["mean_residual"] = TestResult("mean_residual", _chi2_to_z(chi2, flat.shape[1]),
+                                            th["mean_residual"], {"chi2": chi2,
+                                                                  "n_pixels": int(flat.shape[1])})
+        s = np.linalg.svd(flat - mean, compute_uv=False)
+        edge = np.sqrt(k - 1) + np.sqrt(flat.shape[1])
+        # fluctuation of the top singular value at the MP edge ~ edge^(1/3) (Tracy-Widom)
+        scale = edge ** (1 / 3) * (1 / np.sqrt(k - 1) + 1 / np.sqrt(flat.shape[1])) ** (1 / 3)
+        z = (s[0] - edge) / max(scale, 1e-9)
+        tests["coherent_residual"] = TestResult("coherent_residual", float(z),
+                                                th["coherent_residual"],
+                                                {"s1_over_edge": float(s[0] / edge)})
+
+    out = _pixel_outliers(img, noise)
+    tests["pixel_outliers"] = TestResult("pixel_outliers", float(out["count"]),
+                                         th["pixel_outliers"], out)
+
+    if bead_mask is None:
+        bead_mask = np.zeros(img.shape, bool)
+        ref = res.positions if all_positions is None else np.asarray(all_positions)
+        iy = np.clip(np.round(ref[:, 0]).astype(int), 0, img.shape[0] - 1)
+        ix = np.clip(np.round(ref[:, 1]).astype(int), 0, img.shape[1] - 1)
+        bead_mask[iy, ix] = True
+        bead_mask = ndi.binary_dilation(bead_mask, iterations=int(np.ceil(1.5 * psf_radius)))
+    free = ~bead_mask
+    level = _smooth_background(img, free, sigma=max(8.0, 2 * psf_radius))
+    resid = img - level
+    for axis, name in ((1, "row_pattern"), (0, "column_pattern")):
+        d = _line_pattern(resid, level, free, noise, axis)
+        tests[name] = TestResult(name, d.pop("z"), th[name], d)
+    d = _window_structure(resid, level, free, noise, p)
+    tests["background_structure"] = TestResult("background_structure", d.pop("z"),
+                                               th["background_structure"], d)
+
+    if k >= 5:
+        amp = res.amplitude
+        ok = amp > 0
+        if ok.sum() >= 12:
+            h, w = img.shape
+            u = (res.positions[ok, 1] - (w - 1) / 2) / (w / 2)
+            v = (res.positions[ok, 0] - (h - 1) / 2) / (h / 2)
+            x = np.column_stack([np.ones(ok.sum()), u, v, u * u, u * v, v * v])
+            y = np.log(amp[ok])
+            beta, rss1, *_ = np.linalg.lstsq(x, y, rcond=None)
+            rss1 = float(np.sum((y - x @ beta) ** 2))
+            rss0 = float(np.sum((y - y.mean()) ** 2))
+            n, q = ok.sum(), x.shape[1] - 1
+            f = ((rss0 - rss1) / q) / max(rss1 / (n - q - 1), 1e-300)
+            pval = float(stats.f.sf(f, q, n - q - 1))
+            z = float(stats.norm.isf(max(pval, 1e-300)))
+            tests["amplitude_field"] = TestResult("amplitude_field", z, th["amplitude_field"],
+                                                  {"F": float(f), "p": pval,
+                                                   "coefficients": beta.round(4).tolist()})
+    # row / column patterns and background structure use the bead-free background
+    top = float(img.max())
+    cores = np.zeros(img.shape, bool)
+    iy = np.clip(np.round(res.positions[:, 0]).astype(int), 0, img.shape[0] - 1)
+    ix = np.clip(np.round(res.positions[:, 1]).astype(int), 0, img.shape[1] - 1)
+    cores[iy, ix] = True
+    cores = ndi.binary_dilation(cores, iterations=max(1, int(psf_radius / 3)))
+    n_top = int(np.count_nonzero((img >= top) & cores))
+    tests["saturation"] = TestResult("saturation", float(n_top if n_top >= 2 else 0),
+                                     th["saturation"], {"level": top, "pixels": n_top})
+    return Analysis(tests)
