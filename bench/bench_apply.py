@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import os
 import resource
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -31,15 +30,15 @@ except ImportError:  # not installed: use the source tree
     from napari_psfspace.core.operator import ProductConvolution
 
 
-def _interleaved_median_ms(fns, repeat: int) -> list[float]:
-    """Median wall time (ms) of each callable, runs interleaved to share load drift."""
+def _interleaved_times_ms(fns, repeat: int) -> list[np.ndarray]:
+    """Wall times (ms) of each callable, runs interleaved to share load drift."""
     times: list[list[float]] = [[] for _ in fns]
     for _ in range(repeat):
         for fn, ts in zip(fns, times, strict=True):
             t0 = time.perf_counter()
             fn()
             ts.append(time.perf_counter() - t0)
-    return [1e3 * statistics.median(ts) for ts in times]
+    return [1e3 * np.array(ts) for ts in times]
 
 
 def _model(n_psf: int, size: int, psf: int, rng: np.random.Generator) -> ProductConvolution:
@@ -55,7 +54,7 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--size", type=int, default=2304, help="image side (pixels)")
     parser.add_argument("--psf", type=int, default=41, help="PSF patch size P (odd)")
-    parser.add_argument("--repeat", type=int, default=7, help="timed runs (median)")
+    parser.add_argument("--repeat", type=int, default=15, help="timed runs (median)")
     parser.add_argument("--workers", type=int, default=2, help="scipy.fft workers")
     parser.add_argument("--n-psf", type=int, nargs="+", default=[1, 3, 5, 8])
     args = parser.parse_args(argv)
@@ -80,7 +79,7 @@ def main(argv: list[str] | None = None) -> None:
         op.apply(u, workers=args.workers)  # warm-up: fills caches
         op.adjoint(u, workers=args.workers)
         fft_only()
-        t_apply, t_fft, t_adj = _interleaved_median_ms(
+        t_apply, t_fft, t_adj = _interleaved_times_ms(
             [
                 lambda op=op: op.apply(u, workers=args.workers),
                 fft_only,
@@ -88,17 +87,24 @@ def main(argv: list[str] | None = None) -> None:
             ],
             args.repeat,
         )
-        rows.append((n_psf, fshape, t_apply, t_fft, t_apply / t_fft, t_adj))
+        # each apply is paired with the FFT baseline timed right after it: the median of
+        # the paired ratios is robust to the machine's speed drifting between runs
+        ratios = t_apply / t_fft
+        rows.append((n_psf, fshape, np.median(t_apply), np.median(t_fft), np.median(ratios),
+                     np.percentile(ratios, 25), np.percentile(ratios, 75), np.median(t_adj)))
         del op
 
     print(f"padded FFT shape: {rows[0][1]}")
     header = (
-        f"{'I':>3} | {'apply ms':>9} | {'(I+1) rfft2 ms':>14} | {'ratio':>5} | {'adjoint ms':>10}"
+        f"{'I':>3} | {'apply ms':>9} | {'(I+1) rfft2 ms':>14} | {'ratio':>5} | "
+        f"{'ratio p25-p75':>13} | {'adjoint ms':>10}"
     )
     print(header)
     print("-" * len(header))
-    for n_psf, _, t_apply, t_fft, ratio, t_adj in rows:
-        print(f"{n_psf:>3} | {t_apply:9.1f} | {t_fft:14.1f} | {ratio:5.2f} | {t_adj:10.1f}")
+    for n_psf, _, t_apply, t_fft, ratio, lo, hi, t_adj in rows:
+        print(f"{n_psf:>3} | {t_apply:9.1f} | {t_fft:14.1f} | {ratio:5.2f} | "
+              f"{lo:6.2f}-{hi:<6.2f} | {t_adj:10.1f}")
+    print("ratio: median over runs of apply / (I+1) rfft2 timed back to back (target <= 1.5)")
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     scale = 1 if sys.platform == "darwin" else 1024  # bytes on macOS, KiB on Linux
     print(f"peak memory (ru_maxrss): {peak * scale / 2**20:.0f} MiB")
