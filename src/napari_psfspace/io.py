@@ -10,6 +10,7 @@ import io
 import json
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import tifffile
@@ -166,3 +167,38 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
     data = iio.imwrite("<bytes>", arr, extension=".png")
     with atomic_open(path) as fh:
         fh.write(data)
+
+
+def _folder_writable(folder: Path) -> bool:
+    """Writable by its permission bits (os.access is always true for root, which would
+    let a default land in a read-only data folder)."""
+    import stat
+
+    try:
+        mode = folder.stat().st_mode
+    except OSError:
+        return False
+    return bool(mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)) and os.access(folder,
+                                                                                     os.W_OK)
+
+
+def default_model_path(image_path: str | os.PathLike | None, name: str = "image") -> Path:
+    """A default file name for the model of an image, never an existing file.
+
+    ``<image stem>_psf_model.npz`` next to the image when that folder is writable, else in
+    the current folder; ``_2``, ``_3``, ... is appended rather than replacing a model
+    that is already there.
+    """
+    if image_path:
+        src = Path(image_path)
+        folder, stem = src.parent, src.stem
+        if not _folder_writable(folder):
+            folder = Path.cwd()
+    else:
+        folder, stem = Path.cwd(), name.replace(" ", "_")
+    path = folder / f"{stem}_psf_model.npz"
+    k = 2
+    while path.exists():
+        path = folder / f"{stem}_psf_model_{k}.npz"
+        k += 1
+    return path

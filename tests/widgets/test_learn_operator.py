@@ -1,6 +1,7 @@
 """Learn operator: end to end from detection to the saved model; cancel; errors."""
 
 import numpy as np
+import pytest
 
 from conftest import wait_task
 from napari_psfspace import load_operator
@@ -108,3 +109,29 @@ def test_too_few_beads_is_a_notification(viewer, qtbot, tmp_path, monkeypatch):
     wait_task(qtbot, w.task)
     assert len(shown) == 1 and "Too few usable beads" in shown[0]
     assert not (tmp_path / "m.npz").exists()
+
+
+def test_stack_uses_the_detection_slice_and_radius(make_napari_viewer, qtbot, bead_image,
+                                                   tmp_path):
+    """A user's z-stack (beads in focus on one slice only), widgets opened before the
+    detection, and the slider moved away (e.g. by the patch gallery) before learning:
+    the operator must come from the detection slice, with the detection's radius."""
+    image, truth = bead_image
+    flat = np.full_like(image, int(np.median(image)))
+    stack = np.stack([flat, image, flat])
+    v = make_napari_viewer()
+    v.add_image(stack, name="stack")
+    pick, learn = PickBeadsWidget(v), LearnOperatorWidget(v)
+    v.dims.set_point(0, 1)
+    pick.radius.value_edit.value = float(truth.psf_radius)
+    pick.detect.clicked()
+    wait_task(qtbot, pick.task)
+    assert v.layers[BEADS].metadata["slice"] == 1
+    assert learn.radius.pixels == pytest.approx(truth.psf_radius)  # followed the beads
+    v.dims.set_point(0, 0)  # an empty slice on display
+    learn.save_path.value = tmp_path / "m.npz"
+    learn.learn.clicked()
+    wait_task(qtbot, learn.task)
+    op = load_operator(tmp_path / "m.npz")
+    assert op.metadata["n_beads_used"] >= 15
+    assert op.metadata["psf_radius"] == pytest.approx(truth.psf_radius)

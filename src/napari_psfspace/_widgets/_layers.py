@@ -72,11 +72,14 @@ class Frame:
         World units per pixel along rows and columns (micrometres when known).
     translate : tuple of float
         World position of pixel (0, 0).
+    index : int or None
+        Slice of a 3-D stack the plane was taken from (None for a 2-D image).
     """
 
     shape: tuple[int, int]
     scale: tuple[float, float] = (1.0, 1.0)
     translate: tuple[float, float] = (0.0, 0.0)
+    index: int | None = None  # slice of a stack the plane was taken from
 
     @property
     def height(self) -> float:
@@ -92,7 +95,8 @@ class Frame:
         return None if np.allclose(self.scale, 1.0) else float(self.scale[-1])
 
 
-def image_plane(layer, world_point=None) -> tuple[np.ndarray, Frame]:
+def image_plane(layer, world_point=None, *, index: int | None = None
+                ) -> tuple[np.ndarray, Frame]:
     """The 2-D plane of an image layer and its frame, as plain values.
 
     Parameters
@@ -101,6 +105,8 @@ def image_plane(layer, world_point=None) -> tuple[np.ndarray, Frame]:
         A 2-D image, or a 3-D stack (Z, Y, X) of which the slice at ``world_point`` is taken.
     world_point : sequence of float, optional
         The viewer's current point (``viewer.dims.point``), used for stacks.
+    index : int, optional
+        Slice of a stack to take; overrides ``world_point``.
 
     Returns
     -------
@@ -118,16 +124,31 @@ def image_plane(layer, world_point=None) -> tuple[np.ndarray, Frame]:
                          "bead image (split the channels first).")
     data = np.asarray(layer.data)
     scale, translate = np.asarray(layer.scale, float), np.asarray(layer.translate, float)
+    z = None
     if data.ndim == 3:
-        z = 0
-        if world_point is not None:
+        z = 0 if index is None else int(index)
+        if index is None and world_point is not None:
             z = int(round((float(world_point[-3]) - translate[0]) / scale[0]))
-        data = data[int(np.clip(z, 0, data.shape[0] - 1))]
+        z = int(np.clip(z, 0, data.shape[0] - 1))
+        data = data[z]
     elif data.ndim != 2:
         raise ValueError(f"Layer {layer.name!r} has {data.ndim} dimensions: choose a 2-D "
                          "bead image or a 3-D stack (Z, Y, X).")
-    frame = Frame(tuple(data.shape), tuple(scale[-2:].tolist()), tuple(translate[-2:].tolist()))
+    frame = Frame(tuple(data.shape), tuple(scale[-2:].tolist()), tuple(translate[-2:].tolist()),
+                  z)
     return np.array(data, copy=True), frame
+
+
+def bead_plane(image_layer, points_layer, world_point=None) -> tuple[np.ndarray, Frame]:
+    """The plane the beads of a Points layer were detected on.
+
+    The Points layer is the truth: when it was made from this image (its metadata
+    names the image and the slice), that slice is used, whatever the viewer's sliders
+    show (a patch gallery or basis stack shares the first axis with a z-stack).
+    """
+    meta = getattr(points_layer, "metadata", None) or {}
+    index = meta.get("slice") if meta.get("image") == image_layer.name else None
+    return image_plane(image_layer, world_point, index=index)
 
 
 # ------------------------------------------------------------------ beads <-> Points
@@ -359,6 +380,8 @@ def show_layers(viewer, tuples: list[LayerTuple]) -> list:
 
 
 def _update(layer, data, kwargs: dict) -> None:
+    if "metadata" in kwargs:  # before the data: listeners of data events read it
+        layer.metadata = kwargs["metadata"]
     if "features" in kwargs:  # points: data and features must change together
         layer.data = data
         layer.features = kwargs["features"]

@@ -20,13 +20,14 @@ from napari.utils.notifications import show_info
 
 from ..core.estimate import iter_estimate
 from ..core.operator import ProductConvolution
+from ..io import default_model_path
 from ._layers import (
     PSF_GRID,
+    bead_plane,
     beads_from_points,
     beads_layer,
     ensure_bead_features,
     heldout_layer,
-    image_plane,
     operator_layers,
     psf_layer,
     set_statuses,
@@ -102,8 +103,27 @@ class LearnOperatorWidget(Container):
         self.reset_choices()
         prefer_beads(self.points)
 
+    def _follow(self, pts) -> None:
+        """Refresh from the beads layer whenever it changes (a new detection)."""
+        old = getattr(self, "_followed", None)
+        if old is pts:
+            return
+        if old is not None:
+            old.events.data.disconnect(self._refresh_radius)
+        if pts is not None:
+            pts.events.data.connect(self._refresh_radius)
+        self._followed = pts
+
+    def _refresh_radius(self, *_) -> None:
+        """Take the radius the beads were detected with (a new detection changed it)."""
+        pts = self.points.value
+        r = None if pts is None else (pts.metadata or {}).get("psf_radius_px")
+        if r is not None and abs(self.radius.pixels - float(r)) > 1e-9:
+            self.radius.set_calibration(self.radius.pixel_size, float(r))
+
     def _on_inputs(self, *_) -> None:
         img, pts = self.image.value, self.points.value
+        self._follow(pts)
         self.threshold.visible = pts is None
         if img is None:
             return
@@ -113,9 +133,7 @@ class LearnOperatorWidget(Container):
         r = (pts.metadata or {}).get("psf_radius_px") if pts is not None else None
         self.radius.set_calibration(px, r if r is not None else meta.get("psf_radius"))
         src = getattr(getattr(img, "source", None), "path", None)
-        folder = Path(src).parent if src else Path.cwd()
-        stem = Path(src).stem if src else img.name.replace(" ", "_")
-        self.save_path.value = folder / f"{stem}_psf_model.npz"
+        self.save_path.value = default_model_path(src, img.name)
         h, w = img.data.shape[-2:]
         self.psf_y.value, self.psf_x.value = (h - 1) / 2, (w - 1) / 2
 
@@ -126,7 +144,7 @@ class LearnOperatorWidget(Container):
             self.task.status.value = "Open a bead image first (or File > Open Sample)."
             return
         try:
-            plane, frame = image_plane(img, self._viewer.dims.point)
+            plane, frame = bead_plane(img, pts, self._viewer.dims.point)
         except ValueError as exc:
             from napari.utils.notifications import show_error
 

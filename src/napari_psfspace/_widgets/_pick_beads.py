@@ -140,9 +140,11 @@ class PickBeadsWidget(Container):
         r = self.radius.pixels
 
         def on_result(beads) -> None:
-            (points,) = show_layers(self._viewer, [beads_layer(beads, frame, r)])
-            points.metadata.update({"psf_radius_px": r, "image": layer.name,
-                                    "threshold": float(self.threshold.value)})
+            data, kwargs, kind = beads_layer(beads, frame, r)
+            kwargs["metadata"] = {**kwargs.get("metadata", {}), "psf_radius_px": r,
+                                  "image": layer.name, "slice": frame.index,
+                                  "threshold": float(self.threshold.value)}
+            (points,) = show_layers(self._viewer, [(data, kwargs, kind)])
             watch_points(points)
             self._viewer.layers.selection.active = points
             self.task.status.value = beads.summary()

@@ -13,10 +13,10 @@ from ._layers import (
     GALLERY,
     REJECTED,
     STATUS_MEANING,
+    bead_plane,
     beads_from_points,
     ensure_bead_features,
     gallery_layer,
-    image_plane,
     set_statuses,
     show_layers,
 )
@@ -69,8 +69,27 @@ class ReviewPatchesWidget(Container):
         self.reset_choices()
         prefer_beads(self.points)
 
+    def _follow(self, pts) -> None:
+        """Refresh from the beads layer whenever it changes (a new detection)."""
+        old = getattr(self, "_followed", None)
+        if old is pts:
+            return
+        if old is not None:
+            old.events.data.disconnect(self._refresh_radius)
+        if pts is not None:
+            pts.events.data.connect(self._refresh_radius)
+        self._followed = pts
+
+    def _refresh_radius(self, *_) -> None:
+        """Take the radius the beads were detected with (a new detection changed it)."""
+        pts = self.points.value
+        r = None if pts is None else (pts.metadata or {}).get("psf_radius_px")
+        if r is not None and abs(self.radius.pixels - float(r)) > 1e-9:
+            self.radius.set_calibration(self.radius.pixel_size, float(r))
+
     def _on_points(self, *_) -> None:
         img, pts = self.image.value, self.points.value
+        self._follow(pts)
         px = None
         if img is not None:
             scale = float(img.scale[-1])
@@ -87,7 +106,7 @@ class ReviewPatchesWidget(Container):
             self.task.status.value = "Choose an image and its beads (Pick beads first)."
             return
         try:
-            plane, frame = image_plane(img, self._viewer.dims.point)
+            plane, frame = bead_plane(img, pts, self._viewer.dims.point)
         except ValueError as exc:
             from napari.utils.notifications import show_error
 
