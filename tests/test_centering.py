@@ -1,21 +1,12 @@
 """Tests of sub-pixel bead centring (core/centering.py, paper Appendix A)."""
 
 import numpy as np
-from scipy.special import erf
 
 from napari_psfspace.core.centering import gather_windows, refine_centers
+from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # PSF standard deviation, pixels
 SHAPE = (256, 256)
-
-
-def _integrated_gaussian(shape, center, sigma, amplitude):
-    """Pixel-integrated isotropic Gaussian of total flux ``amplitude``."""
-    def axis(n, c):
-        edges = np.arange(n + 1) - 0.5 - c
-        return 0.5 * np.diff(erf(edges / (np.sqrt(2) * sigma)))
-
-    return amplitude * np.outer(axis(shape[0], center[0]), axis(shape[1], center[1]))
 
 
 def _scene(seed, *, peak=1000.0, background=10.0):
@@ -27,7 +18,7 @@ def _scene(seed, *, peak=1000.0, background=10.0):
     flux = peak * 2 * np.pi * SIGMA**2
     img = np.full(SHAPE, background)
     for c in truth:
-        img += _integrated_gaussian(SHAPE, c, SIGMA, flux)
+        img += integrated_gaussian(SHAPE, c, SIGMA, flux)
     return img, truth, rng
 
 

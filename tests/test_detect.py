@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-from scipy.special import erf
 
 from napari_psfspace.core.detect import (
     BORDER,
@@ -15,25 +14,17 @@ from napari_psfspace.core.detect import (
     detect_beads,
     log_response,
 )
+from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # blob standard deviation, pixels
 R = 5.0  # psf_radius: border = ceil(1.2 r) + 2 = 8 px, min_separation = 2 r = 10 px
-
-
-def _integrated_gaussian(shape, center, sigma, amplitude):
-    """Pixel-integrated isotropic Gaussian of total flux ``amplitude``."""
-    def axis(n, c):
-        edges = np.arange(n + 1) - 0.5 - c
-        return 0.5 * np.diff(erf(edges / (np.sqrt(2) * sigma)))
-
-    return amplitude * np.outer(axis(shape[0], center[0]), axis(shape[1], center[1]))
 
 
 def _image(centers, *, shape=(256, 256), flux=3000.0, noise=1.0, seed=0):
     rng = np.random.default_rng(seed)
     img = 100.0 + noise * rng.standard_normal(shape)
     for c in centers:
-        img += _integrated_gaussian(shape, c, SIGMA, flux)
+        img += integrated_gaussian(shape, c, SIGMA, flux)
     return img
 
 
@@ -76,7 +67,7 @@ def test_saturated_integer_image():
     planted = np.array([[60.0, 60.0], [150.0, 150.0]])
     img = _image(planted[:1], flux=3000.0, seed=3)
     # second bead is bright enough to clip at the uint16 maximum
-    img += _integrated_gaussian(img.shape, planted[1], SIGMA, 3e6)
+    img += integrated_gaussian(img.shape, planted[1], SIGMA, 3e6)
     img = np.clip(np.round(img), 0, np.iinfo(np.uint16).max).astype(np.uint16)
     assert (img == np.iinfo(np.uint16).max).sum() > 1
     beads = detect_beads(img, R)

@@ -2,25 +2,16 @@
 
 import numpy as np
 import pytest
-from scipy.special import erf
 
 from napari_psfspace.core.heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from napari_psfspace.core.operator import ProductConvolution
 from napari_psfspace.core.patches import extract_patches, patch_size
+from synthetic import integrated_gaussian
 
 SHAPE = (256, 256)
 SIGMA = 1.5  # PSF standard deviation, pixels
 R = 6.0  # psf_radius: patch size 17
 NOISE = 1.0
-
-
-def _integrated_gaussian(shape, center, sigma, amplitude):
-    """Pixel-integrated isotropic Gaussian of total flux ``amplitude``."""
-    def axis(n, c):
-        edges = np.arange(n + 1) - 0.5 - c
-        return 0.5 * np.diff(erf(edges / (np.sqrt(2) * sigma)))
-
-    return amplitude * np.outer(axis(shape[0], center[0]), axis(shape[1], center[1]))
 
 
 def _uniform_positions(seed, n=200, shape=(512, 512)):
@@ -75,7 +66,7 @@ def beads():
     centers = grid + rng.uniform(-0.5, 0.5, grid.shape)
     img = np.full(SHAPE, 100.0)
     for c in centers:
-        img += _integrated_gaussian(SHAPE, c, SIGMA, 2000.0)
+        img += integrated_gaussian(SHAPE, c, SIGMA, 2000.0)
     img += NOISE * rng.standard_normal(SHAPE)
     return extract_patches(img, centers, R)
 
@@ -89,7 +80,7 @@ def _constant_model(psf):
 def test_true_model_reaches_noise_floor(beads):
     size = patch_size(R)
     c = size // 2
-    truth = _integrated_gaussian((size, size), (c, c), SIGMA, 1.0)
+    truth = integrated_gaussian((size, size), (c, c), SIGMA, 1.0)
     res = heldout_residuals(_constant_model(truth), beads)
     assert isinstance(res, HeldoutResiduals)
     assert np.array_equal(res.positions, beads.centers)
@@ -107,14 +98,14 @@ def test_true_model_reaches_noise_floor(beads):
 def test_wrong_model_stands_above_floor(beads):
     size = patch_size(R)
     c = size // 2
-    wrong = _integrated_gaussian((size, size), (c, c), 1.3 * SIGMA, 1.0)
+    wrong = integrated_gaussian((size, size), (c, c), 1.3 * SIGMA, 1.0)
     res = heldout_residuals(_constant_model(wrong), beads)
     # a 30 % too wide PSF: measured median residual / floor = 9.1
     assert np.median(res.residual / res.noise_floor) > 3
 
 
 def test_size_mismatch_raises(beads):
-    psf = _integrated_gaussian((15, 15), (7, 7), SIGMA, 1.0)
+    psf = integrated_gaussian((15, 15), (7, 7), SIGMA, 1.0)
     with pytest.raises(ValueError, match="PSF size 15 differs from the patch size 17"):
         heldout_residuals(_constant_model(psf), beads)
 

@@ -2,24 +2,15 @@
 
 import numpy as np
 import pytest
-from scipy.special import erf
 
 from napari_psfspace.core.patches import Patches, extract_patches, patch_size
 from napari_psfspace.core.window import bump_window
+from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # PSF standard deviation, pixels
 R = 6.0  # psf_radius; r_ext = 7.2, patch size 17
 SHAPE = (192, 192)
 NOISE = 0.5
-
-
-def _integrated_gaussian(shape, center, sigma, amplitude):
-    """Pixel-integrated isotropic Gaussian of total flux ``amplitude``."""
-    def axis(n, c):
-        edges = np.arange(n + 1) - 0.5 - c
-        return 0.5 * np.diff(erf(edges / (np.sqrt(2) * sigma)))
-
-    return amplitude * np.outer(axis(shape[0], center[0]), axis(shape[1], center[1]))
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +23,7 @@ def scene():
     yy, xx = np.indices(SHAPE)
     img = 200.0 + 0.3 * yy - 0.2 * xx  # tilted plane background
     for c, a in zip(centers, amp, strict=True):
-        img = img + _integrated_gaussian(SHAPE, c, SIGMA, a)
+        img = img + integrated_gaussian(SHAPE, c, SIGMA, a)
     img = img + NOISE * rng.standard_normal(SHAPE)
     return img, centers, amp
 
@@ -51,7 +42,7 @@ def test_psf_matches_true_centred_psf(scene):
     assert pt.r == R and pt.r_ext == pytest.approx(1.2 * R)
     assert np.abs(pt.psf.sum(axis=(1, 2)) - 1).max() < 1e-12
     c = size // 2
-    truth = _integrated_gaussian((size, size), (c, c), SIGMA, 1.0) * bump_window(
+    truth = integrated_gaussian((size, size), (c, c), SIGMA, 1.0) * bump_window(
         size, R, 1.2 * R)
     truth /= truth.sum()
     err = np.linalg.norm(pt.psf - truth, axis=(1, 2)) / np.linalg.norm(truth)
@@ -104,7 +95,7 @@ def test_subset(scene):
 def test_empty_patch_keeps_zero_psf():
     rng = np.random.default_rng(1)
     img = 10.0 + rng.standard_normal((64, 64))
-    img -= _integrated_gaussian(img.shape, (32.0, 32.0), SIGMA, 300.0)  # a dip, no bead
+    img -= integrated_gaussian(img.shape, (32.0, 32.0), SIGMA, 300.0)  # a dip, no bead
     pt = extract_patches(img, [[32.0, 32.0]], 5.0)
     assert pt.flux[0] <= 0
     assert np.all(pt.psf[0] == 0)

@@ -105,18 +105,28 @@ class PickBeadsWidget(Container):
         px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
         self.radius.set_calibration(px, meta.get("psf_radius", DEFAULT_RADIUS_PX))
 
-    def run_suggest(self, *_) -> None:
-        """Suggest the PSF radius from the chosen image (in a worker thread)."""
+    def _plane(self):
+        """The plane on display of the chosen image, or None (the user is told why)."""
         layer = self.image.value
-        if layer is None or self.task.running:
-            return
+        if layer is None:
+            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+            return None
         try:
-            plane, _ = image_plane(layer, self._viewer.dims.point)
+            return image_plane(layer, self._viewer.dims.point)
         except ValueError as exc:
             from napari.utils.notifications import show_error
 
             show_error(str(exc))
+            return None
+
+    def run_suggest(self, *_) -> None:
+        """Suggest the PSF radius from the chosen image (in a worker thread)."""
+        if self.task.running:
             return
+        got = self._plane()
+        if got is None:
+            return
+        plane, _ = got
 
         def on_result(radius: float) -> None:
             self.radius.set_calibration(self.radius.pixel_size, radius)
@@ -127,16 +137,10 @@ class PickBeadsWidget(Container):
     def run(self, *_) -> None:
         """Detect beads in the chosen image (in a worker thread)."""
         layer = self.image.value
-        if layer is None:
-            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+        got = self._plane()
+        if got is None:
             return
-        try:
-            plane, frame = image_plane(layer, self._viewer.dims.point)
-        except ValueError as exc:
-            from napari.utils.notifications import show_error
-
-            show_error(str(exc))
-            return
+        plane, frame = got
         r = self.radius.pixels
 
         def on_result(beads) -> None:

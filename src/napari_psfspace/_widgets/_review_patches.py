@@ -20,13 +20,13 @@ from ._layers import (
     set_statuses,
     show_layers,
 )
-from ._worker import CoreTask, RadiusEdit, bead_layer_choices, layer_choices, prefer_beads
+from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
 
 if TYPE_CHECKING:
     import napari
 
 
-class ReviewPatchesWidget(Container):
+class ReviewPatchesWidget(FollowsBeads, Container):
     """A gallery of bead patches (a stack: the slider picks the bead) with their flags.
 
     Accept / Reject set the bead's status in the Points layer, which the operator
@@ -64,28 +64,6 @@ class ReviewPatchesWidget(Container):
         viewer.layers.events.removed.connect(self._on_layers)
         self._on_layers()
         self._on_points()
-
-    def _on_layers(self, *_) -> None:
-        self.reset_choices()
-        prefer_beads(self.points)
-
-    def _follow(self, pts) -> None:
-        """Refresh from the beads layer whenever it changes (a new detection)."""
-        old = getattr(self, "_followed", None)
-        if old is pts:
-            return
-        if old is not None:
-            old.events.data.disconnect(self._refresh_radius)
-        if pts is not None:
-            pts.events.data.connect(self._refresh_radius)
-        self._followed = pts
-
-    def _refresh_radius(self, *_) -> None:
-        """Take the radius the beads were detected with (a new detection changed it)."""
-        pts = self.points.value
-        r = None if pts is None else (pts.metadata or {}).get("psf_radius_px")
-        if r is not None and abs(self.radius.pixels - float(r)) > 1e-9:
-            self.radius.set_calibration(self.radius.pixel_size, float(r))
 
     def _on_points(self, *_) -> None:
         img, pts = self.image.value, self.points.value

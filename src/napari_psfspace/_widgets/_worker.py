@@ -216,3 +216,33 @@ class RadiusEdit(Container):
     def _update_hint(self, *_: Any) -> None:
         self.hint.value = (f"= {self.pixels:.1f} px at {self._pixel_size:g} µm/px"
                            if self._pixel_size else "")
+
+
+class FollowsBeads:
+    """Mixin for widgets with a ``points`` (beads layer) chooser and a ``radius`` edit.
+
+    The beads layer is the truth downstream of *Pick beads*: the widget prefers it in
+    the chooser, and takes its radius whenever the layer changes (a new detection).
+    """
+
+    def _on_layers(self, *_) -> None:
+        self.reset_choices()
+        prefer_beads(self.points)
+
+    def _follow(self, pts) -> None:
+        """Listen to the chosen beads layer (and stop listening to the previous one)."""
+        old = getattr(self, "_followed", None)
+        if old is pts:
+            return
+        if old is not None:
+            old.events.data.disconnect(self._refresh_radius)
+        if pts is not None:
+            pts.events.data.connect(self._refresh_radius)
+        self._followed = pts
+
+    def _refresh_radius(self, *_) -> None:
+        """Take the radius the beads were detected with."""
+        pts = self.points.value
+        r = None if pts is None else (pts.metadata or {}).get("psf_radius_px")
+        if r is not None and abs(self.radius.pixels - float(r)) > 1e-9:
+            self.radius.set_calibration(self.radius.pixel_size, float(r))
