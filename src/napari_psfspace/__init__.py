@@ -16,6 +16,7 @@ top of it. Typical use::
 __version__ = "0.1.0"
 
 from .core.detect import Beads, NoBeadsError, detect_beads, suggest_psf_radius
+from .core.diagnose import Diagnosis, diagnose
 from .core.estimate import Estimation, Progress, estimate_operator, iter_estimate
 from .core.metrics import psf_error
 from .core.operator import ProductConvolution, load_operator
@@ -24,6 +25,7 @@ from .core.simulate import FieldAberrations, Optics, SimulationTruth, simulate_b
 
 __all__ = [
     "Beads",
+    "Diagnosis",
     "Estimation",
     "FieldAberrations",
     "NoBeadsError",
@@ -34,6 +36,7 @@ __all__ = [
     "SimulationTruth",
     "__version__",
     "detect_beads",
+    "diagnose",
     "estimate_operator",
     "extract_patches",
     "iter_estimate",

@@ -30,6 +30,8 @@ Tests (name: what it looks at)
 * ``amplitude_field``: F-test of a quadratic trend of log amplitude over the field
   (non-uniform illumination).
 * ``saturation``: pixels at the image's maximum value inside bead cores.
+* ``secondary_peaks``: beads whose smoothed normalised residual has a peak of more than
+  6 noise sd outside the core (a companion bead the detector merged with it).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ THRESHOLDS: dict[str, float] = {
     "background_structure": 6.0,
     "amplitude_field": 4.0,
     "saturation": 3.0,
+    "secondary_peaks": 3.0,
 }
 
 TREND_VARIABLES = ("amplitude", "background", "subpixel", "neighbour", "radius", "row",
@@ -177,6 +180,39 @@ def _pixel_outliers(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> dict:
     hot = (excess > k * sd) & (excess > 3 * np.maximum(nb_max - bg, 0))
     ys, xs = np.nonzero(hot)
     return {"count": int(hot.sum()), "positions": np.column_stack([ys, xs]).tolist()[:200]}
+
+
+def _secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,
+                     relative: float = 0.15) -> dict:
+    """Beads with a companion: a peak of the smoothed residual outside the core that
+    stands ``k`` noise sd out *and* exceeds ``relative`` of the bead's own peak (a model
+    that is merely imperfect leaves a few per cent of the peak, a merged companion bead
+    30-100 %)."""
+    p = res.data.shape[-1]
+    dist = radial_distance(p)
+    # the ring between the core and the fit radius (smoothing bleeds zeros from beyond)
+    ring = (dist > max(2.0, psf_radius / 3)) & (dist < psf_radius - 1.5)
+    resid = ndi.gaussian_filter(res.residual, (0, 1.0, 1.0))
+    noise = ndi.gaussian_filter(np.where(res.fit_mask, res.normalised_residual, 0.0),
+                                (0, 1.0, 1.0))
+    sd = 1.4826 * float(np.median(np.abs(noise[:, ring] - np.median(noise[:, ring])))) or 1.0
+    signal = (res.model - res.background[:, None, None]).reshape(len(res), -1).max(axis=1)
+    peak_adu = resid[:, ring].max(axis=1)
+    peak_sd = (noise[:, ring].max(axis=1)) / sd
+    hits = np.flatnonzero((peak_sd > k) & (peak_adu > relative * np.maximum(signal, 1e-12)))
+    return {"count": int(len(hits)), "beads": hits.tolist(),
+            "max_relative": float((peak_adu / np.maximum(signal, 1e-12)).max())
+            if len(res) else 0.0}
+
+
+def bead_free_mask(shape, positions, psf_radius: float) -> np.ndarray:
+    """True farther than ``1.5 psf_radius`` from every position, shape ``shape``."""
+    mask = np.zeros(shape, bool)
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    iy = np.clip(np.round(pos[:, 0]).astype(int), 0, shape[0] - 1)
+    ix = np.clip(np.round(pos[:, 1]).astype(int), 0, shape[1] - 1)
+    mask[iy, ix] = True
+    return ~ndi.binary_dilation(mask, iterations=int(np.ceil(1.5 * psf_radius)))
 
 
 def _smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.ndarray:
@@ -310,13 +346,10 @@ def analyse(
                                          th["pixel_outliers"], out)
 
     if bead_mask is None:
-        bead_mask = np.zeros(img.shape, bool)
         ref = res.positions if all_positions is None else np.asarray(all_positions)
-        iy = np.clip(np.round(ref[:, 0]).astype(int), 0, img.shape[0] - 1)
-        ix = np.clip(np.round(ref[:, 1]).astype(int), 0, img.shape[1] - 1)
-        bead_mask[iy, ix] = True
-        bead_mask = ndi.binary_dilation(bead_mask, iterations=int(np.ceil(1.5 * psf_radius)))
-    free = ~bead_mask
+        free = bead_free_mask(img.shape, ref, psf_radius)
+    else:
+        free = ~np.asarray(bead_mask, bool)
     level = _smooth_background(img, free, sigma=max(8.0, 2 * psf_radius))
     resid = img - level
     for axis, name in ((1, "row_pattern"), (0, "column_pattern")):
@@ -346,6 +379,9 @@ def analyse(
                                                   {"F": float(f), "p": pval,
                                                    "coefficients": beta.round(4).tolist()})
     # row / column patterns and background structure use the bead-free background
+    d = _secondary_peaks(res, psf_radius)
+    tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),
+                                          th["secondary_peaks"], d)
     top = float(img.max())
     cores = np.zeros(img.shape, bool)
     iy = np.clip(np.round(res.positions[:, 0]).astype(int), 0, img.shape[0] - 1)

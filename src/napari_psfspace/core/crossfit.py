@@ -35,11 +35,14 @@ class CrossFit:
         Index into the bead table of each entry.
     fold : ndarray of shape (K,)
         Fold of each entry.
+    model_meta : dict or None
+        Basis size and smoothing of the first fold's model (what the model uses).
     """
 
     residuals: BeadResiduals
     bead_index: np.ndarray
     fold: np.ndarray
+    model_meta: dict | None = None
 
     def summary(self) -> dict:
         return self.residuals.summary()
@@ -100,6 +103,7 @@ def iter_crossfit(
     kept = np.flatnonzero(beads.status == KEPT)
     fold_of = assign_folds(beads.positions[kept], img.shape, folds)
     parts, index, fold_ids = [], [], []
+    meta = None
     for f in range(folds):
         held = kept[fold_of == f]
         if len(held) == 0:
@@ -110,9 +114,12 @@ def iter_crossfit(
                       beads.amplitude.copy())
         est = run_with_progress(iter_estimate(img, psf_radius=psf_radius, beads=train,
                                               **est_kw))
+        if meta is None:
+            m = est.operator.metadata
+            meta = {"n_psf": m.get("n_psf"), "smoothing": m.get("smoothing")}
         parts.append(fit_beads(target, beads.positions[held], est.operator, noise, **fit_kw))
         index.append(held)
         fold_ids.append(np.full(len(held), f))
         yield Progress("cross-fit", (f + 1) / folds, f"fold {f + 1}/{folds}: "
                        f"{len(held)} beads held out")
-    return CrossFit(_concat(parts), np.concatenate(index), np.concatenate(fold_ids))
+    return CrossFit(_concat(parts), np.concatenate(index), np.concatenate(fold_ids), meta)

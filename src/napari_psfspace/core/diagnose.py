@@ -1,0 +1,303 @@
+"""Close the loop on measured data: fit, analyse residuals, add what the model lacks.
+
+``diagnose(image, psf_radius=...)``:
+
+1. Detect and centre the beads; estimate the noise model from the image (or take the
+   camera's gain, offset and read noise).
+2. Cross-fit (:mod:`~napari_psfspace.core.crossfit`): each bead's residual comes from a
+   model estimated without it; the pooled relative residual energy of all beads is the
+   model's held-out error.
+3. Analyse the residuals (:mod:`~napari_psfspace.core.analysis`), rank the candidate
+   effects (:mod:`~napari_psfspace.core.effects`) by evidence, fit the strongest, apply
+   it, cross-fit again.
+4. Keep the effect only if the held-out error drops significantly: by at least
+   ``min_improvement`` (relative, on the beads both models judge) and with a bootstrap
+   over beads giving a probability below ``max_p`` that it did not drop. Repeat with the
+   next candidate until none has evidence left.
+5. Estimate the final operator on all beads with the effects kept.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._validate import as_image, check_psf_radius
+from .analysis import Analysis, analyse
+from .centering import refine_centers
+from .crossfit import CrossFit, iter_crossfit
+from .detect import Beads, detect_beads, flag_unusable, require_kept
+from .effects import REGISTRY, Context, Effect
+from .estimate import Progress, iter_estimate, run_with_progress
+from .noise import NoiseModel, estimate_noise
+from .operator import ProductConvolution
+
+
+@dataclass
+class Step:
+    """One candidate effect tried by the loop (or the baseline, ``effect=None``)."""
+
+    effect: str | None
+    evidence: float
+    tests: list[str]
+    error_before: float
+    error_after: float
+    chi2_before: float
+    chi2_after: float
+    improvement: float
+    p_no_drop: float
+    accepted: bool
+    params: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        def short(v):
+            if isinstance(v, list) and len(v) > 20:
+                return f"<{len(v)} values>"
+            return v
+
+        return {"effect": self.effect, "evidence": self.evidence, "tests": self.tests,
+                "error_before": self.error_before, "error_after": self.error_after,
+                "chi2_dof_before": self.chi2_before, "chi2_dof_after": self.chi2_after,
+                "improvement": self.improvement, "p_no_drop": self.p_no_drop,
+                "accepted": self.accepted,
+                "params": {k: short(v) for k, v in self.params.items()}}
+
+
+@dataclass
+class Diagnosis:
+    """Result of :func:`diagnose`.
+
+    Attributes
+    ----------
+    steps : list of Step
+        The baseline, then every effect tried, in order.
+    error_before, error_after : float
+        Held-out (cross-fitted) relative residual energy of the plain model and of the
+        final one.
+    chi2_before, chi2_after : float
+        Chi-square per degree of freedom under the noise model.
+    noise_floor : float
+        The error noise alone would leave (the final model's beads).
+    operator : ProductConvolution
+        The refined model, estimated on all beads with the effects kept.
+    context : Context
+        The final model context (corrected image, masks, options).
+    noise_source : str
+        How the noise model was obtained.
+    """
+
+    steps: list[Step]
+    error_before: float
+    error_after: float
+    chi2_before: float
+    chi2_after: float
+    noise_floor: float
+    operator: ProductConvolution
+    context: Context
+    analysis_before: Analysis
+    analysis_after: Analysis
+    crossfit_before: CrossFit
+    crossfit_after: CrossFit
+    noise_source: str
+
+    @property
+    def added(self) -> list[str]:
+        """Names of the effects kept."""
+        return [s.effect for s in self.steps if s.effect and s.accepted]
+
+    def to_dict(self) -> dict:
+        return {
+            "error_before": self.error_before, "error_after": self.error_after,
+            "chi2_dof_before": self.chi2_before, "chi2_dof_after": self.chi2_after,
+            "noise_floor": self.noise_floor, "added": self.added,
+            "noise_model": {**self.context.noise.to_dict(), "source": self.noise_source},
+            "steps": [s.to_dict() for s in self.steps],
+            "analysis_before": self.analysis_before.to_dict(),
+            "analysis_after": self.analysis_after.to_dict(),
+        }
+
+
+def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0) -> Beads:
+    """Detected beads with sub-pixel centres and their status (kept, border, ...)."""
+    beads = detect_beads(image, psf_radius, threshold=threshold)
+    img = as_image(image)
+    kept = beads.kept
+    beads.positions[kept] = refine_centers(img, beads.positions[kept],
+                                           sigma=max(1.0, psf_radius / 4),
+                                           half=int(np.ceil(psf_radius)))
+    flag_unusable(beads, img, psf_radius, saturation=None,
+                  border=np.ceil(1.2 * psf_radius) + 2, min_separation=2 * psf_radius)
+    return beads
+
+
+def _noise_model(image, gain, offset, read_noise) -> tuple[NoiseModel, str]:
+    if gain is not None:
+        if offset is None or read_noise is None:
+            raise ValueError("Give the camera's `gain`, `offset` and `read_noise` together "
+                             f"(got gain={gain}, offset={offset}, read_noise={read_noise}).")
+        return NoiseModel.from_camera(gain, offset, read_noise), "camera values given"
+    try:
+        return estimate_noise(image, offset=offset), "photon transfer on the image"
+    except ValueError as exc:
+        # fall back to a Poisson model of unit gain around the background level: the
+        # chi-square is then only indicative; the held-out error does not depend on it
+        img = np.asarray(image, dtype=np.float64)
+        bg = float(np.median(img))
+        mad = 1.4826 * float(np.median(np.abs(img - bg)))
+        return (NoiseModel(1.0, max(mad**2, 1.0) - bg),
+                f"assumed Poisson, gain 1 (no photon transfer possible: {exc})")
+
+
+def _compare(before: CrossFit, after: CrossFit, n_boot: int = 1000, seed: int = 0
+             ) -> tuple[float, float, float, float]:
+    """Relative drop of the pooled error on the common beads, and P(no drop) (bootstrap).
+
+    Returns
+    -------
+    error_before, error_after, improvement, p_no_drop
+    """
+    common, i0, i1 = np.intersect1d(before.bead_index, after.bead_index,
+                                    return_indices=True)
+    if len(common) < 5:
+        return np.nan, np.nan, 0.0, 1.0
+    r0, r1 = before.residuals, after.residuals
+    s0 = r0.rel_energy_denominator[i0]
+    s1 = r1.rel_energy_denominator[i1]
+    e0 = r0.rel_energy[i0] * s0
+    e1 = r1.rel_energy[i1] * s1
+    err0, err1 = float(e0.sum() / s0.sum()), float(e1.sum() / s1.sum())
+    rng = np.random.default_rng(seed)
+    idx = rng.integers(0, len(common), size=(n_boot, len(common)))
+    b0 = e0[idx].sum(axis=1) / s0[idx].sum(axis=1)
+    b1 = e1[idx].sum(axis=1) / s1[idx].sum(axis=1)
+    p = float(np.mean(b1 >= b0))
+    return err0, err1, 1.0 - err1 / err0, p
+
+
+def iter_diagnose(
+    image,
+    *,
+    psf_radius: float,
+    threshold: float = 8.0,
+    gain: float | None = None,
+    offset: float | None = None,
+    read_noise: float | None = None,
+    folds: int = 5,
+    effects: Sequence[str] | None = None,
+    max_steps: int = 8,
+    min_improvement: float = 0.05,
+    max_p: float = 0.01,
+) -> Generator[Progress, None, Diagnosis]:
+    """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis."""
+    raw = np.asarray(image)
+    img = as_image(raw, dtype=np.float64)
+    r = check_psf_radius(psf_radius, img.shape)
+    names = list(REGISTRY) if effects is None else list(effects)
+    unknown = [n for n in names if n not in REGISTRY]
+    if unknown:
+        raise ValueError(f"Unknown effect(s) {unknown}; known: {sorted(REGISTRY)}.")
+    candidates: list[Effect] = [REGISTRY[n]() for n in names]
+
+    beads = prepare_beads(raw, r, threshold=threshold)
+    require_kept(beads, 2 * folds, reason=f"to hold out beads in {folds} folds")
+    noise, noise_source = _noise_model(raw, gain, offset, read_noise)
+    ctx = Context(image=img, pixel_mask=np.zeros(img.shape, bool), beads=beads, noise=noise,
+                  psf_radius=r)
+    yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
+
+    def evaluate(c: Context):
+        cf = run_with_progress(iter_crossfit(c.image, c.beads, c.noise, psf_radius=r,
+                                             folds=folds, estimate_kwargs=c.estimate_kwargs,
+                                             fit_kwargs={"pixel_mask": c.pixel_mask}))
+        an = analyse(cf.residuals, c.image, c.noise, psf_radius=r,
+                     all_positions=c.beads.positions)
+        sp = an.tests.get("secondary_peaks")
+        if sp is not None:  # residual entries -> bead table indices
+            sp.detail["bead_index"] = cf.bead_index[np.asarray(sp.detail["beads"], int)
+                                                    ].tolist()
+        return cf, an
+
+    cf, an = evaluate(ctx)
+    ctx = ctx.with_effect("_model", cf.model_meta) if cf.model_meta else ctx
+    first_cf, first_an = cf, an
+    s = cf.summary()
+    steps = [Step(None, 0.0, [t.name for t in an.significant()], s["error"], s["error"],
+                  s["chi2_dof"], s["chi2_dof"], 0.0, 1.0, True)]
+    yield Progress("baseline", 0.2, f"held-out error {s['error']:.4g} (noise floor "
+                   f"{s['noise_floor']:.4g}), chi2/dof {s['chi2_dof']:.3g}")
+    tried: set[str] = set()
+    for k in range(max_steps):
+        ranked = sorted(((e.evidence(an), e) for e in candidates
+                         if e.name not in tried and e.applicable(ctx)),
+                        key=lambda t: -t[0])
+        ranked = [(ev, e) for ev, e in ranked if ev > 1.0]
+        if not ranked:
+            break
+        ev, eff = ranked[0]
+        tried.add(eff.name)
+        params = eff.fit(ctx, an)
+        new_ctx = eff.apply(ctx, params)
+        new_cf, new_an = evaluate(new_ctx)
+        err0, err1, gain_rel, p = _compare(cf, new_cf)
+        ok = bool(gain_rel >= min_improvement and p <= max_p)
+        steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
+                                                  and an.tests[t].significant],
+                          err0, err1, cf.summary()["chi2_dof"], new_cf.summary()["chi2_dof"],
+                          float(gain_rel), p, ok, params))
+        if ok:
+            ctx, cf, an = new_ctx, new_cf, new_an
+            if cf.model_meta:
+                ctx = ctx.with_effect("_model", cf.model_meta)
+        yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
+                       f"{eff.name}: error {err0:.4g} -> {err1:.4g} "
+                       f"({100 * gain_rel:.1f} %), {'kept' if ok else 'rejected'}")
+
+    est = run_with_progress(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
+                                          holdout=None, **ctx.estimate_kwargs))
+    added = [s.effect for s in steps if s.effect and s.accepted]
+    meta = {**est.operator.metadata, "diagnosis": {"added": added,
+                                                   "error_before": first_cf.summary()["error"],
+                                                   "error_after": cf.summary()["error"]}}
+    op = ProductConvolution(est.operator.basis, est.operator.coefficients,
+                            shape=est.operator.shape, grid=est.operator.grid, metadata=meta)
+    s0, s1 = first_cf.summary(), cf.summary()
+    yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
+    return Diagnosis(steps, s0["error"], s1["error"], s0["chi2_dof"], s1["chi2_dof"],
+                     s1["noise_floor"], op, ctx, first_an, an, first_cf, cf, noise_source)
+
+
+def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] | None = None,
+             **kwargs) -> Diagnosis:
+    """Fit, trace the held-out residual to what the model lacks, add it, report.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Raw bead image in ADU (not rescaled: the noise model is estimated from it).
+    psf_radius : float
+        PSF radius in pixels.
+    threshold : float
+        Detection threshold (noise sd of the filtered image).
+    gain, offset, read_noise : float, optional
+        Camera values (ADU/e-, ADU, e-); default: photon transfer on the image.
+    folds : int
+        Cross-fitting folds (5: each fold is a spatially spread 20 % hold-out).
+    effects : sequence of str, optional
+        Effects to consider (default: all of :data:`~napari_psfspace.core.effects.REGISTRY`).
+    max_steps : int
+        Most effects tried.
+    min_improvement : float
+        Smallest relative drop of the held-out error for an effect to be kept.
+    max_p : float
+        Largest bootstrap probability that the error did not drop.
+    progress : callable, optional
+        Receives :class:`Progress` records.
+
+    Returns
+    -------
+    Diagnosis
+        ``.steps``, ``.error_before``, ``.error_after``, ``.operator`` (refined model).
+    """
+    return run_with_progress(iter_diagnose(image, psf_radius=psf_radius, **kwargs), progress)
