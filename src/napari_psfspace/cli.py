@@ -1,4 +1,4 @@
-"""Command line: ``psfspace simulate | estimate | psf | apply | demo``.
+"""Command line: ``psfspace simulate | estimate | diagnose | psf | apply | demo``.
 
 Run ``psfspace COMMAND --help`` for the options of each command. Errors in the input
 (no beads, a stack without a slice, a model for another image size...) end with a
@@ -11,18 +11,19 @@ import argparse
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 from . import __version__
 
 
-def _progress_printer(stream=sys.stderr):
+def _progress_printer(stream=None):
     start = time.perf_counter()
 
     def show(p):
         print(f"[{100 * p.fraction:5.1f}% {time.perf_counter() - start:6.1f}s] {p.stage}: "
-              f"{p.message}", file=stream, flush=True)
+              f"{p.message}", file=stream or sys.stderr, flush=True)
 
     return show
 
@@ -89,6 +90,43 @@ def _cmd_estimate(args) -> int:
     if h and h.get("n_beads"):
         print(f"held-out beads: {h['n_beads']}, relative residual mean {h['residual_mean']:.4f} "
               f"(median {h['residual_median']:.4f}), noise floor {h['noise_floor_mean']:.4f}")
+    return 0
+
+
+def _cmd_diagnose(args) -> int:
+    from .core.diagnose import iter_diagnose
+    from .core.estimate import run_with_progress
+    from .io import read_image
+    from .report import summary_text, write_report
+
+    if args.read_noise is not None and args.gain is None:
+        raise ValueError("--read-noise needs --gain and --offset: give the three camera "
+                         "values together (or only --offset).")
+    if Path(args.report).exists() and not Path(args.report).is_dir():
+        raise ValueError(f"--report {args.report!r} is a file: give a folder.")
+    image, info = read_image(args.image, index=args.slice)
+    r = _psf_radius_px(args, info)
+    if r is None:
+        from .core.detect import suggest_psf_radius
+
+        r = suggest_psf_radius(image)
+        print(f"no --psf-radius given: using {r:g} px, measured from the image "
+              "(see suggest_psf_radius)", file=sys.stderr)
+    gen = iter_diagnose(image, psf_radius=r, threshold=args.threshold, gain=args.gain,
+                        offset=args.offset, read_noise=args.read_noise)
+    diag = run_with_progress(gen, None if args.quiet else _progress_printer(sys.stderr))
+    print(summary_text(diag))
+    extra = {"source": str(args.image), "slice": args.slice}
+    path = write_report(diag, args.report, image_name=Path(args.image).name,
+                        pixel_size=info.pixel_size, extra=extra)
+    print(f"wrote {path} with report.json and figures in {path.parent}/")
+    if args.model:
+        op = diag.operator
+        op = type(op)(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+                      metadata={**op.metadata, "pixel_size_um": info.pixel_size, **extra})
+        op.save(args.model)
+        print(f"wrote {args.model}: refined model, basis of {op.n_psf} PSFs of "
+              f"{op.psf_size} px")
     return 0
 
 
@@ -170,6 +208,28 @@ def build_parser() -> argparse.ArgumentParser:
                    help="fraction of beads held out to measure the error (0 to skip)")
     e.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     e.set_defaults(func=_cmd_estimate)
+
+    dg = sub.add_parser("diagnose", help="trace the model's held-out residual to what it "
+                        "lacks, add it, write a report")
+    dg.add_argument("image", help="TIFF bead image in ADU (2-D, or a stack with --slice)")
+    dg.add_argument("--report", required=True, metavar="DIR",
+                    help="folder for report.md, report.json and the figures")
+    g = dg.add_mutually_exclusive_group()
+    g.add_argument("--psf-radius", type=float,
+                   help="PSF radius r in pixels (default: suggested from the image)")
+    g.add_argument("--psf-radius-um", type=float,
+                   help="PSF radius in micrometres (needs the pixel size in the TIFF)")
+    dg.add_argument("--slice", type=int, help="slice of a stack to use")
+    dg.add_argument("--gain", type=float,
+                    help="camera gain in ADU per electron (with --offset and --read-noise; "
+                         "default: noise model measured on the image)")
+    dg.add_argument("--offset", type=float, help="camera offset in ADU")
+    dg.add_argument("--read-noise", type=float, help="camera read noise in electrons rms")
+    dg.add_argument("--threshold", type=float, default=8.0,
+                    help="detection threshold in noise standard deviations (default 8)")
+    dg.add_argument("--model", metavar="OUT.npz", help="also save the refined model")
+    dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    dg.set_defaults(func=_cmd_diagnose)
 
     f = sub.add_parser("psf", help="write the PSF of a model at a field position")
     f.add_argument("model", help="model file (.npz)")

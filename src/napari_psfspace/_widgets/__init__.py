@@ -5,7 +5,7 @@ One module per dock widget; ``_layers`` converts between layers and core objects
 names the classes directly, so importing this package stays cheap.
 """
 
-__all__ = ["LearnOperatorWidget", "PickBeadsWidget", "ReviewPatchesWidget"]
+__all__ = ["DiagnoseWidget", "LearnOperatorWidget", "PickBeadsWidget", "ReviewPatchesWidget"]
 
 
 def __getattr__(name: str):
@@ -21,4 +21,8 @@ def __getattr__(name: str):
         from ._learn_operator import LearnOperatorWidget
 
         return LearnOperatorWidget
+    if name == "DiagnoseWidget":
+        from ._diagnose import DiagnoseWidget
+
+        return DiagnoseWidget
     raise AttributeError(name)

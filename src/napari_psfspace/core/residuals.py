@@ -74,20 +74,44 @@ class BeadResiduals:
     def summary(self) -> dict:
         """Totals over beads, JSON-ready: the error of the model.
 
-        ``error`` is the pooled relative residual energy ``sum ||r||^2 / sum ||A m||^2``,
-        ``noise_floor`` what noise alone would give, ``chi2_dof`` the pooled chi-square per
-        degree of freedom (1 for a model that explains everything but the noise).
+        ``error`` is the mean over beads of the relative residual energy
+        ``||r||^2 / ||A m||^2`` (each bead counts the same: a pooled, signal-weighted
+        figure is dominated by the few brightest beads and was measured too noisy to
+        decide with) over the informative beads (see :attr:`informative`),
+        ``noise_floor`` what noise alone would give, ``chi2_dof`` the
+        pooled chi-square per degree of freedom (1 for a model that explains everything
+        but the noise), ``error_pooled`` the signal-weighted figure.
         """
         if len(self) == 0:
             return {"n_beads": 0}
         signal = self.rel_energy_denominator
+        ok = self.informative
+        if not ok.any():
+            ok = np.ones(len(self), bool)
         return {
             "n_beads": int(len(self)),
-            "error": float(np.sum(self.rel_energy * signal) / np.sum(signal)),
-            "noise_floor": float(np.sum(self.floor * signal) / np.sum(signal)),
+            "n_informative": int(ok.sum()),
+            "error": float(np.mean(self.rel_energy[ok])),
+            "noise_floor": float(np.mean(self.floor[ok])),
             "chi2_dof": float(np.sum(self.chi2) / np.sum(self.dof)),
             "error_median": float(np.median(self.rel_energy)),
+            "error_pooled": float(np.sum(self.rel_energy * signal) / np.sum(signal)),
         }
+
+    @property
+    def informative(self) -> np.ndarray:
+        """Beads whose noise floor is below 10 % of their signal energy, shape (K,).
+
+        A "bead" with almost no fitted signal (a hot pixel taken for a bead, a bead
+        under a saturated neighbour) has an unbounded relative residual and carries no
+        information on the PSF's shape.
+        """
+        return self.floor < 0.1
+
+    def chi2_under(self, noise: NoiseModel) -> np.ndarray:
+        """Per-bead chi-square of these residuals under another noise model, shape (K,)."""
+        var = noise.variance(self.model)
+        return (((self.data - self.model) ** 2 / var) * self.fit_mask).sum(axis=(1, 2))
 
     @property
     def rel_energy_denominator(self) -> np.ndarray:

@@ -1333,6 +1333,8 @@ def simulate_beads(
     bg_range = _as_range(background, "background")
     dtype = np.dtype(dtype)
     effect_params = _check_effects(effects, shape, dtype, offset)
+    if not 0.0 < psf_energy < 1.0:
+        raise ValueError(f"psf_energy must be in (0, 1), got {psf_energy!r}")
     rng = np.random.default_rng(seed)
 
     psf_radius = _field_psf_radius(aberrations, optics, shape, psf_energy)

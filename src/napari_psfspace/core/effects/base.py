@@ -44,6 +44,8 @@ class Context:
         Names of the effects applied, in order.
     params : dict
         Fitted parameters of each applied effect (JSON-ready).
+    noise_from_image : bool
+        The noise model was estimated from the image (not given by the user).
     """
 
     image: np.ndarray
@@ -54,6 +56,19 @@ class Context:
     estimate_kwargs: dict = field(default_factory=dict)
     applied: tuple[str, ...] = ()
     params: dict = field(default_factory=dict)
+    noise_from_image: bool = True
+
+    def renoised(self, image: np.ndarray) -> NoiseModel:
+        """The noise model for a corrected image: re-estimated when it came from the
+        image (photon transfer sees uncorrected camera patterns as noise), else kept."""
+        if not self.noise_from_image:
+            return self.noise
+        from ..noise import estimate_noise
+
+        try:
+            return estimate_noise(image, mask=self.pixel_mask, offset=self.noise.offset)
+        except ValueError:
+            return self.noise
 
     def with_effect(self, name: str, params: dict, **changes: Any) -> Context:
         """A copy with ``changes`` and the effect recorded."""

@@ -45,4 +45,4 @@ class FixedPattern(Effect):
             image -= np.asarray(params["rows"])[:, None]
         if params.get("columns") is not None:
             image -= np.asarray(params["columns"])[None, :]
-        return ctx.with_effect(self.name, params, image=image)
+        return ctx.with_effect(self.name, params, image=image, noise=ctx.renoised(image))

@@ -28,4 +28,5 @@ class OutlierPixels(Effect):
         med = ndi.median_filter(ctx.image, size=3, mode="nearest")
         image[mask] = med[mask]
         return ctx.with_effect(self.name, params, image=image,
-                               pixel_mask=ctx.pixel_mask | mask)
+                               pixel_mask=ctx.pixel_mask | mask,
+                               noise=ctx.renoised(image))

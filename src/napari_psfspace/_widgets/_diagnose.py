@@ -1,0 +1,186 @@
+"""Dock widget 4: diagnose the model on the beads, show what it lacked, write a report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    PushButton,
+    Table,
+)
+from napari.layers import Image
+from napari.utils.notifications import show_info
+
+from ..core.diagnose import iter_diagnose
+from ..report import STEP_COLUMNS, figure_arrays, steps_table, summary_text, write_report
+from ._layers import Frame, LayerTuple, _beside, bead_plane, show_layers
+from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
+
+if TYPE_CHECKING:
+    import napari
+
+#: Names of the layers this widget creates.
+MAP_BEFORE = "residual map (plain model)"
+MAP_AFTER = "residual map (final model)"
+MEAN_BEFORE = "mean residual (plain model)"
+MEAN_AFTER = "mean residual (final model)"
+
+
+def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
+    """Layer-data tuples of the residual maps and mean residual patches, before / after.
+
+    Laid out above the image: the two maps (each covering the field, one colour scale),
+    then the two mean patches (one grey scale) stacked on the right.
+
+    Parameters
+    ----------
+    diagnosis : Diagnosis
+    frame : Frame
+        The image's frame.
+
+    Returns
+    -------
+    list of (data, kwargs, layer_type)
+    """
+    fig = figure_arrays(diagnosis)
+    cell = fig["cell_size"]
+    scale = (cell * frame.scale[0], cell * frame.scale[1])
+    about_map = ("held-out excess error of each bead (relative residual energy minus its "
+                 "noise floor), painted as a disk at its place; NaN: no bead")
+    out: list[LayerTuple] = []
+    for col, (name, key) in enumerate(((MAP_BEFORE, "map_before"), (MAP_AFTER, "map_after"))):
+        out.append((fig[key].astype("float32"),
+                    {"name": name, "scale": scale, "translate": _beside(frame, col, -1.0),
+                     "colormap": "viridis", "contrast_limits": (0.0, fig["map_limit"]),
+                     "metadata": {"about": about_map, "cell_size_px": cell}}, "image"))
+    lim = fig["mean_limit"]
+    size = 0.45 * frame.height
+    y0, x0 = _beside(frame, 2.0, -1.0)
+    for row, (name, key) in enumerate(((MEAN_BEFORE, "mean_before"),
+                                       (MEAN_AFTER, "mean_after"))):
+        patch = fig[key]
+        s = size / patch.shape[-1]
+        out.append((patch.astype("float32"),
+                    {"name": name, "scale": (s, s),
+                     "translate": (y0 + row * 0.55 * frame.height, x0),
+                     "colormap": "gray", "contrast_limits": (-lim, lim),
+                     "metadata": {"about": "mean normalised residual patch over the beads "
+                                           "(noise sd)"}}, "image"))
+    return out
+
+
+class DiagnoseWidget(FollowsBeads, Container):
+    """Trace the held-out residual of the model to what it lacks, add it, report.
+
+    Runs :func:`~napari_psfspace.core.diagnose.iter_diagnose` on the image (the slice and
+    radius of the chosen beads layer; the beads are detected and centred again), then
+    shows the table of steps, the residual maps and the mean residual patches before and
+    after, and writes the report (report.md, report.json, figures) when a folder is given.
+    """
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        self._viewer = viewer
+        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.points = ComboBox(label="beads", choices=bead_layer_choices(viewer, allow_none=True))
+        self.points.tooltip = ("Its slice and PSF radius are used. Diagnose detects and "
+                               "centres the beads itself.")
+        self.radius = RadiusEdit()
+        self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
+                                      label="threshold")
+        self.threshold.tooltip = "Detection threshold (noise sd of the filtered image)."
+        self.camera = CheckBox(value=False, text="camera values known")
+        self.camera.tooltip = ("Off: the noise model is measured on the image (photon "
+                               "transfer).")
+        self.gain = FloatSpinBox(value=2.0, min=1e-4, max=1e4, step=0.1,
+                                 label="gain (ADU/e-)", visible=False)
+        self.offset = FloatSpinBox(value=100.0, min=-1e6, max=1e6, step=1.0,
+                                   label="offset (ADU)", visible=False)
+        self.read_noise = FloatSpinBox(value=1.5, min=0.0, max=1e4, step=0.1,
+                                       label="read noise (e-)", visible=False)
+        self.report_dir = FileEdit(mode="d", label="write report to")
+        self.report_dir.tooltip = "Folder for report.md, report.json and figures (optional)."
+        self.diagnose = PushButton(text="Diagnose")
+        self.task = CoreTask(self.diagnose)
+        self.result = Label(value="")
+        self.table = Table(value={"data": [], "index": [], "columns": list(STEP_COLUMNS)},
+                           label="steps")
+        self.table.read_only = True
+        self.table.visible = False
+        super().__init__(widgets=[
+            self.image, self.points, self.radius, self.threshold, self.camera, self.gain,
+            self.offset, self.read_noise, self.report_dir, self.diagnose, self.task,
+            self.result, self.table])
+        self.result.native.setWordWrap(True)
+        self.diagnosis = None
+        self.camera.changed.connect(self._on_camera)
+        self.points.changed.connect(self._on_inputs)
+        self.image.changed.connect(self._on_inputs)
+        self.diagnose.changed.connect(self.run)
+        viewer.layers.events.inserted.connect(self._on_layers)
+        viewer.layers.events.removed.connect(self._on_layers)
+        self._on_layers()
+        self._on_inputs()
+
+    def _on_camera(self, on: bool) -> None:
+        for w in (self.gain, self.offset, self.read_noise):
+            w.visible = bool(on)
+
+    def _on_inputs(self, *_) -> None:
+        img, pts = self.image.value, self.points.value
+        self._follow(pts)
+        if img is None:
+            return
+        meta = img.metadata or {}
+        scale = float(img.scale[-1])
+        px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
+        r = (pts.metadata or {}).get("psf_radius_px") if pts is not None else None
+        self.radius.set_calibration(px, r if r is not None else meta.get("psf_radius"))
+
+    def run(self, *_) -> None:
+        """Diagnose in a worker thread; show the steps and maps, write the report."""
+        img, pts = self.image.value, self.points.value
+        if img is None:
+            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+            return
+        try:
+            plane, frame = bead_plane(img, pts, self._viewer.dims.point)
+        except ValueError as exc:
+            from napari.utils.notifications import show_error
+
+            show_error(str(exc))
+            return
+        camera = {}
+        if self.camera.value:
+            camera = {"gain": float(self.gain.value), "offset": float(self.offset.value),
+                      "read_noise": float(self.read_noise.value)}
+        folder = (Path(self.report_dir.value)
+                  if str(self.report_dir.value) not in ("", ".") else None)
+        name = img.name
+        gen = iter_diagnose(plane, psf_radius=self.radius.pixels,
+                            threshold=float(self.threshold.value), **camera)
+
+        def on_result(diag) -> None:
+            self.diagnosis = diag
+            rows = steps_table(diag)
+            self.table.value = {"data": rows, "index": list(range(len(rows))),
+                                "columns": list(STEP_COLUMNS)}
+            self.table.native.resizeColumnsToContents()
+            self.table.visible = True
+            self.result.value = summary_text(diag)
+            show_layers(self._viewer, diagnosis_layers(diag, frame))
+            self._viewer.reset_view()
+            if folder is not None:
+                path = write_report(diag, folder, image_name=name,
+                                    pixel_size=frame.pixel_size,
+                                    extra={"slice": frame.index})
+                show_info(f"Report written to {path}")
+                self.result.value += f"\nreport: {path}"
+
+        self.task.run(gen, on_result)

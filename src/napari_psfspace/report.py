@@ -1,0 +1,457 @@
+"""The report of a diagnosis: ``report.json``, ``report.md`` and PNG figures.
+
+:func:`write_report` turns a :class:`~napari_psfspace.core.diagnose.Diagnosis` into a
+folder a microscopist can read (``report.md``), a program can parse (``report.json``,
+documented in ``docs/report-format.md``) and figures (PNG, drawn with numpy alone):
+
+* ``residual_map_before.png`` / ``residual_map_after.png``: each bead's held-out excess
+  error (relative residual energy minus its noise floor) painted as a disk at its place
+  in the field, on a coarse grid, viridis-like colours on one scale for both;
+* ``mean_residual_before.png`` / ``mean_residual_after.png``: the mean normalised
+  residual patch over the beads (grey ramp: black negative, mid-grey zero, white
+  positive), one scale for both;
+* ``residual_patches_before.png`` / ``residual_patches_after.png``: the normalised
+  residual patches of the 16 worst beads (same ramp, clipped at +-5 noise sd).
+
+The map builders (:func:`residual_map`, :func:`mean_residual_patch`,
+:func:`worst_residual_patches`) are public: the *Diagnose* dock widget shows the same
+maps as layers.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__
+from .core._atomic import atomic_write
+from .core.mosaic import mosaic
+from .core.residuals import BeadResiduals
+
+#: ``format`` and ``version`` of report.json (docs/report-format.md).
+REPORT_FORMAT = "napari-psfspace/diagnosis-report"
+REPORT_VERSION = 1
+#: Figure files written by :func:`write_report`, with what each shows.
+FIGURES = {
+    "residual_map_before.png": "held-out excess error of each bead over the field, "
+                               "plain model",
+    "residual_map_after.png": "held-out excess error of each bead over the field, "
+                              "final model",
+    "mean_residual_before.png": "mean normalised residual patch over the beads, plain model",
+    "mean_residual_after.png": "mean normalised residual patch over the beads, final model",
+    "residual_patches_before.png": "normalised residual patches of the 16 worst beads, "
+                                   "plain model",
+    "residual_patches_after.png": "normalised residual patches of the 16 worst beads, "
+                                  "final model",
+}
+#: Columns of :func:`steps_table`.
+STEP_COLUMNS = ("effect", "evidence", "tests", "held-out error", "chi2/dof", "error drop",
+                "p", "excess chi2 drop", "p (chi2)", "decision")
+#: Largest |normalised residual| (noise sd) shown in the patch mosaics.
+PATCH_LIMIT = 5.0
+
+# viridis at 10 evenly spaced points (RGB, 0-255)
+_VIRIDIS = np.array([[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142],
+                     [38, 130, 142], [31, 158, 137], [53, 183, 121], [109, 205, 89],
+                     [180, 222, 44], [253, 231, 37]], dtype=np.float64)
+_NO_DATA = (48, 48, 48)
+
+
+# ------------------------------------------------------------------ maps (numpy only)
+def excess_error(res: BeadResiduals) -> np.ndarray:
+    """Each bead's relative residual energy minus what noise alone leaves, shape (K,)."""
+    return np.asarray(res.rel_energy, float) - np.asarray(res.floor, float)
+
+
+def map_cell_size(shape: tuple[int, int], cells: int = 64) -> float:
+    """Pixels per cell of a :func:`residual_map` of an image of this shape."""
+    return max(shape) / float(cells)
+
+
+def residual_map(positions, values, shape: tuple[int, int], *, cells: int = 64,
+                 radius: float | None = None) -> np.ndarray:
+    """A coarse map of the field where each bead paints a disk of its value.
+
+    Parameters
+    ----------
+    positions : array_like of shape (K, 2)
+        Bead centres (row, column) in pixels of the image.
+    values : array_like of shape (K,)
+        One value per bead (non-finite ones are left out).
+    shape : tuple of int
+        ``(M, N)`` of the image.
+    cells : int
+        Cells along the longer side of the image (square cells of
+        :func:`map_cell_size` pixels).
+    radius : float, optional
+        Disk radius in cells; default ``0.35`` of the mean spacing of the beads, between
+        1 and 6 cells.
+
+    Returns
+    -------
+    ndarray of shape (ceil(M / c), ceil(N / c)), float64
+        NaN where no bead paints; where disks overlap the larger value shows.
+    """
+    pos = np.asarray(positions, float).reshape(-1, 2)
+    val = np.asarray(values, float).reshape(-1)
+    if len(pos) != len(val):
+        raise ValueError(f"{len(pos)} positions but {len(val)} values.")
+    cell = map_cell_size(shape, cells)
+    gh, gw = math.ceil(shape[0] / cell), math.ceil(shape[1] / cell)
+    out = np.full((gh, gw), np.nan)
+    ok = np.isfinite(val) & np.all(np.isfinite(pos), axis=1)
+    pos, val = pos[ok], val[ok]
+    if not len(val):
+        return out
+    if radius is None:
+        radius = float(np.clip(0.35 * np.sqrt(gh * gw / len(val)), 1.0, 6.0))
+    yy, xx = np.mgrid[0:gh, 0:gw] + 0.5
+    for k in np.argsort(val, kind="stable"):  # largest painted last: on top
+        cy, cx = (pos[k] + 0.5) / cell
+        out[(yy - cy) ** 2 + (xx - cx) ** 2 <= radius**2] = val[k]
+    return out
+
+
+def mean_residual_patch(res: BeadResiduals) -> np.ndarray:
+    """Mean normalised residual patch over the beads (pixels in each bead's fit), (P, P).
+
+    Pixels no bead fitted are 0.
+    """
+    if len(res) == 0:
+        return np.zeros(res.data.shape[1:])
+    nres = np.where(res.fit_mask, res.normalised_residual, 0.0)
+    count = res.fit_mask.sum(axis=0)
+    return nres.sum(axis=0) / np.maximum(count, 1)
+
+
+def worst_residual_patches(res: BeadResiduals, n: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Normalised residual patches of the ``n`` beads of largest excess error.
+
+    Returns
+    -------
+    patches : ndarray of shape (min(n, K), P, P)
+        Worst first; 0 outside each bead's fit.
+    index : ndarray of shape (min(n, K),)
+        Their entries in ``res``.
+    """
+    order = np.argsort(-np.nan_to_num(excess_error(res), nan=-np.inf), kind="stable")[:n]
+    return np.where(res.fit_mask[order], res.normalised_residual[order], 0.0), order
+
+
+def map_limit(*maps: np.ndarray, percentile: float = 98.0) -> float:
+    """A common upper colour limit for residual maps: a high percentile of their values."""
+    vals = np.concatenate([np.ravel(m) for m in maps]) if maps else np.zeros(0)
+    vals = vals[np.isfinite(vals)]
+    hi = float(np.percentile(vals, percentile)) if len(vals) else 0.0
+    return hi if hi > 0 else 1.0
+
+
+def colorize(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
+    """Viridis-like RGB image of a 2-D array (NaN: dark grey), uint8 (M, N, 3)."""
+    v = np.asarray(values, float)
+    t = np.clip((v - vmin) / (vmax - vmin if vmax > vmin else 1.0), 0.0, 1.0)
+    t = np.nan_to_num(t) * (len(_VIRIDIS) - 1)
+    i = np.minimum(t.astype(int), len(_VIRIDIS) - 2)
+    f = (t - i)[..., None]
+    rgb = (1 - f) * _VIRIDIS[i] + f * _VIRIDIS[i + 1]
+    rgb[~np.isfinite(v)] = _NO_DATA
+    return np.round(rgb).astype(np.uint8)
+
+
+def diverging_grey(values: np.ndarray, limit: float) -> np.ndarray:
+    """Grey ramp: ``-limit`` black, 0 mid-grey, ``+limit`` white (clipped), uint8."""
+    v = np.nan_to_num(np.asarray(values, float))
+    t = np.clip(v / (limit if limit > 0 else 1.0), -1.0, 1.0)
+    return np.round(127.5 + 127.5 * t).astype(np.uint8)
+
+
+def _enlarge(img: np.ndarray, size: int = 512) -> np.ndarray:
+    """Repeat pixels so that the longer side is about ``size`` (figures stay crisp)."""
+    k = max(1, int(round(size / max(img.shape[:2]))))
+    return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
+
+
+def figure_arrays(diagnosis, *, cells: int = 64, n_patches: int = 16) -> dict[str, Any]:
+    """The figures of a diagnosis as arrays, before and after on common scales.
+
+    Parameters
+    ----------
+    diagnosis : Diagnosis
+    cells : int
+        Cells along the longer side of the residual maps.
+    n_patches : int
+        Worst beads shown in the patch mosaics.
+
+    Returns
+    -------
+    dict
+        ``map_before``, ``map_after`` (float maps, NaN without a bead), ``map_limit``,
+        ``cell_size`` (pixels per cell), ``mean_before``, ``mean_after`` (P, P),
+        ``mean_limit``, ``patches_before``, ``patches_after`` (mosaics of normalised
+        residuals).
+    """
+    shape = diagnosis.context.image.shape
+    out: dict[str, Any] = {"cell_size": map_cell_size(shape, cells)}
+    for when, cf in (("before", diagnosis.crossfit_before), ("after", diagnosis.crossfit_after)):
+        res = cf.residuals
+        out[f"map_{when}"] = residual_map(res.positions, excess_error(res), shape, cells=cells)
+        out[f"mean_{when}"] = mean_residual_patch(res)
+        tiles, _ = worst_residual_patches(res, n_patches)
+        out[f"patches_{when}"] = (mosaic(tiles, gap=1, normalize="none") if len(tiles)
+                                  else np.zeros((1, 1)))
+    out["map_limit"] = map_limit(out["map_before"], out["map_after"])
+    out["mean_limit"] = float(max(np.abs(out["mean_before"]).max(),
+                                  np.abs(out["mean_after"]).max())) or 1.0
+    return out
+
+
+# ------------------------------------------------------------------ tables and text
+def _num(x, fmt: str = ".4g") -> str:
+    if x is None or (isinstance(x, float) and not math.isfinite(x)):
+        return "n/a"
+    return format(x, fmt)
+
+
+def steps_table(diagnosis) -> list[list[str]]:
+    """The steps as rows of text, one per step, in the order of :data:`STEP_COLUMNS`."""
+    rows = []
+    for s in diagnosis.steps:
+        if s.effect is None:
+            rows.append(["baseline", "", ", ".join(s.tests) or "-", _num(s.error_before),
+                         _num(s.chi2_before, ".3g"), "", "", "", "", "plain model"])
+            continue
+        cmp = (s.params or {}).get("_comparison") or {}
+        chi2_drop = cmp.get("chi2_improvement")
+        rows.append([s.effect, _num(s.evidence, ".2f"), ", ".join(s.tests) or "-",
+                     f"{_num(s.error_before)} -> {_num(s.error_after)}",
+                     f"{_num(s.chi2_before, '.3g')} -> {_num(s.chi2_after, '.3g')}",
+                     f"{_num(100 * s.improvement, '.1f')} %", _num(s.p_no_drop, ".3g"),
+                     "" if chi2_drop is None else f"{_num(100 * chi2_drop, '.1f')} %",
+                     _num(cmp["chi2_p_no_drop"], ".3g") if "chi2_p_no_drop" in cmp else "",
+                     "kept" if s.accepted else "rejected"])
+    return rows
+
+
+def summary_text(diagnosis) -> str:
+    """Two or three lines: what was added, the held-out error before -> after, the floor."""
+    d = diagnosis
+    added = ", ".join(d.added) if d.added else "nothing (no effect was found)"
+    return (f"added: {added}\n"
+            f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} "
+            f"(noise floor {_num(d.noise_floor)}); chi2/dof {_num(d.chi2_before, '.3g')} -> "
+            f"{_num(d.chi2_after, '.3g')}")
+
+
+def _md_table(header, rows) -> list[str]:
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
+    return lines
+
+
+def _tests_section(analysis, when: str) -> list[str]:
+    sig = analysis.significant()
+    if not sig:
+        return [f"{when}: no test is significant: the residuals look like noise to every "
+                "test.", ""]
+    rows = [[t.name, _num(t.z, ".3g"), _num(t.threshold, ".3g"), _num(t.evidence, ".2f")]
+            for t in sig]
+    return [f"{when}: {len(sig)} significant test(s), strongest first:", "",
+            *_md_table(("test", "z", "threshold", "z / threshold"), rows), ""]
+
+
+def _effect_descriptions(diagnosis) -> dict[str, str]:
+    from .core.effects import REGISTRY
+
+    out = {}
+    for s in diagnosis.steps:
+        if s.effect and s.effect in REGISTRY:
+            out[s.effect] = REGISTRY[s.effect].description
+    return out
+
+
+def report_markdown(diagnosis, run: dict, fig: dict) -> str:
+    """The text of report.md (see :func:`write_report`)."""
+    d = diagnosis
+    descr = _effect_descriptions(d)
+    px = run.get("pixel_size_um")
+    lines = [f"# PSF model diagnosis: {run['image']}", "",
+             f"napari-psfspace {run['version']}, {run['date']}. Image "
+             f"{run['image_shape'][0]} x {run['image_shape'][1]} px"
+             + (f" at {px:g} µm/px" if px else "")
+             + f"; PSF radius {run['psf_radius_px']:.3g} px; "
+             f"{len(d.crossfit_before.residuals)} beads judged by models that did not see "
+             "them (cross-fitting).", "", "## What was found", ""]
+    drop = (1 - d.error_after / d.error_before) if d.error_before else float("nan")
+    if d.added:
+        lines.append("The model lacked, and now includes:")
+        lines.append("")
+        lines += [f"- **{name}**: {descr.get(name, '')}" for name in d.added]
+        lines += ["", f"Held-out error {_num(d.error_before)} -> {_num(d.error_after)} "
+                      f"({_num(100 * drop, '.1f')} % lower); chi-square per degree of "
+                      f"freedom {_num(d.chi2_before, '.3g')} -> {_num(d.chi2_after, '.3g')}."]
+    else:
+        tried = [s.effect for s in d.steps if s.effect]
+        lines.append("**No effect was found**: " + (
+            f"{len(tried)} candidate(s) tried ({', '.join(tried)}), none lowered the "
+            "held-out error significantly" if tried else
+            "no residual test pointed at a candidate") + "; the plain model is kept.")
+        lines += ["", f"Held-out error {_num(d.error_after)}; chi-square per degree of "
+                      f"freedom {_num(d.chi2_after, '.3g')}."]
+    ratio = d.error_after / d.noise_floor if d.noise_floor else float("nan")
+    lines += ["", f"Noise alone would leave an error of {_num(d.noise_floor)} (the noise "
+                  f"floor): the final model's error is {_num(ratio, '.3g')} times the floor"
+                  + (" (it explains everything but the noise)." if ratio < 1.2 else
+                     " (what is left above it is not explained by any candidate effect)."),
+              "", "## Residual tests", ""]
+    lines += _tests_section(d.analysis_before, "Plain model")
+    lines += _tests_section(d.analysis_after, "Final model")
+    lines += ["## Steps", "",
+              "Each candidate effect, strongest evidence first, was added and the beads "
+              "judged again; it is kept when the held-out error (or the excess chi-square "
+              "per degree of freedom, which also sees the faint wings and the background) "
+              "drops by at least the required fraction with a bootstrap probability `p` of "
+              "no drop below the limit.", "",
+              *_md_table(STEP_COLUMNS, steps_table(d)), ""]
+    noise = d.context.noise
+    lines += ["## Noise model", "",
+              f"Variance = {_num(noise.gain)} x mean {'+' if noise.intercept >= 0 else '-'} "
+              f"{_num(abs(noise.intercept))} ADU² (gain {_num(noise.gain)} ADU/e-"
+              + (f", offset {_num(noise.offset)} ADU" if noise.offset is not None else "")
+              + (f", read noise {_num(noise.read_noise)} e-" if noise.read_noise is not None
+                 else "")
+              + f"). Source: {d.noise_source}.", "",
+              "## Figures", "",
+              f"Residual maps: each bead's held-out excess error (relative residual energy "
+              f"minus its noise floor) as a disk at its place in the field; colour from 0 "
+              f"(dark purple) to {_num(fig['map_limit'], '.3g')} or more (yellow), the same "
+              "for both; grey: no bead.", "",
+              "| plain model | final model |", "|---|---|",
+              "| ![residual map, plain model](residual_map_before.png) "
+              "| ![residual map, final model](residual_map_after.png) |", "",
+              "Mean normalised residual patch over the beads: black negative, grey zero, "
+              f"white positive, +-{_num(fig['mean_limit'], '.3g')} noise sd for both.", "",
+              "| plain model | final model |", "|---|---|",
+              "| ![mean residual, plain model](mean_residual_before.png) "
+              "| ![mean residual, final model](mean_residual_after.png) |", "",
+              f"Normalised residual patches of the 16 worst beads (+-{PATCH_LIMIT:g} noise "
+              "sd).", "",
+              "| plain model | final model |", "|---|---|",
+              "| ![worst residual patches, plain model](residual_patches_before.png) "
+              "| ![worst residual patches, final model](residual_patches_after.png) |", "",
+              "## Terms", "",
+              "- *held-out error*: each bead's relative residual energy, |data - model|² "
+              "over |bead signal|², with a model estimated without that bead, over the "
+              "beads.",
+              "- *noise floor*: the same for a perfect model (noise alone).",
+              "- *chi2/dof*: chi-square per degree of freedom under the noise model (1 for a "
+              "model that explains everything but the noise).",
+              "- *evidence*: strongest z / threshold of the tests that point at the effect "
+              "(above 1 is significant).",
+              "- *excess chi2*: chi-square per degree of freedom minus 1, per bead.",
+              "- *p*: bootstrap probability over beads that the error did not drop.", "",
+              "Every number is in `report.json` (fields documented in napari-psfspace's "
+              "`docs/report-format.md`).", ""]
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------ JSON
+def to_jsonable(obj: Any) -> Any:
+    """A copy with numpy types as Python ones, tuples as lists, NaN / inf as None."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    return obj
+
+
+def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | None = None,
+                extra: dict | None = None) -> dict:
+    """The content of report.json (docs/report-format.md), JSON-safe."""
+    d = diagnosis
+    r = float(d.context.psf_radius)
+    op = d.operator
+    run = {"image": str(image_name), "image_shape": list(d.context.image.shape),
+           "psf_radius_px": r, "psf_radius_um": r * pixel_size if pixel_size else None,
+           "pixel_size_um": pixel_size, "software": "napari-psfspace",
+           "version": __version__,
+           "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+           **(extra or {})}
+    out = {
+        "format": REPORT_FORMAT, "version": REPORT_VERSION, "run": run,
+        **d.to_dict(),
+        "relative_drop": (1 - d.error_after / d.error_before) if d.error_before else None,
+        "beads_before": d.crossfit_before.summary(),
+        "beads_after": d.crossfit_after.summary(),
+        "effects": _effect_descriptions(d),
+        "model": {"n_psf": int(op.n_psf), "psf_size": int(op.psf_size),
+                  "shape": list(op.shape),
+                  "n_beads_used": op.metadata.get("n_beads_used")},
+        "figures": dict(FIGURES),
+    }
+    return to_jsonable(out)
+
+
+# ------------------------------------------------------------------ writing
+def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "image",
+                 pixel_size: float | None = None, extra: dict | None = None) -> Path:
+    """Write report.json, report.md and the PNG figures of a diagnosis into a folder.
+
+    Parameters
+    ----------
+    diagnosis : Diagnosis
+        From :func:`~napari_psfspace.core.diagnose.diagnose`.
+    out_dir : str or path-like
+        Folder, created if needed; files of the same names are replaced (atomically).
+    image_name : str
+        Name of the image in the report (e.g. its file name).
+    pixel_size : float, optional
+        Pixel size in micrometres, when known.
+    extra : dict, optional
+        More run information for report.json's ``run`` (JSON-serialisable).
+
+    Returns
+    -------
+    Path
+        The path of report.md.
+
+    Raises
+    ------
+    ValueError
+        ``out_dir`` exists and is not a folder.
+    """
+    from .io import write_png
+
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"{os.fspath(out)!r} is a file: give a folder for the report.")
+    out.mkdir(parents=True, exist_ok=True)
+    data = report_dict(diagnosis, image_name=image_name, pixel_size=pixel_size, extra=extra)
+    fig = figure_arrays(diagnosis)
+    for when in ("before", "after"):
+        write_png(out / f"residual_map_{when}.png",
+                  _enlarge(colorize(fig[f"map_{when}"], 0.0, fig["map_limit"])))
+        write_png(out / f"mean_residual_{when}.png",
+                  _enlarge(diverging_grey(fig[f"mean_{when}"], fig["mean_limit"]), 256))
+        write_png(out / f"residual_patches_{when}.png",
+                  _enlarge(diverging_grey(fig[f"patches_{when}"], PATCH_LIMIT)))
+    text = json.dumps(data, indent=2, allow_nan=False)
+    atomic_write(out / "report.json", lambda fh: fh.write(text + "\n"), mode="w",
+                 encoding="utf-8")
+    md = report_markdown(diagnosis, data["run"], fig)
+    path = out / "report.md"
+    atomic_write(path, lambda fh: fh.write(md), mode="w", encoding="utf-8")
+    return path

@@ -1,0 +1,173 @@
+"""The diagnosis report: files, documented JSON fields, readable text, figures."""
+
+import dataclasses
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from napari_psfspace import simulate_beads
+from napari_psfspace.core.diagnose import diagnose
+from napari_psfspace.report import (
+    FIGURES,
+    colorize,
+    diverging_grey,
+    residual_map,
+    to_jsonable,
+    write_report,
+)
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "report-format.md"
+
+
+def _strict_json(path):
+    def refuse(name):
+        raise AssertionError(f"{name} in {path}")
+
+    return json.loads(Path(path).read_text(encoding="utf-8"), parse_constant=refuse)
+
+
+@pytest.fixture(scope="module")
+def hot(tmp_path_factory):
+    """A diagnosis of an image with hot pixels and its report (run once)."""
+    image, truth = simulate_beads((384, 384), 30, seed=1, effects={"hot_pixels": 30})
+    d = diagnose(image, psf_radius=truth.psf_radius)
+    out = tmp_path_factory.mktemp("report")
+    md = write_report(d, out, image_name="hot.tif", pixel_size=0.065, extra={"note": "x"})
+    return d, out, md
+
+
+@pytest.fixture(scope="module")
+def plain(tmp_path_factory):
+    """A diagnosis that adds nothing (no candidate effect) and its report."""
+    image, truth = simulate_beads((384, 384), 25, seed=3)
+    d = diagnose(image, psf_radius=truth.psf_radius, effects=[])
+    out = tmp_path_factory.mktemp("plain")
+    return d, out, write_report(d, out / "new" / "folder")
+
+
+def test_files_exist_and_figures_are_images(hot):
+    import imageio.v3 as iio
+
+    d, out, md = hot
+    assert md == out / "report.md"
+    for name in ("report.md", "report.json", *FIGURES):
+        assert (out / name).is_file(), name
+    for when in ("before", "after"):
+        rgb = iio.imread(out / f"residual_map_{when}.png")
+        assert rgb.ndim == 3 and rgb.shape[2] == 3 and min(rgb.shape[:2]) >= 256
+        grey = iio.imread(out / f"mean_residual_{when}.png")
+        assert grey.ndim == 2 and grey.shape[0] >= 3 * d.operator.psf_size
+        assert iio.imread(out / f"residual_patches_{when}.png").ndim == 2
+    assert not list(out.glob(".*tmp"))  # atomic writes leave no temporary file
+
+
+def test_json_has_the_documented_fields(hot):
+    d, out, _ = hot
+    data = _strict_json(out / "report.json")  # no NaN / Infinity
+    doc = DOC.read_text(encoding="utf-8")
+    documented = set(re.findall(r"^\| `([a-z_0-9]+)`", doc, flags=re.M))
+    for key in data:
+        assert key in documented, f"report.json field {key!r} not in {DOC.name}"
+    for key in set(data["run"]) - {"note"}:  # "note": the caller's extra
+        assert key in documented, f"run.{key} not in {DOC.name}"
+    for key in data["steps"][0]:
+        assert key in documented, f"steps[].{key} not in {DOC.name}"
+    assert data["format"] == "napari-psfspace/diagnosis-report" and data["version"] == 1
+    run = data["run"]
+    assert run["image"] == "hot.tif" and run["image_shape"] == [384, 384]
+    assert run["pixel_size_um"] == 0.065 and run["note"] == "x"
+    assert run["psf_radius_um"] == pytest.approx(0.065 * d.context.psf_radius)
+    assert run["version"] and run["date"]
+    assert data["added"] == d.added
+    assert data["error_before"] == pytest.approx(d.error_before)
+    assert data["error_after"] == pytest.approx(d.error_after)
+    assert data["noise_floor"] == pytest.approx(d.noise_floor)
+    assert len(data["steps"]) == len(d.steps) and data["steps"][0]["effect"] is None
+    assert data["noise_model"]["source"] == d.noise_source
+    assert set(data["analysis_before"]) == set(d.analysis_before.tests)
+    assert set(data["figures"]) == set(FIGURES)
+    for name in d.added:
+        assert data["effects"][name]
+
+
+def test_markdown_says_what_was_found(hot):
+    d, _, md = hot
+    text = md.read_text(encoding="utf-8")
+    assert "outlier_pixels" in text  # the hot pixels are evidence: tried, in the table
+    for s in d.steps[1:]:
+        assert f"| {s.effect} |" in text
+    found = text.split("## What was found")[1].split("## ")[0]
+    if d.added:
+        for name in d.added:
+            assert f"**{name}**" in found
+        assert f"{d.error_before:.4g} -> {d.error_after:.4g}" in found
+    else:
+        assert "No effect was found" in found
+    assert "noise floor" in found and f"{d.noise_floor:.4g}" in found
+    assert d.noise_source in text
+    for name in FIGURES:
+        assert f"({name})" in text
+
+
+def test_hot_pixels_are_reported_as_added(hot):
+    d, _, md = hot
+    assert "outlier_pixels" in d.added
+    assert "**outlier_pixels**" in md.read_text(encoding="utf-8").split("## Residual tests")[0]
+
+
+def test_an_added_effect_reads_as_added(hot, tmp_path):
+    """Whatever the loop decided on this image: a kept step is reported as added."""
+    d, _, _ = hot
+    steps = [d.steps[0], dataclasses.replace(d.steps[-1], accepted=True)]
+    fake = dataclasses.replace(d, steps=steps)
+    text = write_report(fake, tmp_path).read_text(encoding="utf-8")
+    assert f"**{steps[1].effect}**" in text and "No effect was found" not in text
+    assert "| kept |" in text
+
+
+def test_no_effect_says_so_plainly(plain):
+    d, out, md = plain
+    assert d.added == []
+    text = md.read_text(encoding="utf-8")
+    assert "No effect was found" in text and "plain model is kept" in text
+    data = _strict_json(md.parent / "report.json")
+    assert data["added"] == [] and data["relative_drop"] == 0.0
+    assert data["run"]["pixel_size_um"] is None and data["run"]["psf_radius_um"] is None
+
+
+def test_report_into_a_file_is_refused(plain, tmp_path):
+    d, _, _ = plain
+    target = tmp_path / "a_file"
+    target.write_text("keep me")
+    with pytest.raises(ValueError, match="is a file"):
+        write_report(d, target)
+    assert target.read_text() == "keep me"
+
+
+def test_residual_map_paints_disks_largest_on_top():
+    m = residual_map([[10.0, 10.0], [12.0, 12.0], [90.0, 50.0]], [1.0, 2.0, np.nan],
+                     (100, 60), cells=10, radius=1.0)
+    assert m.shape == (10, 6)  # square cells of 10 px
+    assert m[1, 1] == 2.0  # the larger value shows where disks overlap
+    assert np.isnan(m[9, 5]) and np.isnan(m[5, 3])  # NaN value and empty cells left out
+    assert np.nansum(m > 0) >= 2
+
+
+def test_colour_ramps():
+    rgb = colorize(np.array([[0.0, 1.0, np.nan, 5.0]]), 0.0, 1.0)
+    assert rgb.dtype == np.uint8 and rgb.shape == (1, 4, 3)
+    assert tuple(rgb[0, 0]) == (68, 1, 84) and tuple(rgb[0, 1]) == (253, 231, 37)
+    assert tuple(rgb[0, 3]) == tuple(rgb[0, 1])  # clipped
+    assert len(set(rgb[0, 2])) == 1  # grey where no data
+    g = diverging_grey(np.array([-9.0, 0.0, 9.0]), 3.0)
+    assert g.tolist() == [0, 128, 255]
+
+
+def test_to_jsonable():
+    out = to_jsonable({"a": np.float32(1.5), "b": np.array([1, 2]), "c": float("nan"),
+                       1: (np.int64(3), np.inf), "d": np.bool_(True)})
+    assert out == {"a": 1.5, "b": [1, 2], "c": None, "1": [3, None], "d": True}
+    json.dumps(out, allow_nan=False)

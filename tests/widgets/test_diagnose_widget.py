@@ -1,0 +1,113 @@
+"""Diagnose widget: end to end on an image with hot pixels; report; cancel."""
+
+import json
+
+import numpy as np
+import pytest
+
+from conftest import wait_task
+from napari_psfspace._widgets._diagnose import (
+    MAP_AFTER,
+    MAP_BEFORE,
+    MEAN_AFTER,
+    MEAN_BEFORE,
+    DiagnoseWidget,
+)
+
+
+@pytest.fixture(scope="module")
+def hot_image():
+    from napari_psfspace.core.simulate import simulate_beads
+
+    return simulate_beads((384, 384), 30, seed=1, effects={"hot_pixels": 30})
+
+
+@pytest.fixture
+def hot_viewer(make_napari_viewer, hot_image):
+    image, truth = hot_image
+    v = make_napari_viewer()
+    px = truth.optics.pixel_size
+    v.add_image(image, name="hot image", scale=(px, px),
+                metadata={"psf_radius": truth.psf_radius, "pixel_size_um": px})
+    return v
+
+
+def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path, hot_image):
+    _, truth = hot_image
+    w = DiagnoseWidget(hot_viewer)
+    assert w.image.value is hot_viewer.layers["hot image"]
+    assert w.radius.pixels == pytest.approx(truth.psf_radius)
+    camera = (w.gain, w.offset, w.read_noise)
+    assert all(c.native.isHidden() for c in camera)  # off by default
+    w.camera.value = True
+    assert not any(c.native.isHidden() for c in camera)
+    w.camera.value = False
+    w.report_dir.value = tmp_path / "report"
+    w.diagnose.clicked()
+    wait_task(qtbot, w.task, timeout=60_000)
+
+    d = w.diagnosis
+    assert d is not None
+    table = w.table.to_dataframe()
+    assert list(table.columns)[:2] == ["effect", "evidence"]
+    assert len(table) == len(d.steps)
+    effects = table["effect"].tolist()
+    assert effects[0] == "baseline"
+    # the hot pixels are the evidence: the outlier effect was tried, its decision shown
+    assert "outlier_pixels" in effects
+    row = table.iloc[effects.index("outlier_pixels")]
+    step = next(s for s in d.steps if s.effect == "outlier_pixels")
+    assert row["decision"] == ("kept" if step.accepted else "rejected")
+    assert "added:" in w.result.value and "noise floor" in w.result.value
+
+    image = hot_viewer.layers["hot image"]
+    for name in (MAP_BEFORE, MAP_AFTER, MEAN_BEFORE, MEAN_AFTER):
+        assert name in hot_viewer.layers, name
+    m = hot_viewer.layers[MAP_BEFORE]
+    # the map covers the image's field (in world units), above it
+    extent = np.asarray(m.data.shape) * np.asarray(m.scale)
+    assert np.allclose(extent, np.asarray(image.data.shape) * np.asarray(image.scale),
+                       rtol=0.05)
+    assert m.translate[0] < 0
+    assert hot_viewer.layers[MAP_AFTER].translate[1] > image.data.shape[1] * image.scale[1]
+    assert np.isfinite(m.data).any()
+    assert hot_viewer.layers[MEAN_BEFORE].data.shape == d.crossfit_before.residuals.data.shape[1:]
+
+    report = json.loads((tmp_path / "report" / "report.json").read_text())
+    assert report["run"]["image"] == "hot image"
+    assert report["run"]["pixel_size_um"] == pytest.approx(truth.optics.pixel_size)
+    assert report["added"] == d.added
+    assert (tmp_path / "report" / "residual_map_after.png").exists()
+    assert "report.md" in w.result.value
+
+
+def test_cancel_adds_nothing_and_widget_stays_usable(hot_viewer, qtbot, tmp_path):
+    w = DiagnoseWidget(hot_viewer)
+    w.report_dir.value = tmp_path / "report"
+    n_layers = len(hot_viewer.layers)
+    w.diagnose.clicked()
+    assert w.task.running and not w.diagnose.enabled
+    with qtbot.waitSignal(w.task.worker.aborted, timeout=60_000):
+        w.task.cancel.clicked()
+    wait_task(qtbot, w.task)
+    assert "cancelled" in w.task.status.value
+    assert len(hot_viewer.layers) == n_layers and MAP_BEFORE not in hot_viewer.layers
+    assert w.diagnosis is None and not w.table.visible
+    assert not (tmp_path / "report").exists()
+    assert w.diagnose.enabled
+
+
+def test_too_few_beads_is_a_notification(make_napari_viewer, qtbot, monkeypatch):
+    import napari_psfspace._widgets._worker as worker_mod
+    from napari_psfspace.core.simulate import simulate_beads
+
+    shown = []
+    monkeypatch.setattr(worker_mod, "show_error", shown.append)
+    few, t = simulate_beads((256, 256), 6, seed=2)
+    v = make_napari_viewer()
+    v.add_image(few, name="few", metadata={"psf_radius": t.psf_radius})
+    w = DiagnoseWidget(v)
+    w.diagnose.clicked()
+    wait_task(qtbot, w.task)
+    assert len(shown) == 1 and "Too few usable beads" in shown[0]
+    assert MAP_BEFORE not in v.layers
