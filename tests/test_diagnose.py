@@ -47,3 +47,18 @@ def test_unknown_effect_and_too_few_beads():
     few, t = simulate_beads((256, 256), 6, seed=2)
     with pytest.raises(ValueError, match="Too few usable beads"):
         diagnose(few, psf_radius=t.psf_radius)
+
+
+def test_merged_companions_are_fitted_jointly():
+    image, truth = simulate_beads((768, 768), 90, aberrations="moderate", seed=0,
+                                  effects={"neighbours": 0.3})
+    d = diagnose(image, psf_radius=truth.psf_radius)
+    assert "neighbours" in d.added
+    step = next(s for s in d.steps if s.effect == "neighbours")
+    # measured: 0.040 -> 0.010 on the same beads (chi2/dof 10.7 -> 1.9)
+    assert step.error_after < 0.5 * step.error_before
+    # the companions found lie near true ones (within 2 px)
+    true = np.asarray(truth.effects["companion_positions"])
+    found = np.asarray(step.params["companions"])
+    dist = np.min(np.hypot(*(found[:, None, :] - true[None, :, :]).transpose(2, 0, 1)), axis=1)
+    assert np.median(dist) < 2.0

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.detect import HELDOUT, KEPT, REJECTED, STATUSES, Beads
+from ..core.detect import COMPANION, HELDOUT, KEPT, REJECTED, STATUSES, Beads
 from ..core.mosaic import mosaic
 
 #: Every status a bead of the Points layer can have ("rejected": by the user in the
@@ -34,6 +34,7 @@ STATUS_COLORS = {
     "outlier": "#ff40ff",
     REJECTED: "#ff2020",
     HELDOUT: "#ffffff",
+    COMPANION: "#8a2be2",
 }
 #: Human-readable meaning of each status (shown in the widgets).
 STATUS_MEANING = {
@@ -45,6 +46,7 @@ STATUS_MEANING = {
     "outlier": "z-score outlier",
     REJECTED: "rejected by hand",
     HELDOUT: "held out of the fit",
+    COMPANION: "companion in the patch (fitted jointly, not learnt)",
 }
 #: Names of the layers the plugin creates.
 BEADS = "beads"

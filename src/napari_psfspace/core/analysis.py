@@ -200,7 +200,11 @@ def _secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,
     peak_adu = resid[:, ring].max(axis=1)
     peak_sd = (noise[:, ring].max(axis=1)) / sd
     hits = np.flatnonzero((peak_sd > k) & (peak_adu > relative * np.maximum(signal, 1e-12)))
-    return {"count": int(len(hits)), "beads": hits.tolist(),
+    ring_idx = np.flatnonzero(ring.ravel())
+    at = ring_idx[np.argmax(resid[:, ring][hits], axis=1)] if len(hits) else np.zeros(0, int)
+    base = np.round(res.positions[hits])
+    peaks = base + np.column_stack([at // p - p // 2, at % p - p // 2])
+    return {"count": int(len(hits)), "beads": hits.tolist(), "peaks": peaks.tolist(),
             "max_relative": float((peak_adu / np.maximum(signal, 1e-12)).max())
             if len(res) else 0.0}
 

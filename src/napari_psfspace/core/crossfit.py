@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .detect import HELDOUT, KEPT, Beads
+from .detect import COMPANION, HELDOUT, KEPT, Beads
 from .estimate import Progress, iter_estimate, run_with_progress
 from .heldout import _morton_order
 from .noise import NoiseModel
@@ -81,7 +81,8 @@ def iter_crossfit(
     image : array_like of shape (M, N)
         The image the models are estimated from (possibly corrected by effects).
     beads : Beads
-        Beads with sub-pixel positions; those with status "kept" are cross-fitted.
+        Beads with sub-pixel positions; those with status "kept" are cross-fitted, and
+        those with status "companion" are judged too but never learnt from.
     noise : NoiseModel
     psf_radius : float
     folds : int
@@ -100,7 +101,8 @@ def iter_crossfit(
     fit_kw = fit_kwargs or {}
     img = np.asarray(image)
     target = img if fit_image is None else np.asarray(fit_image)
-    kept = np.flatnonzero(beads.status == KEPT)
+    # judged: kept beads, and beads with a companion (fitted jointly, never learnt from)
+    kept = np.flatnonzero((beads.status == KEPT) | (beads.status == COMPANION))
     fold_of = assign_folds(beads.positions[kept], img.shape, folds)
     parts, index, fold_ids = [], [], []
     meta = None
@@ -109,7 +111,7 @@ def iter_crossfit(
         if len(held) == 0:
             continue
         status = beads.status.copy()
-        status[held] = HELDOUT
+        status[held[status[held] == KEPT]] = HELDOUT
         train = Beads(beads.positions.copy(), beads.response.copy(), status,
                       beads.amplitude.copy())
         est = run_with_progress(iter_estimate(img, psf_radius=psf_radius, beads=train,

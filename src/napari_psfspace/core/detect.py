@@ -24,7 +24,8 @@ FAINT = "faint"
 OUTLIER = "outlier"
 REJECTED = "rejected"  # by the user (napari widgets)
 HELDOUT = "heldout"  # held out of a fit, still counted as a neighbour
-STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT)
+COMPANION = "companion"  # has a companion in its patch: judged (fitted jointly), not learnt
+STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION)
 
 
 class NoBeadsError(ValueError):

@@ -225,7 +225,8 @@ def iter_diagnose(
     def evaluate(c: Context):
         cf = run_with_progress(iter_crossfit(c.image, c.beads, c.noise, psf_radius=r,
                                              folds=folds, estimate_kwargs=c.estimate_kwargs,
-                                             fit_kwargs={"pixel_mask": c.pixel_mask}))
+                                             fit_kwargs={**c.fit_kwargs,
+                                                         "pixel_mask": c.pixel_mask}))
         an = analyse(cf.residuals, c.image, c.noise, psf_radius=r,
                      all_positions=c.beads.positions)
         sp = an.tests.get("secondary_peaks")

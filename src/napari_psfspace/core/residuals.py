@@ -134,6 +134,17 @@ def _fourier_shift(patches: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     return out[:, pad:pad + p, pad:pad + p]
 
 
+def _companion_models(operator, positions, base, size: int) -> list[np.ndarray]:
+    """The model PSF at each companion position, on the patch centred at ``base``."""
+    out = []
+    for cy, cx in positions:
+        psf = operator.psf_at(float(np.clip(cy, 0, operator.shape[0] - 1)),
+                              float(np.clip(cx, 0, operator.shape[1] - 1)))
+        shift = np.array([[cy - base[0], cx - base[1]]], dtype=np.float64)
+        out.append(_fourier_shift(psf[None], shift)[0])
+    return out
+
+
 def fit_beads(
     image,
     positions,
@@ -143,6 +154,7 @@ def fit_beads(
     fit_radius: float | None = None,
     background: str = "constant",
     pixel_mask=None,
+    companions: dict | None = None,
 ) -> BeadResiduals:
     """Fit amplitude and local background of beads to a model's PSF; measure residuals.
 
@@ -163,6 +175,10 @@ def fit_beads(
         Local background model.
     pixel_mask : array_like of shape (M, N), bool, optional
         True for pixels to ignore (hot pixels, saturated pixels, neighbours).
+    companions : dict, optional
+        ``{(row, col) of a bead (rounded): [(row, col), ...]}``: positions of companion
+        beads inside the bead's patch, fitted jointly (one amplitude each, the model's
+        PSF at their position); the residual then judges the model, not the crowding.
 
     Returns
     -------
@@ -193,11 +209,15 @@ def fit_beads(
     fitted = np.zeros_like(data)
     var = np.zeros_like(data)
     chi2, dof = np.zeros(k), np.zeros(k)
+    comp = companions or {}
     for i in range(k):
         use = mask & ~excl[i]
         cols = [models[i][use], np.ones(use.sum())]
         if n_bg == 3:
             cols += [yy[use], xx[use]]
+        extra = _companion_models(operator, comp.get(tuple(int(v) for v in base[i]), ()),
+                                  base[i], p)
+        cols += [e[use] for e in extra]
         design = np.stack(cols, axis=1)
         d = data[i][use]
         v = noise.variance(np.full_like(d, np.median(d)))
@@ -209,6 +229,8 @@ def fit_beads(
         full = coef[0] * models[i] + coef[1]
         if n_bg == 3:
             full = full + coef[2] * yy + coef[3] * xx
+        for c, e in zip(coef[1 + n_bg:], extra, strict=True):
+            full = full + c * e
         fitted[i] = full
         var[i] = noise.variance(full)
         amp[i], bgc[i] = coef[0], coef[1]

@@ -40,6 +40,8 @@ class Context:
     psf_radius : float
     estimate_kwargs : dict
         Options of :func:`~napari_psfspace.core.estimate.iter_estimate`.
+    fit_kwargs : dict
+        Options of :func:`~napari_psfspace.core.residuals.fit_beads` (e.g. companions).
     applied : tuple of str
         Names of the effects applied, in order.
     params : dict
@@ -54,6 +56,7 @@ class Context:
     noise: NoiseModel
     psf_radius: float
     estimate_kwargs: dict = field(default_factory=dict)
+    fit_kwargs: dict = field(default_factory=dict)
     applied: tuple[str, ...] = ()
     params: dict = field(default_factory=dict)
     noise_from_image: bool = True
