@@ -59,8 +59,9 @@ def _psf_radius_px(args, info) -> float | None:
     return None
 
 
-def _cmd_estimate(args) -> int:
-    from .core.estimate import iter_estimate, run_with_progress
+def _image_and_radius(args):
+    """The image (a slice of a stack), what the file says of it, and the PSF radius in
+    pixels: given in pixels or micrometres, else measured from the image."""
     from .io import read_image
 
     image, info = read_image(args.image, index=args.slice)
@@ -71,6 +72,13 @@ def _cmd_estimate(args) -> int:
         r = suggest_psf_radius(image)
         print(f"no --psf-radius given: using {r:g} px, measured from the image "
               "(see suggest_psf_radius)", file=sys.stderr)
+    return image, info, r
+
+
+def _cmd_estimate(args) -> int:
+    from .core.estimate import iter_estimate, run_with_progress
+
+    image, info, r = _image_and_radius(args)
     n_psf = args.n_psf
     if n_psf is not None and n_psf not in ("heldout", "rule"):
         n_psf = int(n_psf)
@@ -96,7 +104,6 @@ def _cmd_estimate(args) -> int:
 def _cmd_diagnose(args) -> int:
     from .core.diagnose import iter_diagnose
     from .core.estimate import run_with_progress
-    from .io import read_image
     from .report import summary_text, write_report
 
     if args.read_noise is not None and args.gain is None:
@@ -104,14 +111,7 @@ def _cmd_diagnose(args) -> int:
                          "values together (or only --offset).")
     if Path(args.report).exists() and not Path(args.report).is_dir():
         raise ValueError(f"--report {args.report!r} is a file: give a folder.")
-    image, info = read_image(args.image, index=args.slice)
-    r = _psf_radius_px(args, info)
-    if r is None:
-        from .core.detect import suggest_psf_radius
-
-        r = suggest_psf_radius(image)
-        print(f"no --psf-radius given: using {r:g} px, measured from the image "
-              "(see suggest_psf_radius)", file=sys.stderr)
+    image, info, r = _image_and_radius(args)
     gen = iter_diagnose(image, psf_radius=r, threshold=args.threshold, gain=args.gain,
                         offset=args.offset, read_noise=args.read_noise)
     diag = run_with_progress(gen, None if args.quiet else _progress_printer(sys.stderr))

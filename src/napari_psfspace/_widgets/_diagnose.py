@@ -20,7 +20,7 @@ from napari.utils.notifications import show_info
 
 from ..core.diagnose import iter_diagnose
 from ..report import STEP_COLUMNS, figure_arrays, steps_table, summary_text, write_report
-from ._layers import Frame, LayerTuple, _beside, bead_plane, show_layers
+from ._layers import Frame, LayerTuple, _beside, show_layers
 from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
 
 if TYPE_CHECKING:
@@ -137,25 +137,15 @@ class DiagnoseWidget(FollowsBeads, Container):
         self._follow(pts)
         if img is None:
             return
-        meta = img.metadata or {}
-        scale = float(img.scale[-1])
-        px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
-        r = (pts.metadata or {}).get("psf_radius_px") if pts is not None else None
-        self.radius.set_calibration(px, r if r is not None else meta.get("psf_radius"))
+        self._calibrate(img, pts)
 
     def run(self, *_) -> None:
         """Diagnose in a worker thread; show the steps and maps, write the report."""
         img, pts = self.image.value, self.points.value
-        if img is None:
-            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+        got = self._bead_plane(img, pts)
+        if got is None:
             return
-        try:
-            plane, frame = bead_plane(img, pts, self._viewer.dims.point)
-        except ValueError as exc:
-            from napari.utils.notifications import show_error
-
-            show_error(str(exc))
-            return
+        plane, frame = got
         camera = {}
         if self.camera.value:
             camera = {"gain": float(self.gain.value), "offset": float(self.offset.value),

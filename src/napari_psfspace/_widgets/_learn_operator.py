@@ -23,7 +23,6 @@ from ..core.operator import ProductConvolution
 from ..io import default_model_path
 from ._layers import (
     PSF_GRID,
-    bead_plane,
     beads_from_points,
     beads_layer,
     ensure_bead_features,
@@ -105,11 +104,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.threshold.visible = pts is None
         if img is None:
             return
-        meta = img.metadata or {}
-        scale = float(img.scale[-1])
-        px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
-        r = (pts.metadata or {}).get("psf_radius_px") if pts is not None else None
-        self.radius.set_calibration(px, r if r is not None else meta.get("psf_radius"))
+        self._calibrate(img, pts)
         src = getattr(getattr(img, "source", None), "path", None)
         self.save_path.value = default_model_path(src, img.name)
         h, w = img.data.shape[-2:]
@@ -118,16 +113,10 @@ class LearnOperatorWidget(FollowsBeads, Container):
     def run(self, *_) -> None:
         """Learn the operator in a worker thread; show and save it when done."""
         img, pts = self.image.value, self.points.value
-        if img is None:
-            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+        got = self._bead_plane(img, pts)
+        if got is None:
             return
-        try:
-            plane, frame = bead_plane(img, pts, self._viewer.dims.point)
-        except ValueError as exc:
-            from napari.utils.notifications import show_error
-
-            show_error(str(exc))
-            return
+        plane, frame = got
         beads, ids = None, None
         if pts is not None:
             ensure_bead_features(pts)

@@ -19,7 +19,7 @@ from ._layers import (
     image_plane,
     show_layers,
 )
-from ._worker import CoreTask, RadiusEdit, layer_choices
+from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of
 
 if TYPE_CHECKING:
     import napari
@@ -101,9 +101,8 @@ class PickBeadsWidget(Container):
         if layer is None:
             return
         meta = layer.metadata or {}
-        scale = float(layer.scale[-1])
-        px = meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
-        self.radius.set_calibration(px, meta.get("psf_radius", DEFAULT_RADIUS_PX))
+        self.radius.set_calibration(pixel_size_of(layer),
+                                    meta.get("psf_radius", DEFAULT_RADIUS_PX))
 
     def _plane(self):
         """The plane on display of the chosen image, or None (the user is told why)."""

@@ -13,7 +13,6 @@ from ._layers import (
     GALLERY,
     REJECTED,
     STATUS_MEANING,
-    bead_plane,
     beads_from_points,
     ensure_bead_features,
     gallery_layer,
@@ -83,13 +82,10 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         if img is None or pts is None:
             self.task.status.value = "Choose an image and its beads (Pick beads first)."
             return
-        try:
-            plane, frame = bead_plane(img, pts, self._viewer.dims.point)
-        except ValueError as exc:
-            from napari.utils.notifications import show_error
-
-            show_error(str(exc))
+        got = self._bead_plane(img, pts)
+        if got is None:
             return
+        plane, frame = got
         ensure_bead_features(pts)
         beads, ids = beads_from_points(pts, frame)
         gen = iter_patch_review(plane, beads, self.radius.pixels)

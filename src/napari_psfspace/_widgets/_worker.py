@@ -218,6 +218,13 @@ class RadiusEdit(Container):
                            if self._pixel_size else "")
 
 
+def pixel_size_of(layer) -> float | None:
+    """Pixel size (µm) of an image layer: its metadata, else a non-unit scale, else None."""
+    meta = layer.metadata or {}
+    scale = float(layer.scale[-1])
+    return meta.get("pixel_size_um") or (scale if scale != 1.0 else None)
+
+
 class FollowsBeads:
     """Mixin for widgets with a ``points`` (beads layer) chooser and a ``radius`` edit.
 
@@ -239,6 +246,28 @@ class FollowsBeads:
         if pts is not None:
             pts.events.data.connect(self._refresh_radius)
         self._followed = pts
+
+    def _calibrate(self, img, pts) -> None:
+        """Pixel size from the image, radius from the beads layer (else the image)."""
+        meta = img.metadata or {}
+        r = (pts.metadata or {}).get("psf_radius_px") if pts is not None else None
+        self.radius.set_calibration(pixel_size_of(img),
+                                    r if r is not None else meta.get("psf_radius"))
+
+    def _bead_plane(self, img, pts):
+        """The plane the beads were detected on, or None (the user is told why)."""
+        from napari.utils.notifications import show_error
+
+        from ._layers import bead_plane
+
+        if img is None:
+            self.task.status.value = "Open a bead image first (or File > Open Sample)."
+            return None
+        try:
+            return bead_plane(img, pts, self._viewer.dims.point)
+        except ValueError as exc:
+            show_error(str(exc))
+            return None
 
     def _refresh_radius(self, *_) -> None:
         """Take the radius the beads were detected with."""
