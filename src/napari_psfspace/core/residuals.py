@@ -77,7 +77,7 @@ class BeadResiduals:
         ``error`` is the mean over beads of the relative residual energy
         ``||r||^2 / ||A m||^2`` (each bead counts the same: a pooled, signal-weighted
         figure is dominated by the few brightest beads and was measured too noisy to
-        decide with) over the informative beads (see :attr:`informative`),
+        decide with) over the informative beads (see :attr:`informative`; ``chi2_dof`` too),
         ``noise_floor`` what noise alone would give, ``chi2_dof`` the
         pooled chi-square per degree of freedom (1 for a model that explains everything
         but the noise), ``error_pooled`` the signal-weighted figure.
@@ -93,20 +93,21 @@ class BeadResiduals:
             "n_informative": int(ok.sum()),
             "error": float(np.mean(self.rel_energy[ok])),
             "noise_floor": float(np.mean(self.floor[ok])),
-            "chi2_dof": float(np.sum(self.chi2) / np.sum(self.dof)),
+            "chi2_dof": float(np.sum(self.chi2[ok]) / np.sum(self.dof[ok])),
             "error_median": float(np.median(self.rel_energy)),
             "error_pooled": float(np.sum(self.rel_energy * signal) / np.sum(signal)),
         }
 
     @property
     def informative(self) -> np.ndarray:
-        """Beads whose noise floor is below 10 % of their signal energy, shape (K,).
+        """Beads with a positive fitted amplitude whose noise floor is below 10 % of their
+        signal energy, shape (K,).
 
         A "bead" with almost no fitted signal (a hot pixel taken for a bead, a bead
         under a saturated neighbour) has an unbounded relative residual and carries no
         information on the PSF's shape.
         """
-        return self.floor < 0.1
+        return (self.floor < 0.1) & (self.amplitude > 0)
 
     def chi2_under(self, noise: NoiseModel) -> np.ndarray:
         """Per-bead chi-square of these residuals under another noise model, shape (K,)."""
@@ -221,18 +222,20 @@ def fit_beads(
         design = np.stack(cols, axis=1)
         d = data[i][use]
         v = noise.variance(np.full_like(d, np.median(d)))
+        low = float(d.min())
         for _ in range(2):  # weights from the data's level, then from the fitted model
             w = 1.0 / np.sqrt(v)
             coef, *_ = np.linalg.lstsq(design * w[:, None], d * w, rcond=None)
             mod = design @ coef
-            v = noise.variance(mod)
+            # a degenerate fit (negative amplitude) must not drive the variance to its floor
+            v = noise.variance(np.maximum(mod, low))
         full = coef[0] * models[i] + coef[1]
         if n_bg == 3:
             full = full + coef[2] * yy + coef[3] * xx
         for c, e in zip(coef[1 + n_bg:], extra, strict=True):
             full = full + c * e
         fitted[i] = full
-        var[i] = noise.variance(full)
+        var[i] = noise.variance(np.maximum(full, low))  # never below the lowest pixel
         amp[i], bgc[i] = coef[0], coef[1]
         chi2[i] = float(np.sum((d - mod) ** 2 / v))
         dof[i] = max(int(use.sum()) - design.shape[1], 1)
