@@ -316,7 +316,7 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "judged again; it is kept when the held-out error (or the excess chi-square "
               "per degree of freedom, which also sees the faint wings and the background) "
               "drops by at least the required fraction with a bootstrap probability `p` of "
-              "no drop below the limit.", "",
+              "no drop below the limit, and neither gets worse by that fraction.", "",
               *_md_table(STEP_COLUMNS, steps_table(d)), ""]
     noise = d.context.noise
     lines += ["## Noise model", "",

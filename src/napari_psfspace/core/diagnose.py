@@ -14,8 +14,8 @@
    models judge: the mean relative residual energy (PSF shape) or the mean excess
    chi-square per dof (noise-normalised: faint wings, background, camera), by at least
    ``min_improvement`` (relative) and with a paired bootstrap over beads giving a
-   probability below ``max_p / 2`` that it did not drop. Repeat with the next candidate
-   until none has evidence left.
+   probability below ``max_p / 2`` that it did not drop, while neither metric gets worse
+   by ``min_improvement``. Repeat with the next candidate until none has evidence left.
 5. Estimate the final operator on all beads with the effects kept.
 """
 
@@ -257,10 +257,13 @@ def iter_diagnose(
         new_ctx = eff.apply(ctx, params)
         new_cf, new_an = evaluate(new_ctx)
         cmp = _compare(cf, new_cf, new_ctx.noise)
-        # either held-out metric must drop, by min_improvement, with p <= max_p / 2 each
-        ok = bool((cmp["improvement"] >= min_improvement and cmp["p_no_drop"] <= max_p / 2)
-                  or (cmp["chi2_improvement"] >= min_improvement
-                      and cmp["chi2_p_no_drop"] <= max_p / 2))
+        # one held-out metric must drop (by min_improvement, p <= max_p / 2) and neither
+        # may get worse by as much
+        ok = bool(((cmp["improvement"] >= min_improvement and cmp["p_no_drop"] <= max_p / 2)
+                   or (cmp["chi2_improvement"] >= min_improvement
+                       and cmp["chi2_p_no_drop"] <= max_p / 2))
+                  and cmp["improvement"] > -min_improvement
+                  and cmp["chi2_improvement"] > -min_improvement)
         err0, err1 = cmp["error_before"], cmp["error_after"]
         steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                   and an.tests[t].significant],
