@@ -120,13 +120,8 @@ class DiagnoseWidget(FollowsBeads, Container):
         self.result.native.setWordWrap(True)
         self.diagnosis = None
         self.camera.changed.connect(self._on_camera)
-        self.points.changed.connect(self._on_inputs)
-        self.image.changed.connect(self._on_inputs)
         self.diagnose.changed.connect(self.run)
-        viewer.layers.events.inserted.connect(self._on_layers)
-        viewer.layers.events.removed.connect(self._on_layers)
-        self._on_layers()
-        self._on_inputs()
+        self._connect_inputs(viewer, self._on_inputs)
 
     def _on_camera(self, on: bool) -> None:
         for w in (self.gain, self.offset, self.read_noise):

@@ -89,14 +89,9 @@ class LearnOperatorWidget(FollowsBeads, Container):
             lambda v: setattr(self.n_psf, "visible", v == "fixed"))
         self.auto_smoothing.changed.connect(
             lambda v: setattr(self.smoothing, "visible", not v))
-        self.points.changed.connect(self._on_inputs)
-        self.image.changed.connect(self._on_inputs)
         self.learn.changed.connect(self.run)
         self.show_psf.changed.connect(self.psf_here)
-        viewer.layers.events.inserted.connect(self._on_layers)
-        viewer.layers.events.removed.connect(self._on_layers)
-        self._on_layers()
-        self._on_inputs()
+        self._connect_inputs(viewer, self._on_inputs)
 
     def _on_inputs(self, *_) -> None:
         img, pts = self.image.value, self.points.value

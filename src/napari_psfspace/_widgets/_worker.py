@@ -236,6 +236,15 @@ class FollowsBeads:
         self.reset_choices()
         prefer_beads(self.points)
 
+    def _connect_inputs(self, viewer, on_inputs) -> None:
+        """Refresh on a new image or beads choice and when layers come and go."""
+        self.points.changed.connect(on_inputs)
+        self.image.changed.connect(on_inputs)
+        viewer.layers.events.inserted.connect(self._on_layers)
+        viewer.layers.events.removed.connect(self._on_layers)
+        self._on_layers()
+        on_inputs()
+
     def _follow(self, pts) -> None:
         """Listen to the chosen beads layer (and stop listening to the previous one)."""
         old = getattr(self, "_followed", None)
