@@ -174,6 +174,16 @@ def _cmd_demo(args) -> int:
     return 0
 
 
+def _add_radius_and_slice(parser: argparse.ArgumentParser) -> None:
+    """--psf-radius / --psf-radius-um (default: measured from the image) and --slice."""
+    g = parser.add_mutually_exclusive_group()
+    g.add_argument("--psf-radius", type=float,
+                   help="PSF radius r in pixels (default: suggested from the image)")
+    g.add_argument("--psf-radius-um", type=float,
+                   help="PSF radius in micrometres (needs the pixel size in the TIFF)")
+    parser.add_argument("--slice", type=int, help="slice of a stack to use")
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="psfspace",
@@ -194,12 +204,7 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("estimate", help="estimate the operator from a bead image")
     e.add_argument("image", help="TIFF bead image (2-D, or a stack with --slice)")
     e.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
-    g = e.add_mutually_exclusive_group()
-    g.add_argument("--psf-radius", type=float,
-                   help="PSF radius r in pixels (default: suggested from the image)")
-    g.add_argument("--psf-radius-um", type=float,
-                   help="PSF radius in micrometres (needs the pixel size in the TIFF)")
-    e.add_argument("--slice", type=int, help="slice of a stack to use")
+    _add_radius_and_slice(e)
     e.add_argument("--n-psf", help="basis size I, or 'heldout' (default) or 'rule'")
     e.add_argument("--smoothing", type=float, help="thin-plate smoothing eta (default: LOO CV)")
     e.add_argument("--threshold", type=float, default=8.0,
@@ -214,12 +219,7 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("image", help="TIFF bead image in ADU (2-D, or a stack with --slice)")
     dg.add_argument("--report", required=True, metavar="DIR",
                     help="folder for report.md, report.json and the figures")
-    g = dg.add_mutually_exclusive_group()
-    g.add_argument("--psf-radius", type=float,
-                   help="PSF radius r in pixels (default: suggested from the image)")
-    g.add_argument("--psf-radius-um", type=float,
-                   help="PSF radius in micrometres (needs the pixel size in the TIFF)")
-    dg.add_argument("--slice", type=int, help="slice of a stack to use")
+    _add_radius_and_slice(dg)
     dg.add_argument("--gain", type=float,
                     help="camera gain in ADU per electron (with --offset and --read-noise; "
                          "default: noise model measured on the image)")

@@ -33,15 +33,19 @@ def bead_image():
     return image, truth
 
 
+def calibrated_viewer(make_napari_viewer, image, truth, name: str):
+    """A viewer holding a simulated image with its pixel size (scale) and PSF radius."""
+    v = make_napari_viewer()
+    px = truth.optics.pixel_size
+    v.add_image(image, name=name, scale=(px, px),
+                metadata={"psf_radius": truth.psf_radius, "pixel_size_um": px})
+    return v
+
+
 @pytest.fixture
 def viewer(make_napari_viewer, bead_image):
     """A viewer holding the bead image with a 0.065 µm pixel (scale) and its PSF radius."""
-    image, truth = bead_image
-    v = make_napari_viewer()
-    px = truth.optics.pixel_size
-    v.add_image(image, name="beads image", scale=(px, px),
-                metadata={"psf_radius": truth.psf_radius, "pixel_size_um": px})
-    return v
+    return calibrated_viewer(make_napari_viewer, *bead_image, "beads image")
 
 
 def wait_task(qtbot, task, timeout: int = 30_000) -> None:

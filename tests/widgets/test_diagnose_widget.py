@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from conftest import wait_task
+from conftest import calibrated_viewer, wait_task
 from napari_psfspace._widgets._diagnose import (
     MAP_AFTER,
     MAP_BEFORE,
@@ -24,12 +24,7 @@ def hot_image():
 
 @pytest.fixture
 def hot_viewer(make_napari_viewer, hot_image):
-    image, truth = hot_image
-    v = make_napari_viewer()
-    px = truth.optics.pixel_size
-    v.add_image(image, name="hot image", scale=(px, px),
-                metadata={"psf_radius": truth.psf_radius, "pixel_size_um": px})
-    return v
+    return calibrated_viewer(make_napari_viewer, *hot_image, "hot image")
 
 
 def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path, hot_image):
