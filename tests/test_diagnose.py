@@ -1,6 +1,6 @@
 """The diagnosis loop: adds what the image holds, nothing when it holds nothing.
 
-Work in progress (issue 4): the effects below are covered; others are being added.
+Effects with a module of their own are tested in ``test_effect_<name>.py``.
 """
 
 import numpy as np
@@ -62,3 +62,47 @@ def test_merged_companions_are_fitted_jointly():
     found = np.asarray(step.params["companions"])
     dist = np.min(np.hypot(*(found[:, None, :] - true[None, :, :]).transpose(2, 0, 1)), axis=1)
     assert np.median(dist) < 2.0
+
+
+def test_fixed_pattern_offsets_are_found_and_subtracted():
+    image, truth = simulate_beads((640, 640), 70, aberrations="strong", seed=1,
+                                  effects={"row_offsets": 8.0, "column_offsets": 8.0})
+    d = diagnose(image, psf_radius=truth.psf_radius,
+                 effects=["fixed_pattern", "basis_size", "field_smoothing"])
+    assert "fixed_pattern" in d.added
+    step = next(s for s in d.steps if s.effect == "fixed_pattern")
+    cmp = step.params["_comparison"]
+    # measured: error 0.0285 -> 0.0251, excess chi2/dof -31 % or more
+    assert step.error_after < step.error_before
+    assert cmp["chi2_improvement"] > 0.15
+    # the subtracted offsets are the camera's (up to a constant)
+    rows = np.asarray(d.context.params["fixed_pattern"]["rows"])
+    true = truth.effects["row_offset_values"]
+    assert np.corrcoef(rows, true)[0, 1] > 0.8
+
+
+def test_an_effect_that_cannot_be_applied_is_rejected_not_fatal():
+    from napari_psfspace.core.effects import REGISTRY as reg
+
+    class Broken(Effect):
+        name = "_test_broken"
+        tests = ("mean_residual",)
+
+        def evidence(self, analysis):
+            return 99.0
+
+        def fit(self, ctx, analysis):
+            return {}
+
+        def apply(self, ctx, params):
+            raise ValueError("Too few usable beads: 3 kept")
+
+    try:
+        image, truth = simulate_beads((512, 512), 50, aberrations="none", seed=2)
+        d = diagnose(image, psf_radius=truth.psf_radius, effects=["_test_broken"])
+        step = d.steps[1]
+        assert step.effect == "_test_broken" and not step.accepted
+        assert "Too few usable beads" in step.params["_error"]
+        assert d.added == [] and d.error_after == d.error_before
+    finally:
+        reg.pop("_test_broken", None)

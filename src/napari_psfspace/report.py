@@ -52,7 +52,7 @@ FIGURES = {
 }
 #: Columns of :func:`steps_table`.
 STEP_COLUMNS = ("effect", "evidence", "tests", "held-out error", "chi2/dof", "error drop",
-                "p", "excess chi2 drop", "p (chi2)", "decision")
+                "p", "excess chi2 drop", "p (chi2)", "photometric drop", "decision")
 #: Largest |normalised residual| (noise sd) shown in the patch mosaics.
 PATCH_LIMIT = 5.0
 
@@ -224,7 +224,7 @@ def steps_table(diagnosis) -> list[list[str]]:
     for s in diagnosis.steps:
         if s.effect is None:
             rows.append(["baseline", "", ", ".join(s.tests) or "-", _num(s.error_before),
-                         _num(s.chi2_before, ".3g"), "", "", "", "", "plain model"])
+                         _num(s.chi2_before, ".3g"), "", "", "", "", "", "plain model"])
             continue
         cmp = (s.params or {}).get("_comparison") or {}
         chi2_drop = cmp.get("chi2_improvement")
@@ -234,6 +234,9 @@ def steps_table(diagnosis) -> list[list[str]]:
                      f"{_num(100 * s.improvement, '.1f')} %", _num(s.p_no_drop, ".3g"),
                      "" if chi2_drop is None else f"{_num(100 * chi2_drop, '.1f')} %",
                      _num(cmp["chi2_p_no_drop"], ".3g") if "chi2_p_no_drop" in cmp else "",
+                     (f"{_num(100 * cmp['photometric_improvement'], '.1f')} % "
+                      f"(p {_num(cmp['photometric_p_no_drop'], '.3g')})")
+                     if "photometric_improvement" in cmp else "",
                      "kept" if s.accepted else "rejected"])
     return rows
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ..core.detect import COMPANION, HELDOUT, KEPT, REJECTED, STATUSES, Beads
+from ..core.detect import COMPANION, HELDOUT, KEPT, REJECTED, STATUSES, STRUCTURE, Beads
 from ..core.mosaic import mosaic
 
 #: Every status a bead of the Points layer can have ("rejected": by the user in the
@@ -35,6 +35,7 @@ STATUS_COLORS = {
     REJECTED: "#ff2020",
     HELDOUT: "#ffffff",
     COMPANION: "#8a2be2",
+    STRUCTURE: "#8b5a2b",
 }
 #: Human-readable meaning of each status (shown in the widgets).
 STATUS_MEANING = {
@@ -47,6 +48,7 @@ STATUS_MEANING = {
     REJECTED: "rejected by hand",
     HELDOUT: "held out of the fit",
     COMPANION: "companion in the patch (fitted jointly, not learnt)",
+    STRUCTURE: "background structure, not a bead (wider than the PSF)",
 }
 #: Names of the layers the plugin creates.
 BEADS = "beads"

@@ -15,6 +15,9 @@ Tests (name: what it looks at)
   detection), ``radius`` (distance to the field centre), ``row``, ``column``.
 * ``core_vs_amplitude``: rank correlation between amplitude and the mean normalised
   residual of the PSF core (flattened bright cores: saturation, nonlinear response).
+* ``bead_width``: rank correlation (one-sided, positive) between each bead's flux
+  (:func:`bead_flux`) and its width beyond the model (residual on the Laplacian of the
+  fitted PSF, :func:`bead_width`): beads of different sizes, the bigger ones brighter.
 * ``mean_residual``: chi-square of the mean normalised residual patch (a bias common to
   all beads: the PSF model is wrong everywhere the same way).
 * ``coherent_residual``: largest singular value of the matrix of normalised residual
@@ -24,9 +27,10 @@ Tests (name: what it looks at)
   rays), counted over the whole image.
 * ``row_pattern`` / ``column_pattern``: excess variance of the row / column medians of
   the bead-free background (fixed-pattern offsets).
-* ``background_structure``: chi-square per dof of order-2 polynomials fitted to
-  bead-free windows of a patch's size, after removing a smooth background (structure
-  at the scale of a patch that the per-patch polynomial cannot describe).
+* ``background_structure``: chi-square of order-2 polynomials fitted to the bead-free
+  pixels of windows of a patch's size (at least a quarter of them bead-free), after
+  removing a smooth background, as a normal z per window, and their 10 %-trimmed mean
+  (structure at the scale of a patch that the per-patch polynomial cannot describe).
 * ``amplitude_field``: F-test of a quadratic trend of log amplitude over the field
   (non-uniform illumination).
 * ``saturation``: pixels at the image's maximum value inside bead cores.
@@ -44,6 +48,7 @@ from scipy import stats
 
 from .background import monomials
 from .noise import NoiseModel
+from .patches import extract_patches
 from .residuals import BeadResiduals
 from .window import radial_distance
 
@@ -60,6 +65,7 @@ THRESHOLDS: dict[str, float] = {
     "amplitude_field": 4.0,
     "saturation": 3.0,
     "secondary_peaks": 3.0,
+    "bead_width": 2.5,
 }
 
 TREND_VARIABLES = ("amplitude", "background", "subpixel", "neighbour", "radius", "row",
@@ -109,9 +115,10 @@ class TestResult:
 
 @dataclass
 class Analysis:
-    """All test results, by name."""
+    """All test results, by name, and the residuals they were computed from."""
 
     tests: dict[str, TestResult]
+    residuals: BeadResiduals | None = field(default=None, repr=False)
 
     def __getitem__(self, name: str) -> TestResult:
         return self.tests[name]
@@ -209,6 +216,43 @@ def _secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,
             if len(res) else 0.0}
 
 
+def bead_width(res: BeadResiduals) -> np.ndarray:
+    """Each bead's width beyond its model, shape (K,), pixels squared.
+
+    The weighted least-squares coefficient ``s`` of the bead's residual on the
+    Laplacian of its fitted PSF ``L = lap(A m)`` (made orthogonal to the fitted
+    amplitude and background): a bead blurred by an extra isotropic Gaussian of
+    variance ``tau`` per axis is ``A m + (tau / 2) L``, so ``s ~ tau / 2``; positive:
+    wider than the model, negative: sharper.
+    """
+    sig = res.model - res.background[:, None, None]
+    kern = np.array([[[0.0, 1.0, 0.0], [1.0, -4.0, 1.0], [0.0, 1.0, 0.0]]])
+    lap = ndi.convolve(sig, kern, mode="constant")
+    w = res.fit_mask / res.variance
+    out = np.zeros(len(res))
+    for i in range(len(res)):
+        use = res.fit_mask[i]
+        if not use.any():
+            continue
+        wi = w[i][use]
+        design = np.column_stack([sig[i][use], np.ones(use.sum())]) * np.sqrt(wi)[:, None]
+        lw = lap[i][use] * np.sqrt(wi)
+        coef, *_ = np.linalg.lstsq(design, lw, rcond=None)
+        perp = lw - design @ coef  # Laplacian beyond amplitude and background
+        rw = (res.data[i] - res.model[i])[use] * np.sqrt(wi)
+        out[i] = float(rw @ perp) / max(float(perp @ perp), 1e-300)
+    return out
+
+
+def bead_flux(image: np.ndarray, positions, psf_radius: float) -> np.ndarray:
+    """Model-free integrated intensity of each bead, shape (K,), image units: the sum of
+    its background-free, windowed patch (:func:`~napari_psfspace.core.patches.extract_patches`)."""
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    if len(pos) == 0:
+        return np.zeros(0)
+    return extract_patches(image, pos, psf_radius).flux
+
+
 def bead_free_mask(shape, positions, psf_radius: float) -> np.ndarray:
     """True farther than ``1.5 psf_radius`` from every position, shape ``shape``."""
     mask = np.zeros(shape, bool)
@@ -251,26 +295,64 @@ def _line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise:
 
 
 def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
-                      noise: NoiseModel, size: int) -> dict:
-    """Order-2 polynomial fits on bead-free windows of a patch's size: median chi2/dof."""
+                      noise: NoiseModel, size: int, *, min_free: float = 0.25,
+                      trim: float = 0.1) -> dict:
+    """Order-2 polynomials fitted to the bead-free pixels of windows of a patch's size.
+
+    The image is tiled with ``size x size`` windows; those whose bead-free fraction is
+    at least ``min_free`` (with a large PSF, or structure detected as beads, hardly any
+    window is wholly bead-free) get an order-2 polynomial fitted by least squares to
+    their bead-free pixels, and the chi-square of the fit under the noise model becomes
+    a normal z (Wilson-Hilferty). Structure sits
+    in some windows only: the statistic is the ``trim``-trimmed mean of the windows' z
+    (robust to a few windows spoilt by a bead's wing or a hot pixel), scaled to unit
+    variance under the null (1.0605 / n for a 10 % trim of normal values).
+
+    Parameters
+    ----------
+    resid : ndarray of shape (M, N)
+        Image minus its smooth background, ADU.
+    level : ndarray of shape (M, N)
+        Smooth background, ADU (the noise model's expected value).
+    free : ndarray of shape (M, N), bool
+        Bead-free pixels.
+    noise : NoiseModel
+    size : int
+        Window size, pixels (the patch size).
+
+    Returns
+    -------
+    dict
+        ``z``, ``windows`` (number used), ``median_chi2_dof``.
+    """
     design = monomials(size, 2)
-    pinv = np.linalg.pinv(design)
+    n_par = design.shape[1]
     h, w = resid.shape
-    ratios = []
+    zs, ratios = [], []
     for y0 in range(0, h - size + 1, size):
         for x0 in range(0, w - size + 1, size):
-            if not free[y0:y0 + size, x0:x0 + size].all():
+            use = free[y0:y0 + size, x0:x0 + size].ravel()
+            n_use = int(use.sum())
+            if n_use < max(min_free * size * size, 4 * n_par):
                 continue
-            d = resid[y0:y0 + size, x0:x0 + size].ravel()
-            fit = design @ (pinv @ d)
-            var = noise.variance(level[y0:y0 + size, x0:x0 + size].ravel())
-            ratios.append(float(np.sum((d - fit) ** 2 / var)) / (d.size - design.shape[1]))
-    if len(ratios) < 5:
-        return {"z": 0.0, "windows": len(ratios)}
-    dof = size * size - design.shape[1]
-    med = float(np.median(ratios))
-    z = (med - 1.0) / np.sqrt(2.0 / dof) * np.sqrt(len(ratios) / 1.57)
-    return {"z": z, "windows": len(ratios), "median_chi2_dof": med}
+            d = resid[y0:y0 + size, x0:x0 + size].ravel()[use]
+            a = design[use]
+            coef, *_ = np.linalg.lstsq(a, d, rcond=None)
+            var = noise.variance(level[y0:y0 + size, x0:x0 + size].ravel()[use])
+            chi2 = float(np.sum((d - a @ coef) ** 2 / var))
+            zs.append(_chi2_to_z(chi2, n_use - n_par))
+            ratios.append(chi2 / (n_use - n_par))
+    if len(zs) < 5:
+        return {"z": 0.0, "windows": len(zs)}
+    n = len(zs)
+    cut = int(trim * n)
+    kept = np.sort(zs)[cut:n - cut]
+    # asymptotic variance of the a-trimmed mean of n N(0, 1) values, c the (1 - a)
+    # quantile: (1 - 2a - 2c phi(c) + 2a c^2) / (1 - 2a)^2 / n
+    c = float(stats.norm.isf(trim)) if trim > 0 else 0.0
+    factor = (1 - 2 * trim - 2 * c * stats.norm.pdf(c) + 2 * trim * c * c) / (1 - 2 * trim) ** 2
+    z = float(np.mean(kept)) * np.sqrt(n / factor)
+    return {"z": z, "windows": len(zs), "median_chi2_dof": float(np.median(ratios))}
 
 
 def analyse(
@@ -327,6 +409,14 @@ def analyse(
     rho, z = _spearman_z(res.amplitude, core_mean)
     tests["core_vs_amplitude"] = TestResult("core_vs_amplitude", z, th["core_vs_amplitude"],
                                             {"rho": rho}, two_sided=True)
+    # beads of different sizes: the bigger beads are brighter *and* wider than the model;
+    # brightness from the model-free patch flux (a poor model's amplitudes are not)
+    width = bead_width(res)
+    flux = bead_flux(img, res.positions, psf_radius)
+    ok = (flux > 0) & (res.amplitude > 0)
+    rho, z = _spearman_z(flux[ok], width[ok])
+    tests["bead_width"] = TestResult("bead_width", z, th["bead_width"],
+                                     {"rho": rho, "n_beads": int(ok.sum())})
 
     common = np.all(res.fit_mask, axis=0)
     flat = np.nan_to_num(nres[:, common])  # (K, n_pix)
@@ -395,4 +485,4 @@ def analyse(
     n_top = int(np.count_nonzero((img >= top) & cores))
     tests["saturation"] = TestResult("saturation", float(n_top if n_top >= 2 else 0),
                                      th["saturation"], {"level": top, "pixels": n_top})
-    return Analysis(tests)
+    return Analysis(tests, res)

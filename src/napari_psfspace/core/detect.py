@@ -25,7 +25,9 @@ OUTLIER = "outlier"
 REJECTED = "rejected"  # by the user (napari widgets)
 HELDOUT = "heldout"  # held out of a fit, still counted as a neighbour
 COMPANION = "companion"  # has a companion in its patch: judged (fitted jointly), not learnt
-STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION)
+STRUCTURE = "structure"  # background structure, not a bead: spoils no neighbour
+STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION,
+            STRUCTURE)
 
 
 class NoBeadsError(ValueError):
@@ -251,7 +253,9 @@ def flag_unusable(
 
     Only beads whose status is ``kept`` are re-examined, so statuses set by a user
     (e.g. a rejected outlier) are preserved. Neighbours are counted among all
-    detections, whatever their status: a rejected bead still spoils its neighbour.
+    detections, whatever their status: a rejected bead still spoils its neighbour;
+    only detections found to be background structure (status "structure", removed from
+    the image) are not counted.
 
     Returns
     -------
@@ -281,8 +285,9 @@ def flag_unusable(
     )
     beads.status[keep & at_border] = BORDER
     keep &= ~at_border
-    if len(pos) > 1:
-        tree = cKDTree(pos)
+    real = beads.status != STRUCTURE
+    if np.count_nonzero(real) > 1:
+        tree = cKDTree(pos[real])
         dist, _ = tree.query(pos, k=2)
         crowded = dist[:, 1] < min_separation
         beads.status[keep & crowded] = NEIGHBOUR

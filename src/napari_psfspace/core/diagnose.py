@@ -35,6 +35,10 @@ from .effects import REGISTRY, Context, Effect
 from .estimate import Progress, iter_estimate, run_with_progress
 from .noise import NoiseModel, estimate_noise
 from .operator import ProductConvolution
+from .photometry import crossfit_log_residuals, fit_throughput, throughput_map
+
+#: Quantile at which the per-bead excess chi-square is winsorised in comparisons.
+CHI2_WINSOR = 0.95
 
 
 @dataclass
@@ -154,16 +158,22 @@ def _noise_model(image, gain, offset, read_noise) -> tuple[NoiseModel, str]:
 
 
 def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 1000,
-             seed: int = 0) -> dict:
+             seed: int = 0, *, shape: tuple[int, int] | None = None,
+             throughput: tuple[int, int] = (0, 0)) -> dict:
     """Paired comparison of two cross-fits on the informative beads both judge.
 
     Two held-out metrics, each averaged over beads: the relative residual energy
     (signal-normalised: PSF shape) and the excess chi-square per dof, ``chi2/dof - 1``
     (noise-normalised: also sees misfit in the faint wings and background, e.g. camera
     offsets), both cross-fits judged under the same noise model ``noise`` (the newer
-    one: photon transfer on an uncorrected image counts camera patterns as noise). For
+    one: photon transfer on an uncorrected image counts camera patterns as noise; values
+    above the :data:`CHI2_WINSOR` quantile of both are clipped to it). For
     each, the relative drop and the bootstrap probability (over beads, paired) that it
     did not drop.
+
+    When the two models' throughputs differ (``throughput``: degrees before and after,
+    :mod:`~napari_psfspace.core.photometry`), a third metric is compared: the held-out
+    photometric error, each bead's squared log ratio of measured to predicted amplitude.
     """
     common, i0, i1 = np.intersect1d(before.bead_index, after.bead_index,
                                     return_indices=True)
@@ -176,6 +186,10 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     e0, e1 = r0.rel_energy[i0], r1.rel_energy[i1]
     c0 = r0.chi2_under(noise)[i0] / r0.dof[i0] - 1.0
     c1 = r1.chi2_under(noise)[i1] / r1.dof[i1] - 1.0
+    # a handful of beads with an extreme chi-square (a cosmic ray, a bead on a dust
+    # particle) would decide the mean alone: both are winsorised at the same level
+    top = float(np.quantile(np.concatenate([c0, c1]), CHI2_WINSOR))
+    c0, c1 = np.minimum(c0, top), np.minimum(c1, top)
     rng = np.random.default_rng(seed)
     idx = rng.integers(0, len(common), size=(n_boot, len(common)))
 
@@ -186,9 +200,22 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
 
     imp, p = drop(e0, e1)
     cimp, cp = drop(c0, c1)
-    return {"error_before": float(e0.mean()), "error_after": float(e1.mean()),
-            "improvement": imp, "p_no_drop": p, "chi2_improvement": cimp,
-            "chi2_p_no_drop": cp}
+    out = {"error_before": float(e0.mean()), "error_after": float(e1.mean()),
+           "improvement": imp, "p_no_drop": p, "chi2_improvement": cimp,
+           "chi2_p_no_drop": cp}
+    if shape is not None and throughput[0] != throughput[1]:
+        l0 = crossfit_log_residuals(r0.positions, r0.amplitude, before.fold, shape,
+                                    degree=throughput[0], use=r0.informative)[i0]
+        l1 = crossfit_log_residuals(r1.positions, r1.amplitude, after.fold, shape,
+                                    degree=throughput[1], use=r1.informative)[i1]
+        ok = np.isfinite(l0) & np.isfinite(l1)
+        if ok.sum() >= 5:
+            idx = rng.integers(0, int(ok.sum()), size=(n_boot, int(ok.sum())))
+            q0, q1 = l0[ok] ** 2, l1[ok] ** 2
+            pimp, pp = drop(q0, q1)
+            out.update(photometric_before=float(q0.mean()), photometric_after=float(q1.mean()),
+                       photometric_improvement=pimp, photometric_p_no_drop=pp)
+    return out
 
 
 def iter_diagnose(
@@ -253,17 +280,27 @@ def iter_diagnose(
             break
         ev, eff = ranked[0]
         tried.add(eff.name)
-        params = eff.fit(ctx, an)
-        new_ctx = eff.apply(ctx, params)
-        new_cf, new_an = evaluate(new_ctx)
-        cmp = _compare(cf, new_cf, new_ctx.noise)
-        # one held-out metric must drop (by min_improvement, p <= max_p / 2) and neither
+        try:
+            params = eff.fit(ctx, an)
+            new_ctx = eff.apply(ctx, params)
+            new_cf, new_an = evaluate(new_ctx)
+        except ValueError as exc:  # e.g. too few beads left to learn from: not kept
+            s0 = cf.summary()
+            steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
+                                                      and an.tests[t].significant],
+                              s0["error"], float("nan"), s0["chi2_dof"], float("nan"), 0.0,
+                              1.0, False, {"_error": str(exc)}))
+            yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
+                           f"{eff.name}: could not be applied ({exc}), rejected")
+            continue
+        cmp = _compare(cf, new_cf, new_ctx.noise, shape=img.shape,
+                       throughput=(ctx.throughput_degree, new_ctx.throughput_degree))
+        # one held-out metric must drop (by min_improvement, p <= max_p / 2) and none
         # may get worse by as much
-        ok = bool(((cmp["improvement"] >= min_improvement and cmp["p_no_drop"] <= max_p / 2)
-                   or (cmp["chi2_improvement"] >= min_improvement
-                       and cmp["chi2_p_no_drop"] <= max_p / 2))
-                  and cmp["improvement"] > -min_improvement
-                  and cmp["chi2_improvement"] > -min_improvement)
+        metrics = [k for k in ("", "chi2_", "photometric_") if f"{k}improvement" in cmp]
+        ok = bool(any(cmp[f"{k}improvement"] >= min_improvement
+                      and cmp[f"{k}p_no_drop"] <= max_p / 2 for k in metrics)
+                  and all(cmp[f"{k}improvement"] > -min_improvement for k in metrics))
         err0, err1 = cmp["error_before"], cmp["error_after"]
         steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                   and an.tests[t].significant],
@@ -272,7 +309,7 @@ def iter_diagnose(
                                 / cf.residuals.dof.sum()),
                           new_cf.summary()["chi2_dof"],
                           float(cmp["improvement"]), cmp["p_no_drop"], ok,
-                          {**params, "_comparison": cmp}))
+                          {**new_ctx.params.get(eff.name, params), "_comparison": cmp}))
         if ok:
             ctx, cf, an = new_ctx, new_cf, new_an
             if cf.model_meta:
@@ -289,7 +326,20 @@ def iter_diagnose(
     meta = {**est.operator.metadata, "diagnosis": {"added": added,
                                                    "error_before": first_cf.summary()["error"],
                                                    "error_after": cf.summary()["error"]}}
-    op = ProductConvolution(est.operator.basis, est.operator.coefficients,
+    coefficients = est.operator.coefficients
+    if ctx.throughput_degree > 0:
+        res = cf.residuals
+        use = res.informative
+        tcoef = fit_throughput(res.positions[use], res.amplitude[use], img.shape,
+                               degree=ctx.throughput_degree)
+        grid = est.operator.grid
+        gy, gx = grid if grid is not None else (np.arange(img.shape[0]),
+                                                np.arange(img.shape[1]))
+        coefficients = coefficients * throughput_map(tcoef, gy, gx, img.shape)[None]
+        meta["throughput"] = {"model": "exp(polynomial of u, v)", "degree":
+                              ctx.throughput_degree, "coefficients": tcoef.tolist(),
+                              "normalisation": "mean over the field = 1"}
+    op = ProductConvolution(est.operator.basis, coefficients,
                             shape=est.operator.shape, grid=est.operator.grid, metadata=meta)
     s0, s1 = first_cf.summary(), cf.summary()
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")

@@ -152,13 +152,17 @@ def iter_estimate(
     grid_step: float = 32.0,
     saturation: float | None = None,
     z_threshold: float = 3.0,
+    patch_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> Generator[Progress, None, Estimation]:
     """Generator form of :func:`estimate_operator`: yields progress, returns the result.
 
     Parameters are those of :func:`estimate_operator`, plus ``beads`` (a :class:`Beads`
     table, e.g. edited by hand, used instead of detection: its ``kept`` beads are used)
     and ``holdout`` (fraction of beads held out to measure the model's error, then
-    refitted on all beads; ``None`` or 0 skips it).
+    refitted on all beads; ``None`` or 0 skips it), and ``patch_filter``
+    (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
+    (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
+    different sizes to one, :class:`~napari_psfspace.core.effects.bead_size.SizeFilter`).
 
     Returns
     -------
@@ -215,6 +219,12 @@ def iter_estimate(
             f"Too few usable beads after background removal: {len(kept)}, need {need}. "
             f"{beads.summary()}."
         )
+    if patch_filter is not None:
+        psf = patch_filter(patches.psf, patches.centers)
+        total = psf.sum(axis=(1, 2))
+        psf = psf / np.where(total > 0, total, 1.0)[:, None, None]
+        patches = Patches(patches.centers, patches.raw, patches.background, psf,
+                          patches.flux, patches.noise, patches.r, patches.r_ext)
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
 
     support = radial_distance(patches.size) < patches.r_ext

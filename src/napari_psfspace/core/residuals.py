@@ -7,7 +7,9 @@ the pixels stays independent), then the bead's amplitude ``A`` and a local backg
 fit radius, with weights ``1 / var`` from a Poisson-Gaussian :class:`NoiseModel`
 (iterated once so that the variance follows the fitted model). Reported per bead:
 
-* ``rel_energy`` = ``||d - model||^2 / ||A m||^2``, the relative residual energy;
+* ``rel_energy`` = ``||d - model||^2 / ||A m||^2``, the relative residual energy (the
+  residual over the fitted pixels, the signal over the whole fit disk, so that masked
+  pixels do not inflate it);
 * ``chi2`` / ``dof``, with ``dof = n_pixels - n_parameters``;
 * ``floor`` = ``sum(var) / ||A m||^2``: the relative residual energy a perfect model
   would leave (noise alone).
@@ -15,6 +17,7 @@ fit radius, with weights ``1 / var`` from a Poisson-Gaussian :class:`NoiseModel`
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,6 +124,14 @@ class BeadResiduals:
         return np.maximum((sig**2).sum(axis=(1, 2)), 1e-300)
 
 
+def _variance(noise: NoiseModel, mean: np.ndarray, response) -> np.ndarray:
+    """Pixel variance at ``mean``; for linearised pixels, the recorded pixels' variance
+    divided by the response's squared slope."""
+    if response is None:
+        return noise.variance(mean)
+    return noise.variance(response.forward(mean)) / np.maximum(response.slope(mean), 1e-6) ** 2
+
+
 def _fourier_shift(patches: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """Translate each (P, P) patch by (dy, dx) pixels, zero-padded to avoid wrap-around."""
     k, p, _ = patches.shape
@@ -156,6 +167,8 @@ def fit_beads(
     background: str = "constant",
     pixel_mask=None,
     companions: dict | None = None,
+    model_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    response=None,
 ) -> BeadResiduals:
     """Fit amplitude and local background of beads to a model's PSF; measure residuals.
 
@@ -180,6 +193,16 @@ def fit_beads(
         ``{(row, col) of a bead (rounded): [(row, col), ...]}``: positions of companion
         beads inside the bead's patch, fitted jointly (one amplitude each, the model's
         PSF at their position); the residual then judges the model, not the crowding.
+    model_filter : callable, optional
+        ``model_filter(models, positions) -> models``: applied to the beads' model PSFs,
+        shape (K, P, P), after the sub-pixel shift, given the bead positions (K, 2);
+        e.g. each bead's own size (:class:`~napari_psfspace.core.effects.bead_size.SizeFilter`).
+    response : object, optional
+        For an ``image`` that was linearised (a nonlinear detector): ``response.forward(x)``
+        maps linear values back to the recorded ADU, ``response.slope(x)`` is its
+        derivative. The fit is made on the linearised pixels with their propagated
+        variance; the residuals, chi-square and noise floor are then measured on the
+        recorded pixels, under ``noise`` (the recorded image's noise model).
 
     Returns
     -------
@@ -198,6 +221,8 @@ def fit_beads(
     psfs = np.array([operator.psf_at(y, x) for y, x in pos]) if len(pos) else np.zeros(
         (0, p, p))
     models = _fourier_shift(psfs, pos - base)
+    if model_filter is not None and len(pos):
+        models = model_filter(models, pos)
     data = gather_windows(img, base, half)
     excl = np.zeros_like(data, dtype=bool)
     if pixel_mask is not None:
@@ -221,14 +246,14 @@ def fit_beads(
         cols += [e[use] for e in extra]
         design = np.stack(cols, axis=1)
         d = data[i][use]
-        v = noise.variance(np.full_like(d, np.median(d)))
+        v = _variance(noise, np.full_like(d, np.median(d)), response)
         low = float(d.min())
         for _ in range(2):  # weights from the data's level, then from the fitted model
             w = 1.0 / np.sqrt(v)
             coef, *_ = np.linalg.lstsq(design * w[:, None], d * w, rcond=None)
             mod = design @ coef
             # a degenerate fit (negative amplitude) must not drive the variance to its floor
-            v = noise.variance(np.maximum(mod, low))
+            v = _variance(noise, np.maximum(mod, low), response)
         full = coef[0] * models[i] + coef[1]
         if n_bg == 3:
             full = full + coef[2] * yy + coef[3] * xx
@@ -240,7 +265,15 @@ def fit_beads(
         chi2[i] = float(np.sum((d - mod) ** 2 / v))
         dof[i] = max(int(use.sum()) - design.shape[1], 1)
     fit_mask = mask[None] & ~excl
-    sig = (fitted - bgc[:, None, None]) * fit_mask
+    bg_level = bgc[:, None, None]
+    if response is not None:  # judge on the recorded pixels
+        data, fitted = response.forward(data), response.forward(fitted)
+        bg_level = response.forward(bg_level)
+        var = noise.variance(np.maximum(fitted, bg_level.min(axis=(1, 2), keepdims=True)))
+        chi2 = ((data - fitted) ** 2 / var * fit_mask).sum(axis=(1, 2))
+    # the bead's signal energy over the whole fit disk, masked pixels included: masking a
+    # saturated core must not make the same residual look relatively larger
+    sig = (fitted - bg_level) * mask[None]
     sig2 = np.maximum((sig**2).sum(axis=(1, 2)), 1e-300)
     rel = (((data - fitted) * fit_mask) ** 2).sum(axis=(1, 2)) / sig2
     floor = (var * fit_mask).sum(axis=(1, 2)) / sig2

@@ -48,6 +48,9 @@ class Context:
         Fitted parameters of each applied effect (JSON-ready).
     noise_from_image : bool
         The noise model was estimated from the image (not given by the user).
+    throughput_degree : int
+        Degree of the log-polynomial throughput over the field
+        (:mod:`~napari_psfspace.core.photometry`; 0: uniform, the plain model).
     """
 
     image: np.ndarray
@@ -60,6 +63,7 @@ class Context:
     applied: tuple[str, ...] = ()
     params: dict = field(default_factory=dict)
     noise_from_image: bool = True
+    throughput_degree: int = 0
 
     def renoised(self, image: np.ndarray) -> NoiseModel:
         """The noise model for a corrected image: re-estimated when it came from the

@@ -1,0 +1,130 @@
+"""Throughput of the optics over the field, from the beads' brightness.
+
+A product-convolution operator with PSFs of sum 1 passes the same total intensity
+everywhere. Real microscopes do not: the excitation (and the collection) falls off
+towards the field's edges, so identical beads look dimmer there. The *throughput*
+``t(x)`` is modelled as the exponential of a polynomial of the normalised field
+position (degree 0: constant, the plain model; degree 2: a smooth vignetting / tilted
+illumination), fitted to the logarithm of the beads' fitted amplitudes.
+
+Its held-out error is measured like the PSF's: every bead's amplitude is predicted by a
+throughput fitted *without* the bead's fold (:func:`crossfit_log_residuals`), and the
+error is the mean squared log ratio of measured to predicted amplitude. Beads differ in
+brightness by themselves (size, dye load), which sets the floor of this error.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _design(positions: np.ndarray, shape: tuple[int, int], degree: int) -> np.ndarray:
+    """Monomials ``u^i v^j`` (``i + j <= degree``) of the positions normalised to [-1, 1],
+    shape (K, n_terms)."""
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    h, w = shape
+    v = (pos[:, 0] - (h - 1) / 2) / (h / 2)
+    u = (pos[:, 1] - (w - 1) / 2) / (w / 2)
+    cols = [u**i * v**j for d in range(degree + 1) for j in range(d + 1) for i in [d - j]]
+    return np.column_stack(cols) if cols else np.ones((len(pos), 1))
+
+
+def fit_throughput(positions, amplitude, shape: tuple[int, int], *, degree: int = 2
+                   ) -> np.ndarray:
+    """Least-squares fit of ``log(amplitude)`` by a polynomial of the field position.
+
+    Parameters
+    ----------
+    positions : array_like of shape (K, 2)
+        Bead centres (row, column), pixels.
+    amplitude : array_like of shape (K,)
+        Fitted bead amplitudes (any unit, > 0).
+    shape : tuple of int
+        Image shape (H, W).
+    degree : int
+        Polynomial degree (0: constant).
+
+    Returns
+    -------
+    ndarray of shape (n_terms,)
+        Coefficients of the monomials ``u^i v^j`` in the order of increasing total
+        degree (``1; u, v; u^2, uv, v^2``), ``u`` and ``v`` the column and row
+        normalised to [-1, 1].
+    """
+    amp = np.asarray(amplitude, dtype=np.float64).ravel()
+    if np.any(~(amp > 0)):
+        raise ValueError("`amplitude` must be positive and finite to fit a throughput.")
+    x = _design(positions, shape, degree)
+    if len(amp) < x.shape[1] + 2:
+        raise ValueError(f"Too few beads to fit a throughput of degree {degree}: "
+                         f"{len(amp)}, need at least {x.shape[1] + 2}.")
+    coef, *_ = np.linalg.lstsq(x, np.log(amp), rcond=None)
+    return coef
+
+
+def throughput_at(coefficients, positions, shape: tuple[int, int]) -> np.ndarray:
+    """``exp(polynomial)`` at ``positions`` (K, 2), shape (K,)."""
+    coef = np.asarray(coefficients, dtype=np.float64)
+    degree = int(round((np.sqrt(8 * len(coef) + 1) - 3) / 2))
+    return np.exp(_design(positions, shape, degree) @ coef)
+
+
+def throughput_map(coefficients, grid_y, grid_x, shape: tuple[int, int], *,
+                   normalise: bool = True) -> np.ndarray:
+    """Throughput on the grid ``grid_y x grid_x`` (pixels), shape (len(y), len(x)).
+
+    With ``normalise`` the map is divided by its mean over the whole field (so an
+    operator scaled by it keeps the image's mean intensity).
+    """
+    yy, xx = np.meshgrid(np.asarray(grid_y, float), np.asarray(grid_x, float), indexing="ij")
+    t = throughput_at(coefficients, np.column_stack([yy.ravel(), xx.ravel()]), shape)
+    t = t.reshape(yy.shape)
+    if normalise:
+        # midpoint rule over 64 x 64 cells of the field
+        fy = (np.arange(64) + 0.5) * shape[0] / 64 - 0.5
+        fx = (np.arange(64) + 0.5) * shape[1] / 64 - 0.5
+        gy, gx = np.meshgrid(fy, fx, indexing="ij")
+        t = t / throughput_at(coefficients, np.column_stack([gy.ravel(), gx.ravel()]),
+                              shape).mean()
+    return t
+
+
+def crossfit_log_residuals(positions, amplitude, fold, shape: tuple[int, int], *,
+                           degree: int = 0, use=None) -> np.ndarray:
+    """Held-out log ratio of measured to predicted amplitude of every bead.
+
+    Parameters
+    ----------
+    positions : array_like of shape (K, 2)
+    amplitude : array_like of shape (K,)
+    fold : array_like of shape (K,), int
+        Fold of each bead; each fold is predicted by a throughput fitted on the others.
+    shape : tuple of int
+    degree : int
+        Throughput polynomial degree (0: a constant, the plain model).
+    use : array_like of shape (K,), bool, optional
+        Beads that may train (default: positive amplitudes).
+
+    Returns
+    -------
+    ndarray of shape (K,)
+        ``log(A_k / t_hat(x_k))``; NaN for beads with a non-positive amplitude or whose
+        fold could not be predicted.
+    """
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    amp = np.asarray(amplitude, dtype=np.float64).ravel()
+    fold = np.asarray(fold).ravel()
+    ok = amp > 0
+    if use is not None:
+        ok &= np.asarray(use, bool)
+    out = np.full(len(amp), np.nan)
+    logs = np.log(np.where(amp > 0, amp, 1.0))
+    x = _design(pos, shape, degree)
+    for f in np.unique(fold):
+        train = ok & (fold != f)
+        test = (fold == f) & (amp > 0)
+        if train.sum() < x.shape[1] + 2 or not test.any():
+            continue
+        coef, *_ = np.linalg.lstsq(x[train], logs[train], rcond=None)
+        out[test] = logs[test] - x[test] @ coef
+    return out
