@@ -51,7 +51,8 @@ def run(case, effects, seed, size, n_beads, **options):
         cmp = st.params.get("_comparison", {}) if st.accepted else {}
         if "photometric_before" in cmp:
             phot = f"{cmp['photometric_before']:.4f}->{cmp['photometric_after']:.4f}"
-    return {"photometric": phot, "case": case, "seed": seed, "aberrations": preset,
+    zs = {t.name: t.strength for t in d.analysis_before.tests.values()}
+    return {"_z": zs, "photometric": phot, "case": case, "seed": seed, "aberrations": preset,
             "added": ", ".join(d.added) or "-", "error_before": d.error_before,
             "error_after": d.error_after, "floor": d.noise_floor,
             "chi2_before": d.chi2_before, "chi2_after": d.chi2_after,
@@ -70,6 +71,16 @@ def main():
     print(f"Effect-free images: nothing added in {clean}/{len(rows)} seeds "
           f"({100 * clean / len(rows):.0f} %; target >= 95 %)")
     print(table(rows, COLUMNS), flush=True)
+    from napari_psfspace.core.analysis import THRESHOLDS, TREND_VARIABLES
+
+    names = sorted(rows[0]["_z"])
+    th = {n: THRESHOLDS["trend" if n.startswith("trend_") else n] for n in names}
+    zrows = [{"test": n, "threshold": th[n], "max_z": max(r["_z"][n] for r in rows),
+              "seeds_above": sum(r["_z"][n] > th[n] for r in rows)} for n in names]
+    print(f"\nNull calibration: largest |z| of each test over the {len(rows)} effect-free "
+          f"seeds (trend variables: {', '.join(TREND_VARIABLES)})")
+    print(table(zrows, [("test", "s"), ("threshold", ".1f"), ("max_z", ".2f"),
+                        ("seeds_above", "d")]), flush=True)
     if args.skip_effects:
         return
     print("\nEach simulated effect (seeds 0, 1, 2: moderate, strong, no aberrations)")

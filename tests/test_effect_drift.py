@@ -34,4 +34,5 @@ def test_uniform_drift_is_absorbed_by_the_operator():
     vy0, vx0 = _axis_variances(still.operator.psf_at(320, 320))
     vy1, vx1 = _axis_variances(moving.operator.psf_at(320, 320))
     extra = (vy1 - vy0) - (vx1 - vx0)
-    assert abs(extra - 3.0**2 / 12) < 0.35  # the drift's variance, 0.75 px^2
+    # the drift's variance, 0.75 px^2 (measured 0.57: the two models differ by their noise too)
+    assert abs(extra - 3.0**2 / 12) < 0.35

@@ -15,7 +15,11 @@
    chi-square per dof (noise-normalised: faint wings, background, camera), by at least
    ``min_improvement`` (relative) and with a paired bootstrap over beads giving a
    probability below ``max_p / 2`` that it did not drop, while neither metric gets worse
-   by ``min_improvement``. Repeat with the next candidate until none has evidence left.
+   by ``min_improvement`` (for a change of throughput, the held-out photometric error
+   counts too). Repeat with the next candidate until none has evidence left; while a
+   residual common to the beads remains far above the noise, candidates with weaker
+   evidence (above ``explore`` times their threshold) are tried as well, under the same
+   rule.
 5. Estimate the final operator on all beads with the effects kept.
 """
 
@@ -37,6 +41,8 @@ from .noise import NoiseModel, estimate_noise
 from .operator import ProductConvolution
 from .photometry import crossfit_log_residuals, fit_throughput, throughput_map
 
+#: Tests whose significance means a residual common to the beads is left unexplained.
+EXPLAIN_TESTS = ("mean_residual", "coherent_residual")
 #: Quantile at which the per-bead excess chi-square is winsorised in comparisons.
 CHI2_WINSOR = 0.95
 
@@ -231,6 +237,9 @@ def iter_diagnose(
     max_steps: int = 8,
     min_improvement: float = 0.05,
     max_p: float = 0.01,
+    explore: float = 0.5,
+    n_psf: int | None = None,
+    smoothing: float | None = None,
 ) -> Generator[Progress, None, Diagnosis]:
     """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis."""
     raw = np.asarray(image)
@@ -245,8 +254,9 @@ def iter_diagnose(
     beads = prepare_beads(raw, r, threshold=threshold)
     require_kept(beads, 2 * folds, reason=f"to hold out beads in {folds} folds")
     noise, noise_source = _noise_model(raw, gain, offset, read_noise)
+    model = {k: v for k, v in (("n_psf", n_psf), ("smoothing", smoothing)) if v is not None}
     ctx = Context(image=img, pixel_mask=np.zeros(img.shape, bool), beads=beads, noise=noise,
-                  psf_radius=r, noise_from_image=gain is None)
+                  psf_radius=r, noise_from_image=gain is None, estimate_kwargs=model)
     yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
 
     def evaluate(c: Context):
@@ -275,7 +285,15 @@ def iter_diagnose(
         ranked = sorted(((e.evidence(an), e) for e in candidates
                          if e.name not in tried and e.applicable(ctx)),
                         key=lambda t: -t[0])
-        ranked = [(ev, e) for ev, e in ranked if ev > 1.0]
+        # significant evidence first; while a residual common to the beads remains far
+        # above the noise (mean or coherent residual significant, error > 1.5 x floor),
+        # weaker evidence (> ``explore``) is followed too: the acceptance rule decides
+        cur = cf.summary()
+        unexplained = (cur["error"] > 1.5 * cur["noise_floor"]
+                       and any(an.tests[t].significant for t in EXPLAIN_TESTS
+                               if t in an.tests))
+        floor = 1.0 if not (explore and unexplained) else min(1.0, explore)
+        ranked = [(ev, e) for ev, e in ranked if ev > floor]
         if not ranked:
             break
         ev, eff = ranked[0]
@@ -327,6 +345,8 @@ def iter_diagnose(
                                                    "error_before": first_cf.summary()["error"],
                                                    "error_after": cf.summary()["error"]}}
     coefficients = est.operator.coefficients
+    if "bead_size" in ctx.params:  # the PSFs are those of a bead of the reference size
+        meta["bead_size"] = {"d_ref_px": ctx.params["bead_size"].get("d_ref_px")}
     if ctx.throughput_degree > 0:
         res = cf.residuals
         use = res.informative
@@ -344,6 +364,7 @@ def iter_diagnose(
     s0, s1 = first_cf.summary(), cf.summary()
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
     options = {"folds": folds, "min_improvement": min_improvement, "max_p": max_p,
+               "explore": explore, "n_psf": n_psf, "smoothing": smoothing,
                "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
                "effects": names}
     return Diagnosis(steps, s0["error"], s1["error"], s0["chi2_dof"], s1["chi2_dof"],
@@ -375,6 +396,14 @@ def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] |
         Smallest relative drop of the held-out error for an effect to be kept.
     max_p : float
         Largest bootstrap probability that the error did not drop.
+    n_psf, smoothing : optional
+        The model to diagnose: basis size and thin-plate smoothing (default: chosen from
+        the beads, as :func:`~napari_psfspace.core.estimate.estimate_operator` does).
+    explore : float
+        While a residual common to the beads is left (``mean_residual`` or
+        ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the
+        noise floor, effects with evidence above this fraction of their threshold are
+        tried too (kept only by the same rule); 0 tries significant evidence only.
     progress : callable, optional
         Receives :class:`Progress` records.
 
