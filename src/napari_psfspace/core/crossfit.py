@@ -57,12 +57,6 @@ def assign_folds(positions, shape, k: int = 5) -> np.ndarray:
     return fold
 
 
-def _concat(parts: list[BeadResiduals]) -> BeadResiduals:
-    fields = ("positions", "amplitude", "background", "data", "model", "variance",
-              "fit_mask", "rel_energy", "chi2", "dof", "floor")
-    return BeadResiduals(*(np.concatenate([getattr(p, f) for p in parts]) for f in fields))
-
-
 def iter_crossfit(
     image,
     beads: Beads,
@@ -124,4 +118,5 @@ def iter_crossfit(
         fold_ids.append(np.full(len(held), f))
         yield Progress("cross-fit", (f + 1) / folds, f"fold {f + 1}/{folds}: "
                        f"{len(held)} beads held out")
-    return CrossFit(_concat(parts), np.concatenate(index), np.concatenate(fold_ids), meta)
+    return CrossFit(BeadResiduals.concatenate(parts), np.concatenate(index),
+                    np.concatenate(fold_ids), meta)

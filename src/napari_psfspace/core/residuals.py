@@ -18,7 +18,7 @@ fit radius, with weights ``1 / var`` from a Poisson-Gaussian :class:`NoiseModel`
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 from scipy import fft as sfft
@@ -63,6 +63,15 @@ class BeadResiduals:
 
     def __len__(self) -> int:
         return len(self.positions)
+
+    def take(self, index) -> BeadResiduals:
+        """The residuals of the beads ``index`` (int array of shape (K',) or bool mask)."""
+        return BeadResiduals(*(getattr(self, f.name)[index] for f in fields(self)))
+
+    @classmethod
+    def concatenate(cls, parts) -> BeadResiduals:
+        """One table of the beads of several (same patch size)."""
+        return cls(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(cls)))
 
     @property
     def residual(self) -> np.ndarray:

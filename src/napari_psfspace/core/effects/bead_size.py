@@ -15,7 +15,7 @@ pixels (``params["bead_size"]["d_ref_px"]``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
@@ -185,12 +185,7 @@ def _heldout(ctx: Context, folds: int, sizes: tuple | None = None
                                          psf_radius=ctx.psf_radius, folds=folds,
                                          estimate_kwargs=est_kw, fit_kwargs=fit_kw))
     order = np.argsort(cf.bead_index)
-    return cf.bead_index[order], _take(cf.residuals, order)
-
-
-def _take(res: BeadResiduals, index: np.ndarray) -> BeadResiduals:
-    """The residuals of the beads ``index`` (K,), in that order."""
-    return type(res)(*(getattr(res, f.name)[index] for f in fields(res)))
+    return cf.bead_index[order], cf.residuals.take(order)
 
 
 def _in_table(res: BeadResiduals | None, table: np.ndarray
@@ -204,7 +199,7 @@ def _in_table(res: BeadResiduals | None, table: np.ndarray
     if (index < 0).any() or len(np.unique(index)) != len(index):
         return None
     order = np.argsort(index)
-    return index[order], _take(res, order)
+    return index[order], res.take(order)
 
 
 class BeadSize(Effect):

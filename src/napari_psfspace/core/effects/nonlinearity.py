@@ -110,9 +110,7 @@ class Nonlinearity(Effect):
         p = res.data.shape[-1]
         core = radial_distance(p) <= max(1.5, ctx.psf_radius / 4)
         use = res.informative
-        sub = type(res)(*(getattr(res, f)[use] for f in (
-            "positions", "amplitude", "background", "data", "model", "variance", "fit_mask",
-            "rel_energy", "chi2", "dof", "floor")))
+        sub = res.take(use)
         z = np.array([_core_trend(sub, c, x_ref, offset, core) for c in C_GRID])
         # the zero crossing of the trend (interpolated), else the smallest |z|
         best = float(C_GRID[int(np.argmin(np.abs(z)))])
