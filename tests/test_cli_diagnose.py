@@ -78,3 +78,13 @@ def test_report_into_a_file_and_stack_without_slice(hot_tiff, tmp_path, capsys):
     assert main(["diagnose", str(stack), "--report", str(tmp_path / "r"),
                  "--psf-radius-um", "0.5", "--slice", "1"]) == 2
     assert "pixel size" in capsys.readouterr().err
+
+
+def test_a_chosen_model_is_diagnosed(hot_tiff, tmp_path, capsys):
+    path, truth = hot_tiff
+    out = tmp_path / "r"
+    rc = main(["diagnose", str(path), "--report", str(out), "--psf-radius",
+               str(truth.psf_radius), "--n-psf", "2", "--smoothing", "0.5", "-q"])
+    assert rc == 0, capsys.readouterr().err
+    report = json.loads((out / "report.json").read_text(encoding="utf-8"))
+    assert report["options"]["n_psf"] == 2 and report["options"]["smoothing"] == 0.5

@@ -113,7 +113,8 @@ def _cmd_diagnose(args) -> int:
         raise ValueError(f"--report {args.report!r} is a file: give a folder.")
     image, info, r = _image_and_radius(args)
     gen = iter_diagnose(image, psf_radius=r, threshold=args.threshold, gain=args.gain,
-                        offset=args.offset, read_noise=args.read_noise)
+                        offset=args.offset, read_noise=args.read_noise, n_psf=args.n_psf,
+                        smoothing=args.smoothing)
     diag = run_with_progress(gen, None if args.quiet else _progress_printer(sys.stderr))
     print(summary_text(diag))
     extra = {"source": str(args.image), "slice": args.slice}
@@ -227,6 +228,10 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--read-noise", type=float, help="camera read noise in electrons rms")
     dg.add_argument("--threshold", type=float, default=8.0,
                     help="detection threshold in noise standard deviations (default 8)")
+    dg.add_argument("--n-psf", type=int, help="diagnose a model of this basis size "
+                    "(default: chosen from the beads)")
+    dg.add_argument("--smoothing", type=float, help="diagnose a model of this thin-plate "
+                    "smoothing (default: chosen from the beads)")
     dg.add_argument("--model", metavar="OUT.npz", help="also save the refined model")
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     dg.set_defaults(func=_cmd_diagnose)

@@ -315,10 +315,10 @@ def iter_diagnose(
                        throughput=(ctx.throughput_degree, new_ctx.throughput_degree))
         # one held-out metric must drop (by min_improvement, p <= max_p / 2) and none
         # may get worse by as much
-        metrics = [k for k in ("", "chi2_", "photometric_") if f"{k}improvement" in cmp]
-        ok = bool(any(cmp[f"{k}improvement"] >= min_improvement
-                      and cmp[f"{k}p_no_drop"] <= max_p / 2 for k in metrics)
-                  and all(cmp[f"{k}improvement"] > -min_improvement for k in metrics))
+        metrics = [m for m in ("", "chi2_", "photometric_") if f"{m}improvement" in cmp]
+        ok = bool(any(cmp[f"{m}improvement"] >= min_improvement
+                      and cmp[f"{m}p_no_drop"] <= max_p / 2 for m in metrics)
+                  and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
         err0, err1 = cmp["error_before"], cmp["error_after"]
         steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                   and an.tests[t].significant],
