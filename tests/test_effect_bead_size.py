@@ -9,7 +9,7 @@ from scipy.spatial import cKDTree
 from napari_psfspace import simulate_beads
 from napari_psfspace.core.diagnose import diagnose
 from napari_psfspace.core.effects.bead_size import SizeFilter, change_size, sphere_transfer
-from napari_psfspace.core.simulate import _sphere_transfer
+from napari_psfspace.core.simulate import sphere_transfer as simulator_transfer
 
 
 def test_sphere_transfer_matches_the_simulator_in_pixels():
@@ -17,7 +17,7 @@ def test_sphere_transfer_matches_the_simulator_in_pixels():
     px = truth.optics.pixel_size
     k = np.linspace(0.0, 0.7, 200)  # cycles / pixel
     for d_um in (0.05, 0.2, 0.5):
-        assert np.allclose(sphere_transfer(k, d_um / px), _sphere_transfer(k / px, d_um),
+        assert np.allclose(sphere_transfer(k, d_um / px), simulator_transfer(k / px, d_um),
                            atol=1e-12)
     # the point PSF blurred by the sphere is the simulator's image of that bead
     point = truth.psf_at(48.0, 40.0, 41)

@@ -407,7 +407,7 @@ def _psf_stack(
         Side of the output windows (odd).
     diameters : ndarray, shape (B,), or None
         Diameters (µm) of uniform fluorescent spheres imaged instead of point
-        sources (:func:`_sphere_transfer`); ``None``: points.
+        sources (:func:`sphere_transfer`); ``None``: points.
     drift : (float, float) or None
         Linear motion ``(dy, dx)`` (pixels) during the exposure, centred on
         the PSF position (:func:`_drift_transfer`); ``None``: no motion.
@@ -462,13 +462,14 @@ def _psf_stack(
     return np.maximum(out, 0.0, out=out)  # clear FFT round-off negatives (~1e-18)
 
 
-def _sphere_transfer(k: np.ndarray, diameter) -> np.ndarray:
+def sphere_transfer(k, diameter) -> np.ndarray:
     """2-D Fourier transform of the projected (chord-length) profile of a uniform sphere.
 
     The projection of a ball onto the image plane is, in Fourier space, the
     3-D transform of the ball on the plane ``k_z = 0``:
-    ``3 (sin q - q cos q) / q^3`` with ``q = π d |k|`` (``d`` in µm, ``|k|``
-    in cycles/µm), normalised to 1 at ``k = 0`` (unit total intensity).
+    ``3 (sin q - q cos q) / q^3`` with ``q = π d |k|``, normalised to 1 at
+    ``k = 0`` (unit total intensity). Any length unit, the same for both:
+    ``d`` in µm with ``|k|`` in cycles/µm, or pixels with cycles/pixel.
     """
     q = np.pi * np.asarray(diameter, float) * np.asarray(k, float)
     small = np.abs(q) < 0.1  # series: avoids the cancellation of sin q - q cos q
@@ -498,7 +499,7 @@ def _object_transfer(
     out = np.ones((1, n, n // 2 + 1))
     if diameters is not None:
         k = np.hypot(ky, kx)
-        out = out * _sphere_transfer(k[None], np.asarray(diameters, float)[:, None, None])
+        out = out * sphere_transfer(k[None], np.asarray(diameters, float)[:, None, None])
     if drift is not None:
         out = out * _drift_transfer(
             ky, kx, (drift[0] * optics.pixel_size, drift[1] * optics.pixel_size)

@@ -26,29 +26,8 @@ from ..analysis import bead_flux
 from ..crossfit import iter_crossfit
 from ..estimate import run_with_progress
 from ..residuals import BeadResiduals
+from ..simulate import sphere_transfer
 from .base import Context, Effect
-
-
-def sphere_transfer(k, diameter) -> np.ndarray:
-    """Fourier transform of the projected profile of a uniform sphere, 1 at ``k = 0``.
-
-    Parameters
-    ----------
-    k : array_like
-        Spatial frequency ``|k|`` in cycles per pixel.
-    diameter : array_like
-        Sphere diameter in pixels (broadcast against ``k``).
-
-    Returns
-    -------
-    ndarray
-        ``3 (sin q - q cos q) / q^3`` with ``q = pi d |k|`` (series near 0).
-    """
-    q = np.pi * np.asarray(diameter, float) * np.asarray(k, float)
-    small = np.abs(q) < 0.1
-    safe = np.where(small, 1.0, q)
-    exact = 3.0 * (np.sin(safe) - safe * np.cos(safe)) / safe**3
-    return np.where(small, 1.0 - q**2 / 10.0 + q**4 / 280.0, exact)
 
 
 def change_size(stack: np.ndarray, d_from, d_to, *, eps: float = 0.1) -> np.ndarray:
