@@ -8,8 +8,9 @@ from scipy.spatial import cKDTree
 
 from napari_psfspace import simulate_beads
 from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.effects.bead_size import SizeFilter, change_size, sphere_transfer
+from napari_psfspace.core.effects.bead_size import SizeFilter
 from napari_psfspace.core.simulate import sphere_transfer as simulator_transfer
+from napari_psfspace.core.sphere import change_size, sphere_transfer
 
 
 def test_sphere_transfer_matches_the_simulator_in_pixels():
@@ -57,8 +58,8 @@ def test_bead_sizes_are_found_and_lower_the_error(sized):
     step = next(s for s in d.steps if s.effect == "bead_size")
     # measured: 0.054 -> 0.022 (same seed without the effect: 0.013; with the true
     # diameters: 0.021); bead_width z 8.2 before, 4.1 after
-    assert step.error_before > 0.045
-    assert step.error_after < 0.03
+    assert step.paired_before > 0.045
+    assert step.paired_after < 0.03
     assert d.analysis_before.tests["bead_width"].significant
     # the parameters are small and JSON-ready
     json.dumps(step.params)

@@ -70,7 +70,7 @@ def test_sp8_diagnosis_traces_the_residual(sp8):
     for name in ("neighbours", "bead_size"):
         step = next(s for s in d.steps if s.effect == name)
         # measured: 0.0413 -> 0.0333 (neighbours), 0.0333 -> 0.0280 (bead size)
-        assert step.error_after < 0.9 * step.error_before
+        assert step.paired_after < 0.9 * step.paired_before
         assert step.p_no_drop <= 0.005
     assert d.error_after < 0.75 * d.error_before
     assert d.error_after > d.noise_floor  # and it says what is left: not at the floor

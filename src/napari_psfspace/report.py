@@ -51,8 +51,9 @@ FIGURES = {
                                   "final model",
 }
 #: Columns of :func:`steps_table`.
-STEP_COLUMNS = ("effect", "evidence", "tests", "held-out error", "chi2/dof", "error drop",
-                "p", "excess chi2 drop", "p (chi2)", "photometric drop", "decision")
+STEP_COLUMNS = ("effect", "evidence", "tests", "held-out error", "chi2/dof",
+                "paired error drop", "p", "paired excess chi2 drop", "p (chi2)",
+                "photometric drop", "decision")
 #: Largest |normalised residual| (noise sd) shown in the patch mosaics.
 PATCH_LIMIT = 5.0
 
@@ -228,10 +229,13 @@ def steps_table(diagnosis) -> list[list[str]]:
             continue
         cmp = (s.params or {}).get("_comparison") or {}
         chi2_drop = cmp.get("chi2_improvement")
+        n = cmp.get("n_beads")
         rows.append([s.effect, _num(s.evidence, ".2f"), ", ".join(s.tests) or "-",
                      f"{_num(s.error_before)} -> {_num(s.error_after)}",
                      f"{_num(s.chi2_before, '.3g')} -> {_num(s.chi2_after, '.3g')}",
-                     f"{_num(100 * s.improvement, '.1f')} %", _num(s.p_no_drop, ".3g"),
+                     f"{_num(100 * s.improvement, '.1f')} %"
+                     + (f" ({n} beads)" if n is not None else ""),
+                     _num(s.p_no_drop, ".3g"),
                      "" if chi2_drop is None else f"{_num(100 * chi2_drop, '.1f')} %",
                      _num(cmp["chi2_p_no_drop"], ".3g") if "chi2_p_no_drop" in cmp else "",
                      (f"{_num(100 * cmp['photometric_improvement'], '.1f')} % "
@@ -245,10 +249,36 @@ def summary_text(diagnosis) -> str:
     """Two or three lines: what was added, the held-out error before -> after, the floor."""
     d = diagnosis
     added = ", ".join(d.added) if d.added else "nothing (no effect was found)"
-    return (f"added: {added}\n"
+    hot = (f"{len(d.hot_pixels)} hot pixel(s) masked (narrower than the optics can form)\n"
+           if len(d.hot_pixels) else "")
+    return (f"{hot}added: {added}\n"
             f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} "
             f"(noise floor {_num(d.noise_floor)}); chi2/dof {_num(d.chi2_before, '.3g')} -> "
             f"{_num(d.chi2_after, '.3g')}")
+
+
+def noise_text(noise) -> str:
+    """The noise model in a sentence: the model, how it was obtained, what it implies."""
+    if noise.kind == "constant":
+        text = (f"One variance for every pixel, {_num(noise.intercept)} ADU², measured on the "
+                "background. Photon transfer was not possible: ")
+        return text + noise.note.split("photon transfer not possible (", 1)[-1]
+    text = (f"Variance = {_num(noise.gain)} x mean {'+' if noise.intercept >= 0 else '-'} "
+            f"{_num(abs(noise.intercept))} ADU² (gain {_num(noise.gain)} ADU/e-"
+            + (f", offset {_num(noise.offset)} ADU" if noise.offset is not None else "")
+            + (f", read noise {_num(noise.read_noise)} e-" if noise.read_noise is not None
+               else "") + "). ")
+    if noise.kind == "camera":
+        return text + "Source: the camera's values, as given."
+    if noise.kind == "photon transfer":
+        chk = noise.checks or {}
+        rel = chk.get("gain_relative_error")
+        return (text + "Source: photon transfer on the image"
+                + (f" (gain to within {_num(100 * rel, '.2g')} %, " if rel else " (")
+                + f"{chk.get('n_levels', 0)} levels over {_num(noise.mean_range[0])}-"
+                  f"{_num(noise.mean_range[1])} ADU, fit reduced chi-square "
+                  f"{_num(chk.get('fit_chi2'), '.3g')}).")
+    return text + f"Fallback ({noise.kind}): {noise.note}."
 
 
 def _md_table(header, rows) -> list[str]:
@@ -306,6 +336,12 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
             "no residual test pointed at a candidate") + "; the plain model is kept.")
         lines += ["", f"Held-out error {_num(d.error_after)}; chi-square per degree of "
                       f"freedom {_num(d.chi2_after, '.3g')}."]
+    n_hot = len(d.hot_pixels)
+    if n_hot:
+        lines += ["", f"**Hot pixels**: {n_hot} pixel(s) narrower than the optics can form "
+                      "(hot pixels, cosmic rays: a bright pixel, or two, on a dark "
+                      "neighbourhood) were masked before anything was fitted; their "
+                      "positions are in `report.json` (`hot_pixels`)."]
     ratio = d.error_after / d.noise_floor if d.noise_floor else float("nan")
     lines += ["", f"Noise alone would leave an error of {_num(d.noise_floor)} (the noise "
                   f"floor): the final model's error is {_num(ratio, '.3g')} times the floor"
@@ -319,16 +355,13 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "judged again; it is kept when the held-out error (or the excess chi-square "
               "per degree of freedom, which also sees the faint wings and the background) "
               "drops by at least the required fraction with a bootstrap probability `p` of "
-              "no drop below the limit, and neither gets worse by that fraction.", "",
+              "no drop below the limit, and neither gets worse by that fraction. The "
+              "held-out error and chi2/dof columns are those of the model before and after "
+              "the step, each over all the beads it judges: every step starts where the "
+              "last kept one ended, and a rejected step leaves the model as it was. The "
+              "drops that decide are paired, on the beads both models judge.", "",
               *_md_table(STEP_COLUMNS, steps_table(d)), ""]
-    noise = d.context.noise
-    lines += ["## Noise model", "",
-              f"Variance = {_num(noise.gain)} x mean {'+' if noise.intercept >= 0 else '-'} "
-              f"{_num(abs(noise.intercept))} ADU² (gain {_num(noise.gain)} ADU/e-"
-              + (f", offset {_num(noise.offset)} ADU" if noise.offset is not None else "")
-              + (f", read noise {_num(noise.read_noise)} e-" if noise.read_noise is not None
-                 else "")
-              + f"). Source: {d.noise_source}.", "",
+    lines += ["## Noise model", "", noise_text(d.context.noise), "",
               "## Figures", "",
               f"Residual maps: each bead's held-out excess error (relative residual energy "
               f"minus its noise floor) as a disk at its place in the field; colour from 0 "

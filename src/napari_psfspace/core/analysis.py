@@ -23,8 +23,8 @@ Tests (name: what it looks at)
 * ``coherent_residual``: largest singular value of the matrix of normalised residual
   patches against the Marchenko-Pastur edge of pure noise (structure that varies from
   bead to bead: basis or field model too small).
-* ``pixel_outliers``: single pixels far above all their neighbours (hot pixels, cosmic
-  rays), counted over the whole image.
+* ``pixel_outliers``: spots narrower than the optics can form (hot pixels, cosmic
+  rays, :mod:`~napari_psfspace.core.spikes`), counted over the whole image.
 * ``row_pattern`` / ``column_pattern``: excess variance of the row / column medians of
   the bead-free background (fixed-pattern offsets).
 * ``background_structure``: chi-square of order-2 polynomials fitted to the bead-free
@@ -50,6 +50,7 @@ from .background import monomials
 from .noise import NoiseModel
 from .patches import extract_patches
 from .residuals import BeadResiduals
+from .spikes import find_spikes, pixel_noise_sd
 from .window import radial_distance
 
 #: Default thresholds (z units), calibrated on effect-free simulations.
@@ -175,18 +176,18 @@ def bead_covariates(res: BeadResiduals, shape, all_positions=None) -> dict[str, 
     }
 
 
+def outlier_pixels(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> np.ndarray:
+    """Pixels narrower than the optics can form (hot pixels, cosmic rays) standing ``k``
+    noise sd out (:func:`~napari_psfspace.core.spikes.find_spikes`), shape (S, 2); the
+    noise sd is the model's at the image's median level, or the image's own where that
+    is larger."""
+    sd = float(np.sqrt(noise.variance(float(np.median(img[::4, ::4])))))
+    return find_spikes(img, noise_sd=max(sd, pixel_noise_sd(img)), k=k)
+
+
 def _pixel_outliers(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> dict:
-    """Pixels more than ``k`` sd above their local background and > 3x their brightest
-    neighbour's excess: a sampled PSF never has such a single-pixel spike."""
-    foot = np.ones((3, 3), bool)
-    foot[1, 1] = False
-    nb_max = ndi.maximum_filter(img, footprint=foot, mode="nearest")
-    bg = ndi.median_filter(img, size=7, mode="nearest")
-    excess = img - bg
-    sd = np.sqrt(noise.variance(bg))
-    hot = (excess > k * sd) & (excess > 3 * np.maximum(nb_max - bg, 0))
-    ys, xs = np.nonzero(hot)
-    return {"count": int(hot.sum()), "positions": np.column_stack([ys, xs]).tolist()[:200]}
+    found = outlier_pixels(img, noise, k)
+    return {"count": int(len(found)), "positions": found[:200].tolist()}
 
 
 def _secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,

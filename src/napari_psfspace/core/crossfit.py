@@ -106,8 +106,7 @@ def iter_crossfit(
             continue
         status = beads.status.copy()
         status[held[status[held] == KEPT]] = HELDOUT
-        train = Beads(beads.positions.copy(), beads.response.copy(), status,
-                      beads.amplitude.copy())
+        train = beads.copy(status)
         est = run_with_progress(iter_estimate(img, psf_radius=psf_radius, beads=train,
                                               **est_kw))
         if meta is None:

@@ -14,6 +14,7 @@ from scipy import ndimage as ndi
 from skimage.feature import peak_local_max
 
 from ._validate import as_image, check_positive, check_psf_radius
+from .spikes import QUANTISATION_VARIANCE, find_spikes, inpaint_pixels, is_integer_valued
 
 #: Status codes of a bead, in the order in which they are assigned.
 KEPT = "kept"
@@ -28,6 +29,11 @@ COMPANION = "companion"  # has a companion in its patch: judged (fitted jointly)
 STRUCTURE = "structure"  # background structure, not a bead: spoils no neighbour
 STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION,
             STRUCTURE)
+
+
+#: A detection fainter than this fraction of a bead's peak amplitude does not spoil it as a
+#: neighbour (see :func:`flag_unusable`).
+NEIGHBOUR_RATIO = 0.05
 
 
 class NoBeadsError(ValueError):
@@ -51,12 +57,17 @@ class Beads:
     amplitude : ndarray of shape (M,)
         Peak value above the local background (median of the window edge), image
         units; NaN where unknown (e.g. beads added by hand).
+    hot_pixels : ndarray of shape (S, 2), int64, or None
+        ``(row, column)`` of the pixels found narrower than the optics can form (hot
+        pixels, cosmic rays; :mod:`~napari_psfspace.core.spikes`): inpainted before
+        detection and masked downstream. None: not searched (e.g. a table made by hand).
     """
 
     positions: np.ndarray
     response: np.ndarray
     status: np.ndarray = field(default=None)
     amplitude: np.ndarray = field(default=None)
+    hot_pixels: np.ndarray | None = None
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 2)
@@ -67,6 +78,8 @@ class Beads:
         if self.amplitude is None:
             self.amplitude = np.full(len(self.positions), np.nan)
         self.amplitude = np.asarray(self.amplitude, dtype=np.float64).reshape(-1)
+        if self.hot_pixels is not None:
+            self.hot_pixels = np.asarray(self.hot_pixels, dtype=np.int64).reshape(-1, 2)
         n = {len(self.positions), len(self.response), len(self.status), len(self.amplitude)}
         if len(n) != 1:
             raise ValueError(
@@ -90,10 +103,37 @@ class Beads:
     def summary(self) -> str:
         c = self.counts()
         parts = [f"{v} {k}" for k, v in c.items() if v]
-        return f"{len(self)} beads detected: " + ", ".join(parts)
+        out = f"{len(self)} beads detected: " + ", ".join(parts)
+        if self.hot_pixels is not None and len(self.hot_pixels):
+            out += (f"; {len(self.hot_pixels)} hot pixel(s) masked (narrower than the "
+                    "optics can form)")
+        return out
+
+    def copy(self, status: np.ndarray | None = None) -> Beads:
+        """A deep copy, optionally with another status array."""
+        return Beads(self.positions.copy(), self.response.copy(),
+                     self.status.copy() if status is None else status,
+                     self.amplitude.copy(),
+                     None if self.hot_pixels is None else self.hot_pixels.copy())
+
+    def clean_image(self, image: np.ndarray) -> np.ndarray:
+        """``image`` (floating) with the hot pixels inpainted (a copy when there are any)."""
+        if self.hot_pixels is None or len(self.hot_pixels) == 0:
+            return image
+        return inpaint_pixels(image, self.hot_pixels)
 
 
-def log_response(image, sigma: float) -> np.ndarray:
+def log_kernel_norm(sigma: float) -> float:
+    """l2 norm of the scale-normalised LoG kernel ``sigma^2 LoG`` as sampled by
+    :func:`scipy.ndimage.gaussian_laplace` (about ``1 / (sigma sqrt(2 pi))``): the
+    response's standard deviation for white noise of unit variance."""
+    half = int(np.ceil(4 * sigma)) + 1
+    delta = np.zeros((2 * half + 1, 2 * half + 1))
+    delta[half, half] = 1.0
+    return float(sigma**2 * np.linalg.norm(ndi.gaussian_laplace(delta, sigma)))
+
+
+def log_response(image, sigma: float, *, pixel_sd_floor: float = 0.0) -> np.ndarray:
     """Scale-normalised negative Laplacian of Gaussian, in robust noise units.
 
     Parameters
@@ -101,13 +141,19 @@ def log_response(image, sigma: float) -> np.ndarray:
     image : ndarray of shape (M, N)
     sigma : float
         Gaussian scale in pixels.
+    pixel_sd_floor : float
+        Smallest per-pixel noise sd (image units) the response's noise level may
+        correspond to: for integer images the rounding noise ``sqrt(1/12)``, so that
+        a nearly constant integer background (MAD of zero) does not turn every
+        one-count bump into a detection.
 
     Returns
     -------
     ndarray of shape (M, N), float32
-        ``-sigma**2 * LoG(image)`` divided by its robust standard deviation (MAD) and
-        shifted so that its median is 0: a bead of detection strength 10 stands ten
-        noise standard deviations above the filtered background.
+        ``-sigma**2 * LoG(image)`` divided by its robust standard deviation (MAD,
+        at least ``pixel_sd_floor`` times the kernel's l2 norm) and shifted so that its
+        median is 0: a bead of detection strength 10 stands ten noise standard
+        deviations above the filtered background.
     """
     img = as_image(image, dtype=np.float32)
     resp = ndi.gaussian_laplace(img, sigma, mode="reflect")
@@ -117,7 +163,10 @@ def log_response(image, sigma: float) -> np.ndarray:
     sample = resp[::step, ::step]
     med = float(np.median(sample))
     mad = float(np.median(np.abs(sample - med))) * 1.4826
-    if not np.isfinite(mad) or mad <= 0:
+    floor = pixel_sd_floor * log_kernel_norm(sigma) if pixel_sd_floor > 0 else 0.0
+    if not np.isfinite(mad) or mad <= floor:
+        mad = max(floor, mad if np.isfinite(mad) else 0.0)
+    if mad <= 0:
         spread = float(sample.std())
         mad = spread if spread > 0 else 1.0
     resp -= med
@@ -134,6 +183,8 @@ def detect_beads(
     saturation: float | None = None,
     border: float | None = None,
     min_separation: float | None = None,
+    neighbour_ratio: float = NEIGHBOUR_RATIO,
+    hot_pixels: bool = True,
 ) -> Beads:
     """Find beads and flag those that cannot give a clean, isolated PSF patch.
 
@@ -157,12 +208,27 @@ def detect_beads(
         ``ceil(1.2 r) + 2``: the PSF patch (radius ``1.2 r``, Appendix A) must fit in
         the image with room for sub-pixel re-sampling.
     min_separation : float, optional
-        Beads closer than this to another bead are rejected (both). Default ``2 r``.
+        A bead closer than this to another detection at least ``neighbour_ratio`` as
+        bright is rejected. Default ``2 r``.
+    neighbour_ratio : float
+        A detection fainter than this fraction of a bead's peak does not spoil it
+        (:data:`NEIGHBOUR_RATIO`; 0: every detection does).
+    hot_pixels : bool
+        Find pixels narrower than the optics can form (hot pixels, cosmic rays,
+        :func:`~napari_psfspace.core.spikes.find_spikes`), inpaint them before
+        detection and record them in ``Beads.hot_pixels`` for the later steps to mask.
 
     Returns
     -------
     Beads
         All detections with their status (kept, saturated, border, neighbour).
+
+    Notes
+    -----
+    The noise level of the filtered image is its robust (MAD) spread, never below what
+    the rounding of an integer image gives (variance 1/12 ADU^2 per pixel): on a nearly
+    constant integer background the MAD collapses towards zero and every one-count bump
+    would otherwise stand many "noise sd" out.
 
     Raises
     ------
@@ -174,6 +240,7 @@ def detect_beads(
     img = as_image(raw, dtype=np.float32)
     r = check_psf_radius(psf_radius, img.shape)
     threshold = check_positive(threshold, "threshold")
+    neighbour_ratio = check_positive(neighbour_ratio, "neighbour_ratio", allow_zero=True)
     sigma = max(1.0, r / 4.0) if sigma is None else check_positive(sigma, "sigma")
     if border is None:
         border = np.ceil(1.2 * r) + 2
@@ -188,7 +255,12 @@ def detect_beads(
             "detect. Check that the right image or slice was passed."
         )
 
-    resp = log_response(img, sigma)
+    integer = is_integer_valued(raw)
+    spikes = find_spikes(raw) if hot_pixels else np.zeros((0, 2), np.int64)
+    if len(spikes):
+        img = inpaint_pixels(img, spikes)
+    resp = log_response(img, sigma,
+                        pixel_sd_floor=np.sqrt(QUANTISATION_VARIANCE) if integer else 0.0)
     peaks = peak_local_max(
         resp,
         min_distance=max(1, int(round(r / 2))),
@@ -207,9 +279,10 @@ def detect_beads(
     peaks, strength = _merge_secondary_maxima(peaks, strength, r)
 
     beads = Beads(peaks.astype(np.float64), strength,
-                  amplitude=peak_amplitude(img, peaks, int(np.ceil(r))))
+                  amplitude=peak_amplitude(img, peaks, int(np.ceil(r))),
+                  hot_pixels=spikes if hot_pixels else None)
     flag_unusable(beads, img, r, saturation=saturation, border=border,
-                  min_separation=min_separation)
+                  min_separation=min_separation, neighbour_ratio=neighbour_ratio)
     return beads
 
 
@@ -248,6 +321,7 @@ def flag_unusable(
     saturation: float | None,
     border: float,
     min_separation: float,
+    neighbour_ratio: float = NEIGHBOUR_RATIO,
 ) -> Beads:
     """Set the status of beads that are saturated, at the border or crowded (in place).
 
@@ -255,7 +329,10 @@ def flag_unusable(
     (e.g. a rejected outlier) are preserved. Neighbours are counted among all
     detections, whatever their status: a rejected bead still spoils its neighbour;
     only detections found to be background structure (status "structure", removed from
-    the image) are not counted.
+    the image) are not counted, and, with ``neighbour_ratio`` > 0, detections whose peak
+    amplitude is below that fraction of the bead's (a faint speck beside a bright bead
+    changes its patch by less than the noise). Beads of unknown amplitude (added by
+    hand) are always counted.
 
     Returns
     -------
@@ -285,12 +362,22 @@ def flag_unusable(
     )
     beads.status[keep & at_border] = BORDER
     keep &= ~at_border
-    real = beads.status != STRUCTURE
-    if np.count_nonzero(real) > 1:
+    real = np.flatnonzero(beads.status != STRUCTURE)
+    if len(real) > 1 and keep.any():
         tree = cKDTree(pos[real])
-        dist, _ = tree.query(pos, k=2)
-        crowded = dist[:, 1] < min_separation
-        beads.status[keep & crowded] = NEIGHBOUR
+        amp = beads.amplitude
+        todo = np.flatnonzero(keep)
+        lists = tree.query_ball_point(pos[todo], np.nextafter(min_separation, 0))
+        for i, found in zip(todo, lists, strict=True):
+            near = real[np.asarray(found, dtype=np.intp)]
+            near = near[near != i]
+            if len(near) == 0:
+                continue
+            if neighbour_ratio > 0 and np.isfinite(amp[i]) and amp[i] > 0:
+                a = amp[near]
+                if not np.any(~np.isfinite(a) | (a >= neighbour_ratio * amp[i])):
+                    continue
+            beads.status[i] = NEIGHBOUR
     return beads
 
 

@@ -36,10 +36,11 @@ from .centering import refine_centers
 from .crossfit import CrossFit, iter_crossfit
 from .detect import Beads, detect_beads, flag_unusable, require_kept
 from .effects import REGISTRY, Context, Effect
-from .estimate import Progress, iter_estimate, run_with_progress
-from .noise import NoiseModel, estimate_noise
+from .estimate import Progress, hot_pixel_record, iter_estimate, run_with_progress
+from .noise import NoiseModel, noise_model
 from .operator import ProductConvolution
 from .photometry import crossfit_log_residuals, fit_throughput, throughput_map
+from .spikes import spike_mask
 
 #: Tests whose significance means a residual common to the beads is left unexplained.
 EXPLAIN_TESTS = ("mean_residual", "coherent_residual")
@@ -49,7 +50,13 @@ CHI2_WINSOR = 0.95
 
 @dataclass
 class Step:
-    """One candidate effect tried by the loop (or the baseline, ``effect=None``)."""
+    """One candidate effect tried by the loop (or the baseline, ``effect=None``).
+
+    ``error_before`` / ``error_after`` and ``chi2_before`` / ``chi2_after`` are those of
+    the model before and after the step, each over all the beads it judges (a step
+    starts where the last kept one ended); ``improvement`` and ``p_no_drop`` are paired,
+    on the beads both judge (:attr:`paired_before`, :attr:`paired_after`).
+    """
 
     effect: str | None
     evidence: float
@@ -62,6 +69,17 @@ class Step:
     p_no_drop: float
     accepted: bool
     params: dict = field(default_factory=dict)
+
+    @property
+    def paired_before(self) -> float:
+        """Mean held-out error of the model before the step on the beads both models
+        judge (what the decision compared; NaN for the baseline)."""
+        return float((self.params or {}).get("_comparison", {}).get("error_before", np.nan))
+
+    @property
+    def paired_after(self) -> float:
+        """The same for the model with the effect added."""
+        return float((self.params or {}).get("_comparison", {}).get("error_after", np.nan))
 
     def to_dict(self) -> dict:
         def short(v):
@@ -120,12 +138,20 @@ class Diagnosis:
         """Names of the effects kept."""
         return [s.effect for s in self.steps if s.effect and s.accepted]
 
+    @property
+    def hot_pixels(self) -> np.ndarray:
+        """``(row, column)`` of the pixels masked at detection as narrower than the optics
+        can form (hot pixels, cosmic rays), shape (S, 2)."""
+        hot = self.context.beads.hot_pixels
+        return np.zeros((0, 2), np.int64) if hot is None else hot
+
     def to_dict(self) -> dict:
         return {
             "error_before": self.error_before, "error_after": self.error_after,
             "chi2_dof_before": self.chi2_before, "chi2_dof_after": self.chi2_after,
             "noise_floor": self.noise_floor, "added": self.added, "options": self.options,
             "noise_model": {**self.context.noise.to_dict(), "source": self.noise_source},
+            "hot_pixels": hot_pixel_record(self.hot_pixels),
             "steps": [s.to_dict() for s in self.steps],
             "analysis_before": self.analysis_before.to_dict(),
             "analysis_after": self.analysis_after.to_dict(),
@@ -135,7 +161,7 @@ class Diagnosis:
 def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0) -> Beads:
     """Detected beads with sub-pixel centres and their status (kept, border, ...)."""
     beads = detect_beads(image, psf_radius, threshold=threshold)
-    img = as_image(image)
+    img = beads.clean_image(as_image(image))
     kept = beads.kept
     beads.positions[kept] = refine_centers(img, beads.positions[kept],
                                            sigma=max(1.0, psf_radius / 4),
@@ -145,22 +171,11 @@ def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.
     return beads
 
 
-def _noise_model(image, gain, offset, read_noise) -> tuple[NoiseModel, str]:
-    if gain is not None:
-        if offset is None or read_noise is None:
-            raise ValueError("Give the camera's `gain`, `offset` and `read_noise` together "
-                             f"(got gain={gain}, offset={offset}, read_noise={read_noise}).")
-        return NoiseModel.from_camera(gain, offset, read_noise), "camera values given"
-    try:
-        return estimate_noise(image, offset=offset), "photon transfer on the image"
-    except ValueError as exc:
-        # fall back to a Poisson model of unit gain around the background level: the
-        # chi-square is then only indicative; the held-out error does not depend on it
-        img = np.asarray(image, dtype=np.float64)
-        bg = float(np.median(img))
-        mad = 1.4826 * float(np.median(np.abs(img - bg)))
-        return (NoiseModel(1.0, max(mad**2, 1.0) - bg),
-                f"assumed Poisson, gain 1 (no photon transfer possible: {exc})")
+def _noise_model(image, gain, offset, read_noise, mask=None) -> tuple[NoiseModel, str]:
+    noise = noise_model(image, mask=mask, gain=gain, offset=offset, read_noise=read_noise)
+    source = {"camera": "camera values given", "photon transfer": "photon transfer on the image"
+              }.get(noise.kind, f"{noise.kind} (fallback: {noise.note})")
+    return noise, source
 
 
 def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 1000,
@@ -187,7 +202,8 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     common, i0, i1 = common[keep], i0[keep], i1[keep]
     if len(common) < 5:
         return {"error_before": np.nan, "error_after": np.nan, "improvement": 0.0,
-                "p_no_drop": 1.0, "chi2_improvement": 0.0, "chi2_p_no_drop": 1.0}
+                "p_no_drop": 1.0, "chi2_improvement": 0.0, "chi2_p_no_drop": 1.0,
+                "n_beads": int(len(common))}
     r0, r1 = before.residuals, after.residuals
     e0, e1 = r0.rel_energy[i0], r1.rel_energy[i1]
     c0 = r0.chi2_under(noise)[i0] / r0.dof[i0] - 1.0
@@ -208,7 +224,7 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     cimp, cp = drop(c0, c1)
     out = {"error_before": float(e0.mean()), "error_after": float(e1.mean()),
            "improvement": imp, "p_no_drop": p, "chi2_improvement": cimp,
-           "chi2_p_no_drop": cp}
+           "chi2_p_no_drop": cp, "n_beads": int(len(common))}
     if shape is not None and throughput[0] != throughput[1]:
         l0 = crossfit_log_residuals(r0.positions, r0.amplitude, before.fold, shape,
                                     degree=throughput[0], use=r0.informative)[i0]
@@ -253,9 +269,11 @@ def iter_diagnose(
 
     beads = prepare_beads(raw, r, threshold=threshold)
     require_kept(beads, 2 * folds, reason=f"to hold out beads in {folds} folds")
-    noise, noise_source = _noise_model(raw, gain, offset, read_noise)
+    hot = spike_mask(img.shape, beads.hot_pixels)
+    img = beads.clean_image(img)
+    noise, noise_source = _noise_model(raw, gain, offset, read_noise, mask=hot)
     model = {k: v for k, v in (("n_psf", n_psf), ("smoothing", smoothing)) if v is not None}
-    ctx = Context(image=img, pixel_mask=np.zeros(img.shape, bool), beads=beads, noise=noise,
+    ctx = Context(image=img, pixel_mask=hot, beads=beads, noise=noise,
                   psf_radius=r, noise_from_image=gain is None, estimate_kwargs=model)
     yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
 
@@ -306,7 +324,7 @@ def iter_diagnose(
             s0 = cf.summary()
             steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                       and an.tests[t].significant],
-                              s0["error"], float("nan"), s0["chi2_dof"], float("nan"), 0.0,
+                              s0["error"], s0["error"], s0["chi2_dof"], s0["chi2_dof"], 0.0,
                               1.0, False, {"_error": str(exc)}))
             yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
                            f"{eff.name}: could not be applied ({exc}), rejected")
@@ -319,13 +337,14 @@ def iter_diagnose(
         ok = bool(any(cmp[f"{m}improvement"] >= min_improvement
                       and cmp[f"{m}p_no_drop"] <= max_p / 2 for m in metrics)
                   and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
-        err0, err1 = cmp["error_before"], cmp["error_after"]
+        # the step's figures are those of the model before and after it, each on all the
+        # beads it judges, so that each step starts where the last kept one ended; the
+        # decision figures are paired, on the beads both judge (``_comparison``)
+        s0, s1 = cf.summary(), new_cf.summary()
+        err0, err1 = s0["error"], s1["error"]
         steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                   and an.tests[t].significant],
-                          err0, err1,
-                          float(cf.residuals.chi2_under(new_ctx.noise).sum()
-                                / cf.residuals.dof.sum()),
-                          new_cf.summary()["chi2_dof"],
+                          err0, err1, s0["chi2_dof"], s1["chi2_dof"],
                           float(cmp["improvement"]), cmp["p_no_drop"], ok,
                           {**new_ctx.params.get(eff.name, params), "_comparison": cmp}))
         if ok:
@@ -333,8 +352,8 @@ def iter_diagnose(
             if cf.model_meta:
                 ctx = ctx.with_effect("_model", cf.model_meta)
         yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
-                       f"{eff.name}: error {err0:.4g} -> {err1:.4g} "
-                       f"({100 * cmp['improvement']:.1f} %; excess chi2 "
+                       f"{eff.name}: error {err0:.4g} -> {err1:.4g} (paired "
+                       f"{100 * cmp['improvement']:.1f} %; excess chi2 "
                        f"{100 * cmp['chi2_improvement']:.1f} %), "
                        f"{'kept' if ok else 'rejected'}")
 

@@ -24,6 +24,8 @@ from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .operator import ProductConvolution
 from .patches import Patches, extract_patches
 from .pca import PsfBasis, learn_basis, min_beads_for
+from .sphere import remove_sphere
+from .spikes import find_spikes
 from .tps import ThinPlateSpline
 from .voronoi import voronoi_areas
 from .window import radial_distance
@@ -96,6 +98,7 @@ def fit_field(
     smoothing=None,
     grid_step: float = 32.0,
     metadata: dict | None = None,
+    basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[ProductConvolution, Cone, ThinPlateSpline]:
     """Interpolate the PSF coefficients over the field and build the operator.
 
@@ -112,6 +115,10 @@ def fit_field(
     grid_step : float
         Spacing in pixels of the coarse grid on which the maps are evaluated (they are
         bilinear in between, which keeps them in the cone).
+    basis_filter : callable, optional
+        ``basis_filter(h) -> h'``, shape (I, P, P): a linear change of every PSF of the
+        model (e.g. removing the beads' size, :func:`~napari_psfspace.core.sphere.remove_sphere`),
+        applied before the maps are normalised so that every PSF still sums to 1.
 
     Returns
     -------
@@ -127,7 +134,8 @@ def fit_field(
     coarse = spline(nodes)  # (G, I)
     cone = reduce_cone(beta)
     coarse = cone.project(coarse)
-    sums = basis.basis.sum(axis=(1, 2))  # (I,)
+    psfs = basis.basis if basis_filter is None else basis_filter(basis.basis)
+    sums = psfs.sum(axis=(1, 2))  # (I,)
     total = coarse @ sums
     bad = total <= 1e-12 * np.abs(coarse).sum(axis=1).clip(1e-300)
     if bad.any():  # projected to the apex: fall back to the mean observed PSF
@@ -136,7 +144,7 @@ def fit_field(
         total[bad] = mean @ sums
     coarse = coarse / total[:, None]
     maps = coarse.T.reshape(basis.n_psf, len(gy), len(gx))
-    op = ProductConvolution(basis.basis, maps, shape=shape, grid=(gy, gx), metadata=metadata)
+    op = ProductConvolution(psfs, maps, shape=shape, grid=(gy, gx), metadata=metadata)
     return op, cone, spline
 
 
@@ -153,6 +161,7 @@ def iter_estimate(
     saturation: float | None = None,
     z_threshold: float = 3.0,
     patch_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    bead_diameter: float = 0.0,
 ) -> Generator[Progress, None, Estimation]:
     """Generator form of :func:`estimate_operator`: yields progress, returns the result.
 
@@ -163,6 +172,9 @@ def iter_estimate(
     (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
     (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
     different sizes to one, :class:`~napari_psfspace.core.effects.bead_size.SizeFilter`).
+    ``bead_diameter`` is that of :func:`estimate_operator`: the returned operator's PSFs are
+    point-source PSFs; the held-out residual is measured with the uncorrected model (the
+    beads' own images).
 
     Returns
     -------
@@ -180,12 +192,16 @@ def iter_estimate(
     fixed_n = n_psf if isinstance(n_psf, (int, np.integer)) else None
     if smoothing is not None:
         check_positive(smoothing, "smoothing", allow_zero=True)
+    bead_diameter = check_bead_diameter(bead_diameter, r)
 
     if beads is None:
         beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
+        img = beads.clean_image(img)
     else:
-        beads = Beads(beads.positions.copy(), beads.response.copy(), beads.status.copy(),
-                      beads.amplitude.copy())
+        beads = beads.copy()
+        if beads.hot_pixels is None:  # a table made by hand: look for spikes here
+            beads.hot_pixels = find_spikes(raw)
+        img = beads.clean_image(img)
         if saturation is None and raw.dtype.kind in "ui":
             saturation = float(np.iinfo(raw.dtype).max)
         flag_unusable(beads, img, r, saturation=saturation, border=np.ceil(1.2 * r) + 2,
@@ -229,11 +245,34 @@ def iter_estimate(
 
     support = radial_distance(patches.size) < patches.r_ext
 
-    def fit(sub: Patches, meta: dict | None):
+    sphere: dict = {}
+
+    def point_source(sub: Patches, b: PsfBasis):
+        """The basis filter that removes the beads' own size (None for point beads)."""
+        if not bead_diameter:
+            return None
+
+        psf = sub.psf[b.inliers]
+        noise = None
+        if len(psf) >= 2:  # split halves: their difference is the mean's noise alone
+            # var(A - B) = s^2 K / (n_a n_b); the mean of all K has s^2 / K
+            noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
+            noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
+
+        def remove(h):
+            out, info = remove_sphere(h, bead_diameter, reference=psf.mean(axis=0),
+                                      noise=noise)
+            sphere.update(info)
+            return out
+
+        return remove
+
+    def fit(sub: Patches, meta: dict | None, *, final: bool = False):
         b = learn_basis(sub.psf, n_psf, support=support, positions=sub.centers,
                         z_threshold=z_threshold)
         op, cone, spline = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
-                                     metadata=meta)
+                                     metadata=meta,
+                                     basis_filter=point_source(sub, b) if final else None)
         return b, op, cone, spline
 
     heldout = None
@@ -246,7 +285,7 @@ def iter_estimate(
                            f"held-out residual {heldout.summary()['residual_mean']:.3f} on "
                            f"{int(held.sum())} beads")
 
-    basis, op, cone, spline = fit(patches, None)
+    basis, op, cone, spline = fit(patches, None, final=True)
     beads.status[kept[~basis.inliers]] = OUTLIER
     meta = {
         "psf_radius": r,
@@ -265,14 +304,39 @@ def iter_estimate(
         "image_shape": list(shape),
         "image_dtype": str(raw.dtype),
         "bead_counts": beads.counts(),
+        "hot_pixels": hot_pixel_record(beads.hot_pixels),
         "n_beads_used": int(basis.inliers.sum()),
         "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
         "cone_generators": int(len(cone.generators)),
         "heldout": heldout.summary() if heldout is not None else None,
+        "bead_diameter_px": bead_diameter,
+        "bead_correction": ({**sphere, "note": "the PSFs are those of a point source: the "
+                             "beads' projected sphere was divided out; the held-out "
+                             "residual judges bead images with the uncorrected model"}
+                            if bead_diameter else None),
     }
     op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
     yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads")
     return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+def check_bead_diameter(bead_diameter, psf_radius: float) -> float:
+    """Check ``bead_diameter`` (pixels): 0 (point sources) up to the PSF radius."""
+    d = check_positive(bead_diameter if bead_diameter is not None else 0.0, "bead_diameter",
+                       allow_zero=True)
+    if d > psf_radius:
+        raise ValueError(
+            f"`bead_diameter` = {d:g} px is larger than `psf_radius` = {psf_radius:g} px: a "
+            "bead that large is not a point source for these optics. Check the units (the "
+            "API takes pixels; the command line and the widgets take nanometres).")
+    return d
+
+
+def hot_pixel_record(pixels, limit: int = 10_000) -> dict:
+    """JSON-ready record of the masked hot pixels: their count and (up to ``limit``)
+    ``(row, column)`` positions."""
+    pix = np.zeros((0, 2), int) if pixels is None else np.asarray(pixels).reshape(-1, 2)
+    return {"count": int(len(pix)), "positions": pix[:limit].astype(int).tolist()}
 
 
 def run_with_progress(gen: Generator, progress: Callable[[Progress], None] | None = None):
@@ -296,6 +360,7 @@ def estimate_operator(
     holdout: float | None = 0.2,
     grid_step: float = 32.0,
     saturation: float | None = None,
+    bead_diameter: float = 0.0,
     progress: Callable[[Progress], None] | None = None,
 ) -> ProductConvolution:
     """Learn the space-varying PSF of a microscope from one image of beads.
@@ -327,6 +392,12 @@ def estimate_operator(
     saturation : float, optional
         Pixel value at which the detector saturates (default: the dtype maximum for
         integer images); beads touching it are not used.
+    bead_diameter : float
+        Diameter of the beads in pixels (from their data sheet: e.g. 200 nm beads at
+        100 nm pixels give 2.0). The learnt PSFs are corrected for the bead's projected
+        sphere (divided out in Fourier where the signal stands above the noise, so that
+        noise is not amplified; :func:`~napari_psfspace.core.sphere.remove_sphere`) and
+        the correction is recorded in ``metadata["bead_correction"]``. 0: point sources.
     progress : callable, optional
         Called with a :class:`Progress` record after each step.
 
@@ -344,7 +415,7 @@ def estimate_operator(
     """
     gen = iter_estimate(image, psf_radius=psf_radius, n_psf=n_psf, smoothing=smoothing,
                         threshold=threshold, holdout=holdout, grid_step=grid_step,
-                        saturation=saturation)
+                        saturation=saturation, bead_diameter=bead_diameter)
     return run_with_progress(gen, progress).operator
 
 

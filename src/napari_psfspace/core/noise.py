@@ -19,6 +19,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ._validate import as_image
+from .spikes import QUANTISATION_VARIANCE, is_integer_valued
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,13 @@ class NoiseModel:
         extrapolation.
     n_pixels : int
         Number of pixels used.
+    kind : str
+        How it was obtained: "camera" (values given), "photon transfer", or a fallback
+        ("constant", "unit-gain Poisson"; see :func:`noise_model`).
+    note : str
+        Why a fallback was used, and what it means for the chi-square.
+    checks : dict or None
+        Photon transfer's fit figures (levels, slope z, reduced chi-square).
     """
 
     gain: float
@@ -48,6 +56,9 @@ class NoiseModel:
     read_noise: float | None = None
     mean_range: tuple[float, float] = (0.0, 0.0)
     n_pixels: int = 0
+    kind: str = "camera"
+    note: str = ""
+    checks: dict | None = None
 
     def variance(self, mean) -> np.ndarray:
         """Expected variance (ADU^2) of pixels of expected value ``mean`` (ADU).
@@ -62,7 +73,21 @@ class NoiseModel:
         """JSON-ready dictionary."""
         d = asdict(self)
         d["mean_range"] = list(self.mean_range)
+        if d["checks"] is None:
+            d.pop("checks")
         return d
+
+    @property
+    def description(self) -> str:
+        """One line: the model and how it was obtained."""
+        if self.kind == "constant":
+            return f"constant variance {self.intercept:.4g} ADU² (fallback: {self.note})"
+        sign = "+" if self.intercept >= 0 else "-"
+        line = (f"variance = {self.gain:.4g} x mean {sign} {abs(self.intercept):.4g} ADU² "
+                f"(gain {self.gain:.4g} ADU/e-)")
+        if self.kind == "unit-gain Poisson":
+            return line + f" (fallback: {self.note})"
+        return line + f", {self.kind}"
 
     @classmethod
     def from_camera(cls, gain: float, offset: float, read_noise: float) -> NoiseModel:
@@ -82,6 +107,71 @@ def _structure_mask(img: np.ndarray, sigma: float, k: float) -> np.ndarray:
     return ndi.binary_dilation(struct, iterations=int(np.ceil(3 * sigma)))
 
 
+class NoiseModelError(ValueError):
+    """Photon transfer failed one of its checks (the message says which and why)."""
+
+
+#: Physically plausible camera gains, ADU per photo-electron: from an 8-bit export of a
+#: 16-bit camera (~1/256 of a unit gain) to an EMCCD at full electron multiplication.
+GAIN_BOUNDS = (1e-3, 1e3)
+#: The Poisson slope must stand this many standard errors above zero.
+MIN_SLOPE_Z = 3.0
+#: Largest reduced chi-square of the bin variances about the fitted line; beyond it the
+#: variance does not follow ``a mean + b`` (structure, fixed pattern, a processed image).
+MAX_FIT_CHI2 = 25.0
+#: For integer images, the noise variance must reach this many times the rounding
+#: variance 1/12 ADU^2 at every level: below it the variance of rounded values swings with
+#: the level's distance to the nearest integer, which photon transfer would read as a
+#: slope (measured on 8-bit scenes with a noise sd under 0.5 ADU: gains off by 1.4-3.3 x).
+MIN_ROUNDING_RATIO = 4.0
+#: Variance of a MAD-based variance estimate from n Gaussian samples is about
+#: ``MAD_VARIANCE_FACTOR v^2 / n`` (the MAD's efficiency is 37 %); the Laplacian samples
+#: are correlated (each pixel enters five), which :data:`SAMPLE_CORRELATION` accounts for.
+MAD_VARIANCE_FACTOR = 5.4
+SAMPLE_CORRELATION = 1.2
+
+
+def _noise_laplacian(img: np.ndarray, integer: bool) -> np.ndarray:
+    """Noise-normalised Laplacian ``(4 I - N - S - E - W) / sqrt(20)``, shape (M-2, N-2).
+
+    For integer images each pixel is first dithered by a uniform ``[-1/2, 1/2)`` value
+    (seeded): the Laplacian of rounded values takes few distinct values, and their
+    median absolute deviation is too coarse to follow the variance from bin to bin
+    (measured: the same MAD in every bin, a slope of exactly 0). The dither's variance
+    is removed again in :func:`_robust_variance`.
+    """
+    if integer:
+        dither = np.random.default_rng(0).uniform(-0.5, 0.5, img.shape)
+        img = img + dither
+    return (4 * img[1:-1, 1:-1] - img[:-2, 1:-1] - img[2:, 1:-1] - img[1:-1, :-2]
+            - img[1:-1, 2:]) / np.sqrt(20.0)
+
+
+def _robust_variance(e: np.ndarray, integer: bool) -> float:
+    """Variance of noise-normalised Laplacian samples from their MAD, less the dither's
+    1/12 for integer images (see :func:`_noise_laplacian`)."""
+    v = (1.4826 * float(np.median(np.abs(e - np.median(e))))) ** 2
+    return v - QUANTISATION_VARIANCE if integer else v
+
+
+def _photon_transfer_points(img, use, local, lap, n_bins, integer):
+    """Binned (mean, robust variance, n) of the structure-free pixels."""
+    mu, e = local[use], lap[use]
+    edges = np.unique(np.quantile(mu, np.linspace(0, 1, n_bins + 1)))
+    which = np.clip(np.searchsorted(edges, mu, side="right") - 1, 0, len(edges) - 2)
+    floor = QUANTISATION_VARIANCE if integer else 0.0
+    means, variances, counts = [], [], []
+    for b in range(len(edges) - 1):
+        sel = which == b
+        n = int(np.count_nonzero(sel))
+        if n < 50:
+            continue
+        means.append(float(np.mean(mu[sel])))
+        variances.append(max(_robust_variance(e[sel], integer), floor))
+        counts.append(n)
+    return np.array(means), np.array(variances), np.array(counts), mu.size
+
+
 def estimate_noise(
     image,
     *,
@@ -92,13 +182,31 @@ def estimate_noise(
 ) -> NoiseModel:
     """Estimate ``var = a * mean + b`` from the structure-free pixels of one image.
 
+    Photon transfer checks its own fit and raises :class:`NoiseModelError` (a
+    ValueError) naming the check that failed, rather than return a model it cannot
+    stand behind:
+
+    * the slope ``a`` (the gain) must be positive and stand :data:`MIN_SLOPE_Z`
+      standard errors above zero: the local means must span enough distinct levels
+      for the shot noise to show (a flat background does not);
+    * the gain must lie within :data:`GAIN_BOUNDS` ADU per photo-electron;
+    * for integer images, the noise must stand above the rounding (variance at least
+      :data:`MIN_ROUNDING_RATIO` / 12 ADU^2 at every level);
+    * the line must fit the binned variances (reduced chi-square at most
+      :data:`MAX_FIT_CHI2` under their sampling error);
+    * the variance must be positive over the measured range.
+
+    For integer images no bin variance is taken below the rounding noise, 1/12 ADU^2:
+    the robust spread of a nearly constant integer background is zero, its noise is not.
+    :func:`noise_model` falls back to a stated simpler model when a check fails.
+
     Parameters
     ----------
     image : array_like of shape (M, N)
         Raw camera image in ADU (not background-subtracted, not rescaled).
     mask : array_like of shape (M, N), bool, optional
-        True where pixels must not be used (e.g. around beads). Structure found by a
-        Laplacian-of-Gaussian test is excluded in any case.
+        True where pixels must not be used (e.g. around beads, hot pixels). Structure
+        found by a Laplacian-of-Gaussian test is excluded in any case.
     offset : float, optional
         Known camera offset (ADU); gives the read noise in electrons.
     n_bins : int
@@ -110,19 +218,19 @@ def estimate_noise(
     Returns
     -------
     NoiseModel
+        ``kind`` "photon transfer", with the fit's checks in ``checks``.
 
     Raises
     ------
-    ValueError
-        When fewer than 1000 usable pixels remain, or the fitted slope is not positive
-        (no Poisson signature: e.g. a rescaled or denoised image).
+    NoiseModelError
+        Too few usable pixels (e.g. a clipped background), or a failed check.
     """
     raw = np.asarray(image)
     img = as_image(raw, dtype=np.float64)
+    integer = is_integer_valued(raw)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
-    lap = (4 * img[1:-1, 1:-1] - img[:-2, 1:-1] - img[2:, 1:-1] - img[1:-1, :-2]
-           - img[1:-1, 2:]) / np.sqrt(20.0)
+    lap = _noise_laplacian(img, integer)
     local = ndi.uniform_filter(img, 5)[1:-1, 1:-1]
     bad = _structure_mask(img, 2.0, 4.0)
     if mask is not None:
@@ -139,39 +247,145 @@ def estimate_noise(
         frac = float(np.mean(clipped))
         why = (f" {100 * frac:.0f} % of the pixels sit at the image's minimum "
                f"({img.min():g}), i.e. the background is clipped." if frac > 0.2 else "")
-        raise ValueError(
+        raise NoiseModelError(
             f"Too few structure-free pixels to estimate the noise: {np.count_nonzero(use)}, "
             f"need at least 1000.{why} Pass the camera's gain, offset and read noise instead."
         )
-    mu, e = local[use], lap[use]
-    edges = np.unique(np.quantile(mu, np.linspace(0, 1, n_bins + 1)))
-    which = np.clip(np.searchsorted(edges, mu, side="right") - 1, 0, len(edges) - 2)
-    means, variances, weights = [], [], []
-    for b in range(len(edges) - 1):
-        sel = which == b
-        if np.count_nonzero(sel) < 50:
-            continue
-        eb = e[sel]
-        mad = np.median(np.abs(eb - np.median(eb)))
-        v = (1.4826 * mad) ** 2
-        means.append(float(np.mean(mu[sel])))
-        variances.append(v)
-        weights.append(np.count_nonzero(sel) / max(v, 1e-12) ** 2)
-    means, variances, w = np.array(means), np.array(variances), np.array(weights)
-    if len(means) >= 3 and np.ptp(means) > 1e-9:
-        a, b = np.polyfit(means, variances, 1, w=np.sqrt(w))
-    else:
-        a, b = float("nan"), float(np.mean(variances))
-    if not np.isfinite(a) or a <= 0:
-        raise ValueError(
-            f"No Poisson signature in `image`: the noise variance does not grow with the "
-            f"mean (fitted slope {a:.3g} over means {means.min():.4g}-{means.max():.4g}). "
-            "The image may be rescaled, denoised or too uniform: pass the camera's gain, "
-            "offset and read noise instead."
-        )
+    means, variances, counts, n_pix = _photon_transfer_points(img, use, local, lap, n_bins,
+                                                              integer)
+    checks = {"n_levels": int(len(means)),
+              "mean_range": [float(means.min()), float(means.max())] if len(means) else []}
+    if len(means) < 3 or np.ptp(means) <= 1e-9:
+        raise NoiseModelError(
+            f"No Poisson signature in `image`: the structure-free pixels span "
+            f"{len(means)} distinct level(s) "
+            f"({means.min():.4g}-{means.max():.4g} ADU): the slope of variance against "
+            "mean (the gain) cannot be measured. Pass the camera's gain, offset and read "
+            "noise instead.")
+    # weighted least squares with the bins' sampling variance; the slope's standard
+    # error is scaled up by the fit's reduced chi-square when that exceeds 1
+    sd_v = np.sqrt(MAD_VARIANCE_FACTOR * SAMPLE_CORRELATION / counts) * variances
+    design = np.column_stack([means, np.ones_like(means)]) / sd_v[:, None]
+    coef, *_ = np.linalg.lstsq(design, variances / sd_v, rcond=None)
+    a, b = (float(c) for c in coef)
+    resid = (variances - (a * means + b)) / sd_v
+    dof = max(len(means) - 2, 1)
+    chi2 = float(resid @ resid) / dof
+    cov = np.linalg.inv(design.T @ design) * max(chi2, 1.0)
+    se_a = float(np.sqrt(cov[0, 0]))
+    z = a / se_a if se_a > 0 else np.inf
+    checks.update(slope_z=float(z), fit_chi2=chi2, gain=a, intercept=b,
+                  gain_relative_error=float(se_a / a) if a > 0 else None,
+                  variance_range=[float(variances.min()), float(variances.max())])
+    problem = None
+    if not np.isfinite(a) or a <= 0 or z < MIN_SLOPE_Z:
+        problem = (f"No Poisson signature in `image`: the noise variance does not grow "
+                   f"measurably with the mean (fitted slope {a:.3g} ADU/e-, {z:.2g} standard "
+                   f"errors from zero, need {MIN_SLOPE_Z:g}, over means "
+                   f"{means.min():.4g}-{means.max():.4g} ADU). The background may be too "
+                   "uniform, or the image rescaled or denoised")
+    elif integer and variances.min() < MIN_ROUNDING_RATIO * QUANTISATION_VARIANCE:
+        problem = (f"The noise at the background ({np.sqrt(variances.min()):.2g} ADU sd) is "
+                   f"not above the rounding of the integer pixel values (sd "
+                   f"{np.sqrt(QUANTISATION_VARIANCE):.2g} ADU): the shot noise cannot be "
+                   "measured (an image exported at a low gain, e.g. rescaled to 8 bits)")
+    elif not GAIN_BOUNDS[0] <= a <= GAIN_BOUNDS[1]:
+        problem = (f"The fitted gain {a:.3g} ADU/e- is outside the physically plausible "
+                   f"range {GAIN_BOUNDS[0]:g}-{GAIN_BOUNDS[1]:g} ADU/e-")
+    elif chi2 > MAX_FIT_CHI2:
+        problem = (f"The variance does not follow a line in the mean (reduced chi-square "
+                   f"{chi2:.3g} about the fit, at most {MAX_FIT_CHI2:g}): the background "
+                   "holds structure or a pattern the noise model cannot describe")
+    elif a * means.min() + b <= 0:
+        problem = (f"The fitted variance is not positive at the lowest level "
+                   f"({a:.3g} x {means.min():.4g} + {b:.3g} ADU^2)")
+    if problem is not None:
+        raise NoiseModelError(problem + ". Pass the camera's gain, offset and read noise "
+                              "instead.")
     read = None
     if offset is not None:
         r2 = (b + a * offset) / a**2
         read = float(np.sqrt(max(r2, 0.0)))
-    return NoiseModel(float(a), float(b), offset, read, (float(means.min()),
-                      float(means.max())), int(mu.size))
+    return NoiseModel(a, b, offset, read, (float(means.min()), float(means.max())),
+                      int(n_pix), kind="photon transfer", checks=checks)
+
+
+def background_variance(image, *, mask=None) -> tuple[float, float, float]:
+    """Robust level, noise variance and clipped fraction of an image's background.
+
+    Returns
+    -------
+    level : float
+        Median of the image (ADU).
+    variance : float
+        Pixel noise variance from the noise-normalised Laplacian's MAD over the
+        structure-free pixels (at least 1/12 ADU^2 for integer images), ADU^2.
+    clipped : float
+        Fraction of the pixels at the image's minimum.
+    """
+    raw = np.asarray(image)
+    img = as_image(raw, dtype=np.float64)
+    integer = is_integer_valued(raw)
+    level = float(np.median(img))
+    bad = _structure_mask(img, 2.0, 4.0)
+    if mask is not None:
+        bad |= np.asarray(mask, dtype=bool)
+    lap = _noise_laplacian(img, integer)
+    e = lap[~bad[1:-1, 1:-1]]
+    if e.size < 100:
+        e = lap.ravel()
+    var = _robust_variance(e, integer)
+    floor = QUANTISATION_VARIANCE if integer else 1e-12
+    clipped = float(np.mean(img <= img.min()))
+    return level, max(var, floor), clipped
+
+
+def noise_model(
+    image,
+    *,
+    mask=None,
+    gain: float | None = None,
+    offset: float | None = None,
+    read_noise: float | None = None,
+) -> NoiseModel:
+    """The noise model of an image: the camera's values, photon transfer, or a fallback.
+
+    In order: the camera's ``gain``, ``offset`` and ``read_noise`` when given (all three);
+    else photon transfer (:func:`estimate_noise`) when its checks pass; else a stated
+    simpler model, with the reason in ``note``:
+
+    * ``kind="constant"``: one variance for every pixel, the background's (its robust
+      spread, at least 1/12 ADU^2 for integers). The shot noise of bright bead cores is
+      not modelled, so a chi-square on them is overstated: indicative only. The
+      held-out shape error does not depend on it.
+    * ``kind="unit-gain Poisson"``, when the background is clipped (at least 20 % of the
+      pixels at the image's minimum, so its spread cannot be measured): variance = mean
+      (ADU = counts, no offset), as for a photon-counting detector, never below the
+      background's measured variance.
+
+    Returns
+    -------
+    NoiseModel
+    """
+    if gain is not None:
+        if offset is None or read_noise is None:
+            raise ValueError("Give the camera's `gain`, `offset` and `read_noise` together "
+                             f"(got gain={gain}, offset={offset}, read_noise={read_noise}).")
+        return NoiseModel.from_camera(gain, offset, read_noise)
+    try:
+        return estimate_noise(image, offset=offset, mask=mask)
+    except NoiseModelError as exc:
+        why = str(exc).replace(" Pass the camera's gain, offset and read noise instead.", "")
+    level, var, clipped = background_variance(image, mask=mask)
+    if clipped >= 0.2:
+        return NoiseModel(1.0, max(var - level, 0.0), offset, None, (level, level), 0,
+                          kind="unit-gain Poisson",
+                          note=f"photon transfer not possible ({why}); "
+                               f"{100 * clipped:.0f} % of the pixels are clipped at the "
+                               "minimum: a photon-counting detector (1 ADU per count) is "
+                               "assumed, chi-square indicative only")
+    return NoiseModel(0.0, var, offset, None, (level, level), 0, kind="constant",
+                      note=f"photon transfer not possible ({why}); one variance, "
+                           f"{var:.3g} ADU^2, measured on the background, for every pixel: "
+                           "the shot noise of bright bead cores is not modelled, so their "
+                           "chi-square is overstated (indicative only)")

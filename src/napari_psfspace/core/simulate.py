@@ -38,6 +38,7 @@ from typing import Any
 import numpy as np
 from scipy import fft as sfft
 
+from .sphere import sphere_transfer
 from .zernike import zernike
 
 __all__ = [
@@ -460,22 +461,6 @@ def _psf_stack(
         image = sfft.irfft2(spectrum, s=(n, n), workers=-1)
         out[sl] = image[:, samples][:, :, samples] * scale
     return np.maximum(out, 0.0, out=out)  # clear FFT round-off negatives (~1e-18)
-
-
-def sphere_transfer(k, diameter) -> np.ndarray:
-    """2-D Fourier transform of the projected (chord-length) profile of a uniform sphere.
-
-    The projection of a ball onto the image plane is, in Fourier space, the
-    3-D transform of the ball on the plane ``k_z = 0``:
-    ``3 (sin q - q cos q) / q^3`` with ``q = π d |k|``, normalised to 1 at
-    ``k = 0`` (unit total intensity). Any length unit, the same for both:
-    ``d`` in µm with ``|k|`` in cycles/µm, or pixels with cycles/pixel.
-    """
-    q = np.pi * np.asarray(diameter, float) * np.asarray(k, float)
-    small = np.abs(q) < 0.1  # series: avoids the cancellation of sin q - q cos q
-    safe = np.where(small, 1.0, q)
-    exact = 3.0 * (np.sin(safe) - safe * np.cos(safe)) / safe**3
-    return np.where(small, 1.0 - q**2 / 10.0 + q**4 / 280.0, exact)
 
 
 def _drift_transfer(ky: np.ndarray, kx: np.ndarray, drift_um: tuple[float, float]) -> np.ndarray:
@@ -1190,6 +1175,7 @@ def simulate_beads(
     seed: int | np.random.Generator | None = 0,
     psf_energy: float = PSF_ENERGY_FRACTION,
     effects: Mapping[str, Any] | None = None,
+    bead_photons: np.ndarray | None = None,
 ) -> tuple[np.ndarray, SimulationTruth]:
     """Simulate a camera image of fluorescent beads seen through a space-varying PSF.
 
@@ -1228,6 +1214,10 @@ def simulate_beads(
         everything (positions, amplitudes, background, noise).
     psf_energy : float
         Energy fraction defining ``truth.psf_radius``.
+    bead_photons : array_like of shape (n_beads,), optional
+        Total photons of each bead, instead of drawing them uniformly from
+        ``amplitude`` (e.g. a log-normal brightness spread,
+        :mod:`~napari_psfspace.core.scenes`).
     effects : Mapping[str, Any] or None
         Effects beyond the PSF model to inject, each key switching one on
         (``r`` below is ``truth.psf_radius``); all recorded in
@@ -1343,7 +1333,16 @@ def simulate_beads(
     min_separation = float(2.5 * psf_radius if min_separation is None else min_separation)
 
     positions = _place_beads(rng, shape, n_beads, min_separation, border)
-    amplitudes = rng.uniform(*amp_range, size=n_beads)
+    if bead_photons is None:
+        amplitudes = rng.uniform(*amp_range, size=n_beads)
+    else:
+        amplitudes = np.asarray(bead_photons, dtype=np.float64).reshape(-1)
+        if len(amplitudes) != n_beads or np.any(~np.isfinite(amplitudes)) or np.any(
+                amplitudes < 0):
+            raise ValueError(f"bead_photons must hold n_beads={n_beads} finite non-negative "
+                             f"numbers, got shape {np.shape(bead_photons)}")
+        if n_beads:
+            amp_range = (float(amplitudes.min()), float(amplitudes.max()))
     bg = _smooth_background(rng, shape, *bg_range)
     if effect_params:
         return _simulate_with_effects(

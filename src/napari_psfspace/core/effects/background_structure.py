@@ -219,8 +219,7 @@ class BackgroundStructure(Effect):
         status = beads.status.copy()
         status[broad] = STRUCTURE
         status[status == NEIGHBOUR] = KEPT
-        new = Beads(beads.positions.copy(), beads.response.copy(), status,
-                    beads.amplitude.copy())
+        new = beads.copy(status)
         kept = new.kept
         new.positions[kept] = refine_centers(image, new.positions[kept], sigma=max(1.0, r / 4),
                                              half=int(np.ceil(r)))

@@ -70,11 +70,13 @@ class Context:
         image (photon transfer sees uncorrected camera patterns as noise), else kept."""
         if not self.noise_from_image:
             return self.noise
-        from ..noise import estimate_noise
+        from ..noise import NoiseModelError, estimate_noise
 
+        if self.noise.kind != "photon transfer":  # a fallback stays the same fallback
+            return self.noise
         try:
             return estimate_noise(image, mask=self.pixel_mask, offset=self.noise.offset)
-        except ValueError:
+        except NoiseModelError:
             return self.noise
 
     def with_effect(self, name: str, params: dict, **changes: Any) -> Context:

@@ -19,65 +19,14 @@ from dataclasses import dataclass
 from typing import ClassVar
 
 import numpy as np
-from scipy import fft as sfft
 from scipy.spatial import cKDTree
 
 from ..analysis import bead_flux
 from ..crossfit import iter_crossfit
 from ..estimate import run_with_progress
 from ..residuals import BeadResiduals
-from ..simulate import sphere_transfer
+from ..sphere import change_size
 from .base import Context, Effect
-
-
-def change_size(stack: np.ndarray, d_from, d_to, *, eps: float = 0.1) -> np.ndarray:
-    """Re-blur images of spheres of diameter ``d_from`` into spheres of ``d_to``.
-
-    ``F^-1[F(stack) (T(d_to) T(d_from) + eps^2) / (T(d_from)^2 + eps^2)]``: the ratio
-    ``T(d_to) / T(d_from)`` where ``|T(d_from)| >> eps``, regularised towards no change
-    (gain 1) where ``T(d_from)`` is small (near its zeros no information is left to
-    restore, and noise beyond the optics' cutoff is neither amplified nor removed);
-    ``d_from = d_to`` is exactly the identity.
-
-    Parameters
-    ----------
-    stack : ndarray of shape (K, P, P)
-        Images centred in their windows (zero-padded here against wrap-around).
-    d_from, d_to : float or array_like of shape (K,)
-        Diameters in pixels.
-    eps : float
-        Regularisation of the division by ``T(d_from)``.
-
-    Returns
-    -------
-    ndarray of shape (K, P, P)
-    """
-    stack = np.asarray(stack, dtype=np.float64)
-    k, p, _ = stack.shape
-    d_from = np.broadcast_to(np.asarray(d_from, float), (k,))
-    d_to = np.broadcast_to(np.asarray(d_to, float), (k,))
-    same = np.isclose(d_from, d_to)
-    out = stack.copy()
-    todo = np.flatnonzero(~same)
-    if len(todo) == 0:
-        return out
-    pad = p // 2 + int(np.ceil(max(d_from.max(), d_to.max()))) + 2
-    n = sfft.next_fast_len(p + 2 * pad, real=True)
-    big = np.zeros((len(todo), n, n))
-    big[:, pad:pad + p, pad:pad + p] = stack[todo]
-    freq = np.hypot(sfft.fftfreq(n)[:, None], sfft.rfftfreq(n)[None, :])[None]
-    t_from, t_to = (_transfers(freq, d[todo]) for d in (d_from, d_to))
-    gain = (t_to * t_from + eps**2) / (t_from**2 + eps**2)
-    spec = sfft.rfft2(big, axes=(1, 2)) * gain
-    out[todo] = sfft.irfft2(spec, s=(n, n), axes=(1, 2))[:, pad:pad + p, pad:pad + p]
-    return out
-
-
-def _transfers(freq: np.ndarray, diameters: np.ndarray) -> np.ndarray:
-    """:func:`sphere_transfer` on ``freq`` (1, n, m) for each diameter (K,), computed once
-    per distinct diameter, shape (K, n, m)."""
-    values, inverse = np.unique(diameters, return_inverse=True)
-    return sphere_transfer(freq, values[:, None, None])[inverse.reshape(-1)]
 
 
 @dataclass(frozen=True)

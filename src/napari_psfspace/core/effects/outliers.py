@@ -3,9 +3,9 @@
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage as ndi
 
-from ..analysis import _pixel_outliers
+from ..analysis import outlier_pixels
+from ..spikes import inpaint_pixels
 from .base import Context, Effect
 
 
@@ -17,16 +17,14 @@ class OutlierPixels(Effect):
     tests = ("pixel_outliers",)
 
     def fit(self, ctx: Context, analysis) -> dict:
-        found = _pixel_outliers(ctx.image, ctx.noise)
-        return {"count": found["count"], "positions": found["positions"]}
+        found = outlier_pixels(ctx.image, ctx.noise)
+        return {"count": int(len(found)), "positions": found.tolist()}
 
     def apply(self, ctx: Context, params: dict) -> Context:
         mask = np.zeros(ctx.image.shape, bool)
         pos = np.asarray(params["positions"], dtype=int).reshape(-1, 2)
         mask[pos[:, 0], pos[:, 1]] = True
-        image = ctx.image.copy()
-        med = ndi.median_filter(ctx.image, size=3, mode="nearest")
-        image[mask] = med[mask]
+        image = inpaint_pixels(ctx.image, pos)
         return ctx.with_effect(self.name, params, image=image,
                                pixel_mask=ctx.pixel_mask | mask,
                                noise=ctx.renoised(image))
