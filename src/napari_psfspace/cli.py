@@ -8,6 +8,7 @@ one-line message and exit status 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -65,6 +66,10 @@ def _image_and_radius(args):
     from .io import read_image
 
     image, info = read_image(args.image, index=args.slice)
+    if getattr(args, "pixel_size_nm", None) is not None:
+        if not args.pixel_size_nm > 0:
+            raise ValueError(f"--pixel-size-nm must be > 0, got {args.pixel_size_nm}.")
+        info = dataclasses.replace(info, pixel_size=args.pixel_size_nm / 1000.0)
     r = _psf_radius_px(args, info)
     if r is None:
         from .core.detect import suggest_psf_radius
@@ -75,15 +80,30 @@ def _image_and_radius(args):
     return image, info, r
 
 
+def _bead_diameter_px(args, info) -> float:
+    """--bead-diameter-nm in pixels (0 without it), with the image's pixel size."""
+    d = getattr(args, "bead_diameter_nm", None)
+    if d is None:
+        return 0.0
+    if not d >= 0:
+        raise ValueError(f"--bead-diameter-nm must be >= 0, got {d}.")
+    if not info.pixel_size:
+        raise ValueError("--bead-diameter-nm needs the pixel size, which the file does not "
+                         "give: pass --pixel-size-nm too.")
+    return d / 1000.0 / info.pixel_size
+
+
 def _cmd_estimate(args) -> int:
     from .core.estimate import iter_estimate, run_with_progress
+    from .report import model_lines
 
     image, info, r = _image_and_radius(args)
     n_psf = args.n_psf
     if n_psf is not None and n_psf not in ("heldout", "rule"):
         n_psf = int(n_psf)
     gen = iter_estimate(image, psf_radius=r, n_psf=n_psf, smoothing=args.smoothing,
-                        threshold=args.threshold, holdout=args.holdout or None)
+                        threshold=args.threshold, holdout=args.holdout or None,
+                        bead_diameter=_bead_diameter_px(args, info))
     est = run_with_progress(gen, None if args.quiet else _progress_printer())
     op = est.operator
     if info.pixel_size:
@@ -98,13 +118,15 @@ def _cmd_estimate(args) -> int:
     if h and h.get("n_beads"):
         print(f"held-out beads: {h['n_beads']}, relative residual mean {h['residual_mean']:.4f} "
               f"(median {h['residual_median']:.4f}), noise floor {h['noise_floor_mean']:.4f}")
+    for line in model_lines(meta, markdown=False):
+        print(line)
     return 0
 
 
 def _cmd_diagnose(args) -> int:
     from .core.diagnose import iter_diagnose
     from .core.estimate import run_with_progress
-    from .report import summary_text, write_report
+    from .report import model_lines, summary_text, write_report
 
     if args.read_noise is not None and args.gain is None:
         raise ValueError("--read-noise needs --gain and --offset: give the three camera "
@@ -114,9 +136,11 @@ def _cmd_diagnose(args) -> int:
     image, info, r = _image_and_radius(args)
     gen = iter_diagnose(image, psf_radius=r, threshold=args.threshold, gain=args.gain,
                         offset=args.offset, read_noise=args.read_noise, n_psf=args.n_psf,
-                        smoothing=args.smoothing)
+                        smoothing=args.smoothing, bead_diameter=_bead_diameter_px(args, info))
     diag = run_with_progress(gen, None if args.quiet else _progress_printer(sys.stderr))
     print(summary_text(diag))
+    for line in model_lines(diag.operator.metadata, markdown=False):
+        print(line)
     extra = {"source": str(args.image), "slice": args.slice}
     path = write_report(diag, args.report, image_name=Path(args.image).name,
                         pixel_size=info.pixel_size, extra=extra)
@@ -176,13 +200,19 @@ def _cmd_demo(args) -> int:
 
 
 def _add_radius_and_slice(parser: argparse.ArgumentParser) -> None:
-    """--psf-radius / --psf-radius-um (default: measured from the image) and --slice."""
+    """--psf-radius / --psf-radius-um (default: measured from the image), --slice,
+    --pixel-size-nm and --bead-diameter-nm."""
     g = parser.add_mutually_exclusive_group()
     g.add_argument("--psf-radius", type=float,
                    help="PSF radius r in pixels (default: suggested from the image)")
     g.add_argument("--psf-radius-um", type=float,
                    help="PSF radius in micrometres (needs the pixel size in the TIFF)")
     parser.add_argument("--slice", type=int, help="slice of a stack to use")
+    parser.add_argument("--pixel-size-nm", type=float,
+                        help="pixel size in nanometres (overrides the file's)")
+    parser.add_argument("--bead-diameter-nm", type=float,
+                        help="bead diameter in nanometres (from the beads' data sheet): "
+                             "divided out of the learnt PSFs (needs the pixel size)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -257,6 +257,37 @@ def summary_text(diagnosis) -> str:
             f"{_num(d.chi2_after, '.3g')}")
 
 
+def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
+    """What a reader must be told of a model: a field model chosen for a handful of beads
+    (shift-invariant or affine, and why), a bead size divided out. Markdown paragraphs
+    (each after an empty line), or plain lines."""
+    def bold(text):
+        return f"**{text}**" if markdown else text
+
+    out = []
+    if meta.get("field_model") == "shift-invariant":
+        out.append(bold("The model is shift-invariant") + " (one PSF for the whole field): "
+                   + str(meta.get("field_model_reason", "")))
+    elif meta.get("field_model") == "affine":
+        out.append(bold("The field model is affine") + " (PSF weights vary as planes): "
+                   + str(meta.get("field_model_reason", "")))
+    elif meta.get("field_model_reason"):
+        out.append(bold("The field model was chosen for few beads") + ": "
+                   + str(meta["field_model_reason"]))
+    corr = meta.get("bead_correction")
+    if corr:
+        out.append(bold("Bead size corrected") + f": the beads' diameter, "
+                   f"{_num(corr['diameter_px'], '.3g')} px, was divided out of the learnt "
+                   "PSFs (in Fourier, where the signal stands above the noise: up to "
+                   f"{_num(corr.get('band_px'), '.3g')} cycles/px, gain at most "
+                   f"{_num(corr.get('max_gain_applied'), '.3g')}): the model's PSFs are "
+                   "those of a point source."
+                   + (" " + corr["warning"] if corr.get("warning") else ""))
+    if not markdown:
+        return out
+    return [line for text in out for line in ("", text)]
+
+
 def noise_text(noise) -> str:
     """The noise model in a sentence: the model, how it was obtained, what it implies."""
     if noise.kind == "constant":
@@ -336,6 +367,10 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
             "no residual test pointed at a candidate") + "; the plain model is kept.")
         lines += ["", f"Held-out error {_num(d.error_after)}; chi-square per degree of "
                       f"freedom {_num(d.chi2_after, '.3g')}."]
+    lines += model_lines(d.operator.metadata)
+    if d.options.get("leave_one_bead_out"):
+        lines += ["", f"With {d.options['folds']} usable beads, each bead was judged by a "
+                      "model learnt from all the others (leave-one-bead-out)."]
     n_hot = len(d.hot_pixels)
     if n_hot:
         lines += ["", f"**Hot pixels**: {n_hot} pixel(s) narrower than the optics can form "
@@ -435,7 +470,10 @@ def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | Non
         "effects": _effect_descriptions(d),
         "model": {"n_psf": int(op.n_psf), "psf_size": int(op.psf_size),
                   "shape": list(op.shape),
-                  "n_beads_used": op.metadata.get("n_beads_used")},
+                  "n_beads_used": op.metadata.get("n_beads_used"),
+                  "field_model": op.metadata.get("field_model"),
+                  "field_model_reason": op.metadata.get("field_model_reason"),
+                  "bead_correction": op.metadata.get("bead_correction")},
         "figures": dict(FIGURES),
     }
     return to_jsonable(out)

@@ -1,7 +1,7 @@
 """Widget tests: napari viewer + pytest-qt; skipped where the GUI stack is absent.
 
 The core suite runs in a minimal environment (no napari); these tests need
-``pip install -e ".[testing]"`` (napari[pyqt5], pytest-qt, pytest-xvfb) and a display
+``pip install -e ".[testing]"`` (napari[pyqt6], pytest-qt, pytest-xvfb) and a display
 (pytest-xvfb starts a virtual one).
 """
 

@@ -95,11 +95,7 @@ def test_cancel_leaves_viewer_usable_and_file_untouched(viewer, qtbot, tmp_path)
     assert load_operator(path).n_psf >= 1
 
 
-def test_too_few_beads_is_a_notification(viewer, qtbot, tmp_path, monkeypatch):
-    import napari_psfspace._widgets._worker as worker_mod
-
-    shown = []
-    monkeypatch.setattr(worker_mod, "show_error", shown.append)
+def test_three_beads_give_a_shift_invariant_model_and_say_why(viewer, qtbot, tmp_path):
     pts = _detect(viewer, qtbot)
     pts.selected_data = set(range(len(pts.data) - 3))
     pts.remove_selected()
@@ -107,7 +103,26 @@ def test_too_few_beads_is_a_notification(viewer, qtbot, tmp_path, monkeypatch):
     w.save_path.value = tmp_path / "m.npz"
     w.learn.clicked()
     wait_task(qtbot, w.task)
-    assert len(shown) == 1 and "Too few usable beads" in shown[0]
+    assert w.operator is not None and w.operator.metadata["field_model"] in (
+        "shift-invariant", "affine")
+    assert "3 usable beads" in w.result.value
+    if w.operator.metadata["field_model"] == "shift-invariant":
+        assert "The model is shift-invariant" in w.result.value
+    assert (tmp_path / "m.npz").exists()
+
+
+def test_no_usable_bead_is_a_notification(viewer, qtbot, tmp_path, monkeypatch):
+    import napari_psfspace._widgets._worker as worker_mod
+
+    shown = []
+    monkeypatch.setattr(worker_mod, "show_error", shown.append)
+    pts = _detect(viewer, qtbot)
+    pts.features["status"] = "rejected"
+    w = LearnOperatorWidget(viewer)
+    w.save_path.value = tmp_path / "m.npz"
+    w.learn.clicked()
+    wait_task(qtbot, w.task)
+    assert len(shown) == 1 and "No usable bead" in shown[0]
     assert not (tmp_path / "m.npz").exists()
 
 

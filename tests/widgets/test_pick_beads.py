@@ -70,3 +70,39 @@ def test_suggest_radius_sets_a_usable_radius(make_napari_viewer, qtbot, bead_ima
     wait_task(qtbot, w.task)
     assert "suggested PSF radius" in w.task.status.value
     assert 0.4 * truth.psf_radius <= w.radius.pixels <= 1.6 * truth.psf_radius
+
+
+def test_bead_diameter_in_nanometres_reaches_the_learnt_model(viewer, qtbot):
+    """200 nm beads at the image's 65 nm pixels: 3.08 px, recorded with the beads and
+    divided out of the PSFs the Learn widget makes from them."""
+    from napari_psfspace._widgets._learn_operator import LearnOperatorWidget
+
+    w = PickBeadsWidget(viewer)
+    w.bead_diameter.value = 200.0
+    w.detect.clicked()
+    wait_task(qtbot, w.task)
+    meta = viewer.layers[BEADS].metadata
+    assert meta["bead_diameter_nm"] == 200.0
+    assert np.isclose(meta["bead_diameter_px"], 0.2 / 0.065)
+    learn = LearnOperatorWidget(viewer)
+    learn.save_path.value = ""
+    learn.learn.clicked()
+    wait_task(qtbot, learn.task)
+    corr = learn.operator.metadata["bead_correction"]
+    assert np.isclose(corr["diameter_px"], 0.2 / 0.065)
+    assert "Bead size corrected" in learn.result.value
+
+
+def test_bead_diameter_without_pixel_size_is_refused(make_napari_viewer, qtbot, bead_image,
+                                                     monkeypatch):
+    from napari.utils import notifications
+
+    shown = []
+    monkeypatch.setattr(notifications, "show_error", shown.append)
+    v = make_napari_viewer()
+    v.add_image(bead_image[0], name="uncalibrated")
+    w = PickBeadsWidget(v)
+    w.bead_diameter.value = 200.0
+    w.detect.clicked()
+    assert len(shown) == 1 and "pixel size" in shown[0]
+    assert BEADS not in v.layers

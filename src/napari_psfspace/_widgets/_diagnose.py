@@ -19,7 +19,14 @@ from napari.layers import Image
 from napari.utils.notifications import show_info
 
 from ..core.diagnose import iter_diagnose
-from ..report import STEP_COLUMNS, figure_arrays, steps_table, summary_text, write_report
+from ..report import (
+    STEP_COLUMNS,
+    figure_arrays,
+    model_lines,
+    steps_table,
+    summary_text,
+    write_report,
+)
 from ._layers import Frame, LayerTuple, _beside, show_layers
 from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
 
@@ -149,7 +156,8 @@ class DiagnoseWidget(FollowsBeads, Container):
                   if str(self.report_dir.value) not in ("", ".") else None)
         name = img.name
         gen = iter_diagnose(plane, psf_radius=self.radius.pixels,
-                            threshold=float(self.threshold.value), **camera)
+                            threshold=float(self.threshold.value),
+                            bead_diameter=self._bead_diameter_px(), **camera)
 
         def on_result(diag) -> None:
             self.diagnosis = diag
@@ -158,7 +166,9 @@ class DiagnoseWidget(FollowsBeads, Container):
                                 "columns": list(STEP_COLUMNS)}
             self.table.native.resizeColumnsToContents()
             self.table.visible = True
-            self.result.value = summary_text(diag)
+            self.result.value = "\n".join([summary_text(diag),
+                                           *model_lines(diag.operator.metadata,
+                                                        markdown=False)])
             show_layers(self._viewer, diagnosis_layers(diag, frame))
             self._viewer.reset_view()
             if folder is not None:

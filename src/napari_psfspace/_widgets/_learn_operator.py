@@ -21,6 +21,7 @@ from napari.utils.notifications import show_info
 from ..core.estimate import iter_estimate
 from ..core.operator import ProductConvolution
 from ..io import default_model_path
+from ..report import model_lines
 from ._layers import (
     PSF_GRID,
     beads_from_points,
@@ -122,7 +123,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
         path = Path(self.save_path.value) if str(self.save_path.value) not in ("", ".") else None
         r = self.radius.pixels
         gen = _learn(plane, frame, img.name, psf_radius=r, n_psf=n_psf, smoothing=smoothing,
-                     threshold=float(self.threshold.value), beads=beads)
+                     threshold=float(self.threshold.value), beads=beads,
+                     bead_diameter=self._bead_diameter_px())
 
         def on_result(est) -> None:
             self.operator, self._frame = est.operator, frame
@@ -154,6 +156,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
         if h.get("n_beads"):
             text += (f"\nheld-out residual {h['residual_mean']:.3f} on {h['n_beads']} beads "
                      f"(noise floor {h['noise_floor_mean']:.3f})")
+        for line in model_lines(meta, markdown=False):
+            text += f"\n{line}"
         return text
 
     def psf_here(self, *_) -> None:

@@ -81,13 +81,20 @@ class PickBeadsWidget(Container):
                                       label="threshold")
         self.threshold.tooltip = ("Detection threshold in noise standard deviations of the "
                                   "filtered image: lower finds fainter beads.")
+        self.bead_diameter = FloatSpinBox(value=0.0, min=0.0, max=5000.0, step=10.0,
+                                          label="bead diameter (nm)")
+        self.bead_diameter.tooltip = (
+            "The beads' diameter from their data sheet (0: point sources). The learnt PSFs "
+            "are corrected for it (the sphere is divided out). Needs the image's pixel "
+            "size.")
         self.detect = PushButton(text="Detect beads")
         self.task = CoreTask(self.detect)
         self.legend = Label(value=legend_html())
         self.help = Label(value="Edit the points by hand: add (+), delete, move.\n"
                                 "Rejected beads are not used to learn the PSF.")
         super().__init__(widgets=[self.image, self.radius, self.suggest, self.threshold,
-                                  self.detect, self.task, self.legend, self.help])
+                                  self.bead_diameter, self.detect, self.task, self.legend,
+                                  self.help])
         self.image.changed.connect(self._on_image)
         self.detect.changed.connect(self.run)
         self.suggest.changed.connect(self.run_suggest)
@@ -141,12 +148,24 @@ class PickBeadsWidget(Container):
             return
         plane, frame = got
         r = self.radius.pixels
+        diameter_nm = float(self.bead_diameter.value)
+        px = self.radius.pixel_size
+        if diameter_nm > 0 and not px:
+            from napari.utils.notifications import show_error
+
+            show_error("The bead diameter needs the image's pixel size, which this image "
+                       "does not give: set the layer's scale (µm per pixel), or leave the "
+                       "diameter at 0 (point sources).")
+            return
+        diameter_px = diameter_nm / 1000.0 / px if diameter_nm > 0 else 0.0
 
         def on_result(beads) -> None:
             data, kwargs, kind = beads_layer(beads, frame, r)
             kwargs["metadata"] = {**kwargs.get("metadata", {}), "psf_radius_px": r,
                                   "image": layer.name, "slice": frame.index,
-                                  "threshold": float(self.threshold.value)}
+                                  "threshold": float(self.threshold.value),
+                                  "bead_diameter_nm": diameter_nm,
+                                  "bead_diameter_px": diameter_px}
             (points,) = show_layers(self._viewer, [(data, kwargs, kind)])
             watch_points(points)
             self._viewer.layers.selection.active = points

@@ -278,6 +278,12 @@ class FollowsBeads:
             show_error(str(exc))
             return None
 
+    def _bead_diameter_px(self) -> float:
+        """The beads' diameter (pixels) given in *Pick beads*, 0 when none."""
+        pts = self.points.value
+        return float((pts.metadata or {}).get("bead_diameter_px", 0.0)) if pts is not None \
+            else 0.0
+
     def _refresh_radius(self, *_) -> None:
         """Take the radius the beads were detected with."""
         pts = self.points.value

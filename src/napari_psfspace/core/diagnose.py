@@ -36,12 +36,21 @@ from .centering import refine_centers
 from .crossfit import CrossFit, iter_crossfit
 from .detect import Beads, detect_beads, flag_unusable, require_kept
 from .effects import REGISTRY, Context, Effect
-from .estimate import Progress, hot_pixel_record, iter_estimate, run_with_progress
+from .estimate import (
+    Progress,
+    check_bead_diameter,
+    hot_pixel_record,
+    iter_estimate,
+    run_with_progress,
+)
 from .noise import NoiseModel, noise_model
 from .operator import ProductConvolution
 from .photometry import crossfit_log_residuals, fit_throughput, throughput_map
 from .spikes import spike_mask
 
+#: Fewest usable beads a diagnosis runs on; below ``2 folds`` beads it holds out one bead
+#: at a time (leave-one-bead-out).
+MIN_BEADS = 5
 #: Tests whose significance means a residual common to the beads is left unexplained.
 EXPLAIN_TESTS = ("mean_residual", "coherent_residual")
 #: Quantile at which the per-bead excess chi-square is winsorised in comparisons.
@@ -256,11 +265,13 @@ def iter_diagnose(
     explore: float = 0.5,
     n_psf: int | None = None,
     smoothing: float | None = None,
+    bead_diameter: float = 0.0,
 ) -> Generator[Progress, None, Diagnosis]:
     """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis."""
     raw = np.asarray(image)
     img = as_image(raw, dtype=np.float64)
     r = check_psf_radius(psf_radius, img.shape)
+    bead_diameter = check_bead_diameter(bead_diameter, r)
     names = list(REGISTRY) if effects is None else list(effects)
     unknown = [n for n in names if n not in REGISTRY]
     if unknown:
@@ -268,13 +279,18 @@ def iter_diagnose(
     candidates: list[Effect] = [REGISTRY[n]() for n in names]
 
     beads = prepare_beads(raw, r, threshold=threshold)
-    require_kept(beads, 2 * folds, reason=f"to hold out beads in {folds} folds")
+    n_kept = int(np.count_nonzero(beads.kept))
+    if n_kept < 2 * folds:  # few beads: each is judged by a model of all the others
+        require_kept(beads, MIN_BEADS, reason="to judge each bead by a model learnt "
+                     "without it (leave-one-bead-out)")
+        folds = n_kept
     hot = spike_mask(img.shape, beads.hot_pixels)
     img = beads.clean_image(img)
     noise, noise_source = _noise_model(raw, gain, offset, read_noise, mask=hot)
     model = {k: v for k, v in (("n_psf", n_psf), ("smoothing", smoothing)) if v is not None}
     ctx = Context(image=img, pixel_mask=hot, beads=beads, noise=noise,
-                  psf_radius=r, noise_from_image=gain is None, estimate_kwargs=model)
+                  psf_radius=r, noise_from_image=gain is None, estimate_kwargs=model,
+                  bead_diameter=bead_diameter)
     yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
 
     def evaluate(c: Context):
@@ -357,8 +373,11 @@ def iter_diagnose(
                        f"{100 * cmp['chi2_improvement']:.1f} %), "
                        f"{'kept' if ok else 'rejected'}")
 
+    # the final operator: a point source's PSFs when the beads' size is known (the
+    # nominal one, which the bead-size effect then takes for the median bead's)
     est = run_with_progress(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
-                                          holdout=None, **ctx.estimate_kwargs))
+                                          holdout=None, bead_diameter=bead_diameter,
+                                          **ctx.estimate_kwargs))
     added = [s.effect for s in steps if s.effect and s.accepted]
     meta = {**est.operator.metadata, "diagnosis": {"added": added,
                                                    "error_before": first_cf.summary()["error"],
@@ -382,9 +401,11 @@ def iter_diagnose(
                             shape=est.operator.shape, grid=est.operator.grid, metadata=meta)
     s0, s1 = first_cf.summary(), cf.summary()
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
-    options = {"folds": folds, "min_improvement": min_improvement, "max_p": max_p,
+    options = {"folds": folds, "leave_one_bead_out": folds == n_kept,
+               "min_improvement": min_improvement, "max_p": max_p,
                "explore": explore, "n_psf": n_psf, "smoothing": smoothing,
                "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
+               "bead_diameter": bead_diameter,
                "effects": names}
     return Diagnosis(steps, s0["error"], s1["error"], s0["chi2_dof"], s1["chi2_dof"],
                      s1["noise_floor"], op, ctx, first_an, an, first_cf, cf, noise_source,
@@ -406,7 +427,9 @@ def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] |
     gain, offset, read_noise : float, optional
         Camera values (ADU/e-, ADU, e-); default: photon transfer on the image.
     folds : int
-        Cross-fitting folds (5: each fold is a spatially spread 20 % hold-out).
+        Cross-fitting folds (5: each fold is a spatially spread 20 % hold-out). With
+        fewer than ``2 folds`` usable beads (but at least :data:`MIN_BEADS`), each bead
+        is held out on its own (leave-one-bead-out).
     effects : sequence of str, optional
         Effects to consider (default: all of :data:`~napari_psfspace.core.effects.REGISTRY`).
     max_steps : int
@@ -418,6 +441,11 @@ def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] |
     n_psf, smoothing : optional
         The model to diagnose: basis size and thin-plate smoothing (default: chosen from
         the beads, as :func:`~napari_psfspace.core.estimate.estimate_operator` does).
+    bead_diameter : float
+        The beads' diameter in pixels, when known (0: point sources). Beads are judged on
+        their own images; the refined operator has the sphere divided out (as
+        :func:`~napari_psfspace.core.estimate.estimate_operator` does), and the
+        bead-size effect takes it for the median bead's diameter.
     explore : float
         While a residual common to the beads is left (``mean_residual`` or
         ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the

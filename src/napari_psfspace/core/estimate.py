@@ -18,16 +18,16 @@ import numpy as np
 
 from ._validate import as_image, check_positive, check_psf_radius
 from .centering import refine_centers
-from .cone import Cone, reduce_cone
+from .cone import Cone
 from .detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
+from .fewbeads import FEW_BEADS, fit_few_beads
+from .field import fit_field
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .operator import ProductConvolution
 from .patches import Patches, extract_patches
 from .pca import PsfBasis, learn_basis, min_beads_for
 from .sphere import remove_sphere
 from .spikes import find_spikes
-from .tps import ThinPlateSpline
-from .voronoi import voronoi_areas
 from .window import radial_distance
 
 
@@ -82,70 +82,6 @@ class Estimation:
     cone: Cone
     heldout: HeldoutResiduals | None = None
     info: dict = field(default_factory=dict)
-
-
-def _coarse_grid(shape: tuple[int, int], step: float) -> tuple[np.ndarray, np.ndarray]:
-    """Node coordinates spanning the image with spacing at most ``step`` pixels."""
-    nodes = [np.linspace(0.0, n - 1.0, max(2, int(np.ceil((n - 1) / step)) + 1)) for n in shape]
-    return nodes[0], nodes[1]
-
-
-def fit_field(
-    basis: PsfBasis,
-    patches: Patches,
-    shape: tuple[int, int],
-    *,
-    smoothing=None,
-    grid_step: float = 32.0,
-    metadata: dict | None = None,
-    basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
-) -> tuple[ProductConvolution, Cone, ThinPlateSpline]:
-    """Interpolate the PSF coefficients over the field and build the operator.
-
-    Parameters
-    ----------
-    basis : PsfBasis
-        PSF basis and the coefficients of the inlier patches.
-    patches : Patches
-        The patches the basis was learnt from (``basis.inliers`` selects the inliers).
-    shape : tuple of int
-        Image shape (rows, columns).
-    smoothing : float or None
-        Thin-plate smoothing ``eta``; ``None`` chooses it per coefficient by GCV.
-    grid_step : float
-        Spacing in pixels of the coarse grid on which the maps are evaluated (they are
-        bilinear in between, which keeps them in the cone).
-    basis_filter : callable, optional
-        ``basis_filter(h) -> h'``, shape (I, P, P): a linear change of every PSF of the
-        model (e.g. removing the beads' size, :func:`~napari_psfspace.core.sphere.remove_sphere`),
-        applied before the maps are normalised so that every PSF still sums to 1.
-
-    Returns
-    -------
-    operator, cone, spline
-    """
-    centers = patches.centers[basis.inliers]
-    beta = basis.coefficients
-    weights = voronoi_areas(centers, shape)
-    spline = ThinPlateSpline(centers, beta, weights=weights, smoothing=smoothing,
-                             scale=0.5 * float(np.hypot(*shape)))
-    gy, gx = _coarse_grid(shape, grid_step)
-    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-    coarse = spline(nodes)  # (G, I)
-    cone = reduce_cone(beta)
-    coarse = cone.project(coarse)
-    psfs = basis.basis if basis_filter is None else basis_filter(basis.basis)
-    sums = psfs.sum(axis=(1, 2))  # (I,)
-    total = coarse @ sums
-    bad = total <= 1e-12 * np.abs(coarse).sum(axis=1).clip(1e-300)
-    if bad.any():  # projected to the apex: fall back to the mean observed PSF
-        mean = beta.mean(axis=0)
-        coarse[bad] = mean
-        total[bad] = mean @ sums
-    coarse = coarse / total[:, None]
-    maps = coarse.T.reshape(basis.n_psf, len(gy), len(gx))
-    op = ProductConvolution(psfs, maps, shape=shape, grid=(gy, gx), metadata=metadata)
-    return op, cone, spline
 
 
 def iter_estimate(
@@ -208,12 +144,10 @@ def iter_estimate(
                       min_separation=2 * r)
     yield Progress("detect", 0.15, beads.summary())
 
-    need = min_beads_for(fixed_n or 1)
     kept = np.flatnonzero(beads.kept)
-    if len(kept) < need:
+    if len(kept) == 0:
         raise NoBeadsError(
-            f"Too few usable beads: {len(kept)} kept, need at least {need} for a basis of "
-            f"`n_psf` = {fixed_n or 1}. {beads.summary()}. Lower `threshold`, check "
+            f"No usable bead (0 kept): {beads.summary()}. Lower `threshold`, check "
             f"`psf_radius` = {r:g} px, or image a denser bead slide."
         )
     sigma = max(1.0, r / 4.0)
@@ -230,11 +164,8 @@ def iter_estimate(
     if faint.any():
         beads.status[kept[faint]] = FAINT
         kept, patches = kept[~faint], patches.subset(~faint)
-    if len(kept) < need:
-        raise NoBeadsError(
-            f"Too few usable beads after background removal: {len(kept)}, need {need}. "
-            f"{beads.summary()}."
-        )
+    if len(kept) == 0:
+        raise NoBeadsError(f"No usable bead after background removal. {beads.summary()}.")
     if patch_filter is not None:
         psf = patch_filter(patches.psf, patches.centers)
         total = psf.sum(axis=(1, 2))
@@ -244,49 +175,43 @@ def iter_estimate(
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
 
     support = radial_distance(patches.size) < patches.r_ext
-
     sphere: dict = {}
 
-    def point_source(sub: Patches, b: PsfBasis):
+    def point_source(psf: np.ndarray):
         """The basis filter that removes the beads' own size (None for point beads)."""
-        if not bead_diameter:
-            return None
+        return None if not bead_diameter else _sphere_remover(psf, bead_diameter, sphere)
 
-        psf = sub.psf[b.inliers]
-        noise = None
-        if len(psf) >= 2:  # split halves: their difference is the mean's noise alone
-            # var(A - B) = s^2 K / (n_a n_b); the mean of all K has s^2 / K
-            noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
-            noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
-
-        def remove(h):
-            out, info = remove_sphere(h, bead_diameter, reference=psf.mean(axis=0),
-                                      noise=noise)
-            sphere.update(info)
-            return out
-
-        return remove
-
-    def fit(sub: Patches, meta: dict | None, *, final: bool = False):
-        b = learn_basis(sub.psf, n_psf, support=support, positions=sub.centers,
-                        z_threshold=z_threshold)
-        op, cone, spline = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
-                                     metadata=meta,
-                                     basis_filter=point_source(sub, b) if final else None)
-        return b, op, cone, spline
-
+    few = None
     heldout = None
-    if holdout:
-        held = split_holdout(patches.centers, shape, holdout)
-        if np.count_nonzero(~held) >= need and np.count_nonzero(held) >= 1:
-            _, op_train, _, _ = fit(patches.subset(~held), None)
-            heldout = heldout_residuals(op_train, patches.subset(held))
-            yield Progress("held-out", 0.7,
-                           f"held-out residual {heldout.summary()['residual_mean']:.3f} on "
-                           f"{int(held.sum())} beads")
+    if len(kept) <= FEW_BEADS:  # a handful of beads: the richest model they support
+        few = fit_few_beads(patches, shape, n_psf=fixed_n, support=support,
+                            grid_step=grid_step, basis_filter=point_source(patches.psf))
+        heldout, op, cone = few.heldout, few.operator, few.cone
+        n = len(patches)
+        basis = PsfBasis(few.basis, few.coefficients, np.ones(n, bool), np.zeros(n),
+                         np.zeros(0), float("nan"), few.n_psf)
+        spline = None
+        yield Progress("held-out", 0.7, few.reason)
+    else:
+        def fit(sub: Patches, *, final: bool = False):
+            b = learn_basis(sub.psf, n_psf, support=support, positions=sub.centers,
+                            z_threshold=z_threshold)
+            filt = point_source(sub.psf[b.inliers]) if final else None
+            o, c, sp = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
+                                 basis_filter=filt)
+            return b, o, c, sp
 
-    basis, op, cone, spline = fit(patches, None, final=True)
-    beads.status[kept[~basis.inliers]] = OUTLIER
+        need = min_beads_for(fixed_n or 1)
+        if holdout:
+            held = split_holdout(patches.centers, shape, holdout)
+            if np.count_nonzero(~held) >= need and np.count_nonzero(held) >= 1:
+                _, op_train, _, _ = fit(patches.subset(~held))
+                heldout = heldout_residuals(op_train, patches.subset(held))
+                yield Progress("held-out", 0.7,
+                               f"held-out residual {heldout.summary()['residual_mean']:.3f} "
+                               f"on {int(held.sum())} beads")
+        basis, op, cone, spline = fit(patches, final=True)
+        beads.status[kept[~basis.inliers]] = OUTLIER
     meta = {
         "psf_radius": r,
         "r_ext": patches.r_ext,
@@ -295,9 +220,12 @@ def iter_estimate(
         "n_psf_requested": n_psf,
         "heldout_error_by_n_psf": (None if basis.heldout_errors is None
                                    else [float(v) for v in basis.heldout_errors]),
-        "smoothing": [float(s) for s in spline.smoothing],
+        "smoothing": None if spline is None else [float(s) for s in spline.smoothing],
         "smoothing_requested": smoothing,
-        "effective_dof": [float(d) for d in spline.effective_dof],
+        "effective_dof": None if spline is None else [float(d) for d in spline.effective_dof],
+        "field_model": "thin-plate" if few is None else few.field_model,
+        "field_model_reason": None if few is None else few.reason,
+        "few_beads_loo_errors": None if few is None else few.metadata()["loo_errors"],
         "threshold": threshold,
         "z_threshold": z_threshold,
         "grid_step": grid_step,
@@ -316,8 +244,29 @@ def iter_estimate(
                             if bead_diameter else None),
     }
     op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
-    yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads")
+    yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads"
+                   + ("" if few is None or few.field_model != "shift-invariant"
+                      else " (one PSF for the whole field)"))
     return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+def _sphere_remover(psf: np.ndarray, diameter: float, record: dict):
+    """A basis filter removing beads of ``diameter`` px from PSFs learnt from ``psf``
+    (K, P, P) sum-1 patches: their mean sets the signal-to-noise ratio, the difference
+    of two halves' means its noise (the re-sampling colours it). ``record`` receives
+    :func:`~napari_psfspace.core.sphere.remove_sphere`'s info."""
+    noise = None
+    if len(psf) >= 2:
+        # var(A - B) = s^2 K / (n_a n_b); the mean of all K has s^2 / K
+        noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
+        noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
+
+    def remove(h):
+        out, info = remove_sphere(h, diameter, reference=psf.mean(axis=0), noise=noise)
+        record.update(info)
+        return out
+
+    return remove
 
 
 def check_bead_diameter(bead_diameter, psf_radius: float) -> float:

@@ -16,6 +16,9 @@ from scipy import fft as sfft
 
 #: Largest gain :func:`remove_sphere` applies at any frequency (``1 / T`` is capped there).
 MAX_GAIN = 10.0
+#: First zero of ``sin q - q cos q`` (``tan q = q``): the sphere's transfer vanishes at
+#: ``|k| = FIRST_ZERO_Q / (pi d)``.
+FIRST_ZERO_Q = 4.493409457909064
 
 
 def sphere_transfer(k, diameter) -> np.ndarray:
@@ -181,6 +184,14 @@ def remove_sphere(stack: np.ndarray, diameter: float, *, reference: np.ndarray |
     gain = w * inv + (1.0 - w)
     out = sfft.irfft2(spec[:k] * gain, s=(n, n), axes=(1, 2))[:, pad:pad + p, pad:pad + p]
     signal = freq[w >= 0.5]
-    info.update(band_px=float(signal.max()) if signal.size else 0.0,
-                max_gain_applied=float(np.abs(gain).max()))
+    band = float(signal.max()) if signal.size else 0.0
+    first_zero = FIRST_ZERO_Q / (np.pi * diameter)
+    info.update(band_px=band, max_gain_applied=float(np.abs(gain).max()),
+                first_zero_px=float(first_zero))
+    if first_zero < band:
+        info["warning"] = (
+            f"The bead ({diameter:.3g} px) is large for these optics: its transfer "
+            f"vanishes at {first_zero:.3g} cycles/px, inside the band the beads show (up "
+            f"to {band:.3g}); what the PSF holds near there is lost, and the corrected PSF "
+            "is only as good as what is left. Smaller beads calibrate better.")
     return out, info

@@ -133,13 +133,15 @@ def find_spikes(
     peak = ndi.maximum_filter(a, size=3, mode="nearest") == a
     box = ndi.uniform_filter(a, size=7, mode="nearest")
     cand = peak & (a - box > k * sd)
-    cand[:2, :] = cand[-2:, :] = False
-    cand[:, :2] = cand[:, -2:] = False
     ys, xs = np.nonzero(cand)
     if len(ys) == 0:
         return np.zeros((0, 2), np.int64)
     d = np.arange(-2, 3)
-    win = a[ys[:, None, None] + d[None, :, None], xs[:, None, None] + d[None, None, :]]
+    # mirrored about the edge pixels (not repeating them): a spike on the border row is
+    # not its own neighbour
+    padded = np.pad(a, 2, mode="reflect")
+    win = padded[ys[:, None, None] + 2 + d[None, :, None],
+                 xs[:, None, None] + 2 + d[None, None, :]]
     win = win.astype(np.float64)
     ring = np.concatenate([win[:, 0, :], win[:, -1, :], win[:, 1:-1, 0], win[:, 1:-1, -1]],
                           axis=1)
@@ -158,7 +160,8 @@ def find_spikes(
     off = np.array([(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)])
     sel_spike, sel_pix = np.nonzero(part)
     out = np.column_stack([ys[sel_spike] + off[sel_pix, 0], xs[sel_spike] + off[sel_pix, 1]])
-    return np.unique(out.astype(np.int64), axis=0)
+    inside = (out[:, 0] >= 0) & (out[:, 0] < h) & (out[:, 1] >= 0) & (out[:, 1] < w)
+    return np.unique(out[inside].astype(np.int64), axis=0)
 
 
 def inpaint_pixels(image, pixels, *, copy: bool = True) -> np.ndarray:

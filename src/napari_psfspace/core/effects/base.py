@@ -51,6 +51,10 @@ class Context:
     throughput_degree : int
         Degree of the log-polynomial throughput over the field
         (:mod:`~napari_psfspace.core.photometry`; 0: uniform, the plain model).
+    bead_diameter : float
+        The beads' nominal diameter in pixels, when the user gave it (0: unknown). The
+        models are learnt and judged on bead images; only the final operator has the
+        sphere divided out.
     """
 
     image: np.ndarray
@@ -64,6 +68,7 @@ class Context:
     params: dict = field(default_factory=dict)
     noise_from_image: bool = True
     throughput_degree: int = 0
+    bead_diameter: float = 0.0
 
     def renoised(self, image: np.ndarray) -> NoiseModel:
         """The noise model for a corrected image: re-estimated when it came from the

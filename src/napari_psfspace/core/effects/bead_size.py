@@ -141,7 +141,9 @@ class BeadSize(Effect):
     diameter of the median bead, the model's reference) minimises the cross-fitted
     error (``folds`` folds) of the beads the current model fits informatively: a grid of
     ``n_grid`` steps up to ``max_fraction * psf_radius`` (extended while the error still
-    drops at its end), then half a step on either side of the best.
+    drops at its end), then half a step on either side of the best. When the beads'
+    nominal diameter is known (``bead_diameter``), it is the median bead's: only that
+    scale is tried.
     """
 
     name = "bead_size"
@@ -172,15 +174,18 @@ class BeadSize(Effect):
             _, r = _heldout(ctx, self.folds, (pos, d * rel, d))
             cost.append(float(np.mean(r.rel_energy[judge])))
 
-        for d in step * np.arange(1, self.n_grid + 1):
-            evaluate(float(d))
-        # the best at the end of the grid: go on while the error drops (up to 2 r)
-        while np.argmin(cost) == len(cost) - 1 and grid[-1] + step <= 2 * ctx.psf_radius:
-            evaluate(grid[-1] + step)
-        best = grid[int(np.argmin(cost))]
-        for d in (best - step / 2, best + step / 2):
-            if d > 0:
+        if ctx.bead_diameter > 0:  # the median bead has the nominal diameter
+            evaluate(float(ctx.bead_diameter))
+        else:
+            for d in step * np.arange(1, self.n_grid + 1):
                 evaluate(float(d))
+            # the best at the end of the grid: go on while the error drops (up to 2 r)
+            while np.argmin(cost) == len(cost) - 1 and grid[-1] + step <= 2 * ctx.psf_radius:
+                evaluate(grid[-1] + step)
+            best = grid[int(np.argmin(cost))]
+            for d in (best - step / 2, best + step / 2):
+                if d > 0:
+                    evaluate(float(d))
         best = grid[int(np.argmin(cost))]
         search = {"d_ref_px": np.round(grid, 3).tolist(),
                   "heldout_error": np.round(cost, 5).tolist(), "folds": self.folds}
