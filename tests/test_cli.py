@@ -81,3 +81,36 @@ def test_demo_small(tmp_path, capsys):
     for name in ["image.tif", "model.npz", "psf_grid.png", "basis.png",
                  "coefficient_maps.png", "psf_grid_true.tif", "psf_grid_estimated.tif"]:
         assert (tmp_path / name).stat().st_size > 0
+
+
+def test_bead_diameter_in_nanometres_and_pixel_size(workdir, capsys):
+    d = workdir
+    assert main(["estimate", str(d / "beads.tif"), "-o", str(d / "m200.npz"), "-q",
+                 "--psf-radius", "8", "--bead-diameter-nm", "200"]) == 0
+    out = capsys.readouterr().out
+    assert "Bead size corrected" in out and "point source" in out
+    op = load_operator(d / "m200.npz")
+    assert op.metadata["bead_diameter_px"] == pytest.approx(0.2 / 0.065, rel=1e-3)
+    assert op.metadata["bead_correction"]["diameter_px"] == pytest.approx(0.2 / 0.065,
+                                                                          rel=1e-3)
+    # a pixel size given on the command line overrides the file's
+    assert main(["estimate", str(d / "beads.tif"), "-o", str(d / "m100.npz"), "-q",
+                 "--psf-radius", "8", "--bead-diameter-nm", "200",
+                 "--pixel-size-nm", "100"]) == 0
+    capsys.readouterr()
+    assert load_operator(d / "m100.npz").metadata["bead_diameter_px"] == pytest.approx(2.0)
+    # no pixel size: refused, naming the fix
+    tifffile.imwrite(d / "nopx.tif", tifffile.imread(d / "beads.tif"))
+    assert main(["estimate", str(d / "nopx.tif"), "-o", str(d / "x.npz"),
+                 "--psf-radius", "8", "--bead-diameter-nm", "200"]) == 2
+    assert "--pixel-size-nm" in capsys.readouterr().err
+
+
+def test_few_beads_say_the_model_is_shift_invariant(tmp_path, capsys):
+    assert main(["simulate", "-o", str(tmp_path / "two.tif"), "--shape", "256", "256",
+                 "--beads", "2", "--seed", "3"]) == 0
+    assert main(["estimate", str(tmp_path / "two.tif"), "-o", str(tmp_path / "m.npz"),
+                 "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "The model is shift-invariant (one PSF for the whole field)" in out
+    assert "2 usable beads: too few" in out

@@ -14,7 +14,13 @@ from scipy import ndimage as ndi
 from skimage.feature import peak_local_max
 
 from ._validate import as_image, check_positive, check_psf_radius
-from .spikes import QUANTISATION_VARIANCE, find_spikes, inpaint_pixels, is_integer_valued
+from .spikes import (
+    QUANTISATION_VARIANCE,
+    find_spikes,
+    inpaint_pixels,
+    is_integer_valued,
+    pixel_noise_sd,
+)
 
 #: Status codes of a bead, in the order in which they are assigned.
 KEPT = "kept"
@@ -256,7 +262,8 @@ def detect_beads(
         )
 
     integer = is_integer_valued(raw)
-    spikes = find_spikes(raw) if hot_pixels else np.zeros((0, 2), np.int64)
+    spikes = (find_spikes(img, noise_sd=pixel_noise_sd(raw, integer=integer),
+                          integer=integer) if hot_pixels else np.zeros((0, 2), np.int64))
     if len(spikes):
         img = inpaint_pixels(img, spikes)
     resp = log_response(img, sigma,

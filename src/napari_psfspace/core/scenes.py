@@ -51,6 +51,13 @@ RANGES: dict[str, Any] = {
     "fill": (0.3, 0.95),
     "per_bead": False,
 }
+#: The 8-bit low-count family: background 1-5 photons, bead peaks 50-250 ADU drawn per
+#: bead, from photon-limited cameras (gain up to 2 ADU/e-) to 8-bit exports of deeper
+#: ones (gain down to 0.01 ADU/e-, the background's noise far below one ADU); beads may
+#: lie as close as one PSF radius. Use as ``random_scene(seed, **LOW_COUNT_8BIT)``.
+LOW_COUNT_8BIT: dict[str, Any] = {
+    "shape": (512, 512), "bits": 8, "background": (1.0, 5.0), "peak_adu": (50, 250),
+    "per_bead": True, "n_beads": (20, 80), "min_separation": 1.0, "gain": (0.01, 2.0)}
 #: Parameters drawn log-uniformly from their range.
 LOG_SCALE = frozenset({"background", "peak_photons", "peak_adu", "gain", "n_beads"})
 #: The gain (ADU per photo-electron) of a scene whose gain follows from ``peak_adu`` and

@@ -1008,6 +1008,16 @@ def _check_effects(
         elif key in ("row_offsets", "column_offsets", "background_structure"):
             out[key] = _scalar(key, value, 0.0, inf, open_low=False, open_high=True)
         elif key == "hot_pixels":
+            factors = None
+            if isinstance(value, (tuple, list)):  # (count or fraction, (low, high))
+                try:
+                    value, factors = value
+                except (TypeError, ValueError):
+                    raise ValueError(f"effect {key!r}: expected n, a fraction, or (n or "
+                                     f"fraction, (low, high)), got {value!r}") from None
+                factors = _pair(key, factors)
+                if not 0 < factors[0] <= factors[1]:
+                    raise ValueError(f"effect {key!r}: need 0 < low <= high, got {factors}")
             if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
                 count = int(value)
             else:
@@ -1016,7 +1026,7 @@ def _check_effects(
                 raise ValueError(
                     f"effect {key!r}: count must lie in [0, {shape[0] * shape[1]}], got {value!r}"
                 )
-            out[key] = count
+            out[key] = count if factors is None else (count, factors)
         elif key == "saturation":
             top = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else inf
             level = _scalar(key, value, offset, top, open_high=True)
@@ -1067,12 +1077,14 @@ def _fixed_pattern(rng: np.random.Generator, n: int, sd: float) -> np.ndarray:
 
 
 def _hot_pixels(
-    rng: np.random.Generator, shape: tuple[int, int], count: int, typical_peak_adu: float
+    rng: np.random.Generator, shape: tuple[int, int], count: int, peak_adu: float,
+    factors: tuple[float, float] = _HOT_PIXEL_RANGE,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``count`` distinct pixels ``(row, col)`` with values uniform in [20 %, 100 %] of the peak."""
+    """``count`` distinct pixels ``(row, col)`` with values uniform in ``factors`` times
+    the peak."""
     flat = rng.choice(shape[0] * shape[1], size=count, replace=False)
     where = np.stack(np.unravel_index(np.sort(flat), shape), axis=1)
-    values = typical_peak_adu * rng.uniform(*_HOT_PIXEL_RANGE, size=count)
+    values = peak_adu * rng.uniform(*factors, size=count)
     return where, values
 
 
@@ -1235,9 +1247,12 @@ def simulate_beads(
             Fixed-pattern offsets, normal with standard deviation ``sd``, per
             row / column, added to the ADU image after the noise. Truth:
             ``row_offset_values`` (H,), ``column_offset_values`` (W,).
-        ``"hot_pixels": n`` (int) or fraction of the pixels (float < 1)
+        ``"hot_pixels": n`` (int), a fraction of the pixels (float < 1), or ``(n, (lo, hi))``
             Distinct random pixels with an extra dark signal uniform in
-            [20 %, 100 %] of the median expected bead peak (ADU), added
+            [20 %, 100 %] of the median expected bead peak (ADU) (with
+            ``(lo, hi)``: uniform in ``lo``-``hi`` times the brightest expected
+            bead peak, e.g. ``(0.001, (1, 5))`` for an sCMOS without dark-frame
+            correction; ``n`` a count or a fraction), added
             (noiseless) to the ADU image after the noise. Truth:
             ``hot_pixels`` (the count), ``hot_pixel_positions`` (n, 2) int
             ``(row, col)``, ``hot_pixel_values`` (n,) ADU.
@@ -1493,12 +1508,18 @@ def _simulate_with_effects(
         adu += cols[None, :]
         fx.update(column_offsets=params["column_offsets"], column_offset_values=cols)
     if "hot_pixels" in params:
-        typical = gain * _typical_peak(amplitudes, peaks, amp_range, aberrations, optics, shape)
-        where, values = _hot_pixels(rngs["hot_pixels"], shape, params["hot_pixels"], typical)
+        hot = params["hot_pixels"]
+        if isinstance(hot, tuple):  # factors of the brightest expected bead peak
+            count, factors = hot
+            top = float(np.max(amplitudes * peaks)) if len(amplitudes) else 0.0
+            where, values = _hot_pixels(rngs["hot_pixels"], shape, count, gain * top, factors)
+        else:
+            count = hot
+            typical = gain * _typical_peak(amplitudes, peaks, amp_range, aberrations, optics,
+                                           shape)
+            where, values = _hot_pixels(rngs["hot_pixels"], shape, count, typical)
         adu[where[:, 0], where[:, 1]] += values
-        fx.update(
-            hot_pixels=params["hot_pixels"], hot_pixel_positions=where, hot_pixel_values=values
-        )
+        fx.update(hot_pixels=count, hot_pixel_positions=where, hot_pixel_values=values)
     level = params.get("saturation")
     if level is not None:
         rounded = np.rint(adu) if np.issubdtype(dtype, np.integer) else adu
