@@ -106,3 +106,19 @@ def test_bead_diameter_without_pixel_size_is_refused(make_napari_viewer, qtbot, 
     w.detect.clicked()
     assert len(shown) == 1 and "pixel size" in shown[0]
     assert BEADS not in v.layers
+
+
+def test_hot_pixels_are_shown_beside_the_beads(make_napari_viewer, qtbot):
+    from napari_psfspace._widgets._layers import HOT_PIXELS
+    from napari_psfspace.core.simulate import simulate_beads
+
+    image, truth = simulate_beads((384, 384), 25, seed=3, effects={"hot_pixels": 20})
+    v = make_napari_viewer()
+    v.add_image(image, name="hot")
+    w = PickBeadsWidget(v)
+    w.detect.clicked()
+    wait_task(qtbot, w.task)
+    assert HOT_PIXELS in v.layers and BEADS in v.layers
+    assert len(v.layers[HOT_PIXELS].data) >= 18  # 20 injected
+    assert "hot pixel(s) masked" in w.task.status.value
+    assert v.layers.selection.active is v.layers[BEADS]

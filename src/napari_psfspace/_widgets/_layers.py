@@ -58,6 +58,7 @@ BASIS = "PSF basis h_i"
 MAPS = "coefficient maps alpha_i"
 HELDOUT = "held-out residual"
 PSF_AT = "PSF at position"
+HOT_PIXELS = "hot pixels"
 #: Key of the layer metadata that holds the operator (read by the model writer).
 OPERATOR_KEY = "psfspace_operator"
 
@@ -183,6 +184,14 @@ def beads_layer(beads: Beads, frame: Frame, psf_radius: float, *,
         "opacity": 0.9,
     }
     return beads.positions.copy(), kwargs, "points"
+
+
+def hot_pixels_layer(pixels: np.ndarray, frame: Frame) -> LayerTuple:
+    """Points layer-data tuple of the pixels masked as hot pixels / cosmic rays (red x)."""
+    kwargs = {"name": HOT_PIXELS, "scale": frame.scale, "translate": frame.translate,
+              "size": 3.0, "symbol": "x", "face_color": "#ff2020", "border_width": 0,
+              "opacity": 0.9}
+    return np.asarray(pixels, dtype=float).reshape(-1, 2), kwargs, "points"
 
 
 def _categorical(status):

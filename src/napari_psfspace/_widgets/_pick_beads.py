@@ -16,6 +16,7 @@ from ._layers import (
     STATUS_MEANING,
     beads_layer,
     fix_ids,
+    hot_pixels_layer,
     image_plane,
     show_layers,
 )
@@ -64,7 +65,9 @@ def watch_points(layer) -> None:
 
 
 class PickBeadsWidget(Container):
-    """Detect beads in an image layer; the result is a Points layer named "beads".
+    """Detect beads in an image layer; the result is a Points layer named "beads" (and,
+    when the image has some, a "hot pixels" layer of the pixels masked as narrower than
+    the optics can form).
 
     Each point has the features ``id``, ``amplitude`` and ``status`` (its colour). Add,
     delete or move points with napari's Points tools: the other widgets read the layer.
@@ -166,7 +169,10 @@ class PickBeadsWidget(Container):
                                   "threshold": float(self.threshold.value),
                                   "bead_diameter_nm": diameter_nm,
                                   "bead_diameter_px": diameter_px}
-            (points,) = show_layers(self._viewer, [(data, kwargs, kind)])
+            tuples = [(data, kwargs, kind)]
+            if beads.hot_pixels is not None and len(beads.hot_pixels):
+                tuples.insert(0, hot_pixels_layer(beads.hot_pixels, frame))
+            points = show_layers(self._viewer, tuples)[-1]
             watch_points(points)
             self._viewer.layers.selection.active = points
             self.task.status.value = beads.summary()

@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
+from ._threads import filter_by_rows
+
 #: Smallest ratio (third brightest pixel of the 3 x 3 neighbourhood above the local
 #: background, over the maximum above it) that a band-limited spot sampled at up to
 #: ~2.2 x Nyquist reaches; spikes are well below it.
@@ -65,10 +67,11 @@ def pixel_noise_sd(image, *, integer: bool | None = None, max_samples: int = 250
         integer = is_integer_valued(img)
     h, w = img.shape
     step = max(1, int(np.sqrt(h * w / max_samples)))
-    rows = np.arange(1, h - 1, step)
-    up, mid, down = (img[r].astype(np.float64) for r in (rows - 1, rows, rows + 1))
-    lap = 4 * mid[:, 1:-1] - up[:, 1:-1] - down[:, 1:-1] - mid[:, :-2] - mid[:, 2:]
-    lap = lap[:, ::step].ravel() / np.sqrt(20.0)
+    rows = np.arange(1, h - 1, step)[:, None]
+    cols = np.arange(1, w - 1, step)[None, :]
+    mid = img[rows, cols].astype(np.float64)
+    lap = (4 * mid - img[rows - 1, cols] - img[rows + 1, cols] - img[rows, cols - 1]
+           - img[rows, cols + 1]).ravel() / np.sqrt(20.0)
     med = float(np.median(lap))
     sd = 1.4826 * float(np.median(np.abs(lap - med)))
     floor = np.sqrt(QUANTISATION_VARIANCE) if integer else 0.0
@@ -145,7 +148,7 @@ def find_spikes(
     sd = pixel_noise_sd(img, integer=integer) if noise_sd is None else float(noise_sd)
     # candidates: pixels well above a 7 x 7 box mean (the one full-image filter), then
     # only the local maxima of their 3 x 3 neighbourhood
-    box = ndi.uniform_filter(a, size=7, mode="nearest")
+    box = filter_by_rows(lambda x: ndi.uniform_filter(x, size=7, mode="nearest"), a, 4)
     box -= a
     ys, xs = np.nonzero(box < -k * sd)
     if len(ys) == 0:
