@@ -58,6 +58,7 @@ def test_merged_companions_are_fitted_jointly():
                                   effects={"neighbours": 0.3})
     d = diagnose(image, psf_radius=truth.psf_radius)
     assert "neighbours" in d.added
+    assert d.context.beads.hot_pixels is not None  # the bead table keeps what it masked
     step = next(s for s in d.steps if s.effect == "neighbours")
     # measured: 0.040 -> 0.010 on the same beads (chi2/dof 10.7 -> 1.9)
     assert step.paired_after < 0.5 * step.paired_before

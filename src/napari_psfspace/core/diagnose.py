@@ -125,6 +125,8 @@ class Diagnosis:
         The final model context (corrected image, masks, options).
     noise_source : str
         How the noise model was obtained.
+    masked_pixels : ndarray of shape (S, 2) or None
+        The hot pixels found at detection (see :attr:`hot_pixels`).
     """
 
     steps: list[Step]
@@ -141,6 +143,7 @@ class Diagnosis:
     crossfit_after: CrossFit
     noise_source: str
     options: dict = field(default_factory=dict)
+    masked_pixels: np.ndarray | None = None
 
     @property
     def added(self) -> list[str]:
@@ -151,7 +154,7 @@ class Diagnosis:
     def hot_pixels(self) -> np.ndarray:
         """``(row, column)`` of the pixels masked at detection as narrower than the optics
         can form (hot pixels, cosmic rays), shape (S, 2)."""
-        hot = self.context.beads.hot_pixels
+        hot = self.masked_pixels
         return np.zeros((0, 2), np.int64) if hot is None else hot
 
     def to_dict(self) -> dict:
@@ -409,7 +412,7 @@ def iter_diagnose(
                "effects": names}
     return Diagnosis(steps, s0["error"], s1["error"], s0["chi2_dof"], s1["chi2_dof"],
                      s1["noise_floor"], op, ctx, first_an, an, first_cf, cf, noise_source,
-                     options)
+                     options, beads.hot_pixels)
 
 
 def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] | None = None,

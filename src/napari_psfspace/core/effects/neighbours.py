@@ -30,8 +30,7 @@ class Neighbours(Effect):
         index = np.asarray(params["beads"], dtype=int)
         status = beads.status.copy()
         status[index] = COMPANION
-        new = type(beads)(beads.positions.copy(), beads.response.copy(), status,
-                          beads.amplitude.copy())
+        new = beads.copy(status)
         companions = dict(ctx.fit_kwargs.get("companions", {}))
         for i, peak in zip(index, params["companions"], strict=True):
             key = tuple(int(v) for v in np.round(beads.positions[i]))
