@@ -191,3 +191,19 @@ def test_to_jsonable():
                        1: (np.int64(3), np.inf), "d": np.bool_(True)})
     assert out == {"a": 1.5, "b": [1, 2], "c": None, "1": [3, None], "d": True}
     json.dumps(out, allow_nan=False)
+
+
+def test_an_assumed_noise_model_qualifies_the_floor(tmp_path):
+    """An 8-bit export whose background noise is below the integers' rounding: the noise
+    model is a named fallback, and the report says its floor is only indicative."""
+    from napari_psfspace.core.scenes import LOW_COUNT_8BIT, random_scene
+    from napari_psfspace.report import summary_text
+
+    image, truth, _ = random_scene(14, **{**LOW_COUNT_8BIT, "gain": 0.02})
+    d = diagnose(image, psf_radius=truth.psf_radius, effects=[])
+    assert d.context.noise.kind in ("constant", "unit-gain Poisson")
+    assert "noise model assumed" in summary_text(d)
+    text = write_report(d, tmp_path).read_text(encoding="utf-8")
+    found = text.split("## What was found")[1].split("## ")[0]
+    assert "The noise model is assumed" in found and "only indicative" in found
+    assert "Fallback (" in text.split("## Noise model")[1]

@@ -251,10 +251,30 @@ def summary_text(diagnosis) -> str:
     added = ", ".join(d.added) if d.added else "nothing (no effect was found)"
     hot = (f"{len(d.hot_pixels)} hot pixel(s) masked (narrower than the optics can form)\n"
            if len(d.hot_pixels) else "")
+    kind = d.context.noise.kind
+    assumed = ("" if kind in ("camera", "photon transfer") else
+               f"\nnoise model assumed ({kind}: photon transfer was not possible): the floor "
+               "and chi2/dof are only indicative")
     return (f"{hot}added: {added}\n"
             f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} "
             f"(noise floor {_num(d.noise_floor)}); chi2/dof {_num(d.chi2_before, '.3g')} -> "
-            f"{_num(d.chi2_after, '.3g')}")
+            f"{_num(d.chi2_after, '.3g')}{assumed}")
+
+
+def floor_caveat(noise, ratio: float) -> str:
+    """A sentence for a noise floor that rests on an assumed noise model (a fallback)."""
+    if noise.kind in ("camera", "photon transfer"):
+        return ""
+    text = (f" The noise model is assumed ({noise.kind}; photon transfer was not possible, "
+            "see below): the floor and the chi-square are only indicative")
+    if ratio < 0.8:
+        text += (", and here the error is below the floor: the assumed model overstates the "
+                 "noise (e.g. a camera of less than 1 ADU per photon). Pass the camera's "
+                 "gain, offset and read noise to judge against the true floor")
+    elif noise.kind == "constant":
+        text += ("; one variance for all pixels understates the shot noise of bright bead "
+                 "cores, so the chi-square there is overstated")
+    return text + "."
 
 
 def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
@@ -381,7 +401,8 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
     lines += ["", f"Noise alone would leave an error of {_num(d.noise_floor)} (the noise "
                   f"floor): the final model's error is {_num(ratio, '.3g')} times the floor"
                   + (" (it explains everything but the noise)." if ratio < 1.2 else
-                     " (what is left above it is not explained by any candidate effect)."),
+                     " (what is left above it is not explained by any candidate effect).")
+                  + floor_caveat(d.context.noise, ratio),
               "", "## Residual tests", ""]
     lines += _tests_section(d.analysis_before, "Plain model")
     lines += _tests_section(d.analysis_after, "Final model")
