@@ -284,7 +284,8 @@ def estimate_noise(
     if np.count_nonzero(use) < 1000:
         frac = float(np.mean(clipped))
         why = (f" {100 * frac:.0f} % of the pixels sit at the image's minimum "
-               f"({img.min():g}), i.e. the background is clipped." if frac > 0.2 else "")
+               f"({img.min():g}): the background is clipped, or a few counts." if frac > 0.2
+               else "")
         raise NoiseModelError(
             f"Too few structure-free pixels to estimate the noise: {np.count_nonzero(use)}, "
             f"need at least 1000.{why} Pass the camera's gain, offset and read noise instead."
