@@ -138,6 +138,20 @@ def _model(psf: np.ndarray, positions: np.ndarray, kind: str, n_psf: int,
     return basis, beta, _affine(positions, beta, scale)
 
 
+@dataclass(frozen=True)
+class _OnePsf:
+    """The model's PSF at a left-out bead, as :func:`heldout_residuals` reads a model."""
+
+    psf: np.ndarray
+
+    @property
+    def psf_size(self) -> int:
+        return self.psf.shape[-1]
+
+    def psf_at(self, y: float, x: float) -> np.ndarray:
+        return self.psf
+
+
 def _predict(basis, beta, field_at, position) -> np.ndarray:
     """The model's sum-1 PSF at one position, kept in the cone of ``beta``."""
     coef = reduce_cone(beta).project(np.atleast_2d(field_at(position[None])))[0]
@@ -168,8 +182,8 @@ def fit_few_beads(
     shape : tuple of int
         Image shape.
     n_psf : int, optional
-        A fixed basis size (1: shift-invariant; 2 or 3: affine field), instead of the
-        leave-one-bead-out choice.
+        A fixed basis size (1: shift-invariant; 2 or 3: the affine or thin-plate field
+        that leaving one bead out prefers), instead of the leave-one-bead-out choice.
     support : ndarray of shape (P, P), bool, optional
         Pixels the windowed patches can reach (default: all).
     grid_step, metadata, basis_filter
@@ -213,9 +227,7 @@ def fit_few_beads(
                                                scale)
                 pred = _predict(basis, beta, field_at, pos[m])
                 errs.append(float(((psf[m] - pred)[mask] ** 2).sum()))
-                op_m, _ = assemble_operator(basis, beta, field_at, shape,
-                                            grid_step=grid_step)
-                res.append(heldout_residuals(op_m, patches.subset(np.flatnonzero(~others))))
+                res.append(heldout_residuals(_OnePsf(pred), patches.subset([m])))
             loo[_name(kind, size)] = float(np.mean(errs) / norm2)
             residuals[(kind, size)] = HeldoutResiduals(
                 np.concatenate([r.positions for r in res]),
