@@ -122,3 +122,16 @@ def test_hot_pixels_are_shown_beside_the_beads(make_napari_viewer, qtbot):
     assert len(v.layers[HOT_PIXELS].data) >= 18  # 20 injected
     assert "hot pixel(s) masked" in w.task.status.value
     assert v.layers.selection.active is v.layers[BEADS]
+    # a detection on a clean image empties the layer rather than leave stale points
+    v.layers["hot"].data = truth_clean_image(image, truth)
+    w.detect.clicked()
+    wait_task(qtbot, w.task)
+    assert len(v.layers[HOT_PIXELS].data) == 0
+
+
+def truth_clean_image(image, truth):
+    """The image without its simulated hot pixels."""
+    clean = image.copy()
+    where = truth.effects["hot_pixel_positions"]
+    clean[where[:, 0], where[:, 1]] = np.median(image)
+    return clean

@@ -5,6 +5,7 @@ from __future__ import annotations
 import weakref
 from typing import TYPE_CHECKING
 
+import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
 from napari.layers import Image
 
@@ -12,6 +13,7 @@ from ..core.detect import detect_beads, suggest_psf_radius
 from ..core.estimate import Progress
 from ._layers import (
     BEADS,
+    HOT_PIXELS,
     STATUS_COLORS,
     STATUS_MEANING,
     beads_layer,
@@ -170,8 +172,9 @@ class PickBeadsWidget(Container):
                                   "bead_diameter_nm": diameter_nm,
                                   "bead_diameter_px": diameter_px}
             tuples = [(data, kwargs, kind)]
-            if beads.hot_pixels is not None and len(beads.hot_pixels):
-                tuples.insert(0, hot_pixels_layer(beads.hot_pixels, frame))
+            hot = np.zeros((0, 2)) if beads.hot_pixels is None else beads.hot_pixels
+            if len(hot) or HOT_PIXELS in self._viewer.layers:  # never leave a stale one
+                tuples.insert(0, hot_pixels_layer(hot, frame))
             points = show_layers(self._viewer, tuples)[-1]
             watch_points(points)
             self._viewer.layers.selection.active = points
