@@ -19,6 +19,7 @@ import numpy as np
 from ._validate import as_image, check_positive, check_psf_radius
 from .centering import refine_centers
 from .cone import Cone
+from .denoise import band_limit, refit_basis
 from .detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .field import fit_field
@@ -28,7 +29,7 @@ from .patches import Patches, extract_patches
 from .pca import PsfBasis, learn_basis, min_beads_for
 from .sphere import remove_sphere
 from .spikes import find_spikes
-from .window import radial_distance
+from .window import bump_window, radial_distance
 
 
 @dataclass(frozen=True)
@@ -98,6 +99,7 @@ def iter_estimate(
     z_threshold: float = 3.0,
     patch_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     bead_diameter: float = 0.0,
+    denoise: bool = True,
 ) -> Generator[Progress, None, Estimation]:
     """Generator form of :func:`estimate_operator`: yields progress, returns the result.
 
@@ -108,9 +110,9 @@ def iter_estimate(
     (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
     (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
     different sizes to one, :class:`~napari_psfspace.core.effects.bead_size.SizeFilter`).
-    ``bead_diameter`` is that of :func:`estimate_operator`: the returned operator's PSFs are
-    point-source PSFs; the held-out residual is measured with the uncorrected model (the
-    beads' own images).
+    ``bead_diameter`` and ``denoise`` are those of :func:`estimate_operator`: with a
+    diameter, the returned operator's PSFs are point-source PSFs; the held-out residual
+    is measured with the uncorrected model (the beads' own images).
 
     Returns
     -------
@@ -183,6 +185,7 @@ def iter_estimate(
 
     few = None
     heldout = None
+    denoised: dict = {}
     if len(kept) <= FEW_BEADS:  # a handful of beads: the richest model they support
         few = fit_few_beads(patches, shape, n_psf=fixed_n, support=support,
                             grid_step=grid_step, basis_filter=point_source(patches.psf))
@@ -193,12 +196,28 @@ def iter_estimate(
         spline = None
         yield Progress("held-out", 0.7, few.reason)
     else:
+        window = bump_window(patches.size, patches.r, patches.r_ext)
+
         def fit(sub: Patches, *, final: bool = False):
-            b = learn_basis(sub.psf, n_psf, support=support, positions=sub.centers,
-                            z_threshold=z_threshold)
+            learn, weights, refit = sub.psf, None, None
+            if denoise:
+                sd = sub.noise / sub.flux  # per-pixel noise of the sum-1 patches
+                weights = 1.0 / (sub.psf[:, support] ** 2).sum(axis=1)
+                learn, info = band_limit(sub.psf, sd, window)
+                denoised.update(info)
+            b = learn_basis(learn, n_psf, support=support, positions=sub.centers,
+                            z_threshold=z_threshold, weights=weights)
+            if denoise:
+                inl = b.inliers
+
+                def refit(a):
+                    h, info = refit_basis(sub.psf[inl], a, sd[inl], window,
+                                          weights=weights[inl])
+                    denoised.update(info)
+                    return h
             filt = point_source(sub.psf[b.inliers]) if final else None
             o, c, sp = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
-                                 basis_filter=filt)
+                                 basis_filter=filt, refit=refit)
             return b, o, c, sp
 
         need = min_beads_for(fixed_n or 1)
@@ -237,6 +256,8 @@ def iter_estimate(
         "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
         "cone_generators": int(len(cone.generators)),
         "heldout": heldout.summary() if heldout is not None else None,
+        "denoise": ({"passband": denoised.get("passband"),
+                     "basis_noise": denoised.get("noise_rel")} if denoised else None),
         "bead_diameter_px": bead_diameter,
         "bead_correction": ({**sphere, "note": "the PSFs are those of a point source: the "
                              "beads' projected sphere was divided out; the held-out "
@@ -310,6 +331,7 @@ def estimate_operator(
     grid_step: float = 32.0,
     saturation: float | None = None,
     bead_diameter: float = 0.0,
+    denoise: bool = True,
     progress: Callable[[Progress], None] | None = None,
 ) -> ProductConvolution:
     """Learn the space-varying PSF of a microscope from one image of beads.
@@ -347,6 +369,13 @@ def estimate_operator(
         sphere (divided out in Fourier where the signal stands above the noise, so that
         noise is not amplified; :func:`~napari_psfspace.core.sphere.remove_sphere`) and
         the correction is recorded in ``metadata["bead_correction"]``. 0: point sources.
+    denoise : bool
+        Use the beads by their information (:mod:`~napari_psfspace.core.denoise`): the
+        basis is learnt from patches filtered by one Wiener filter, each bead weighted
+        by ``1 / ||p||^2`` of its raw patch, and the basis images are then refitted to
+        the raw patches of all beads at once given the smooth field and shrunk by
+        their own noise. Recorded in ``metadata["denoise"]``. False: the paper's
+        plain PCA of l2-normalised patches.
     progress : callable, optional
         Called with a :class:`Progress` record after each step.
 
@@ -364,7 +393,8 @@ def estimate_operator(
     """
     gen = iter_estimate(image, psf_radius=psf_radius, n_psf=n_psf, smoothing=smoothing,
                         threshold=threshold, holdout=holdout, grid_step=grid_step,
-                        saturation=saturation, bead_diameter=bead_diameter)
+                        saturation=saturation, bead_diameter=bead_diameter,
+                        denoise=denoise)
     return run_with_progress(gen, progress).operator
 
 

@@ -35,6 +35,7 @@ def fit_field(
     grid_step: float = 32.0,
     metadata: dict | None = None,
     basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
+    refit: Callable[[np.ndarray], np.ndarray] | None = None,
 ) -> tuple[ProductConvolution, Cone, ThinPlateSpline]:
     """Interpolate the PSF coefficients over the field and build the operator.
 
@@ -55,6 +56,10 @@ def fit_field(
         ``basis_filter(h) -> h'``, shape (I, P, P): a linear change of every PSF of the
         model (e.g. removing the beads' size, :func:`~napari_psfspace.core.sphere.remove_sphere`),
         applied before the maps are normalised so that every PSF still sums to 1.
+    refit : callable, optional
+        ``refit(a) -> h``: new basis images (I, P, P) given the fitted field at the
+        inlier beads, shape (K_in, I) (e.g.
+        :func:`~napari_psfspace.core.denoise.refit_basis` against the raw patches).
 
     Returns
     -------
@@ -65,7 +70,8 @@ def fit_field(
     weights = voronoi_areas(centers, shape)
     spline = ThinPlateSpline(centers, beta, weights=weights, smoothing=smoothing,
                              scale=0.5 * float(np.hypot(*shape)))
-    op, cone = assemble_operator(basis.basis, beta, spline, shape, grid_step=grid_step,
+    images = basis.basis if refit is None else refit(spline(centers).reshape(len(centers), -1))
+    op, cone = assemble_operator(images, beta, spline, shape, grid_step=grid_step,
                                  metadata=metadata, basis_filter=basis_filter)
     return op, cone, spline
 

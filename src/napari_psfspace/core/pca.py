@@ -116,6 +116,7 @@ def learn_basis(
     z_threshold: float = 3.0,
     svd: str = "auto",
     max_psf: int = 12,
+    weights: np.ndarray | None = None,
 ) -> PsfBasis:
     """Learn an orthonormal PSF basis from sum-normalised patches.
 
@@ -148,6 +149,11 @@ def learn_basis(
         and ``n_psf`` is given.
     max_psf : int
         Upper bound of the automatic basis size.
+    weights : ndarray of shape (K,), optional
+        Weight of each patch in the SVD (its row is scaled by ``sqrt(weights)``).
+        Default ``1 / ||p_m||^2`` (every patch l2-normalised, so each bead weighs the
+        same): with denoised patches, pass the inverse of each raw patch's squared norm,
+        so that a faint bead's noise still lowers its weight.
 
     Returns
     -------
@@ -194,7 +200,13 @@ def learn_basis(
     norms = np.linalg.norm(x, axis=1)
     if np.any(norms <= 0):
         raise ValueError("`psfs` holds an all-zero patch; drop faint beads first.")
-    xn = x / norms[:, None]
+    if weights is None:
+        xn = x / norms[:, None]
+    else:
+        weights = np.asarray(weights, dtype=np.float64)
+        if weights.shape != (k,) or np.any(~np.isfinite(weights)) or np.any(weights <= 0):
+            raise ValueError(f"`weights` must be {k} positive finite numbers.")
+        xn = x * np.sqrt(weights / np.mean(weights * norms**2))[:, None]
     method = svd
     if svd == "auto":
         method = "randomized" if (min(xn.shape) > 2000 and n_psf is not None) else "full"
@@ -229,7 +241,9 @@ def learn_basis(
         n_final = capped
     else:
         n_max = min(max_psf, max(1, (n_in - 2) // 2), len(vt))
-        heldout_errors = heldout_basis_errors(psfs[inliers][:, mask], vt[:n_max], pos[inliers])
+        per_bead = heldout_basis_errors(psfs[inliers][:, mask], vt[:n_max], pos[inliers],
+                                        per_bead=True)
+        heldout_errors = per_bead.mean(axis=0)
         best = float(heldout_errors.min())
         n_final = int(np.flatnonzero(heldout_errors <= 1.01 * best)[0]) + 1
     vt = _orient(vt[:n_final])
@@ -239,7 +253,8 @@ def learn_basis(
     return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors)
 
 
-def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray) -> np.ndarray:
+def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, *,
+                         per_bead: bool = False) -> np.ndarray:
     """Leave-one-bead-out error of the model for each basis size ``I = 1 .. len(vt)``.
 
     For bead ``m`` held out, its coefficients are predicted by the thin-plate splines
@@ -256,13 +271,16 @@ def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray) -
         Orthonormal basis rows.
     positions : ndarray of shape (K, 2)
 
+    per_bead : bool
+        Return every bead's error rather than their mean.
+
     Returns
     -------
-    ndarray of shape (I_max,)
+    ndarray of shape (I_max,), or (K, I_max) with ``per_bead``
         Mean squared error relative to the mean squared patch norm.
     """
     beta = x @ vt.T
     loo = ThinPlateSpline(positions, beta).loo_residuals
     norm2 = (x**2).sum(axis=1)
-    err = norm2[:, None] - np.cumsum(beta**2, axis=1) + np.cumsum(loo**2, axis=1)
-    return err.mean(axis=0) / norm2.mean()
+    err = (norm2[:, None] - np.cumsum(beta**2, axis=1) + np.cumsum(loo**2, axis=1)) / norm2.mean()
+    return err if per_bead else err.mean(axis=0)
