@@ -31,6 +31,11 @@ from scipy import ndimage as ndi
 #: weights (``1 / ||p||^2`` of the raw patch, noise included) do the rest.
 NOISE_QUANTILE = 0.5
 
+#: Ridge of the refit towards the prior basis, relative to the largest eigenvalue of
+#: ``A^T W A``: smooth coefficient fields can be nearly collinear (several of them close
+#: to affine), and the directions they do not determine keep the prior's images.
+RIDGE = 1e-2
+
 
 def patch_noise(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray) -> np.ndarray:
     """Expected noise power per Fourier coefficient of each windowed sum-1 patch.
@@ -98,11 +103,13 @@ def refit_basis(
     window: np.ndarray,
     *,
     weights: np.ndarray | None = None,
+    prior: np.ndarray | None = None,
     shrink: bool = True,
 ) -> tuple[np.ndarray, dict]:
     """Basis images refitted to raw patches given their (smooth) coefficients.
 
-    Minimises ``sum_m w_m ||p_m - sum_i a_{m,i} h_i||^2`` over the images ``h_i`` (a
+    Minimises ``sum_m w_m ||p_m - sum_i a_{m,i} h_i||^2 + lambda ||h - h_prior||^2``
+    over the images ``h_i`` (a
     weighted least-squares regression of every pixel on the coefficients), then shrinks
     each ``h_i`` by the Wiener filter of its own noise: ``Cov(h) = G^-1 (A^T W V W A)
     G^-1`` with ``G = A^T W A`` and ``V`` the beads' noise variances.
@@ -118,6 +125,10 @@ def refit_basis(
     window : ndarray of shape (P, P)
     weights : ndarray of shape (K,), optional
         Weights ``w_m`` (default ``1 / ||p_m||^2``).
+    prior : ndarray of shape (I, P, P), optional
+        Images the refit is drawn towards (ridge ``RIDGE * max eig(A^T W A)``) where the
+        coefficients do not determine it, e.g. the PCA basis; default: none (plain
+        weighted least squares).
     shrink : bool
         Apply the per-image Wiener shrinkage.
 
@@ -134,8 +145,14 @@ def refit_basis(
     w = 1.0 / np.maximum((y**2).sum(axis=1), 1e-300) if weights is None else np.asarray(weights)
     aw = a.T * w  # (I, K)
     g = aw @ a
-    ginv = np.linalg.pinv(g)
-    h = (ginv @ (aw @ y)).reshape(-1, p, p)
+    n_i = g.shape[0]
+    if prior is None:  # plain weighted least squares
+        h0, lam = np.zeros((n_i, p * p)), 0.0
+    else:
+        h0 = np.asarray(prior, float).reshape(n_i, -1)
+        lam = RIDGE * float(np.linalg.eigvalsh(g).max())
+    ginv = np.linalg.pinv(g + lam * np.eye(n_i))
+    h = (ginv @ (aw @ y + lam * h0)).reshape(-1, p, p)
     var = np.asarray(noise_sd, dtype=np.float64) ** 2
     cov = ginv @ ((aw * var) @ aw.T) @ ginv  # noise covariance of h per pixel
     noise = np.clip(np.diag(cov), 0, None) * float((window**2).sum())  # per coefficient

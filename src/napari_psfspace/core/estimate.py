@@ -212,7 +212,7 @@ def iter_estimate(
 
                 def refit(a):
                     h, info = refit_basis(sub.psf[inl], a, sd[inl], window,
-                                          weights=weights[inl])
+                                          weights=weights[inl], prior=b.basis)
                     denoised.update(info)
                     return h
             filt = point_source(sub.psf[b.inliers]) if final else None
