@@ -103,7 +103,8 @@ def _cmd_estimate(args) -> int:
         n_psf = int(n_psf)
     gen = iter_estimate(image, psf_radius=r, n_psf=n_psf, smoothing=args.smoothing,
                         threshold=args.threshold, holdout=args.holdout or None,
-                        bead_diameter=_bead_diameter_px(args, info))
+                        bead_diameter=_bead_diameter_px(args, info),
+                        remove_motion=args.remove_motion)
     est = run_with_progress(gen, None if args.quiet else _progress_printer())
     op = est.operator
     if info.pixel_size:
@@ -136,7 +137,8 @@ def _cmd_diagnose(args) -> int:
     image, info, r = _image_and_radius(args)
     gen = iter_diagnose(image, psf_radius=r, threshold=args.threshold, gain=args.gain,
                         offset=args.offset, read_noise=args.read_noise, n_psf=args.n_psf,
-                        smoothing=args.smoothing, bead_diameter=_bead_diameter_px(args, info))
+                        smoothing=args.smoothing, bead_diameter=_bead_diameter_px(args, info),
+                        remove_motion=args.remove_motion)
     diag = run_with_progress(gen, None if args.quiet else _progress_printer(sys.stderr))
     print(summary_text(diag))
     for line in model_lines(diag.operator.metadata, markdown=False):
@@ -213,6 +215,10 @@ def _add_radius_and_slice(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--bead-diameter-nm", type=float,
                         help="bead diameter in nanometres (from the beads' data sheet): "
                              "divided out of the learnt PSFs (needs the pixel size)")
+    parser.add_argument("--remove-motion", action="store_true",
+                        help="divide a motion blur found in the beads (a smear common to "
+                             "all of them) out of the model; use when the sample was still "
+                             "(motion blur is always looked for and reported)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -279,7 +279,8 @@ def floor_caveat(noise, ratio: float) -> str:
 
 def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
     """What a reader must be told of a model: a field model chosen for a handful of beads
-    (shift-invariant or affine, and why), a bead size divided out. Markdown paragraphs
+    (shift-invariant or affine, and why), a bead size divided out, motion blur found
+    (and removed, when asked). Markdown paragraphs
     (each after an empty line), or plain lines."""
     def bold(text):
         return f"**{text}**" if markdown else text
@@ -303,6 +304,15 @@ def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
                    f"{_num(corr.get('max_gain_applied'), '.3g')}): the model's PSFs are "
                    "those of a point source."
                    + (" " + corr["warning"] if corr.get("warning") else ""))
+    motion = meta.get("motion") or {}
+    if motion.get("detected"):
+        removed = motion.get("removed")
+        out.append(bold("Motion blur") + ": " + str(motion.get("reason", "")) + "."
+                   + (f" Removed from the model's PSFs (gain at most "
+                      f"{_num(removed.get('max_gain_applied'), '.3g')}; what the smear "
+                      "erased near its zero lines is not restored)." if removed else ""))
+    elif motion.get("note"):
+        out.append(bold("Motion blur") + ": " + str(motion["note"]) + ".")
     if not markdown:
         return out
     return [line for text in out for line in ("", text)]

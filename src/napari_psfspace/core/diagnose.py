@@ -269,6 +269,7 @@ def iter_diagnose(
     n_psf: int | None = None,
     smoothing: float | None = None,
     bead_diameter: float = 0.0,
+    remove_motion: bool = False,
 ) -> Generator[Progress, None, Diagnosis]:
     """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis."""
     raw = np.asarray(image)
@@ -380,6 +381,7 @@ def iter_diagnose(
     # nominal one, which the bead-size effect then takes for the median bead's)
     est = run_with_progress(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
                                           holdout=None, bead_diameter=bead_diameter,
+                                          remove_motion=remove_motion,
                                           **ctx.estimate_kwargs))
     added = [s.effect for s in steps if s.effect and s.accepted]
     meta = {**est.operator.metadata, "diagnosis": {"added": added,
@@ -408,7 +410,7 @@ def iter_diagnose(
                "min_improvement": min_improvement, "max_p": max_p,
                "explore": explore, "n_psf": n_psf, "smoothing": smoothing,
                "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
-               "bead_diameter": bead_diameter,
+               "bead_diameter": bead_diameter, "remove_motion": remove_motion,
                "effects": names}
     return Diagnosis(steps, s0["error"], s1["error"], s0["chi2_dof"], s1["chi2_dof"],
                      s1["noise_floor"], op, ctx, first_an, an, first_cf, cf, noise_source,
@@ -449,6 +451,11 @@ def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] |
         their own images; the refined operator has the sphere divided out (as
         :func:`~napari_psfspace.core.estimate.estimate_operator` does), and the
         bead-size effect takes it for the median bead's diameter.
+    remove_motion : bool
+        Motion blur is looked for in the final model and reported (``metadata["motion"]``;
+        it is common to every bead, so no held-out error can see it); True divides the
+        smear found out of the refined operator's PSFs
+        (:func:`~napari_psfspace.core.estimate.estimate_operator`).
     explore : float
         While a residual common to the beads is left (``mean_residual`` or
         ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the

@@ -24,6 +24,7 @@ from .detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, fla
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .field import fit_field
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
+from .motion import detect_motion, remove_motion
 from .operator import ProductConvolution
 from .patches import Patches, extract_patches
 from .pca import PsfBasis, learn_basis, min_beads_for
@@ -100,6 +101,7 @@ def iter_estimate(
     patch_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
     bead_diameter: float = 0.0,
     denoise: bool = True,
+    remove_motion: bool = False,
 ) -> Generator[Progress, None, Estimation]:
     """Generator form of :func:`estimate_operator`: yields progress, returns the result.
 
@@ -110,7 +112,8 @@ def iter_estimate(
     (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
     (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
     different sizes to one, :class:`~napari_psfspace.core.effects.bead_size.SizeFilter`).
-    ``bead_diameter`` and ``denoise`` are those of :func:`estimate_operator`: with a
+    ``bead_diameter``, ``denoise`` and ``remove_motion`` are those of
+    :func:`estimate_operator`: with a
     diameter, the returned operator's PSFs are point-source PSFs; the held-out residual
     is measured with the uncorrected model (the beads' own images).
 
@@ -179,9 +182,32 @@ def iter_estimate(
     support = radial_distance(patches.size) < patches.r_ext
     sphere: dict = {}
 
+    window = bump_window(patches.size, patches.r, patches.r_ext)
+    sd_all = patches.noise / patches.flux
+    motion = detect_motion(patches.psf, sd_all, window, positions=patches.centers)
+    motion_record = motion.to_dict()
+    removed: dict = {}
+    if remove_motion and not motion.detected:
+        motion_record["removed"] = None
+        motion_record["note"] = "remove_motion was asked, but no motion blur was found: " \
+            "nothing removed"
+
     def point_source(psf: np.ndarray):
-        """The basis filter that removes the beads' own size (None for point beads)."""
-        return None if not bead_diameter else _sphere_remover(psf, bead_diameter, sphere)
+        """The basis filter that removes the beads' own size and, on request, a smear
+        found in them (None when there is nothing to remove)."""
+        steps = []
+        if bead_diameter:
+            steps.append(_sphere_remover(psf, bead_diameter, sphere))
+        if remove_motion and motion.detected:
+            steps.append(_motion_remover(psf, motion.length_px, motion.angle_deg, removed))
+        if not steps:
+            return None
+
+        def chain(h):
+            for step in steps:
+                h = step(h)
+            return h
+        return chain
 
     few = None
     heldout = None
@@ -196,8 +222,6 @@ def iter_estimate(
         spline = None
         yield Progress("held-out", 0.7, few.reason)
     else:
-        window = bump_window(patches.size, patches.r, patches.r_ext)
-
         def fit(sub: Patches, *, final: bool = False):
             learn, weights, refit = sub.psf, None, None
             if denoise:
@@ -258,6 +282,7 @@ def iter_estimate(
         "heldout": heldout.summary() if heldout is not None else None,
         "denoise": ({"passband": denoised.get("passband"),
                      "basis_noise": denoised.get("noise_rel")} if denoised else None),
+        "motion": {**motion_record, **({"removed": removed} if removed else {})},
         "bead_diameter_px": bead_diameter,
         "bead_correction": ({**sphere, "note": "the PSFs are those of a point source: the "
                              "beads' projected sphere was divided out; the held-out "
@@ -284,6 +309,22 @@ def _sphere_remover(psf: np.ndarray, diameter: float, record: dict):
 
     def remove(h):
         out, info = remove_sphere(h, diameter, reference=psf.mean(axis=0), noise=noise)
+        record.update(info)
+        return out
+
+    return remove
+
+
+def _motion_remover(psf: np.ndarray, length: float, angle: float, record: dict):
+    """A basis filter dividing a smear out of PSFs learnt from ``psf`` (K, P, P) sum-1
+    patches (reference and noise as in :func:`_sphere_remover`)."""
+    noise = None
+    if len(psf) >= 2:
+        noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
+        noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
+
+    def remove(h):
+        out, info = remove_motion(h, length, angle, reference=psf.mean(axis=0), noise=noise)
         record.update(info)
         return out
 
@@ -332,6 +373,7 @@ def estimate_operator(
     saturation: float | None = None,
     bead_diameter: float = 0.0,
     denoise: bool = True,
+    remove_motion: bool = False,
     progress: Callable[[Progress], None] | None = None,
 ) -> ProductConvolution:
     """Learn the space-varying PSF of a microscope from one image of beads.
@@ -376,6 +418,12 @@ def estimate_operator(
         the raw patches of all beads at once given the smooth field and shrunk by
         their own noise. Recorded in ``metadata["denoise"]``. False: the paper's
         plain PCA of l2-normalised patches.
+    remove_motion : bool
+        Motion blur (a smear common to all beads, :mod:`~napari_psfspace.core.motion`)
+        is always looked for and reported in ``metadata["motion"]``; the model keeps it
+        (it blurs a sample imaged in the same exposure just as much). True: divide the
+        smear found out of the PSFs, for a calibration of the optics alone, when the
+        sample was still. Nothing is removed when no smear is found (said in the record).
     progress : callable, optional
         Called with a :class:`Progress` record after each step.
 
@@ -394,7 +442,7 @@ def estimate_operator(
     gen = iter_estimate(image, psf_radius=psf_radius, n_psf=n_psf, smoothing=smoothing,
                         threshold=threshold, holdout=holdout, grid_step=grid_step,
                         saturation=saturation, bead_diameter=bead_diameter,
-                        denoise=denoise)
+                        denoise=denoise, remove_motion=remove_motion)
     return run_with_progress(gen, progress).operator
 
 

@@ -84,6 +84,7 @@ def random_scene(
     seed: int,
     *,
     shape: tuple[int, int] = (512, 512),
+    effects: dict | None = None,
     **overrides,
 ) -> tuple[np.ndarray, SimulationTruth, dict]:
     """Draw one bead scene of the family and render it.
@@ -94,6 +95,10 @@ def random_scene(
         Seed of everything (parameters, bead positions and brightness, noise).
     shape : tuple of int
         Image shape (rows, columns).
+    effects : dict, optional
+        Effects injected into the scene, as ``effects`` of
+        :func:`~napari_psfspace.core.simulate.simulate_beads` (e.g. ``{"drift": (dy, dx)}``
+        for a smear during the exposure); they do not change the draw of the scene.
     **overrides
         Any key of :data:`RANGES`, fixed (a number or string) or as a ``(low, high)``
         range, or a list of choices:
@@ -184,7 +189,8 @@ def random_scene(
         shape, p["n_beads"], aberrations=aberrations, optics=optics,
         background=(bg * (1 - var), bg * (1 + var)), gain=p["gain"], offset=p["offset"],
         read_noise=p["read_noise"], dtype=dtype, seed=rng,
-        min_separation=p["min_separation"] * r, border=r, bead_photons=photons)
+        min_separation=p["min_separation"] * r, border=r, bead_photons=photons,
+        effects=effects)
     if p["bits"] == 12:
         image = np.minimum(image, full).astype(dtype)
     p.update(full_scale=full, psf_radius=int(truth.psf_radius), peak_fraction=peak_fraction,

@@ -108,6 +108,69 @@ def _ring_profile(values: np.ndarray, ring: np.ndarray) -> np.ndarray:
     return total / np.maximum(count, 1e-300)
 
 
+def divide_transfer(stack: np.ndarray, transfer, extent: float, *,
+                    reference: np.ndarray | None = None, noise: np.ndarray | None = None,
+                    max_gain: float = MAX_GAIN) -> tuple[np.ndarray, float, float]:
+    """Divide a known blur's transfer function out of images, where there is signal.
+
+    The gain at frequency ``k`` is ``w(k) / T(k) + (1 - w(k))``, with ``w`` the share of
+    the reference's ring power above its noise (see :func:`remove_sphere`) and
+    ``|1 / T|`` capped at ``max_gain``.
+
+    Parameters
+    ----------
+    stack : ndarray of shape (I, P, P)
+    transfer : callable
+        ``transfer(fy, fx) -> T``: the blur's transfer at frequencies in cycles / px
+        (arrays of an rfft grid); ``T(0, 0) = 1``.
+    extent : float
+        The blur's extent in pixels (sets the padding against wrap-around).
+    reference, noise, max_gain
+        As in :func:`remove_sphere`.
+
+    Returns
+    -------
+    out : ndarray of shape (I, P, P)
+    band : float
+        Highest frequency (cycles / px) where at least half the reference's power is
+        signal.
+    max_gain_applied : float
+    """
+    stack = np.asarray(stack, dtype=np.float64)
+    k, p, _ = stack.shape
+    ref = stack[0] if reference is None else np.asarray(reference, dtype=np.float64)
+    pad, n, freq = _padded_grid(p, extent)
+    big = np.zeros((k + 2, n, n))
+    big[:k, pad:pad + p, pad:pad + p] = stack
+    big[k, pad:pad + p, pad:pad + p] = ref
+    if noise is not None:
+        big[k + 1, pad:pad + p, pad:pad + p] = noise
+    spec = sfft.rfft2(big, axes=(1, 2))
+    ring = _rings(freq, n)
+    power = np.abs(spec[k]) ** 2
+    ring_power = _ring_profile(power, ring)
+    if noise is not None:
+        noise_power = _ring_profile(np.abs(spec[k + 1]) ** 2, ring)
+    else:
+        noise_power = float(np.median(power[freq > 0.5])) if np.any(freq > 0.5) else 0.0
+    profile = np.clip(1.0 - noise_power / np.maximum(ring_power, 1e-300), 0.0, 1.0)
+    profile[0] = 1.0
+    # once the signal has sunk into the noise it stays there (the optics' cutoff): what
+    # rises above it further out is not the beads' (re-sampling, window), leave it alone
+    profile = np.minimum.accumulate(profile)
+    w = profile[ring]
+    fy = sfft.fftfreq(n)[:, None] * np.ones((1, freq.shape[1]))
+    fx = np.ones((n, 1)) * sfft.rfftfreq(n)[None, :]
+    t = np.asarray(transfer(fy, fx), dtype=np.float64)
+    inv = np.sign(t) / np.maximum(np.abs(t), 1.0 / max_gain)
+    inv = np.where(t == 0, max_gain, inv)
+    gain = w * inv + (1.0 - w)
+    out = sfft.irfft2(spec[:k] * gain, s=(n, n), axes=(1, 2))[:, pad:pad + p, pad:pad + p]
+    signal = freq[w >= 0.5]
+    band = float(signal.max()) if signal.size else 0.0
+    return out, band, float(np.abs(gain).max())
+
+
 def remove_sphere(stack: np.ndarray, diameter: float, *, reference: np.ndarray | None = None,
                   noise: np.ndarray | None = None, max_gain: float = MAX_GAIN
                   ) -> tuple[np.ndarray, dict]:
@@ -156,38 +219,12 @@ def remove_sphere(stack: np.ndarray, diameter: float, *, reference: np.ndarray |
             f"{max_gain:g}); unchanged where there is noise alone"}
     if diameter == 0 or len(stack) == 0:
         return stack.copy(), {**info, "band_px": None, "max_gain_applied": 1.0}
-    k, p, _ = stack.shape
-    ref = stack[0] if reference is None else np.asarray(reference, dtype=np.float64)
-    pad, n, freq = _padded_grid(p, diameter)
-    big = np.zeros((k + 2, n, n))
-    big[:k, pad:pad + p, pad:pad + p] = stack
-    big[k, pad:pad + p, pad:pad + p] = ref
-    if noise is not None:
-        big[k + 1, pad:pad + p, pad:pad + p] = noise
-    spec = sfft.rfft2(big, axes=(1, 2))
-    ring = _rings(freq, n)
-    power = np.abs(spec[k]) ** 2
-    ring_power = _ring_profile(power, ring)
-    if noise is not None:
-        noise_power = _ring_profile(np.abs(spec[k + 1]) ** 2, ring)
-    else:
-        noise_power = float(np.median(power[freq > 0.5])) if np.any(freq > 0.5) else 0.0
-    profile = np.clip(1.0 - noise_power / np.maximum(ring_power, 1e-300), 0.0, 1.0)
-    profile[0] = 1.0
-    # once the signal has sunk into the noise it stays there (the optics' cutoff): what
-    # rises above it further out is not the beads' (re-sampling, window), leave it alone
-    profile = np.minimum.accumulate(profile)
-    w = profile[ring]
-    t = sphere_transfer(freq, diameter)
-    inv = np.sign(t) / np.maximum(np.abs(t), 1.0 / max_gain)
-    inv = np.where(t == 0, max_gain, inv)
-    gain = w * inv + (1.0 - w)
-    out = sfft.irfft2(spec[:k] * gain, s=(n, n), axes=(1, 2))[:, pad:pad + p, pad:pad + p]
-    signal = freq[w >= 0.5]
-    band = float(signal.max()) if signal.size else 0.0
+    out, band, gain_max = divide_transfer(
+        stack, lambda fy, fx: sphere_transfer(np.hypot(fy, fx), diameter), diameter,
+        reference=reference, noise=noise, max_gain=max_gain)
+    info.update(band_px=band, max_gain_applied=gain_max)
     first_zero = FIRST_ZERO_Q / (np.pi * diameter)
-    info.update(band_px=band, max_gain_applied=float(np.abs(gain).max()),
-                first_zero_px=float(first_zero))
+    info.update(first_zero_px=float(first_zero))
     if first_zero < band:
         info["warning"] = (
             f"The bead ({diameter:.3g} px) is large for these optics: its transfer "
