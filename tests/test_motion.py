@@ -45,7 +45,7 @@ def test_a_smear_is_found_with_its_length_and_direction(drift, angle):
     d = abs(m["angle_deg"] - angle) % 180
     assert min(d, 180 - d) <= 8
     assert m["dip_ratio"] <= 0.3 and all(q <= 0.5 for q in m["checks"]["quarters"])
-    assert "motion blur" in m["reason"]
+    assert "smeared by" in m["reason"]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3, 4, 5, 6, 8])  # 7: every bead saturated

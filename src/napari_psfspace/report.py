@@ -398,6 +398,9 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
         lines += ["", f"Held-out error {_num(d.error_after)}; chi-square per degree of "
                       f"freedom {_num(d.chi2_after, '.3g')}."]
     lines += model_lines(d.operator.metadata)
+    motion = d.operator.metadata.get("motion") or {}
+    if motion and not motion.get("detected") and not motion.get("note"):
+        lines += ["", "**Motion blur**: " + str(motion.get("reason", "not tested")) + "."]
     if d.options.get("leave_one_bead_out"):
         lines += ["", f"With {d.options['folds']} usable beads, each bead was judged by a "
                       "model learnt from all the others (leave-one-bead-out)."]
@@ -504,7 +507,9 @@ def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | Non
                   "n_beads_used": op.metadata.get("n_beads_used"),
                   "field_model": op.metadata.get("field_model"),
                   "field_model_reason": op.metadata.get("field_model_reason"),
-                  "bead_correction": op.metadata.get("bead_correction")},
+                  "bead_correction": op.metadata.get("bead_correction"),
+                  "denoise": op.metadata.get("denoise"),
+                  "motion": op.metadata.get("motion")},
         "figures": dict(FIGURES),
     }
     return to_jsonable(out)

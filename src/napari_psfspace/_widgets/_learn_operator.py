@@ -72,6 +72,11 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.smoothing = FloatSpinBox(value=1e-3, min=0.0, max=1e6, step=1e-3,
                                       label="smoothing", visible=False)
         self.smoothing.tooltip = "Thin-plate smoothing eta (0 interpolates the beads)."
+        self.remove_motion = CheckBox(value=False, text="remove motion blur")
+        self.remove_motion.tooltip = (
+            "Motion blur (a smear common to all beads) is always looked for and reported. "
+            "Tick to divide it out of the model: a calibration of the optics alone, for "
+            "when the sample was still.")
         self.save_path = FileEdit(mode="w", filter="*.npz", label="save model to")
         self.learn = PushButton(text="Learn operator")
         self.task = CoreTask(self.learn)
@@ -81,7 +86,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.show_psf = PushButton(text="Show PSF at this position", enabled=False)
         super().__init__(widgets=[
             self.image, self.points, self.radius, self.threshold, self.n_psf_mode,
-            self.n_psf, self.auto_smoothing, self.smoothing, self.save_path, self.learn,
+            self.n_psf, self.auto_smoothing, self.smoothing, self.remove_motion,
+            self.save_path, self.learn,
             self.task, self.result, self.psf_y, self.psf_x, self.show_psf])
         self.result.native.setWordWrap(True)
         self.operator: ProductConvolution | None = None
@@ -124,7 +130,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
         r = self.radius.pixels
         gen = _learn(plane, frame, img.name, psf_radius=r, n_psf=n_psf, smoothing=smoothing,
                      threshold=float(self.threshold.value), beads=beads,
-                     bead_diameter=self._bead_diameter_px())
+                     bead_diameter=self._bead_diameter_px(),
+                     remove_motion=bool(self.remove_motion.value))
 
         def on_result(est) -> None:
             self.operator, self._frame = est.operator, frame
