@@ -108,3 +108,16 @@ def test_too_few_beads_are_not_tested():
                       np.ones((15, 15)))
     assert not m.detected and "not tested: 5 beads" in m.reason
     json.dumps(m.to_dict(), allow_nan=False)  # unmeasured figures are None, not NaN
+
+
+def test_beads_along_a_row_leave_quarters_empty_without_failing():
+    """Beads along one row: no bead lies below the median row, so two quarters of the
+    field hold none; the test still runs and its record stays JSON-ready."""
+    rng = np.random.default_rng(1)
+    y, x = np.mgrid[:21, :21] - 10
+    psf = np.exp(-(y**2 + x**2) / 8.0)[None] * (1 + 0.01 * rng.standard_normal((20, 21, 21)))
+    psf /= psf.sum(axis=(1, 2), keepdims=True)
+    pos = np.column_stack([np.full(20, 100.0), np.linspace(50, 450, 20)])
+    m = detect_motion(psf, np.full(20, 1e-4), np.ones((21, 21)), positions=pos)
+    assert not m.detected
+    json.dumps(m.to_dict(), allow_nan=False)

@@ -111,13 +111,13 @@ def motion_transfer(fy, fx, length: float, angle_deg: float) -> np.ndarray:
 
 
 def _mean_powers(psf: np.ndarray, noise: np.ndarray, n: int, labels: np.ndarray,
-                 chunk: int = 32) -> np.ndarray:
-    """Noise-weighted mean signal power ``|F p|^2 - N`` of the beads of each label, on an
-    ``n x n`` grid, shape (labels.max() + 1, n, n); computed in chunks of beads, so that
-    memory does not grow with their number."""
+                 n_labels: int, chunk: int = 32) -> np.ndarray:
+    """Noise-weighted mean signal power ``|F p|^2 - N`` of the beads of each label, on
+    an ``n x n`` grid, shape (n_labels, n, n) (zero for a label without beads);
+    computed in chunks of beads, so that memory does not grow with their number."""
     k, p, _ = psf.shape
     w = 1.0 / np.maximum(noise, 1e-300)
-    n_lab = int(labels.max()) + 1
+    n_lab = int(n_labels)
     wsum = np.bincount(labels, weights=w, minlength=n_lab)
     big = np.zeros((min(chunk, k), n, n))
     tot = np.zeros((n_lab, n, n // 2 + 1))
@@ -206,7 +206,7 @@ def detect_motion(
         group = np.arange(k) * 4 // k
     half = np.arange(k) % 2  # two halves estimate the noise of the mean power
     # labels: quarter (0-3) x half (0-1); the groups' weighted means are combined below
-    parts = _mean_powers(psf, noise, n, group * 2 + half)
+    parts = _mean_powers(psf, noise, n, group * 2 + half, 8)
     wts = np.bincount(group * 2 + half, weights=1.0 / np.maximum(noise, 1e-300), minlength=8)
 
     def combine(sel):
