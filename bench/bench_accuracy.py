@@ -20,16 +20,17 @@ import numpy as np
 from _common import table
 from napari_psfspace.core.estimate import iter_estimate, run_with_progress
 from napari_psfspace.core.metrics import evaluate_against_truth
-from napari_psfspace.core.simulate import simulate_beads
+from napari_psfspace.core.simulate import Optics, simulate_beads
 
 COLUMNS = [("case", "s"), ("seed", "d"), ("beads", "d"), ("peak_snr", ".0f"), ("I", "d"),
            ("aligned", ".4f"), ("max", ".4f"), ("unaligned", ".4f"), ("edges", ".4f"),
            ("SI", ".4f"), ("ratio", ".3f"), ("heldout", ".4f"), ("seconds", ".1f")]
 
 
-def run_case(case, shape, n_beads, preset, seed, n_psf=None, amplitude=(2e4, 6e4)):
+def run_case(case, shape, n_beads, preset, seed, n_psf=None, amplitude=(2e4, 6e4),
+             **sim):
     image, truth = simulate_beads(shape, n_beads, aberrations=preset, seed=seed,
-                                  amplitude=amplitude)
+                                  amplitude=amplitude, **sim)
     t0 = time.perf_counter()
     est = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius, n_psf=n_psf))
     dt = time.perf_counter() - t0
@@ -65,6 +66,12 @@ def main():
     levels = [0.1, 1.0] if args.quick else [0.05, 0.1, 0.3, 1.0, 3.0]
     print(table([run_case(f"x{f:g} photons", (1024, 1024), 150, "moderate", 0,
                           amplitude=(2e4 * f, 6e4 * f)) for f in levels], COLUMNS), flush=True)
+
+    print("\nWide, strongly aberrated, low signal per pixel (issue 9): 2048x2048, 400 beads "
+          "of 2e4 photons, background 100 photons, NA 1.3, 600 nm (target <= 0.08)")
+    print(table([run_case(f"{1000 * px:.0f} nm pixels", (2048, 2048), 400, "strong", 0,
+                          amplitude=2e4, background=100.0, optics=Optics(pixel_size=px))
+                 for px in (0.1, 0.065)], COLUMNS), flush=True)
 
     print("\nError against basis size I (1024x1024, 150 beads, moderate, seed 0; "
           "auto = held-out choice)")
