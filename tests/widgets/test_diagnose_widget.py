@@ -37,6 +37,7 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     w.camera.value = True
     assert not any(c.native.isHidden() for c in camera)
     w.camera.value = False
+    w.remove_motion.value = True  # asked for, but this image holds no smear
     w.report_dir.value = tmp_path / "report"
     w.diagnose.clicked()
     wait_task(qtbot, w.task, timeout=60_000)
@@ -74,6 +75,9 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     assert report["run"]["image"] == "hot image"
     assert report["run"]["pixel_size_um"] == pytest.approx(truth.optics.pixel_size)
     assert report["added"] == d.added
+    assert report["options"]["remove_motion"] is True
+    motion = report["model"]["motion"]
+    assert motion["detected"] is False and "nothing removed" in motion["note"]
     assert (tmp_path / "report" / "residual_map_after.png").exists()
     assert "report.md" in w.result.value
 

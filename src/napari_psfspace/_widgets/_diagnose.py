@@ -120,9 +120,14 @@ class DiagnoseWidget(FollowsBeads, Container):
                            label="steps")
         self.table.read_only = True
         self.table.visible = False
+        self.remove_motion = CheckBox(value=False, text="remove motion blur")
+        self.remove_motion.tooltip = (
+            "Motion blur (a smear common to all beads) is always looked for and reported; "
+            "tick to divide it out of the refined model (the sample was still).")
         super().__init__(widgets=[
             self.image, self.points, self.radius, self.threshold, self.camera, self.gain,
-            self.offset, self.read_noise, self.report_dir, self.diagnose, self.task,
+            self.offset, self.read_noise, self.remove_motion, self.report_dir,
+            self.diagnose, self.task,
             self.result, self.table])
         self.result.native.setWordWrap(True)
         self.diagnosis = None
@@ -157,7 +162,8 @@ class DiagnoseWidget(FollowsBeads, Container):
         name = img.name
         gen = iter_diagnose(plane, psf_radius=self.radius.pixels,
                             threshold=float(self.threshold.value),
-                            bead_diameter=self._bead_diameter_px(), **camera)
+                            bead_diameter=self._bead_diameter_px(),
+                            remove_motion=bool(self.remove_motion.value), **camera)
 
         def on_result(diag) -> None:
             self.diagnosis = diag
