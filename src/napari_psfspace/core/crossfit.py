@@ -108,7 +108,7 @@ def iter_crossfit(
         status[held[status[held] == KEPT]] = HELDOUT
         train = beads.copy(status)
         est = run_with_progress(iter_estimate(img, psf_radius=psf_radius, beads=train,
-                                              **est_kw))
+                                              motion_test=False, **est_kw))
         if meta is None:
             m = est.operator.metadata
             meta = {"n_psf": m.get("n_psf"), "smoothing": m.get("smoothing")}

@@ -37,15 +37,13 @@ NOISE_QUANTILE = 0.5
 RIDGE = 1e-2
 
 
-def patch_noise(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray) -> np.ndarray:
+def patch_noise(noise_sd: np.ndarray, window: np.ndarray) -> np.ndarray:
     """Expected noise power per Fourier coefficient of each windowed sum-1 patch.
 
     Parameters
     ----------
-    psf : ndarray of shape (K, P, P)
-        Sum-1 patches (windowed).
     noise_sd : ndarray of shape (K,)
-        Per-pixel noise standard deviation of each patch in the same units (the image
+        Per-pixel noise standard deviation of each sum-1 patch (the image
         noise divided by the bead's flux).
     window : ndarray of shape (P, P)
         The window the patches were multiplied by.
@@ -55,7 +53,6 @@ def patch_noise(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray) -> np
     ndarray of shape (K,)
         ``sigma_m^2 sum(window^2)``: white noise's power at every frequency.
     """
-    del psf
     return np.asarray(noise_sd, dtype=np.float64) ** 2 * float((window**2).sum())
 
 
@@ -87,7 +84,7 @@ def band_limit(psf: np.ndarray, noise_sd: np.ndarray,
         ``noise_power``: the typical bead's noise power per coefficient.
     """
     psf = np.asarray(psf, dtype=np.float64)
-    noise = patch_noise(psf, noise_sd, window)
+    noise = patch_noise(noise_sd, window)
     spectra = np.fft.fft2(psf)
     s = signal_power(spectra, noise)
     n_typ = float(np.quantile(noise, NOISE_QUANTILE))

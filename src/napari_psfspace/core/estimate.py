@@ -24,7 +24,8 @@ from .detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, fla
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .field import fit_field
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
-from .motion import detect_motion, remove_motion
+from .motion import detect_motion
+from .motion import remove_motion as divide_motion
 from .operator import ProductConvolution
 from .patches import Patches, extract_patches
 from .pca import PsfBasis, learn_basis, min_beads_for
@@ -102,6 +103,7 @@ def iter_estimate(
     bead_diameter: float = 0.0,
     denoise: bool = True,
     remove_motion: bool = False,
+    motion_test: bool = True,
 ) -> Generator[Progress, None, Estimation]:
     """Generator form of :func:`estimate_operator`: yields progress, returns the result.
 
@@ -112,6 +114,8 @@ def iter_estimate(
     (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
     (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
     different sizes to one, :class:`~napari_psfspace.core.effects.bead_size.SizeFilter`).
+    ``motion_test`` (False: skip the motion-blur test, for models whose metadata nothing
+    reads, e.g. the folds of a cross-fit; ``metadata["motion"]`` is then None).
     ``bead_diameter``, ``denoise`` and ``remove_motion`` are those of
     :func:`estimate_operator`: with a
     diameter, the returned operator's PSFs are point-source PSFs; the held-out residual
@@ -184,10 +188,11 @@ def iter_estimate(
 
     window = bump_window(patches.size, patches.r, patches.r_ext)
     sd_all = patches.noise / patches.flux
-    motion = detect_motion(patches.psf, sd_all, window, positions=patches.centers)
-    motion_record = motion.to_dict()
+    motion = (detect_motion(patches.psf, sd_all, window, positions=patches.centers)
+              if motion_test or remove_motion else None)
+    motion_record = None if motion is None else motion.to_dict()
     removed: dict = {}
-    if remove_motion and not motion.detected:
+    if remove_motion and not motion.detected:  # (motion is tested when asked to remove)
         motion_record["removed"] = None
         motion_record["note"] = "remove_motion was asked, but no motion blur was found: " \
             "nothing removed"
@@ -197,9 +202,12 @@ def iter_estimate(
         found in them (None when there is nothing to remove)."""
         steps = []
         if bead_diameter:
-            steps.append(_sphere_remover(psf, bead_diameter, sphere))
+            steps.append(_basis_remover(
+                psf, lambda h, **kw: remove_sphere(h, bead_diameter, **kw), sphere))
         if remove_motion and motion.detected:
-            steps.append(_motion_remover(psf, motion.length_px, motion.angle_deg, removed))
+            steps.append(_basis_remover(
+                psf, lambda h, **kw: divide_motion(h, motion.length_px, motion.angle_deg,
+                                                   **kw), removed))
         if not steps:
             return None
 
@@ -282,7 +290,8 @@ def iter_estimate(
         "heldout": heldout.summary() if heldout is not None else None,
         "denoise": ({"passband": denoised.get("passband"),
                      "basis_noise": denoised.get("noise_rel")} if denoised else None),
-        "motion": {**motion_record, **({"removed": removed} if removed else {})},
+        "motion": (None if motion_record is None
+                   else {**motion_record, **({"removed": removed} if removed else {})}),
         "bead_diameter_px": bead_diameter,
         "bead_correction": ({**sphere, "note": "the PSFs are those of a point source: the "
                              "beads' projected sphere was divided out; the held-out "
@@ -296,39 +305,25 @@ def iter_estimate(
     return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
 
 
-def _sphere_remover(psf: np.ndarray, diameter: float, record: dict):
-    """A basis filter removing beads of ``diameter`` px from PSFs learnt from ``psf``
-    (K, P, P) sum-1 patches: their mean sets the signal-to-noise ratio, the difference
-    of two halves' means its noise (the re-sampling colours it). ``record`` receives
-    :func:`~napari_psfspace.core.sphere.remove_sphere`'s info."""
+def _basis_remover(psf: np.ndarray, remove: Callable, record: dict):
+    """A basis filter ``h -> remove(h, reference=..., noise=...)[0]`` for PSFs learnt
+    from ``psf`` (K, P, P) sum-1 patches: their mean sets the signal-to-noise ratio, the
+    difference of two halves' means its noise (the re-sampling colours it). ``record``
+    receives the remover's info (:func:`~napari_psfspace.core.sphere.remove_sphere`,
+    :func:`~napari_psfspace.core.motion.remove_motion`)."""
     noise = None
     if len(psf) >= 2:
         # var(A - B) = s^2 K / (n_a n_b); the mean of all K has s^2 / K
         noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
         noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
+    reference = psf.mean(axis=0)
 
-    def remove(h):
-        out, info = remove_sphere(h, diameter, reference=psf.mean(axis=0), noise=noise)
+    def apply(h):
+        out, info = remove(h, reference=reference, noise=noise)
         record.update(info)
         return out
 
-    return remove
-
-
-def _motion_remover(psf: np.ndarray, length: float, angle: float, record: dict):
-    """A basis filter dividing a smear out of PSFs learnt from ``psf`` (K, P, P) sum-1
-    patches (reference and noise as in :func:`_sphere_remover`)."""
-    noise = None
-    if len(psf) >= 2:
-        noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
-        noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
-
-    def remove(h):
-        out, info = remove_motion(h, length, angle, reference=psf.mean(axis=0), noise=noise)
-        record.update(info)
-        return out
-
-    return remove
+    return apply
 
 
 def check_bead_diameter(bead_diameter, psf_radius: float) -> float:

@@ -24,6 +24,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import fft as sfft
 
+from .denoise import patch_noise
+
 #: Fewest beads tested: two halves estimate the noise and four quarters must agree (with
 #: 10-12 beads of low signal, a quarter of 2-3 beads read a zero by chance: 1 false
 #: alarm in 97 effect-free scenes of the family, none from 16 beads up).
@@ -192,7 +194,7 @@ def detect_motion(
     psf = np.asarray(psf, dtype=np.float64)
     k, p, _ = psf.shape
     sd = np.asarray(noise_sd, dtype=np.float64).reshape(k)
-    noise = sd**2 * float((window**2).sum())
+    noise = patch_noise(sd, window)
     if k < MIN_BEADS:
         return Motion(False, None, None, 1.0, 0.0, {}, float("nan"), float("nan"),
                       f"not tested: {k} beads (at least {MIN_BEADS} are needed "
