@@ -117,13 +117,29 @@ def test_assumed_noise_model_chi_square_does_not_decide():
     """Scene 5 of the family (8-bit, a constant-variance fallback noise model): the
     missing shot noise of bright cores was "explained" by a nonlinearity (error -1.1 %,
     excess chi-square -7 %). Under an assumed noise model the chi-square is only
-    indicative and does not decide: nothing is added (bench/bench_family.py)."""
+    indicative and does not decide: nothing is added (bench/bench_family.py). The
+    nonlinearity's own test no longer fires there (its core statistic is relative to
+    the amplitude): a copy whose evidence is forced makes the loop try it."""
+    from napari_psfspace.core.effects import REGISTRY
+    from napari_psfspace.core.effects.nonlinearity import Nonlinearity
     from napari_psfspace.core.scenes import random_scene
 
-    image, truth, _ = random_scene(5)
-    d = diagnose(image, psf_radius=truth.psf_radius)
+    class Forced(Nonlinearity):
+        name = "_test_nonlinearity"
+
+        def evidence(self, analysis):
+            return 2.0
+
+    REGISTRY["_test_nonlinearity"] = Forced
+    try:
+        image, truth, _ = random_scene(5)
+        d = diagnose(image, psf_radius=truth.psf_radius, effects=["_test_nonlinearity"])
+    finally:
+        REGISTRY.pop("_test_nonlinearity", None)
     assert d.context.noise.kind not in ("photon transfer", "camera")
     assert d.added == []
-    tried = [s for s in d.steps if s.effect == "nonlinearity"]
+    tried = [s for s in d.steps if s.effect == "_test_nonlinearity"]
     assert tried and not tried[0].accepted
-    assert tried[0].params["_comparison"]["chi2_improvement"] >= 0.05  # it would have been
+    # it would have been kept, had the chi-square decided
+    assert tried[0].params["_comparison"]["chi2_improvement"] >= 0.05
+    assert tried[0].params["_comparison"]["chi2_p_no_drop"] <= 0.005

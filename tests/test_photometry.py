@@ -22,9 +22,24 @@ def _beads(n=200, seed=0, spread=0.1):
 
 def test_fit_recovers_a_log_quadratic_field():
     pos, amp, shape, true = _beads(spread=0.05)
-    coef = fit_throughput(pos, amp, shape, degree=2)
+    coef = fit_throughput(pos, amp, shape, degree=2, radial=False)
     # 200 beads with 5 % scatter: each coefficient within 0.03 (measured <= 0.012)
     assert np.abs(coef - true).max() < 0.03
+
+
+def test_radial_fit_recovers_an_off_centre_paraboloid():
+    rng = np.random.default_rng(3)
+    shape = (500, 700)
+    pos = rng.uniform((0, 0), (shape[0] - 1, shape[1] - 1), size=(300, 2))
+    true = np.array([0.1, 0.08, -0.06, -0.3, 0.0, -0.3])  # centre off the field's
+    amp = throughput_at(true, pos, shape) * np.exp(rng.normal(0, 0.05, 300))
+    coef = fit_throughput(pos, amp, shape)  # radial by default
+    assert coef[4] == 0.0 and coef[3] == coef[5]
+    assert np.abs(coef - true).max() < 0.02
+    # a saddle is no paraboloid of revolution: the radial fit leaves it in the residual
+    saddle = throughput_at([0, 0, 0, 0.4, 0, -0.4], pos, shape)
+    flat = fit_throughput(pos, saddle, shape)
+    assert np.abs(flat[3]) < 0.05  # measured 0.028 (the saddle's 0.4 projects a little)
 
 
 def test_map_is_normalised_to_a_field_mean_of_one():
@@ -56,4 +71,6 @@ def test_bad_amplitudes_and_too_few_beads():
     with pytest.raises(ValueError, match="amplitude"):
         fit_throughput(pos, -amp, shape)
     with pytest.raises(ValueError, match="Too few beads"):
-        fit_throughput(pos[:6], amp[:6], shape, degree=2)
+        fit_throughput(pos[:6], amp[:6], shape, degree=2, radial=False)
+    with pytest.raises(ValueError, match="Too few beads"):  # radial: 4 + 2 needed
+        fit_throughput(pos[:5], amp[:5], shape, degree=2)

@@ -237,6 +237,38 @@ def test_neighbours():
     assert len(inside) >= 10 and all(found)  # measured 12 of 12 local maxima
 
 
+def test_close_companions_by_distance_in_pixels():
+    spec = {"fraction": 0.5, "distance_px": (1.0, 3.0), "amplitude": (0.5, 1.0)}
+    _, truth = simulate_beads((256, 256), 20, seed=8, effects={"neighbours": spec})
+    companions = truth.effects["companion_positions"]
+    owners = truth.effects["companion_of"]
+    assert len(owners) == 10
+    distance = np.hypot(*(companions - truth.positions[owners]).T)
+    assert distance.min() >= 1.0 and distance.max() <= 3.0
+    ratio = truth.effects["companion_amplitudes"] / truth.amplitudes[owners]
+    assert ratio.min() >= 0.5 and ratio.max() <= 1.0
+    for bad in ({"fraction": 0.1, "distance_px": (3.0, 1.0)}, {"distance_px": (1, 3)},
+                {"fraction": 0.1, "spacing": 2}):
+        with pytest.raises(ValueError, match="neighbours"):
+            simulate_beads((64, 64), 2, seed=0, effects={"neighbours": bad})
+
+
+def test_scene_defocus_gradient_spans_the_field():
+    from napari_psfspace.core.scenes import random_scene
+
+    shape = (256, 256)
+    _, plain, _ = random_scene(3, shape=shape)
+    image, truth, p = random_scene(3, shape=shape, effects={"defocus_gradient": (0.15, 0.0)})
+    assert p["defocus_gradient"] == {"span_waves": 0.15, "angle_deg": 0.0}
+    z4 = [truth.aberrations.coefficients(128, x, shape).get(4, 0.0)
+          - plain.aberrations.coefficients(128, x, shape).get(4, 0.0) for x in (0, 255)]
+    assert z4[1] - z4[0] == pytest.approx(0.15, abs=1e-9)
+    # a random direction is drawn apart from the scene: positions are unchanged
+    _, t2, p2 = random_scene(3, shape=shape, effects={"defocus_gradient": 0.15})
+    assert 0 <= p2["defocus_gradient"]["angle_deg"] < 360
+    assert np.array_equal(t2.positions, plain.positions)
+
+
 @pytest.mark.parametrize("diameter", [0.2, 0.5])
 def test_bead_size_closed_form_matches_direct_convolution(diameter):
     # Projected-sphere transform (Fourier, camera-pixel grid) against a direct convolution

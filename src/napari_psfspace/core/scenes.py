@@ -98,7 +98,10 @@ def random_scene(
     effects : dict, optional
         Effects injected into the scene, as ``effects`` of
         :func:`~napari_psfspace.core.simulate.simulate_beads` (e.g. ``{"drift": (dy, dx)}``
-        for a smear during the exposure); they do not change the draw of the scene.
+        for a smear during the exposure), and ``"defocus_gradient"``: defocus (Zernike
+        4) growing linearly across the field by this many waves rms from side to side
+        (random direction; or ``(span, angle_deg)``); they do not change the draw of the
+        scene.
     **overrides
         Any key of :data:`RANGES`, fixed (a number or string) or as a ``(low, high)``
         range, or a list of choices:
@@ -148,6 +151,12 @@ def random_scene(
         aberrations = FieldAberrations.random(p["random_strength"], seed=rng)
     else:
         aberrations = FieldAberrations.preset(p["aberrations"])
+    effects = dict(effects or {})
+    gradient = effects.pop("defocus_gradient", None)
+    layout = aberrations  # the bead layout follows the field without the gradient
+    if gradient is not None:
+        aberrations, p["defocus_gradient"] = _add_defocus_gradient(aberrations, gradient,
+                                                                   seed)
     centre = aberrations.coefficients((shape[0] - 1) / 2, (shape[1] - 1) / 2, shape)
     peak_fraction = float(simulate_psf(centre, optics=optics, size=15).max())
 
@@ -178,7 +187,7 @@ def random_scene(
         peaks = p["peak_photons"] * np.exp(p["spread"] * rng.standard_normal(p["n_beads"]))
     photons = peaks / peak_fraction
     dtype = np.uint8 if p["bits"] == 8 else np.uint16
-    r = _field_psf_radius(aberrations, optics, shape, PSF_ENERGY_FRACTION)
+    r = _field_psf_radius(layout, optics, shape, PSF_ENERGY_FRACTION)
     # dart throwing fills about half of a hexagonal packing: never ask for more
     sep = p["min_separation"] * r
     room = (shape[0] - 2 * r) * (shape[1] - 2 * r) / (np.sqrt(3) / 2 * max(sep, 1.0) ** 2)
@@ -190,13 +199,40 @@ def random_scene(
         background=(bg * (1 - var), bg * (1 + var)), gain=p["gain"], offset=p["offset"],
         read_noise=p["read_noise"], dtype=dtype, seed=rng,
         min_separation=p["min_separation"] * r, border=r, bead_photons=photons,
-        effects=effects)
+        effects=effects or None)
     if p["bits"] == 12:
         image = np.minimum(image, full).astype(dtype)
     p.update(full_scale=full, psf_radius=int(truth.psf_radius), peak_fraction=peak_fraction,
              aberrations=p["aberrations"] if isinstance(p["aberrations"], str) else "custom")
     return image, truth, {k: (float(v) if isinstance(v, np.floating) else v)
                           for k, v in p.items()}
+
+
+def _add_defocus_gradient(aberrations: FieldAberrations, spec, seed: int):
+    """Defocus (Noll 4) growing linearly across the field.
+
+    ``spec``: the span in waves rms over the field, max - min (a random
+    direction, drawn from its own generator so that the scene's draw is unchanged), or
+    ``(span, angle_deg)`` (0: along columns, x).
+    """
+    if np.isscalar(spec):
+        span = float(spec)
+        angle = float(np.random.default_rng([seed, 4]).uniform(0.0, 360.0))
+    else:
+        span, angle = (float(v) for v in spec)
+    if not np.isfinite(span) or not np.isfinite(angle):
+        raise ValueError(f"effect 'defocus_gradient': expected a finite span (waves) or "
+                         f"(span, angle_deg), got {spec!r}")
+    # ``u cos + v sin`` spans [-(|cos| + |sin|), |cos| + |sin|] over the field (the
+    # corners): scale so that the defocus spans ``span`` over the field (max - min)
+    c, s = np.cos(np.radians(angle)), np.sin(np.radians(angle))
+    half = span / 2.0 / (abs(c) + abs(s))
+    terms = {j: list(v) for j, v in aberrations.terms.items()}
+    z4 = terms.get(4, [0.0] * 6)
+    z4[1] += half * c
+    z4[2] += half * s
+    terms[4] = z4
+    return FieldAberrations(terms), {"span_waves": span, "angle_deg": angle}
 
 
 def isolated(positions: np.ndarray, radius: float) -> np.ndarray:

@@ -1034,7 +1034,25 @@ def _check_effects(
         elif key == "nonlinearity":
             out[key] = _scalar(key, value, 0.0, 0.5)
         elif key == "neighbours":
-            out[key] = _scalar(key, value, 0.0, 1.0)
+            if isinstance(value, dict):
+                unknown = sorted(set(value) - {"fraction", "distance_px", "amplitude"})
+                if unknown or "fraction" not in value:
+                    raise ValueError(f"effect {key!r}: a dict needs 'fraction' and may hold "
+                                     f"'distance_px', 'amplitude'; got keys {sorted(value)}")
+                dist = value.get("distance_px")
+                if dist is not None:
+                    dist = _pair(key, dist)
+                    if not 0 < dist[0] <= dist[1]:
+                        raise ValueError(f"effect {key!r}: need 0 < distance_px low <= high, "
+                                         f"got {value['distance_px']!r}")
+                amp = _pair(key, value.get("amplitude", _COMPANION_AMPLITUDE))
+                if not 0 < amp[0] <= amp[1]:
+                    raise ValueError(f"effect {key!r}: need 0 < amplitude low <= high, got "
+                                     f"{value.get('amplitude')!r}")
+                out[key] = {"fraction": _scalar(key, value["fraction"], 0.0, 1.0),
+                            "distance_px": dist, "amplitude": amp}
+            else:
+                out[key] = _scalar(key, value, 0.0, 1.0)
         elif key == "bead_size":
             low, high = (value, value) if np.isscalar(value) else _pair(key, value)
             low = _scalar(key, low, 0.0, inf, open_low=False, open_high=True)
@@ -1099,19 +1117,25 @@ def _nonlinear(electrons: np.ndarray, c: float, e_ref: float) -> np.ndarray:
 
 
 def _companions(
-    rng: np.random.Generator, positions: np.ndarray, fraction: float, radius: float
+    rng: np.random.Generator, positions: np.ndarray, spec, radius: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Owner index, position and relative amplitude of companion beads.
 
-    ``round(fraction * M)`` distinct beads each get one companion at a
-    distance uniform in ``[0.6, 1.6] * radius`` in a uniform direction, with
-    an amplitude factor uniform in ``[0.3, 1]``.
+    ``spec`` is a fraction ``f`` or a dict (``fraction``, ``distance_px``,
+    ``amplitude``). ``round(f * M)`` distinct beads each get one companion at a
+    distance uniform in ``[0.6, 1.6] * radius`` (or ``distance_px``) in a uniform
+    direction, with an amplitude factor uniform in ``[0.3, 1]`` (or ``amplitude``).
     """
+    if isinstance(spec, dict):
+        fraction, dist, amp = spec["fraction"], spec["distance_px"], spec["amplitude"]
+    else:
+        fraction, dist, amp = spec, None, _COMPANION_AMPLITUDE
+    dist = dist if dist is not None else tuple(radius * d for d in _COMPANION_DISTANCE)
     count = round(fraction * len(positions))
     owners = np.sort(rng.choice(len(positions), size=count, replace=False))
-    distance = radius * rng.uniform(*_COMPANION_DISTANCE, size=count)
+    distance = rng.uniform(*dist, size=count)
     angle = rng.uniform(0.0, 2.0 * np.pi, size=count)
-    factor = rng.uniform(*_COMPANION_AMPLITUDE, size=count)
+    factor = rng.uniform(*amp, size=count)
     where = positions[owners] + distance[:, None] * np.stack([np.sin(angle), np.cos(angle)], 1)
     return owners, where, factor
 
@@ -1267,10 +1291,11 @@ def simulate_beads(
             loses the fraction ``c``; increasing up to ``e_ref / (2 c) >=
             e_ref`` and held constant beyond, so monotone. Truth:
             ``nonlinearity_reference`` (``e_ref``, electrons).
-        ``"neighbours": f`` (``0 < f <= 1``)
+        ``"neighbours": f`` (``0 < f <= 1``) or a dict ``fraction``, ``distance_px``, ``amplitude``
             ``round(f M)`` random beads get a companion at a distance uniform
-            in ``[0.6 r, 1.6 r]`` in a random direction, amplitude uniform in
-            [0.3, 1] times the bead's (before illumination), same diameter,
+            in ``[0.6 r, 1.6 r]`` (or ``distance_px``) in a random direction,
+            amplitude uniform in [0.3, 1] (or ``amplitude``) times the bead's
+            (before illumination), same diameter,
             rendered with the PSF at its own position (the minimum
             separation is violated on purpose). ``truth.positions`` stays
             the primary beads. Truth: ``companion_positions`` (K, 2),

@@ -13,8 +13,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import stats
 
+from ..analysis import core_residuals, core_trend
 from ..window import radial_distance
 from .base import Context, Effect
 
@@ -62,26 +62,11 @@ class Response:
 
 
 def _core_trend(res, c: float, x_ref: float, offset: float, core: np.ndarray) -> float:
-    """Spearman z of the beads' core residual against amplitude after linearising their
-    pixels with ``c`` and refitting amplitude and background to the model's shapes."""
-    shape_ = (res.model - res.background[:, None, None]) / np.where(
-        res.amplitude == 0, 1.0, res.amplitude)[:, None, None]
-    data = linearise(res.data, c, x_ref, offset)
-    amp, cores = [], []
-    for k in range(len(res)):
-        m = res.fit_mask[k]
-        x = np.column_stack([shape_[k][m], np.ones(m.sum())])
-        w = 1.0 / np.sqrt(res.variance[k][m])
-        coef, *_ = np.linalg.lstsq(x * w[:, None], data[k][m] * w, rcond=None)
-        r = (data[k] - coef[0] * shape_[k] - coef[1]) / np.sqrt(res.variance[k])
-        amp.append(coef[0])
-        cores.append(r[core & m].mean() if (core & m).any() else np.nan)
-    amp, cores = np.asarray(amp), np.asarray(cores)
-    ok = np.isfinite(cores) & (amp > 0)
-    if ok.sum() < 8:
-        return 0.0
-    rho = float(np.clip(stats.spearmanr(amp[ok], cores[ok]).statistic, -0.999999, 0.999999))
-    return float(np.arctanh(rho) * np.sqrt((ok.sum() - 3) / 1.06))
+    """Spearman z of the beads' core residual (relative to the amplitude) against
+    amplitude after linearising their pixels with ``c`` and refitting amplitude and
+    background to the model's shapes (the ``core_vs_amplitude`` test's statistic)."""
+    amp, cores = core_residuals(res, core, linearise(res.data, c, x_ref, offset))
+    return core_trend(amp, cores, res.positions)[1]
 
 
 def _dark_level(ctx: Context) -> float:

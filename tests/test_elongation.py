@@ -1,0 +1,61 @@
+"""Beads stretched by a companion 1-3 px away (merged by the detector) are found."""
+
+import numpy as np
+
+from napari_psfspace.core.analysis import _elongated_beads, bead_elongation
+from napari_psfspace.core.residuals import BeadResiduals
+
+
+def _gauss(p, sigma, dy=0.0, dx=0.0, stretch=(0.0, 0.0)):
+    yy, xx = np.mgrid[:p, :p] - p // 2
+    sy, sx = sigma ** 2 + stretch[0], sigma ** 2 + stretch[1]
+    return np.exp(-0.5 * ((yy - dy) ** 2 / sy + (xx - dx) ** 2 / sx))
+
+
+def _residuals(fraction, seed=0, k=150, p=17):
+    """Gaussian beads (sigma 1.5 px; the field's astigmatism stretches them along x
+    to the right), modelled without the stretch's field variation error-free;
+    ``fraction`` of them get a companion 1-3 px away at 50-100 % brightness."""
+    rng = np.random.default_rng(seed)
+    pos = rng.uniform(0, 1000, (k, 2))
+    amp = 3000.0 * np.exp(0.25 * rng.standard_normal(k))
+    bg = np.full(k, 20.0)
+    owners = rng.choice(k, round(fraction * k), replace=False)
+    data, model = [], []
+    for i in range(k):
+        st = (0.0, 0.6 * pos[i, 1] / 1000)  # astigmatism over the field
+        shape = _gauss(p, 1.5, stretch=st)
+        truth = amp[i] * shape
+        if i in owners:
+            d, a, f = rng.uniform(1, 3), rng.uniform(0, 2 * np.pi), rng.uniform(0.5, 1)
+            truth = truth + f * amp[i] * _gauss(p, 1.5, d * np.sin(a), d * np.cos(a), st)
+        data.append(rng.poisson(truth + bg[i]).astype(float))
+        model.append(amp[i] * (1 + (i in owners) * 0.75) * shape + bg[i])
+    data, model = np.array(data), np.array(model)
+    ones = np.ones(k)
+    res = BeadResiduals(pos, amp, bg, data, model, np.maximum(model, 1.0),
+                        np.ones_like(data, bool), ones, ones, ones, ones)
+    return res, np.sort(owners)
+
+
+def test_stretch_of_a_known_gaussian():
+    # a bead blurred by an extra variance of 0.8 px^2 along x, modelled without it:
+    # e1 = (a - b) / 4 = 0.2, e2 = 0
+    p = 21
+    model = 1e5 * _gauss(p, 2.0)
+    data = 1e5 * _gauss(p, 2.0, stretch=(0.0, 0.8)) * (2.0 ** 2 / np.sqrt(4.0 * 4.8))
+    one = np.ones(1)
+    res = BeadResiduals(np.zeros((1, 2)), 1e5 * one, 0 * one, data[None], model[None],
+                        np.ones((1, p, p)), np.ones((1, p, p), bool), one, one, one, one)
+    e, se = bead_elongation(res)
+    assert abs(e[0, 0] - 0.2) < 0.04 and abs(e[0, 1]) < 0.01
+
+
+def test_companions_found_and_nothing_on_single_beads():
+    for seed in range(3):
+        res, _ = _residuals(0.0, seed=seed)
+        assert _elongated_beads(res)["count"] <= 1
+    res, owners = _residuals(0.1, seed=0)
+    found = set(_elongated_beads(res)["beads"])
+    assert len(found & set(owners.tolist())) >= 0.8 * len(owners)
+    assert len(found - set(owners.tolist())) <= 2
