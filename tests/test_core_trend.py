@@ -22,7 +22,7 @@ def _residuals(c=0.0, seed=0, k=200, p=15):
     amp = 2000.0 * np.exp(0.5 * rng.standard_normal(k))
     bg = np.full(k, 10.0)
     sig = 1.8 + 0.3 * pos[:, 1] / 1000  # the field: wider to the right
-    truth = np.stack([a * _gauss(p, s) for a, s in zip(amp, sig)]) + bg[:, None, None]
+    truth = np.stack([a * _gauss(p, s) for a, s in zip(amp, sig, strict=True)]) + bg[:, None, None]
     if c:
         truth = truth * (1 - c * truth / truth.max())
     data = rng.poisson(truth).astype(float)
