@@ -104,6 +104,13 @@ class Nonlinearity(Effect):
         if len(cross):
             i = cross[int(np.argmin(np.abs(C_GRID[cross] - best)))]
             best = float(C_GRID[i] - z[i] * (C_GRID[i + 1] - C_GRID[i]) / (z[i + 1] - z[i]))
+        elif best in (C_GRID[0], C_GRID[-1]):
+            # the trend does not vanish inside the grid: no quadratic response describes
+            # it (on the SP8 confocal stack the fit ran to the grid's edge, c = 0.24)
+            raise ValueError(
+                f"no detector response y = x (1 - c x / x_ref) with c in [{C_GRID[0]:g}, "
+                f"{C_GRID[-1]:g}] removes the core-vs-brightness trend (|z| >= "
+                f"{np.abs(z).min():.1f} throughout): not a quadratic response")
         return {"c": round(best, 4), "x_ref_adu": x_ref, "offset_adu": offset,
                 "trend_z_by_c": np.column_stack([C_GRID, z.round(2)]).tolist()}
 
