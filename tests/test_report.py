@@ -207,3 +207,12 @@ def test_an_assumed_noise_model_qualifies_the_floor(tmp_path):
     found = text.split("## What was found")[1].split("## ")[0]
     assert "The noise model is assumed" in found and "only indicative" in found
     assert "Fallback (" in text.split("## Noise model")[1]
+
+
+def test_report_says_how_much_vignetting_would_have_been_seen(plain):
+    d, _, md = plain
+    text = Path(md).read_text(encoding="utf-8")
+    loss = d.analysis_before.tests["amplitude_field"].detail["min_corner_loss"]
+    # 25 beads of a 3x brightness spread: only a deep fall-off would stand out
+    assert 0.2 < loss < 1.0
+    assert "**Vignetting**: none found" in text and f"{100 * loss:.0f} %" in text

@@ -401,6 +401,13 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
     motion = d.operator.metadata.get("motion") or {}
     if motion and not motion.get("detected") and not motion.get("note"):
         lines += ["", "**Motion blur**: " + str(motion.get("reason", "not tested")) + "."]
+    af = d.analysis_before.tests.get("amplitude_field")
+    if af is not None and "illumination" not in d.added and "min_corner_loss" in af.detail:
+        lines += ["", "**Vignetting**: none found; with these beads' brightness spread and "
+                      "number, a fall-off from the centre to the corners of "
+                      f"{_num(100 * af.detail['min_corner_loss'], '.0f')} % or more "
+                      "would have been seen (a weaker one cannot be told from the beads' "
+                      "own differences)."]
     if d.options.get("leave_one_bead_out"):
         lines += ["", f"With {d.options['folds']} usable beads, each bead was judged by a "
                       "model learnt from all the others (leave-one-bead-out)."]
