@@ -11,7 +11,9 @@ radius. A false alarm is an effect about the data added that the scene does not 
 settings (:data:`MODEL_SETTINGS`) is counted apart, with the field error against the
 truth before and after it. Scenes where diagnose refuses (too few usable beads, every
 bead saturated) are counted apart. Prints one line per scene and a summary:
-the false-alarm rate, which effects were added, and which residual tests fired most.
+the false-alarm rate, which effects were added, which residual tests fired most, and
+each test's calibration on the still scenes (share fired, 95th percentile and maximum
+of its statistic).
 """
 
 from __future__ import annotations
@@ -45,6 +47,8 @@ def run(seed: int) -> dict:
         return {**row, "added": "refused", "alarms": "", "fired": "",
                 "note": str(err)[:60], "seconds": time.perf_counter() - t0}
     fired = [t.name for t in d.analysis_before.tests.values() if t.significant]
+    row["strength"] = {t.name: (float(t.strength), float(t.threshold))
+                       for t in d.analysis_before.tests.values()}
     # saturation is no false alarm where the scene clipped (bright beads of a 12-bit or
     # 8-bit scene reach full scale); model settings are no claim about the data
     present = {"saturation"} if int((image >= p["full_scale"]).sum()) > 0 else set()
@@ -96,6 +100,17 @@ def main():
                   f"{r['seed']}: {r['truth_plain']:.4f} -> {r['truth_final']:.4f}"
                   for r in changed))
     print("residual tests significant on the plain model:", dict(fired.most_common()))
+    # each test's calibration on the still scenes: share fired, 95th percentile, maximum
+    print()
+    names = sorted({n for r in done for n in r.get("strength", {})})
+    calib = []
+    for n in names:
+        v = np.array([r["strength"][n][0] for r in done if n in r.get("strength", {})])
+        th = next(r["strength"][n][1] for r in done if n in r.get("strength", {}))
+        calib.append({"test": n, "threshold": th, "fired": float(np.mean(v > th)),
+                      "p95": float(np.quantile(v, 0.95)), "max": float(v.max())})
+    print(table(calib, [("test", "s"), ("threshold", ".2f"), ("fired", ".2f"),
+                        ("p95", ".2f"), ("max", ".2f")]))
 
 
 if __name__ == "__main__":
