@@ -45,6 +45,7 @@ from _common import table
 from napari_psfspace.core.analysis import THRESHOLDS
 from napari_psfspace.core.diagnose import diagnose
 from napari_psfspace.core.metrics import grid_errors
+from napari_psfspace.core.photometry import radial_design
 from napari_psfspace.core.scenes import random_scene
 
 SETTING = {"shape": (1024, 1024), "n_beads": 150, "aberrations": "moderate",
@@ -82,10 +83,7 @@ CASES = {
 
 
 def _truth_trend_z(truth, shape) -> float:
-    h, w = shape
-    u = (truth.positions[:, 1] - (w - 1) / 2) / (w / 2)
-    v = (truth.positions[:, 0] - (h - 1) / 2) / (h / 2)
-    x = np.column_stack([np.ones_like(u), u, v, u * u + v * v])
+    x = radial_design(truth.positions, shape)
     y = np.log(truth.amplitudes)
     beta, *_ = np.linalg.lstsq(x, y, rcond=None)
     rss1, rss0 = float(np.sum((y - x @ beta) ** 2)), float(np.sum((y - y.mean()) ** 2))

@@ -54,6 +54,7 @@ from scipy import stats
 from .background import monomials
 from .noise import NoiseModel
 from .patches import extract_patches
+from .photometry import radial_design, radial_to_monomials
 from .residuals import BeadResiduals
 from .spikes import find_spikes, pixel_noise_sd
 from .window import radial_distance
@@ -395,7 +396,7 @@ def _elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
     """
     e, se = bead_elongation(res)
     ok = np.all(np.isfinite(se), axis=1) & (res.amplitude > 0)
-    out = {"count": 0, "beads": [], "peaks": [], "tau": 0.0, "max_z": 0.0}
+    out = {"count": 0, "beads": [], "tau": 0.0, "max_z": 0.0}
     if ok.sum() < 12:
         return out
     idx = np.flatnonzero(ok)
@@ -424,12 +425,8 @@ def _elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
     var = _psf_variance(res)[idx]
     stretch = 4.0 * np.hypot(e[idx, 0], e[idx, 1]) / np.maximum(var, 1e-12)
     hits = idx[(z > k) & (stretch > MIN_STRETCH)]
-    # where the companion lies: along the stretch, about a PSF sigma from the centre
-    # (the neighbours effect needs a position to fit it jointly)
-    angle = 0.5 * np.arctan2(e[hits, 1], e[hits, 0])
-    peaks = res.positions[hits] + np.column_stack([np.sin(angle), np.cos(angle)])
-    out.update(count=int(len(hits)), beads=hits.tolist(), peaks=peaks.tolist(),
-               tau=float(np.sqrt(tau2)), max_z=float(z.max()) if len(z) else 0.0)
+    out.update(count=int(len(hits)), beads=hits.tolist(), tau=float(np.sqrt(tau2)),
+               max_z=float(z.max()) if len(z) else 0.0)
     return out
 
 
@@ -646,13 +643,11 @@ def analyse(
         amp = res.amplitude
         ok = amp > 0
         if ok.sum() >= 12:
-            h, w = img.shape
-            u = (res.positions[ok, 1] - (w - 1) / 2) / (w / 2)
-            v = (res.positions[ok, 0] - (h - 1) / 2) / (h / 2)
             # vignetting / an off-centre illumination spot: a paraboloid of revolution
-            # with a free centre (3 dof, not the full quadratic's 5: on 150 beads of
-            # brightness spread 0.25 a 40 % fall-off to the corners gave F = 4.4, z = 3.1)
-            x = np.column_stack([np.ones(ok.sum()), u, v, u * u + v * v])
+            # with a free centre, as the throughput is fitted (3 dof, not the full
+            # quadratic's 5: on 150 beads of brightness spread 0.25 a 40 % fall-off to
+            # the corners gave F = 4.4, z = 3.1)
+            x = radial_design(res.positions[ok], img.shape)
             y = np.log(amp[ok])
             beta, rss1, *_ = np.linalg.lstsq(x, y, rcond=None)
             rss1 = float(np.sum((y - x @ beta) ** 2))
@@ -670,9 +665,8 @@ def analyse(
                                                   {"F": float(f), "p": pval,
                                                    "min_corner_loss": float(
                                                        1.0 - np.exp(-2.0 * g_min)),
-                                                   # as degree-2 monomials
-                                                   "coefficients": np.r_[beta, 0.0, beta[3]]
-                                                   .round(4).tolist()})
+                                                   "coefficients": radial_to_monomials(
+                                                       beta).round(4).tolist()})
     # row / column patterns and background structure use the bead-free background
     d = _secondary_peaks(res, psf_radius)
     tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),

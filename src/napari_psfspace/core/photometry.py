@@ -30,14 +30,14 @@ def _design(positions: np.ndarray, shape: tuple[int, int], degree: int) -> np.nd
     return np.column_stack(cols) if cols else np.ones((len(pos), 1))
 
 
-def _radial_design(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def radial_design(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """``1, u, v, u^2 + v^2``: a paraboloid of revolution with a free centre, shape
     (K, 4)."""
     x = _design(positions, shape, 2)
     return np.column_stack([x[:, 0], x[:, 1], x[:, 2], x[:, 3] + x[:, 5]])
 
 
-def _to_monomials(coef: np.ndarray) -> np.ndarray:
+def radial_to_monomials(coef: np.ndarray) -> np.ndarray:
     """Radial coefficients ``(c, a, b, g)`` as degree-2 monomials ``(c, a, b, g, 0, g)``."""
     c, a, b, g = coef
     return np.array([c, a, b, g, 0.0, g])
@@ -45,7 +45,7 @@ def _to_monomials(coef: np.ndarray) -> np.ndarray:
 
 def _fit_design(positions, shape, degree: int, radial: bool) -> tuple[np.ndarray, bool]:
     if degree == 2 and radial:
-        return _radial_design(positions, shape), True
+        return radial_design(positions, shape), True
     return _design(positions, shape, degree), False
 
 
@@ -84,7 +84,7 @@ def fit_throughput(positions, amplitude, shape: tuple[int, int], *, degree: int 
         raise ValueError(f"Too few beads to fit a throughput of degree {degree}: "
                          f"{len(amp)}, need at least {x.shape[1] + 2}.")
     coef, *_ = np.linalg.lstsq(x, np.log(amp), rcond=None)
-    return _to_monomials(coef) if rad else coef
+    return radial_to_monomials(coef) if rad else coef
 
 
 def throughput_at(coefficients, positions, shape: tuple[int, int]) -> np.ndarray:
