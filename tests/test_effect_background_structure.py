@@ -69,7 +69,10 @@ def test_structure_map_follows_the_truth(structured):
 
 def test_statistic_with_a_large_psf():
     # strong aberrations, r = 22 px: no window of a patch's size is wholly bead-free
-    # (the former test read z = 0); measured z = 33.7 with blobs, -1.6 without
+    # (the former test read z = 0). Measured z = 5.2 with blobs, -0.6 without: the
+    # windows' chi2/dof is 1.12 against the photon-transfer gain's own 2.3 % (it was
+    # 33.7 against the sampling error alone, which made still scenes of the family
+    # read up to 800)
     zs = {}
     for a in (60.0, 0.0):
         image, truth = simulate_beads((640, 640), 70, aberrations="strong", seed=1,
@@ -77,8 +80,8 @@ def test_statistic_with_a_large_psf():
         d = diagnose(image, psf_radius=truth.psf_radius, effects=[])
         zs[a] = d.analysis_before.tests["background_structure"].z
     threshold = THRESHOLDS["background_structure"]
-    assert zs[60.0] > 3 * threshold
-    assert zs[0.0] < threshold / 2
+    assert zs[60.0] > 1.2 * threshold
+    assert zs[0.0] < threshold / 4
 
 
 def test_statistic_silent_without_structure():

@@ -28,14 +28,17 @@ Tests (name: what it looks at)
   bead to bead: basis or field model too small).
 * ``pixel_outliers``: spots narrower than the optics can form (hot pixels, cosmic
   rays, :mod:`~napari_psfspace.core.spikes`), counted over the whole image.
-* ``row_pattern`` / ``column_pattern``: excess variance of the row / column medians of
-  the bead-free background (fixed-pattern offsets).
+* ``row_pattern`` / ``column_pattern``: excess variance of the row / column trimmed
+  means of the bead-free background, line to line (fixed-pattern offsets).
 * ``background_structure``: chi-square of order-2 polynomials fitted to the bead-free
   pixels of windows of a patch's size (at least a quarter of them bead-free), after
-  removing a smooth background, as a normal z per window, and their 10 %-trimmed mean
+  removing a smooth background, as chi2/dof per window, and their 10 %-trimmed mean
   (structure at the scale of a patch that the per-patch polynomial cannot describe).
+  The background tests measure their excess against the noise's sampling error and
+  the noise model's own relative error (:func:`noise_scale_error`).
 * ``amplitude_field``: F-test of a radial quadratic trend (free centre) of log
-  amplitude over the field (vignetting, non-uniform illumination).
+  amplitude over the field (vignetting, non-uniform illumination), in the fitted
+  amplitudes and in the model-free patch fluxes: the smaller z of the two.
 * ``saturation``: pixels at the image's maximum value inside bead cores.
 * ``secondary_peaks``: beads whose smoothed normalised residual has a peak of more than
   6 noise sd outside the core (a companion bead the detector merged with it).
@@ -45,6 +48,7 @@ Tests (name: what it looks at)
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -68,8 +72,8 @@ THRESHOLDS: dict[str, float] = {
     "pixel_outliers": 3.0,
     "row_pattern": 6.0,
     "column_pattern": 6.0,
-    "background_structure": 6.0,
-    "amplitude_field": 4.0,
+    "background_structure": 4.0,
+    "amplitude_field": 3.0,
     "saturation": 3.0,
     "secondary_peaks": 3.0,
     "elongated_beads": 3.0,
@@ -164,6 +168,51 @@ def _chi2_to_z(chi2: float, dof: float) -> float:
         return 0.0
     a = 2.0 / (9.0 * dof)
     return float(((chi2 / dof) ** (1.0 / 3.0) - (1 - a)) / np.sqrt(a))
+
+
+#: Relative uncertainty of the variance scale of an *assumed* noise model (a fallback:
+#: constant variance, unit-gain Poisson), for the tests that compare a chi-square with
+#: its noise-only value. The unit-gain fallback overestimated an 8-bit low-gain scene's
+#: variance 3-20 times on the scene family.
+FALLBACK_SCALE_ERROR = 0.5
+
+
+def noise_scale_error(noise: NoiseModel) -> float:
+    """Relative uncertainty of ``noise``'s variance scale: photon transfer's own
+    ``gain_relative_error``, 0 for camera values given, :data:`FALLBACK_SCALE_ERROR`
+    for an assumed model.
+
+    The background tests compare a chi-square over hundreds of windows or lines with
+    its noise-only value: against the sampling error alone, a gain known to 5 % gave z
+    of 10-800 on still scenes of the family. (Measuring the scale on the image's own
+    bead-free pixels instead, from second differences, was tried: quantised 8-bit
+    backgrounds and faint undetected beads made it worse, 18 of 102 scenes firing.)
+    """
+    if noise.kind == "camera":
+        return 0.0
+    if noise.kind == "photon transfer":
+        return float((noise.checks or {}).get("gain_relative_error", 0.0) or 0.0)
+    return FALLBACK_SCALE_ERROR
+
+
+#: A line's level is the mean of its bead-free pixels within this many noise sd of its
+#: median.
+LINE_CLIP = 3.0
+
+
+def _trim_factor(trim: float) -> float:
+    """Asymptotic variance of the ``trim``-trimmed mean of n N(0, 1) values, times n:
+    ``(1 - 2a - 2c phi(c) + 2a c^2) / (1 - 2a)^2``, ``c`` the ``(1 - a)`` quantile."""
+    if trim <= 0:
+        return 1.0
+    c = float(stats.norm.isf(trim))
+    return (1 - 2 * trim - 2 * c * stats.norm.pdf(c) + 2 * trim * c * c) / (1 - 2 * trim) ** 2
+
+
+def _excess_z(ratio: float, se_sampling: float, scale_error: float) -> float:
+    """A mean chi2/dof ``ratio`` against 1, in units of its sampling error combined with
+    the noise model's own relative error (:func:`noise_scale_error`)."""
+    return float((ratio - 1.0) / max(np.hypot(se_sampling, scale_error), 1e-12))
 
 
 def bead_covariates(res: BeadResiduals, shape, all_positions=None) -> dict[str, np.ndarray]:
@@ -457,32 +506,53 @@ def _smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.nd
 
 
 def _line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
-                  axis: int) -> dict:
-    """Excess variance of the medians of bead-free, detrended pixels along rows (axis=1)
-    or columns (axis=0)."""
+                  axis: int, scale_error: float = 0.0) -> dict:
+    """Excess variance of the clipped means of bead-free, detrended pixels along rows
+    (axis=1) or columns (axis=0), line to line, as a z against the noise (with the
+    noise model's relative error ``scale_error``, see :func:`noise_scale_error`)."""
     data = np.where(free, resid, np.nan)
-    med = np.nanmedian(data, axis=axis)
-    lev = np.nanmedian(np.where(free, level, np.nan), axis=axis)
-    count = np.sum(free, axis=axis)
-    ok = (count >= 20) & np.isfinite(med)
+    if axis == 0:
+        data = data.T
+    with warnings.catch_warnings():  # lines without a bead-free pixel: NaN, left out
+        warnings.simplefilter("ignore", RuntimeWarning)
+        lev = np.nanmedian(np.where(free, level, np.nan), axis=1)
+        centre = np.nanmedian(data, axis=1)
+    # a line's level is the mean of its pixels within LINE_CLIP sd of its median:
+    # robust to a faint bead's wing or a hot pixel, and, unlike the median (or a trimmed
+    # mean), not stuck to whole ADU on an integer image whose noise is below one ADU (an
+    # 8-bit low-gain scene's medians flip between two integers from line to line: z
+    # 20-75 on still scenes of the family). On integer images the window spans at least
+    # +-1.5 ADU, so that the neighbours of the median's integer stay in
+    sd = np.sqrt(noise.variance(np.nan_to_num(lev)))
+    half = np.maximum(LINE_CLIP * sd, 1.5 if noise.min_variance > 0 else 0.0)
+    with np.errstate(invalid="ignore"):
+        inside = np.abs(data - centre[:, None]) <= half[:, None]
+    count = inside.sum(axis=1)
+    med = np.where(inside, data, 0.0).sum(axis=1) / np.maximum(count, 1)
+    ok = (count >= 20) & np.isfinite(centre)
     if ok.sum() < 10:
         return {"z": 0.0, "n_lines": int(ok.sum())}
     m = med[ok]
-    # a fixed pattern is line-to-line jitter: compare each median with the mean of its
+    # a fixed pattern is line-to-line jitter: compare each line with the mean of its
     # +-4 neighbours (slow trends of the background left by the smoothing cancel out)
     kern = np.ones(9) / 8.0
     kern[4] = 0.0
     local = ndi.convolve1d(m, kern, mode="reflect")
     dev = m - local
-    var_med = (np.pi / 2) * noise.variance(lev[ok]) / count[ok]
-    chi2 = float(np.sum(dev**2 / (var_med * (1 + 1 / 8))))
-    return {"z": _chi2_to_z(chi2, int(ok.sum())), "n_lines": int(ok.sum()),
-            "rms_adu": float(np.sqrt(np.mean(dev**2)))}
+    # variance of the mean of normal values clipped at +-c sd
+    c = half[ok] / sd[ok]
+    clipped = 1.0 - 2.0 * c * stats.norm.pdf(c) / np.maximum(2.0 * stats.norm.cdf(c) - 1.0,
+                                                             1e-12)
+    var_line = clipped * noise.variance(lev[ok]) / count[ok]
+    n = int(ok.sum())
+    ratio = float(np.mean(dev**2 / (var_line * (1 + 1 / 8))))
+    return {"z": _excess_z(ratio, np.sqrt(2.0 / n), scale_error), "n_lines": n,
+            "chi2_dof": ratio, "rms_adu": float(np.sqrt(np.mean(dev**2)))}
 
 
 def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
                       noise: NoiseModel, size: int, *, min_free: float = 0.25,
-                      trim: float = 0.1) -> dict:
+                      trim: float = 0.1, scale_error: float = 0.0) -> dict:
     """Order-2 polynomials fitted to the bead-free pixels of windows of a patch's size.
 
     The image is tiled with ``size x size`` windows; those whose bead-free fraction is
@@ -514,7 +584,7 @@ def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
     design = monomials(size, 2)
     n_par = design.shape[1]
     h, w = resid.shape
-    zs, ratios = [], []
+    ratios, dofs = [], []
     for y0 in range(0, h - size + 1, size):
         for x0 in range(0, w - size + 1, size):
             use = free[y0:y0 + size, x0:x0 + size].ravel()
@@ -526,19 +596,41 @@ def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
             coef, *_ = np.linalg.lstsq(a, d, rcond=None)
             var = noise.variance(level[y0:y0 + size, x0:x0 + size].ravel()[use])
             chi2 = float(np.sum((d - a @ coef) ** 2 / var))
-            zs.append(_chi2_to_z(chi2, n_use - n_par))
             ratios.append(chi2 / (n_use - n_par))
-    if len(zs) < 5:
-        return {"z": 0.0, "windows": len(zs)}
-    n = len(zs)
+            dofs.append(n_use - n_par)
+    if len(ratios) < 5:
+        return {"z": 0.0, "windows": len(ratios)}
+    n = len(ratios)
     cut = int(trim * n)
-    kept = np.sort(zs)[cut:n - cut]
-    # asymptotic variance of the a-trimmed mean of n N(0, 1) values, c the (1 - a)
-    # quantile: (1 - 2a - 2c phi(c) + 2a c^2) / (1 - 2a)^2 / n
-    c = float(stats.norm.isf(trim)) if trim > 0 else 0.0
-    factor = (1 - 2 * trim - 2 * c * stats.norm.pdf(c) + 2 * trim * c * c) / (1 - 2 * trim) ** 2
-    z = float(np.mean(kept)) * np.sqrt(n / factor)
-    return {"z": z, "windows": len(zs), "median_chi2_dof": float(np.median(ratios))}
+    kept = np.sort(ratios)[cut:n - cut]
+    # the trimmed mean of the windows' chi2/dof against 1: its sampling error (each
+    # window's sqrt(2 / dof), trimmed) combined with the noise model's own relative error
+    se = float(np.sqrt(_trim_factor(trim) * 2.0 / np.mean(dofs) / n))
+    mean = float(np.mean(kept))
+    return {"z": _excess_z(mean, se, scale_error), "windows": n,
+            "chi2_dof": mean, "median_chi2_dof": float(np.median(ratios))}
+
+
+def _radial_trend(positions, values, shape, threshold: float) -> dict:
+    """F-test of a paraboloid of revolution (free centre) in ``log(values)`` over the
+    field: ``z`` (normal equivalent of the F-test's p), ``F``, ``p``, the radial
+    coefficients as monomials, and the smallest centred fall-off to the corners
+    (``u^2 + v^2 = 2``) these beads would show at ``threshold``."""
+    x = radial_design(positions, shape)
+    y = np.log(np.asarray(values, dtype=np.float64))
+    beta, *_ = np.linalg.lstsq(x, y, rcond=None)
+    rss1 = float(np.sum((y - x @ beta) ** 2))
+    rss0 = float(np.sum((y - y.mean()) ** 2))
+    n, q = len(y), x.shape[1] - 1
+    f = ((rss0 - rss1) / q) / max(rss1 / (n - q - 1), 1e-300)
+    pval = float(stats.f.sf(f, q, n - q - 1))
+    # the beads' own brightness spread and their number set the smallest visible
+    # fall-off (a 40 % vignetting is not always seen on 150 beads of spread 0.25)
+    cov = np.linalg.pinv(x.T @ x) * rss1 / max(n - q - 1, 1)
+    g_min = threshold * float(np.sqrt(max(cov[3, 3], 0.0)))
+    return {"z": float(stats.norm.isf(max(pval, 1e-300))), "F": float(f), "p": pval,
+            "min_corner_loss": float(1.0 - np.exp(-2.0 * g_min)),
+            "coefficients": radial_to_monomials(beta).round(4).tolist()}
 
 
 def analyse(
@@ -632,41 +724,37 @@ def analyse(
         free = ~np.asarray(bead_mask, bool)
     level = _smooth_background(img, free, sigma=max(8.0, 2 * psf_radius))
     resid = img - level
+    # each against the noise's sampling error and the noise model's own uncertainty
+    scale_error = noise_scale_error(noise)
     for axis, name in ((1, "row_pattern"), (0, "column_pattern")):
-        d = _line_pattern(resid, level, free, noise, axis)
+        d = _line_pattern(resid, level, free, noise, axis, scale_error)
         tests[name] = TestResult(name, d.pop("z"), th[name], d)
-    d = _window_structure(resid, level, free, noise, p)
+    d = _window_structure(resid, level, free, noise, p, scale_error=scale_error)
     tests["background_structure"] = TestResult("background_structure", d.pop("z"),
                                                th["background_structure"], d)
 
     if k >= 5:
-        amp = res.amplitude
-        ok = amp > 0
+        ok = (res.amplitude > 0) & (flux > 0)
         if ok.sum() >= 12:
             # vignetting / an off-centre illumination spot: a paraboloid of revolution
             # with a free centre, as the throughput is fitted (3 dof, not the full
             # quadratic's 5: on 150 beads of brightness spread 0.25 a 40 % fall-off to
-            # the corners gave F = 4.4, z = 3.1)
-            x = radial_design(res.positions[ok], img.shape)
-            y = np.log(amp[ok])
-            beta, rss1, *_ = np.linalg.lstsq(x, y, rcond=None)
-            rss1 = float(np.sum((y - x @ beta) ** 2))
-            rss0 = float(np.sum((y - y.mean()) ** 2))
-            n, q = ok.sum(), x.shape[1] - 1
-            f = ((rss0 - rss1) / q) / max(rss1 / (n - q - 1), 1e-300)
-            pval = float(stats.f.sf(f, q, n - q - 1))
-            z = float(stats.norm.isf(max(pval, 1e-300)))
-            # the smallest centred fall-off to the corners (u^2 + v^2 = 2) these beads
-            # would show at the test's threshold: the bright beads' own spread and their
-            # number set it (a 40 % vignetting is not seen on 150 beads of spread 0.25)
-            cov = np.linalg.pinv(x.T @ x) * rss1 / max(n - q - 1, 1)
-            g_min = th["amplitude_field"] * float(np.sqrt(max(cov[3, 3], 0.0)))
-            tests["amplitude_field"] = TestResult("amplitude_field", z, th["amplitude_field"],
-                                                  {"F": float(f), "p": pval,
-                                                   "min_corner_loss": float(
-                                                       1.0 - np.exp(-2.0 * g_min)),
-                                                   "coefficients": radial_to_monomials(
-                                                       beta).round(4).tolist()})
+            # the corners gave F = 4.4, z = 3.1). A throughput shows in the model-free
+            # patch fluxes as much as in the fitted amplitudes; a PSF model whose error
+            # grows towards the edge biases the amplitudes alone (still scenes of the
+            # family: z 2.8 and 3.2 from the amplitudes, 2.1 and 1.6 from the fluxes,
+            # 1.6 from the true amplitudes). The test's z is the smaller of the two
+            d_amp = _radial_trend(res.positions[ok], res.amplitude[ok], img.shape,
+                                  th["amplitude_field"])
+            d_flux = _radial_trend(res.positions[ok], flux[ok], img.shape,
+                                   th["amplitude_field"])
+            z = min(d_amp["z"], d_flux["z"])
+            tests["amplitude_field"] = TestResult(
+                "amplitude_field", z, th["amplitude_field"],
+                {"F": d_amp["F"], "p": d_amp["p"], "z_amplitude": d_amp["z"],
+                 "z_flux": d_flux["z"], "F_flux": d_flux["F"],
+                 "min_corner_loss": d_amp["min_corner_loss"],
+                 "coefficients": d_amp["coefficients"]})
     # row / column patterns and background structure use the bead-free background
     d = _secondary_peaks(res, psf_radius)
     tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),

@@ -17,6 +17,7 @@ brightness by themselves (size, dye load), which sets the floor of this error.
 from __future__ import annotations
 
 import numpy as np
+from scipy import stats
 
 
 def _design(positions: np.ndarray, shape: tuple[int, int], degree: int) -> np.ndarray:
@@ -155,3 +156,73 @@ def crossfit_log_residuals(positions, amplitude, fold, shape: tuple[int, int], *
         coef, *_ = np.linalg.lstsq(x[train], logs[train], rcond=None)
         out[test] = logs[test] - x[test] @ coef
     return out
+
+
+def trend_p_value(positions, amplitude, shape: tuple[int, int], *, degree0: int = 0,
+                  degree1: int = 2, use=None, radial: bool = True, n_perm: int = 4000,
+                  seed: int = 0) -> dict:
+    """Permutation test that a throughput of ``degree1`` explains the beads' log
+    amplitudes better than one of ``degree0`` (nested designs).
+
+    The statistic is the residual sum of squares the extra terms remove (the F-test's
+    numerator); its null distribution is drawn by permuting the residuals of the
+    smaller model over the beads (Freedman and Lane), so the test holds for any
+    brightness distribution (lognormal dye loads, a few doublets), not just Gaussian
+    log amplitudes.
+
+    Why not the held-out errors' own paired test: for nested linear models, the paired
+    difference of held-out squared errors ``(y - p0)^2 - (y - p1)^2`` carries the
+    beads' own scatter twice, and its z is about half the added terms' (on 150 beads
+    of brightness spread 0.25 with a 40 % vignetting: 1.0-3.1 where the F-test's is
+    3.2-6.5). The held-out drop still measures the size of the gain.
+
+    Parameters
+    ----------
+    positions : array_like of shape (K, 2)
+    amplitude : array_like of shape (K,)
+    shape : tuple of int
+    degree0, degree1 : int
+        Throughput degrees of the smaller and the larger model (``degree0 < degree1``).
+    use : array_like of shape (K,), bool, optional
+        Beads to test (default: positive amplitudes).
+    radial : bool
+        Degree 2 as a paraboloid of revolution (see :func:`fit_throughput`).
+    n_perm : int
+        Permutations (the smallest p reported is ``1 / (n_perm + 1)``).
+    seed : int
+
+    Returns
+    -------
+    dict
+        ``p`` (permutation), ``p_f`` (the F-test's, Gaussian theory), ``F``,
+        ``n_beads``.
+    """
+    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
+    amp = np.asarray(amplitude, dtype=np.float64).ravel()
+    ok = np.isfinite(amp) & (amp > 0)
+    if use is not None:
+        ok &= np.asarray(use, bool)
+    if degree1 <= degree0:
+        raise ValueError(f"`degree1` must exceed `degree0`, got {degree1} <= {degree0}.")
+    x0, _ = _fit_design(pos[ok], shape, degree0, radial)
+    x1, _ = _fit_design(pos[ok], shape, degree1, radial)
+    y = np.log(amp[ok])
+    n, q = len(y), x1.shape[1] - x0.shape[1]
+    if n < x1.shape[1] + 3:
+        return {"p": 1.0, "p_f": 1.0, "F": 0.0, "n_beads": int(n)}
+    q0, _ = np.linalg.qr(x0)
+    q1, _ = np.linalg.qr(x1)
+    r0 = y - q0 @ (q0.T @ y)  # residuals of the smaller model
+
+    def gain(e):  # RSS removed by the extra terms, for residual columns e (n, m)
+        return np.sum((q1.T @ e) ** 2, axis=0) - np.sum((q0.T @ e) ** 2, axis=0)
+
+    observed = float(gain(r0[:, None])[0])
+    rss1 = float(np.sum(r0**2) - observed)
+    f = (observed / q) / max(rss1 / (n - x1.shape[1]), 1e-300)
+    rng = np.random.default_rng(seed)
+    perm = np.argsort(rng.random((n, n_perm)), axis=0)
+    null = gain(r0[perm])
+    p = float((1 + np.count_nonzero(null >= observed)) / (n_perm + 1))
+    return {"p": p, "p_f": float(stats.f.sf(f, q, n - x1.shape[1])), "F": float(f),
+            "n_beads": int(n)}

@@ -121,6 +121,17 @@ class BeadResiduals:
         """
         return (self.floor < 0.1) & (self.amplitude > 0)
 
+    @property
+    def photometric(self) -> np.ndarray:
+        """Beads whose brightness is measured: a positive fitted amplitude and a noise
+        floor below their signal energy, shape (K,).
+
+        Wider than :attr:`informative`: a faint bead on a bright background (floor 0.37:
+        its shape says little) still has its amplitude to a few per cent, from all the
+        patch's pixels, so it counts for the throughput over the field.
+        """
+        return (self.floor < 1.0) & (self.amplitude > 0)
+
     def chi2_under(self, noise: NoiseModel) -> np.ndarray:
         """Per-bead chi-square of these residuals under another noise model, shape (K,)."""
         var = noise.variance(self.model)
