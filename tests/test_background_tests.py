@@ -36,6 +36,13 @@ def test_line_pattern_on_an_integer_image_with_noise_below_one_adu():
     level = np.full(img.shape, img.mean()) + 0.002 * np.arange(512)[None, :]
     assert _line_pattern(img - level, level, free, noise, 0)["z"] > 20
     assert abs(_line_pattern(img - level, level, free, noise, 1)["z"]) < 4
+    # a field that is not square (the starfield is 3072 x 2048): one line per column
+    wide = np.round(_flat(1, shape=(300, 700)))
+    lev = np.full(wide.shape, wide.mean()) + 0.002 * np.arange(700)[None, :]
+    cols = _line_pattern(wide - lev, lev, np.ones(wide.shape, bool), noise, 0)
+    rows = _line_pattern(wide - lev, lev, np.ones(wide.shape, bool), noise, 1)
+    assert cols["n_lines"] == 700 and rows["n_lines"] == 300
+    assert abs(cols["z"]) < 4 and abs(rows["z"]) < 4
 
 
 def test_structure_excess_is_weighed_against_the_noise_models_own_error():

@@ -511,11 +511,12 @@ def _line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise:
     (axis=1) or columns (axis=0), line to line, as a z against the noise (with the
     noise model's relative error ``scale_error``, see :func:`noise_scale_error`)."""
     data = np.where(free, resid, np.nan)
-    if axis == 0:
-        data = data.T
+    lvl = np.where(free, level, np.nan)
+    if axis == 0:  # one line per row of the transposed arrays
+        data, lvl = data.T, lvl.T
     with warnings.catch_warnings():  # lines without a bead-free pixel: NaN, left out
         warnings.simplefilter("ignore", RuntimeWarning)
-        lev = np.nanmedian(np.where(free, level, np.nan), axis=1)
+        lev = np.nanmedian(lvl, axis=1)
         centre = np.nanmedian(data, axis=1)
     # a line's level is the mean of its pixels within LINE_CLIP sd of its median:
     # robust to a faint bead's wing or a hot pixel, and, unlike the median (or a trimmed
