@@ -1,0 +1,98 @@
+"""Low signal per pixel: what limits the field error at peak SNR 7 (issue 9).
+
+    python bench/bench_lowsnr.py
+
+On `bench_accuracy.py`'s noise-level scenes (1024x1024, 150 beads, moderate
+aberrations, bead photons x0.05 and x0.1: peak SNR 7 and 11) it compares, by the
+aligned field error against the truth (8x8 grid):
+
+- ``estimate``: `estimate_operator` as it stands (basis size by held-out beads);
+- ``pca I=k``: the same with the basis size forced;
+- ``mean only``: one PSF, the noise-weighted mean of the band-limited patches, refitted
+  to the raw patches (`denoise.refit_basis`) through the thin-plate field;
+- ``taylor k``: that mean PSF and ``k`` of its spatial derivatives (orders 2, 3, 4:
+  widening, astigmatism, coma-like changes) as the basis; each bead's coefficients by
+  projection of its band-limited patch, then the same field and refit. No basis image
+  is learnt from the beads' noise beyond the mean.
+
+``noise of the mean``: the mean PSF's own noise, the beads' held-out residual over the
+number of beads (sqrt(residual / K)); ``SI`` the best single PSF's error (the truth's
+mean): a spatially varying model must beat it to help.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from _common import table
+from napari_psfspace.core.denoise import band_limit, refit_basis
+from napari_psfspace.core.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.field import fit_field
+from napari_psfspace.core.metrics import evaluate_against_truth
+from napari_psfspace.core.pca import PsfBasis
+from napari_psfspace.core.simulate import simulate_beads
+from napari_psfspace.core.window import radial_distance
+
+ORDERS = [(2, 0), (0, 2), (1, 1), (3, 0), (2, 1), (1, 2), (0, 3), (4, 0), (0, 4), (2, 2)]
+
+
+def taylor_operator(est, shape, n_terms: int):
+    """The mean PSF and ``n_terms`` of its derivatives as the basis, through the field."""
+    pt = est.patches
+    p = pt.psf.shape[-1]
+    sd = pt.noise / pt.flux
+    window = (radial_distance(p) <= pt.r_ext).astype(float)
+    filt, _ = band_limit(pt.psf, sd, window)
+    w = 1.0 / (pt.psf**2).sum(axis=(1, 2))
+    h0 = (filt * w[:, None, None]).sum(0) / w.sum()
+    k = np.fft.fftfreq(p) * 2 * np.pi
+    ky, kx = np.meshgrid(k, k, indexing="ij")
+    spec = np.fft.fft2(np.fft.ifftshift(h0))
+    images = [h0] + [np.real(np.fft.fftshift(np.fft.ifft2(spec * (1j * kx) ** a
+                                                          * (1j * ky) ** b)))
+                     for a, b in ORDERS[:n_terms]]
+    q, _ = np.linalg.qr(np.array(images).reshape(len(images), -1).T)
+    basis = q.T.reshape(-1, p, p)
+    coef = filt.reshape(len(filt), -1) @ q
+    n = len(coef)
+    b = PsfBasis(basis, coef, np.ones(n, bool), np.zeros(n), np.zeros(0), float("nan"),
+                 len(basis))
+
+    def refit(a):
+        return refit_basis(pt.psf, a, sd, window, weights=w, prior=basis)[0]
+
+    op, _, _ = fit_field(b, pt, shape, refit=refit)
+    return op
+
+
+def main():
+    rows = []
+    for factor in (0.05, 0.1):
+        image, truth = simulate_beads((1024, 1024), 150, aberrations="moderate", seed=0,
+                                      amplitude=(2e4 * factor, 6e4 * factor))
+        base = {"photons": f"x{factor:g}", "peak_snr": float(np.median(truth.peak_snr))}
+        est = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius))
+        ev = evaluate_against_truth(est.operator, truth, 8)
+        k = len(est.patches.psf)
+        held = est.operator.metadata["heldout"]["residual_mean"]
+        common = {**base, "SI": ev["shift_invariant"]["mean"],
+                  "noise_of_mean": float(np.sqrt(held / k))}
+        rows.append({**common, "model": f"estimate (I={est.operator.n_psf})",
+                     "aligned": ev["aligned"]["mean"]})
+        for i in (3, 6):
+            e = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius, n_psf=i))
+            err = evaluate_against_truth(e.operator, truth, 8)["aligned"]["mean"]
+            rows.append({**common, "model": f"pca I={i}", "aligned": err})
+        one = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius, n_psf=1))
+        for n in (0, 3, 7, 10):
+            op = taylor_operator(one, image.shape, n)
+            rows.append({**common, "model": "mean only" if n == 0 else f"taylor {n}",
+                         "aligned": evaluate_against_truth(op, truth, 8)["aligned"]["mean"]})
+        print(table(rows[-7:], [("photons", "s"), ("peak_snr", ".0f"), ("model", "s"),
+                                ("aligned", ".4f"), ("SI", ".4f"),
+                                ("noise_of_mean", ".4f")]), flush=True)
+        print()
+
+
+if __name__ == "__main__":
+    main()
