@@ -29,7 +29,11 @@ def structured():
 
 
 def test_registered():
-    assert REGISTRY["background_structure"].tests == ("background_structure",)
+    # blobs are mostly detected as beads, masked out of the bead-free windows: what shows
+    # them is the secondary peaks in the beads' residuals (bench_power: 15 % -> 60 % of
+    # 30-photon blob fields named, no false alarm on the 102 still scenes)
+    assert REGISTRY["background_structure"].tests == ("background_structure",
+                                                      "secondary_peaks")
 
 
 def test_structure_is_found_and_lowers_the_error(structured):
