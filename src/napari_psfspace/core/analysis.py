@@ -28,8 +28,9 @@ Tests (name: what it looks at)
   bead to bead: basis or field model too small).
 * ``pixel_outliers``: spots narrower than the optics can form (hot pixels, cosmic
   rays, :mod:`~napari_psfspace.core.spikes`), counted over the whole image.
-* ``row_pattern`` / ``column_pattern``: excess variance of the row / column trimmed
-  means of the bead-free background, line to line (fixed-pattern offsets).
+* ``row_pattern`` / ``column_pattern``: excess variance of the row / column means of
+  the bead-free background (pixels within 3 sd of the line's median), line to line
+  (fixed-pattern offsets).
 * ``background_structure``: chi-square of order-2 polynomials fitted to the bead-free
   pixels of windows of a patch's size (at least a quarter of them bead-free), after
   removing a smooth background, as chi2/dof per window, and their 10 %-trimmed mean

@@ -276,18 +276,16 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     those too (the larger p); the held-out paired bootstrap's is kept as
     ``photometric_p_heldout``.
     """
+    photometry = (_compare_photometry(before, after, shape, throughput, flux, n_boot, seed)
+                  if shape is not None and throughput[0] != throughput[1] else {})
     common, i0, i1 = np.intersect1d(before.bead_index, after.bead_index,
                                     return_indices=True)
     keep = before.residuals.informative[i0] & after.residuals.informative[i1]
     common, i0, i1 = common[keep], i0[keep], i1[keep]
     if len(common) < 5:
-        out = {"error_before": np.nan, "error_after": np.nan, "improvement": 0.0,
-               "p_no_drop": 1.0, "chi2_improvement": 0.0, "chi2_p_no_drop": 1.0,
-               "n_beads": int(len(common))}
-        if shape is not None and throughput[0] != throughput[1]:
-            out.update(_compare_photometry(before, after, shape, throughput, flux, n_boot,
-                                           seed))
-        return out
+        return {"error_before": np.nan, "error_after": np.nan, "improvement": 0.0,
+                "p_no_drop": 1.0, "chi2_improvement": 0.0, "chi2_p_no_drop": 1.0,
+                "n_beads": int(len(common)), **photometry}
     r0, r1 = before.residuals, after.residuals
     e0, e1 = r0.rel_energy[i0], r1.rel_energy[i1]
     c0 = r0.chi2_under(noise)[i0] / r0.dof[i0] - 1.0
@@ -330,8 +328,7 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
            "p_log_ratio": p_log, "median_ratio": float(np.exp(np.median(lr))),
            "chi2_improvement": cimp,
            "chi2_p_no_drop": cp, "n_beads": int(len(common))}
-    if shape is not None and throughput[0] != throughput[1]:
-        out.update(_compare_photometry(before, after, shape, throughput, flux, n_boot, seed))
+    out.update(photometry)
     return out
 
 
