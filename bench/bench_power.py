@@ -19,8 +19,9 @@ Per case and strength it prints the share of diagnosed scenes where
 - ``named_dropped``: named, and the held-out error dropped (for throughput: the held-out
   photometric error) by the acceptance rule's margin;
 - ``other``: another effect about the data was added;
-- ``visible``: scenes where the effect can be seen in principle (motion: the smear's
-  first spectral zero lies inside the band where the beads' signal is seen;
+- ``visible``: scenes where the effect can be seen in principle (motion: both flanks of
+  the true smear's first spectral zero line stand clear of the noise inside the band
+  where the beads' signal is seen, so that a zero there can be told from noise;
   vignetting: the radial trend's F-test on the beads' *true* amplitudes, their own
   brightness spread included, reaches the test's threshold; a compressive response and
   companions: the acceptance rule keeps the effect with its *true* parameters, tried
@@ -43,6 +44,7 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from _common import table
+from bench_motion import motion_of, visible
 from napari_psfspace.core.analysis import THRESHOLDS, _radial_trend
 from napari_psfspace.core.diagnose import diagnose
 from napari_psfspace.core.effects import REGISTRY
@@ -150,10 +152,14 @@ def run(job) -> dict:
         rec = d.operator.metadata.get("motion") or {}
         row["named"] = bool(rec.get("detected"))
         row["dropped"] = row["named"]  # reported, not removed: nothing to drop
-        # the smear's first spectral zero inside the band where the beads' signal is
-        # seen (else invisible in principle: no lens-free zero to find)
-        mv = rec.get("min_visible_px")
-        row["visible"] = mv is not None and float(strength) >= mv
+        # the test, probed at the true smear, finds both flanks of its zero line clear
+        # of the noise inside the band (else no zero can be told from noise there)
+        dy, dx = truth.effects["drift"]
+        angle = float(np.rad2deg(np.arctan2(dy, dx))) % 180.0
+        try:
+            row["visible"] = visible(motion_of(image, truth, (float(strength), angle)))
+        except ValueError:
+            row["visible"] = False
     elif name == "illumination":
         row["named"] = name in added
         row["dropped"] = row["named"] and steps[name].accepted

@@ -14,6 +14,7 @@ from napari_psfspace.core.metrics import evaluate_against_truth
 from napari_psfspace.core.motion import detect_motion, motion_transfer
 from napari_psfspace.core.scenes import random_scene
 from napari_psfspace.core.simulate import Optics
+from napari_psfspace.core.window import bump_window
 from napari_psfspace.report import model_lines
 
 OPTICS = Optics(pixel_size=0.1)  # NA 1.3, 600 nm: cutoff 0.43 cycles/px
@@ -121,3 +122,25 @@ def test_beads_along_a_row_leave_quarters_empty_without_failing():
     m = detect_motion(psf, np.full(20, 1e-4), np.ones((21, 21)), positions=pos)
     assert not m.detected
     json.dumps(m.to_dict(), allow_nan=False)
+
+
+@pytest.mark.parametrize("pixel, testable", [(0.1, True), (0.065, False)])
+def test_the_probe_says_whether_a_known_smear_could_be_seen(pixel, testable):
+    # the benches count a smear as visible when the test, probed at the true smear, finds
+    # both flanks of its zero clear of the noise: at 100 nm pixels a 3 px smear's zero
+    # (0.33 cycles/px) lies inside the signal's band (0.43), at 65 nm beyond it (0.26)
+    image, truth = ps.simulate_beads((640, 640), 70, aberrations="moderate",
+                                     optics=Optics(pixel_size=pixel), seed=0,
+                                     effects={"drift": (0.0, 3.0)})
+    p = _estimate(image, truth, holdout=None).patches
+    window = bump_window(p.size, p.r, p.r_ext)
+    m = detect_motion(p.psf, p.noise / p.flux, window, positions=p.centers,
+                      probe=(3.0, 0.0))
+    probe = m.checks["probe"]
+    assert probe["testable"] is testable
+    if testable:  # found where it can be seen, and the probe reads the same deep dip
+        assert m.detected and probe["ratio"] <= 0.3 and probe["z"] >= 6
+    # the probe changes nothing else: the same record without it
+    plain = detect_motion(p.psf, p.noise / p.flux, window, positions=p.centers)
+    assert (plain.detected, plain.length_px, plain.dip_ratio) == (
+        m.detected, m.length_px, m.dip_ratio)

@@ -171,6 +171,7 @@ def detect_motion(
     window: np.ndarray,
     *,
     positions: np.ndarray | None = None,
+    probe: tuple[float, float] | None = None,
 ) -> Motion:
     """Look for a straight zero line common to all beads in their mean power spectrum.
 
@@ -186,6 +187,14 @@ def detect_motion(
     positions : ndarray of shape (K, 2), optional
         Bead positions: the dip must hold in each quarter of the field's beads (by
         position); default: in each quarter of the list.
+    probe : (length_px, angle_deg), optional
+        A smear known from elsewhere (a simulation's truth, a stage log): the record's
+        ``checks["probe"]`` then says whether this test *could* see it, i.e. whether
+        both flanks of its zero line stand clear of the noise inside the band
+        (``testable``), and the dip ratio and z measured there. It changes nothing
+        else; benches use it to count the scenes where a smear is visible at all (the
+        search's own condition, at the true place: some bin within a third of its
+        frequency from the zero has both flanks clear).
 
     Returns
     -------
@@ -280,6 +289,21 @@ def detect_motion(
     rel, ref = profiles(s_all)
     cnt = geometry[0][2]
     pv = strip_profiles(var_map)
+    probe_rec = None
+    if probe is not None:
+        plen, pang = float(probe[0]), float(probe[1]) % 180.0
+        ip = int(np.argmin(np.minimum(np.abs(angles - pang), 180 - np.abs(angles - pang))))
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pvar = pv[ip] / np.maximum(cnt, 1) / ref**2
+        pr, pz = _dips(rel[ip], pvar, cnt, centres, band)
+        t_p = 1.0 / plen
+        # as the search reads it: a bin whose flanks are clear and whose reach (a third of
+        # its frequency) holds the zero
+        near = np.isfinite(pr) & (np.abs(centres - t_p) <= centres / 3.0)
+        ok_p = bool(t_p < band and near.any())
+        jp = int(np.flatnonzero(near)[np.argmin(pr[near])]) if ok_p else 0
+        probe_rec = {"testable": ok_p, "ratio": float(pr[jp]) if ok_p else None,
+                     "z": float(pz[jp]) if ok_p else None}
     best = (np.inf, 0.0, None, None, None)
     for i, ang in enumerate(angles):
         with np.errstate(invalid="ignore", divide="ignore"):
@@ -297,8 +321,9 @@ def detect_motion(
                 best = (float(ratio[j]), float(z[j]), float(ang), float(centres[jz]),
                         float(centres[j]))
     ratio, z, ang, t0, t_dip = best
+    probed = {} if probe_rec is None else {"probe": probe_rec}
     if ang is None or ratio > MAX_DIP_RATIO:
-        return Motion(False, None, None, float(min(ratio, 1.0)), float(z), {}, float(band),
+        return Motion(False, None, None, float(min(ratio, 1.0)), float(z), probed, float(band),
                       float(min_visible), none.reason)
     # the zero is along one direction only (a ring, from defocus, dips along all of
     # them) and common to every quarter of the beads
@@ -312,7 +337,7 @@ def detect_motion(
         if np.count_nonzero(group == g) >= 2:
             rq = profiles(combine(np.array([2 * g, 2 * g + 1])))[0][i0]
             quarters.append(float(_dips(rq, np.zeros(len(centres)), cnt, centres, band)[0][j]))
-    checks = {"across": float(perp), "quarters": quarters}
+    checks = {"across": float(perp), "quarters": quarters, **probed}
     straight = np.isfinite(perp) and perp > MAX_CHECK_RATIO
     common = all(np.isfinite(q) and q <= MAX_CHECK_RATIO for q in quarters)
     if not (straight and common):
