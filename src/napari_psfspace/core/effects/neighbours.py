@@ -5,7 +5,40 @@ from __future__ import annotations
 import numpy as np
 
 from ..detect import COMPANION, NEIGHBOUR
+from ..residuals import BeadResiduals, _fourier_shift
 from .base import Context, Effect
+
+#: Companion offsets searched around a stretched bead, pixels: from 0.75 to 3.5 px (a
+#: companion 1-3 px away merges with its bead; closer, the two are one spot), on a grid
+#: of 0.25 px.
+_STEP, _MIN_SEP, _MAX_SEP = 0.25, 0.75, 3.5
+_GRID = np.arange(-_MAX_SEP, _MAX_SEP + 1e-9, _STEP)
+OFFSETS = np.array([(dy, dx) for dy in _GRID for dx in _GRID
+                    if _MIN_SEP <= np.hypot(dy, dx) <= _MAX_SEP])
+
+
+def locate_companion(res: BeadResiduals, i: int) -> tuple[float, float] | None:
+    """Offset ``(dy, dx)`` (pixels, from the bead's position) of a companion merged with
+    bead ``i``: the one of :data:`OFFSETS` whose joint fit (the bead's model PSF at the
+    bead and at the offset, each with a positive amplitude, and a constant background)
+    leaves the smallest weighted residual on the bead's fit disk; ``None`` when no
+    offset gives two positive amplitudes. The model PSF does not change over 3.5 px."""
+    msk = res.fit_mask[i]
+    d = res.data[i][msk]
+    h = (res.model[i] - res.background[i]) / max(float(res.amplitude[i]), 1e-300)
+    w = 1.0 / np.sqrt(np.maximum(res.variance[i][msk], 1e-300))
+    shifted = _fourier_shift(np.repeat(h[None], len(OFFSETS), axis=0), OFFSETS)[:, msk]
+    one = np.ones(d.size)
+    best, where = np.inf, None
+    for k, s in enumerate(shifted):
+        x = np.stack([h[msk], s, one], axis=1)
+        c = np.linalg.lstsq(x * w[:, None], d * w, rcond=None)[0]
+        if c[0] <= 0 or c[1] <= 0:
+            continue
+        sse = float(np.sum(((d - x @ c) * w) ** 2))
+        if sse < best:
+            best, where = sse, (float(OFFSETS[k, 0]), float(OFFSETS[k, 1]))
+    return where
 
 
 class Neighbours(Effect):
@@ -13,8 +46,11 @@ class Neighbours(Effect):
     amplitude, the model's PSF at its position) and the bead no longer trains the model
     (status "companion"); it is still judged, so the error is compared on the same beads.
     A companion so close that it lies inside the core (the bead is stretched, test
-    ``elongated_beads``) is not fitted jointly: the bead is set aside (status
-    "neighbour": neither learnt from nor judged)."""
+    ``elongated_beads``) is located by a joint two-source fit of the bead's patch
+    (:func:`locate_companion`) and then fitted jointly the same way; a stretched bead
+    whose patch gives no such fit is set aside (status "neighbour": neither learnt from
+    nor judged). Setting every stretched bead aside instead thins the field's sampling:
+    on bright family scenes the typical bead improved while the mean error rose."""
 
     name = "neighbours"
     description = ("companion beads inside the patch (fitted jointly; such beads no longer "
@@ -33,7 +69,22 @@ class Neighbours(Effect):
             # enough to fit it jointly
             detail = analysis.tests["elongated_beads"].detail
             index = np.asarray(detail.get("bead_index", []), dtype=int)
-            out["stretched"] = sorted(set(index.tolist()) - set(out["beads"]))
+            stretched = sorted(set(index.tolist()) - set(out["beads"]))
+            res = analysis.residuals
+            beads, comps, left = list(out["beads"]), list(out["companions"]), []
+            for i in stretched:
+                q = None
+                if res is not None and len(res.positions):
+                    dist = np.hypot(*(res.positions - ctx.beads.positions[i]).T)
+                    j = int(np.argmin(dist))
+                    q = locate_companion(res, j) if dist[j] <= 1.0 else None
+                if q is None:
+                    left.append(int(i))
+                    continue
+                beads.append(int(i))
+                comps.append([float(res.positions[j][0] + q[0]),
+                              float(res.positions[j][1] + q[1])])
+            out.update(beads=beads, companions=comps, stretched=left)
         out["count"] = len(out["beads"]) + len(out["stretched"])
         return out
 
