@@ -9,10 +9,10 @@ Scenes from :func:`~napari_psfspace.core.scenes.random_scene` (512 x 512; pixel 
 smear of ``L`` px can be seen only where its first spectral zero ``1 / L`` lies inside
 the band where the beads' signal stands above the noise (``in_band``: ``L >=
 min_visible_px``), and only where the spectrum on both sides of that zero stands clear of
-the noise can a zero be told from noise: ``visible`` counts the scenes where the test,
-probed at the true smear (``detect_motion(probe=...)``), finds both flanks of its zero
-line clear (its own condition, at the true place). The power is given over those and
-over all.
+the noise can a zero be told from noise: ``visible`` counts the scenes where the zero
+lies inside the optics' cutoff ``2 NA / wavelength`` and the test, probed at the true
+smear (``detect_motion(probe=...)``), finds both flanks of its zero line clear (its own
+condition, at the true place). The power is given over those and over all.
 """
 
 from __future__ import annotations
@@ -39,10 +39,14 @@ def motion_of(image, truth, probe=None):
                          positions=p.centers, probe=probe)
 
 
-def visible(m) -> bool:
-    """The smear can be seen by the test at all: both flanks of its true zero line stand
-    clear of the noise, inside the band (``checks["probe"]["testable"]``)."""
-    return bool((m.checks.get("probe") or {}).get("testable"))
+def visible(m, truth, length) -> bool:
+    """The smear can be seen at all: its first zero ``1/L`` lies inside the optics'
+    cutoff ``2 NA / wavelength`` (beyond it the optics pass nothing, and no test can
+    find a zero there), and the test, probed at the true smear, finds both flanks of
+    that zero line clear of the noise inside the band (``checks["probe"]``)."""
+    o = truth.optics
+    inside = 1.0 / float(length) < 2.0 * o.na / o.wavelength * o.pixel_size
+    return inside and bool((m.checks.get("probe") or {}).get("testable"))
 
 
 def scene(seed, length=0.0):
@@ -77,7 +81,7 @@ def main():
             tested += 1
             ratios.append(m.dip_ratio)
             in_band += bool(length) and length >= m.min_visible_px
-            seen = visible(m) if length else False
+            seen = visible(m, truth, length) if length else False
             vis += seen
             if m.detected:
                 hit += 1

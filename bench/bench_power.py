@@ -19,9 +19,10 @@ Per case and strength it prints the share of diagnosed scenes where
 - ``named_dropped``: named, and the held-out error dropped (for throughput: the held-out
   photometric error) by the acceptance rule's margin;
 - ``other``: another effect about the data was added;
-- ``visible``: scenes where the effect can be seen in principle (motion: both flanks of
-  the true smear's first spectral zero line stand clear of the noise inside the band
-  where the beads' signal is seen, so that a zero there can be told from noise;
+- ``visible``: scenes where the effect can be seen in principle (motion: the true
+  smear's first spectral zero lies inside the optics' cutoff, and both flanks of that
+  zero line stand clear of the noise inside the band where the beads' signal is seen,
+  so that a zero there can be told from noise;
   vignetting: the radial trend's F-test on the beads' *true* amplitudes, their own
   brightness spread included, reaches the test's threshold; a compressive response and
   companions: the acceptance rule keeps the effect with its *true* parameters, tried
@@ -152,12 +153,14 @@ def run(job) -> dict:
         rec = d.operator.metadata.get("motion") or {}
         row["named"] = bool(rec.get("detected"))
         row["dropped"] = row["named"]  # reported, not removed: nothing to drop
-        # the test, probed at the true smear, finds both flanks of its zero line clear
-        # of the noise inside the band (else no zero can be told from noise there)
+        # the smear's zero inside the optics' cutoff, and the test, probed at the true
+        # smear, finds both flanks of its zero line clear of the noise inside the band
+        # (else no zero can be told from noise there)
         dy, dx = truth.effects["drift"]
         angle = float(np.rad2deg(np.arctan2(dy, dx))) % 180.0
         try:
-            row["visible"] = visible(motion_of(image, truth, (float(strength), angle)))
+            m = motion_of(image, truth, (float(strength), angle))
+            row["visible"] = visible(m, truth, float(strength))
         except ValueError:
             row["visible"] = False
     elif name == "illumination":
