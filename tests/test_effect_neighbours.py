@@ -31,11 +31,11 @@ def _bead(offset, ratio, seed, photons=2e4, background=50.0):
 
 
 @pytest.mark.parametrize("offset, ratio", [((1.5, -1.0), 0.7), ((0.0, 2.5), 1.0),
-                                           ((-2.0, 0.5), 0.5)])
+                                           ((-2.0, 0.5), 0.5), ((1.13, 0.77), 0.6)])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_a_merged_companion_is_located(offset, ratio, seed):
     q = locate_companion(_bead(offset, ratio, seed), 0)
     assert q is not None
-    # measured: on the grid point of the truth (0.25 px grid) for all six
-    assert np.hypot(q[0] - offset[0], q[1] - offset[1]) <= 0.36
+    # measured: within 0.04 px of the truth for all eight (0.25 px grid, refined to 0.05)
+    assert np.hypot(q[0] - offset[0], q[1] - offset[1]) <= 0.15
 
