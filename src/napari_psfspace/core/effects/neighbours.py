@@ -75,19 +75,19 @@ class Neighbours(Effect):
             peaks = np.asarray(detail.get("peaks", []), dtype=float).reshape(-1, 2)
             out.update(beads=index.tolist(), companions=peaks.tolist())
         if "elongated_beads" in analysis.tests:
-            # a companion 1-3 px away, inside the core: where exactly is not known well
-            # enough to fit it jointly
+            # a companion 1-3 px away, inside the core: located by a joint fit of the
+            # bead's residual entry (``beads``: residual rows, ``bead_index``: the table)
             detail = analysis.tests["elongated_beads"].detail
+            rows = np.asarray(detail.get("beads", []), dtype=int)
             index = np.asarray(detail.get("bead_index", []), dtype=int)
-            stretched = sorted(set(index.tolist()) - set(out["beads"]))
             res = analysis.residuals
             beads, comps, left = list(out["beads"]), list(out["companions"]), []
-            for i in stretched:
-                q = None
-                if res is not None and len(res.positions):
-                    dist = np.hypot(*(res.positions - ctx.beads.positions[i]).T)
-                    j = int(np.argmin(dist))
-                    q = locate_companion(res, j) if dist[j] <= 1.0 else None
+            taken = set(beads)
+            for j, i in sorted(zip(rows.tolist(), index.tolist(), strict=True),
+                               key=lambda t: t[1]):
+                if i in taken:
+                    continue
+                q = locate_companion(res, j) if res is not None else None
                 if q is None:
                     left.append(int(i))
                     continue
