@@ -3,13 +3,24 @@
 A stage or sample that moves by ``L`` pixels along a direction ``u`` during the exposure
 convolves every bead with the same line segment. Its transfer function is
 ``sinc(L k.u)`` (:func:`motion_transfer`): it vanishes on the straight lines
-``k.u = +-1/L, +-2/L, ...`` of the Fourier plane. No lens makes such zeros: an objective's
-transfer falls smoothly to its cutoff, and the zeros that strong defocus or spherical
-aberration bring are rings, not straight lines. :func:`detect_motion` looks for one
-straight zero line, common to all beads, inside the band where the beads' mean signal
-stands above its noise. It reports the smear's length and direction, or says that no
-motion long enough to be seen is there (a smear whose first zero lies beyond that band
-cannot be told from the optics: :attr:`Motion.min_visible_px`).
+``k.u = +-1/L, +-2/L, ...`` of the Fourier plane. A rotationally symmetric lens makes
+no such zeros: its transfer falls smoothly to its cutoff, and the zeros that strong
+defocus or spherical aberration bring are rings, not straight lines. :func:`detect_motion`
+looks for one straight zero line, common to all beads, inside the band where the beads'
+mean signal stands above its noise, and, where the zero lies too near the optics' cutoff
+to be bracketed, for the smear's ``sinc^2`` fall below it (:data:`MAX_EDGE_RATIO`). It
+reports the smear's length and direction, or says that no motion long enough to be seen
+is there (a smear whose first zero lies beyond that band cannot be told from the optics:
+:attr:`Motion.min_visible_px`).
+
+**One thing a single image cannot tell from a smear**: the line focus of an astigmatic
+lens (a cylindrical lens for 3-D localisation, or astigmatism with about as much
+defocus). In geometric optics a line focus *is* a uniform segment, with the same
+straight zero lines; on simulated beads with 0.1-0.3 waves rms of uniform astigmatism
+and 0.5-1.5 times as much defocus, the test reads a line in 29 of 52 scenes
+(``bench/RESULTS.md``, motion). The record says so. A z-stack tells them apart: a smear
+keeps its length and direction through focus, a line focus shrinks and turns by 90
+degrees on the other side of the best focus.
 
 Motion blurs a sample imaged the same way just as much, so the learnt operator is right
 *for that exposure*; a calibration meant for other exposures should remove it
@@ -42,6 +53,27 @@ MIN_DIP_Z = 6.0
 #: them), while the perpendicular direction shows no dip below it there (a line, not a
 #: ring).
 MAX_CHECK_RATIO = 0.5
+#: What every detection says besides the smear (see the module's docstring).
+ALTERNATIVE = ("Motion during the exposure, or the line focus of an astigmatic lens "
+               "(astigmatism with about as much defocus, or a cylindrical lens), which one "
+               "image cannot tell apart: in a z-stack a smear keeps its direction through "
+               "focus, a line focus turns by 90 degrees. The model includes it, right for "
+               "this exposure; if it is motion and the sample was still, remove it "
+               "(remove_motion) or image the beads again")
+#: A smear whose zero lies near the optics' cutoff: its second lobe (a few % of the
+#: first, on an optical transfer that is nearly gone there) sinks into the spectrum's
+#: floor, so the zero has no upper flank and reads as a cutoff, not a dip (3-px smears
+#: at 57-90 % of the cutoff, issue 9). Below its zero, though, the power along the smear
+#: still falls, against the perpendicular direction, as ``sinc^2(L t)``, to a ratio no
+#: lens reaches: this route reports a smear when that ratio (plus two standard errors)
+#: falls below MAX_EDGE_RATIO (97 effect-free scenes of the family reach >= 0.07, 3-px
+#: smears 0.003-0.03) ...
+MAX_EDGE_RATIO = 0.03
+#: ... the ratio's logarithm follows ``log sinc^2(L t)`` below the zero within this RMS
+#: (smears 0.1-0.25; still scenes fit no smear: the best length is the shortest tried),
+#: the zero ``1 / L`` lies near where the ratio is lowest (0.9-1.3 times that frequency),
+#: and every quarter of the beads shows the ratio below MAX_CHECK_RATIO there.
+MAX_EDGE_RMS = 0.3
 #: The band where the beads' mean signal power exceeds this many standard errors ...
 BAND_Z = 5.0
 #: ... and this fraction of its zero-frequency value: beyond the optics' cutoff the mean
@@ -163,6 +195,63 @@ def _dips(prof, var, cnt, centres, band):
     ratio[ok] = np.maximum(prof[ok], 0.0) / ref[ok]
     z[ok] = (ref[ok] - prof[ok]) / np.sqrt(np.maximum(var[ok], 1e-300))
     return ratio, z
+
+
+def _edge_smear(rel, var, centres, band, angles, quarter_rels):
+    """The second route of :func:`detect_motion` (see :data:`MAX_EDGE_RATIO`): a smear
+    whose zero has no upper flank. ``rel``: profiles along every direction (angles,
+    bins), ``var`` their variances. Returns ``(length, angle, ratio, rms, quarters)`` or
+    None."""
+    na = angles.size
+    half = na // 2
+    sd = np.sqrt(np.clip(np.nan_to_num(var, nan=np.inf), 0.0, None))
+    step = centres[1] - centres[0]
+    best = (np.inf, -1, -1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for i in range(na):
+            j = (i + half) % na
+            a, b = rel[i], rel[j]
+            ok = (np.isfinite(a) & np.isfinite(b) & (b > MIN_DIP_Z * sd[j])
+                  & (centres > 2 * step) & (centres <= band))
+            if not ok.any():
+                continue
+            r = np.where(ok, (np.maximum(a, 0.0) + 2 * sd[i]) / b, np.inf)
+            k = int(np.argmin(r))
+            if r[k] < best[0]:
+                best = (float(r[k]), i, k)
+    r_min, i, k = best
+    if not r_min <= MAX_EDGE_RATIO:
+        return None
+    j = (i + half) % na
+    t_min = centres[k]
+    a, b = rel[i], rel[j]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        use = ((centres > step) & (centres <= t_min) & (a > MIN_DIP_Z * sd[i])
+               & (b > MIN_DIP_Z * sd[j]))
+        log_r = np.log(a / b)
+    lengths = np.exp(np.linspace(0.0, np.log(0.5 / step), 600))  # 1 px up, ~0.7 % steps
+    fit = (np.inf, None)
+    for length in lengths:
+        s2 = np.sinc(length * centres) ** 2
+        m = use & (length * centres < 1.0) & (s2 > 0.05)
+        if np.count_nonzero(m) < 3:
+            continue
+        rms = float(np.sqrt(np.mean((log_r[m] - np.log(s2[m])) ** 2)))
+        if rms < fit[0]:
+            fit = (rms, float(length))
+    rms, length = fit
+    # the shortest length tried fits best: the ratio does not fall as a smear's would
+    if length is None or length <= 1.05 * lengths[0] or rms > MAX_EDGE_RMS:
+        return None
+    if not 0.9 * t_min <= 1.0 / length <= 1.3 * t_min:
+        return None
+    quarters = []
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for q in quarter_rels:
+            quarters.append(float(max(q[i][k], 0.0) / q[j][k]))
+    if not all(np.isfinite(q) and q <= MAX_CHECK_RATIO for q in quarters):
+        return None
+    return length, float(angles[i]), r_min, rms, quarters
 
 
 def detect_motion(
@@ -323,6 +412,22 @@ def detect_motion(
     ratio, z, ang, t0, t_dip = best
     probed = {} if probe_rec is None else {"probe": probe_rec}
     if ang is None or ratio > MAX_DIP_RATIO:
+        def quarter_rel(g):
+            return profiles(combine(np.array([2 * g, 2 * g + 1])))[0]
+        edge = _edge_smear(rel, pv / np.maximum(cnt, 1) / ref**2, centres, band, angles,
+                           [quarter_rel(g) for g in range(4)
+                            if np.count_nonzero(group == g) >= 2])
+        if edge is not None:
+            length, e_ang, e_ratio, e_rms, quarters = edge
+            return Motion(True, length, e_ang, e_ratio, float("nan"),
+                          {"route": "edge", "fit_rms": e_rms, "quarters": quarters,
+                           **probed}, float(band), float(min_visible),
+                          f"every bead is smeared by {length:.2g} px along {e_ang:.0f} deg "
+                          f"from the columns: along it the beads' power falls, against the "
+                          f"perpendicular direction, as the smear's sinc^2 to "
+                          f"{e_ratio:.3f} near its zero at {1 / length:.3g} cycles/px (the "
+                          "zero itself lies too near the optics' cutoff to be bracketed). "
+                          + ALTERNATIVE)
         return Motion(False, None, None, float(min(ratio, 1.0)), float(z), probed, float(band),
                       float(min_visible), none.reason)
     # the zero is along one direction only (a ring, from defocus, dips along all of
@@ -352,9 +457,8 @@ def detect_motion(
                   float(min_visible),
                   f"every bead is smeared by {length:.2g} px along "
                   f"{ang:.0f} deg from the columns (a straight zero line in their spectrum at "
-                  f"{t0:.3g} cycles/px, {ratio:.2f} of its flanks, z = {z:.0f}); no lens makes "
-                  "it. The model includes it, right for this exposure; if the sample was "
-                  "still, remove it (remove_motion) or image the beads again")
+                  f"{t0:.3g} cycles/px, {ratio:.2f} of its flanks, z = {z:.0f}). "
+                  + ALTERNATIVE)
 
 
 def remove_motion(stack: np.ndarray, length: float, angle_deg: float, *,
