@@ -200,8 +200,9 @@ def _dips(prof, var, cnt, centres, band):
 def _edge_smear(rel, var, centres, band, angles, quarter_rels):
     """The second route of :func:`detect_motion` (see :data:`MAX_EDGE_RATIO`): a smear
     whose zero has no upper flank. ``rel``: profiles along every direction (angles,
-    bins), ``var`` their variances. Returns ``(length, angle, ratio, rms, quarters)`` or
-    None."""
+    bins), ``var`` their variances, ``quarter_rels()`` the profiles of each quarter of the
+    beads (computed only when needed). Returns ``(length, angle, ratio, rms, quarters)``
+    or None."""
     na = angles.size
     half = na // 2
     sd = np.sqrt(np.clip(np.nan_to_num(var, nan=np.inf), 0.0, None))
@@ -247,7 +248,7 @@ def _edge_smear(rel, var, centres, band, angles, quarter_rels):
         return None
     quarters = []
     with np.errstate(invalid="ignore", divide="ignore"):
-        for q in quarter_rels:
+        for q in quarter_rels():
             quarters.append(float(max(q[i][k], 0.0) / q[j][k]))
     if not all(np.isfinite(q) and q <= MAX_CHECK_RATIO for q in quarters):
         return None
@@ -415,8 +416,8 @@ def detect_motion(
         def quarter_rel(g):
             return profiles(combine(np.array([2 * g, 2 * g + 1])))[0]
         edge = _edge_smear(rel, pv / np.maximum(cnt, 1) / ref**2, centres, band, angles,
-                           [quarter_rel(g) for g in range(4)
-                            if np.count_nonzero(group == g) >= 2])
+                           lambda: [quarter_rel(g) for g in range(4)
+                                    if np.count_nonzero(group == g) >= 2])
         if edge is not None:
             length, e_ang, e_ratio, e_rms, quarters = edge
             return Motion(True, length, e_ang, e_ratio, float("nan"),
