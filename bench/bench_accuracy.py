@@ -18,9 +18,9 @@ import time
 import numpy as np
 
 from _common import table
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.metrics import evaluate_against_truth
-from napari_psfspace.core.simulate import Optics, simulate_beads
+from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.simulation import Optics, simulate_beads
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 
 COLUMNS = [("case", "s"), ("seed", "d"), ("beads", "d"), ("peak_snr", ".0f"), ("I", "d"),
            ("aligned", ".4f"), ("max", ".4f"), ("unaligned", ".4f"), ("edges", ".4f"),

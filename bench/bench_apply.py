@@ -24,10 +24,10 @@ import numpy as np
 import scipy.fft
 
 try:
-    from napari_psfspace.core.operator import ProductConvolution
+    from napari_psfspace.core.model.operator import ProductConvolution
 except ImportError:  # not installed: use the source tree
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from napari_psfspace.core.operator import ProductConvolution
+    from napari_psfspace.core.model.operator import ProductConvolution
 
 
 def _interleaved_times_ms(fns, repeat: int) -> list[np.ndarray]:

@@ -1,5 +1,5 @@
 """Real camera data: low counts and 8 bits, noise models, hot pixels, known bead size,
-few beads. Each table is over seeded scenes (``napari_psfspace.core.scenes``), never one.
+few beads. Each table is over seeded scenes (``napari_psfspace.core.simulation.family``), never one.
 
     python bench/bench_camera.py [--quick]
 
@@ -27,13 +27,13 @@ import time
 import numpy as np
 
 from _common import table
-from napari_psfspace.core.detect import detect_beads
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.metrics import evaluate_against_truth
-from napari_psfspace.core.noise import noise_model
-from napari_psfspace.core.scenes import LOW_COUNT_8BIT as LOW_COUNT
-from napari_psfspace.core.scenes import isolated, match, random_scene
-from napari_psfspace.core.simulate import FieldAberrations, Optics, simulate_beads
+from napari_psfspace.core.beads.detect import detect_beads
+from napari_psfspace.core.diagnosis.noise import noise_model
+from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
+from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT as LOW_COUNT
+from napari_psfspace.core.simulation.family import isolated, match, random_scene
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 
 
 def estimate(image, truth, **kwargs):

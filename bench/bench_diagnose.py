@@ -13,8 +13,8 @@ import argparse
 import time
 
 from _common import table
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.simulate import simulate_beads
+from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.simulation import simulate_beads
 
 #: case -> (simulated effects, other simulate_beads options)
 EFFECTS = {
@@ -71,7 +71,7 @@ def main():
     print(f"Effect-free images: nothing added in {clean}/{len(rows)} seeds "
           f"({100 * clean / len(rows):.0f} %; target >= 95 %)")
     print(table(rows, COLUMNS), flush=True)
-    from napari_psfspace.core.analysis import THRESHOLDS, TREND_VARIABLES
+    from napari_psfspace.core.diagnosis.analysis import THRESHOLDS, TREND_VARIABLES
 
     names = sorted(rows[0]["_z"])
     th = {n: THRESHOLDS["trend" if n.startswith("trend_") else n] for n in names}

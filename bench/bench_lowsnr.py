@@ -38,13 +38,13 @@ import dataclasses
 import numpy as np
 
 from _common import table
-from napari_psfspace.core.denoise import band_limit, refit_basis
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.field import fit_field
-from napari_psfspace.core.metrics import evaluate_against_truth
-from napari_psfspace.core.pca import PsfBasis, learn_basis
-from napari_psfspace.core.simulate import simulate_beads
-from napari_psfspace.core.window import radial_distance
+from napari_psfspace.core.beads.window import radial_distance
+from napari_psfspace.core.model.denoise import band_limit, refit_basis
+from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.model.field import fit_field
+from napari_psfspace.core.model.pca import PsfBasis, learn_basis
+from napari_psfspace.core.simulation import simulate_beads
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 
 ORDERS = [(2, 0), (0, 2), (1, 1), (3, 0), (2, 1), (1, 2), (0, 3), (4, 0), (0, 4), (2, 2)]
 

@@ -5,7 +5,7 @@ to find a smear of each length (random direction), with the length and direction
     python bench/bench_motion.py --astigmatism    # still beads at an astigmatic line focus
     python bench/bench_motion.py --measured       # every 4th slice of ../shared/data stacks
 
-Scenes from :func:`~napari_psfspace.core.scenes.random_scene` (512 x 512; pixel size
+Scenes from :func:`~napari_psfspace.core.simulation.family.random_scene` (512 x 512; pixel size
 43-160 nm, NA 0.7-1.49, emission 450-700 nm, aberration presets and random fields,
 20-600 beads, brightness spread, background 1-500 photons, 8/12/16-bit cameras). A
 smear of ``L`` px can be seen only where its first spectral zero ``1 / L`` lies inside
@@ -32,11 +32,11 @@ from pathlib import Path
 import numpy as np
 
 from _common import table
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.motion import detect_motion
-from napari_psfspace.core.scenes import random_scene
-from napari_psfspace.core.simulate import FieldAberrations, Optics, simulate_beads
-from napari_psfspace.core.window import bump_window
+from napari_psfspace.core.beads.window import bump_window
+from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.model.motion import detect_motion
+from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
+from napari_psfspace.core.simulation.family import random_scene
 
 
 def motion_of(image, truth, probe=None):

@@ -3,7 +3,7 @@
     python bench/bench_power.py [--scenes 20] [--cases all] [--strengths issue|sweep]
                                 [--workers 2]
 
-Scenes are drawn by :func:`~napari_psfspace.core.scenes.random_scene` in the setting of
+Scenes are drawn by :func:`~napari_psfspace.core.simulation.family.random_scene` in the setting of
 issue 9's foreign-simulator cases (1024 x 1024, 150 beads, moderate aberrations, 100 nm
 pixels, bead brightness spread sigma 0.25), everything else from the family (NA,
 emission, background 1-500 photons, camera gain, offset, read noise, 8/12/16-bit), with
@@ -46,11 +46,11 @@ import numpy as np
 
 from _common import table
 from bench_motion import motion_of, visible
-from napari_psfspace.core.analysis import THRESHOLDS, _radial_trend
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.effects import REGISTRY
-from napari_psfspace.core.metrics import grid_errors
-from napari_psfspace.core.scenes import random_scene
+from napari_psfspace.core.diagnosis.analysis import THRESHOLDS, _radial_trend
+from napari_psfspace.core.diagnosis.effects import REGISTRY
+from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.simulation.family import random_scene
+from napari_psfspace.core.simulation.metrics import grid_errors
 
 SETTING = {"shape": (1024, 1024), "n_beads": 150, "aberrations": "moderate",
            "pixel_size": 0.1, "spread": 0.25, "peak_photons": (300.0, 3e4)}

@@ -24,13 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from _common import SRC, table
-from napari_psfspace.core.simulate import simulate_beads
+from napari_psfspace.core.simulation import simulate_beads
 
 CHILD = r"""
 import json, resource, sys, time
 import numpy as np
 sys.path.insert(0, {src!r})
-from napari_psfspace.core.estimate import iter_estimate
+from napari_psfspace.core.model.estimate import iter_estimate
 image = np.load({path!r})
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 times = []

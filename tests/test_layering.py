@@ -1,10 +1,16 @@
-"""The headless core must never import napari, Qt or magicgui.
+"""The headless core must never import napari, Qt or magicgui, and its stages import
+one way only.
 
 The core is imported in a fresh interpreter in which those packages are blocked
 (``sys.modules[name] = None`` makes any import of them fail), then every core module
 is imported explicitly, so a GUI import anywhere in the core fails this test.
+
+The core has one folder per stage of the method (issue 10). Every import in every core
+module, at the top or inside a function, is resolved to the stage it names; a stage may
+import only itself, the stages before it and ``common`` (:data:`ALLOWED`).
 """
 
+import ast
 import re
 import subprocess
 import sys
@@ -23,9 +29,33 @@ def _run(code: str) -> subprocess.CompletedProcess:
                           text=True, timeout=120)
 
 
+#: The stage folders, and what each may import besides itself (data flow one way:
+#: beads -> model -> diagnosis / subspace -> restore; the simulator beside the flow).
+ALLOWED = {
+    "common": set(),
+    "beads": {"common"},
+    "model": {"common", "beads"},
+    "diagnosis": {"common", "beads", "model"},
+    "subspace": {"common", "beads", "model"},
+    "restore": {"common", "beads", "model", "subspace"},
+    "simulation": {"common", "beads"},
+}
+
+
+def _module_names() -> list[str]:
+    names = []
+    for p in sorted(CORE.rglob("*.py")):
+        parts = list(p.relative_to(CORE).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+        if parts:
+            names.append(".".join(parts))
+    return names
+
+
 def test_core_imports_without_gui_packages():
-    modules = sorted(p.stem for p in CORE.glob("*.py") if p.stem != "__init__")
-    assert len(modules) >= 10, modules
+    modules = _module_names()
+    assert len(modules) >= 40, modules
     code = f"""
         import sys, importlib
         for name in {BLOCKED!r}:
@@ -55,8 +85,84 @@ def test_blocking_really_blocks():
     assert "ModuleNotFoundError" in res.stderr or "ImportError" in res.stderr
 
 
-@pytest.mark.parametrize("path", sorted(CORE.glob("*.py")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", sorted(CORE.rglob("*.py")),
+                         ids=lambda p: str(p.relative_to(CORE)))
 def test_core_sources_do_not_mention_gui_imports(path):
     pattern = re.compile(r"^\s*(from|import)\s+(" + "|".join(BLOCKED) + r")\b", re.MULTILINE)
     hits = pattern.findall(path.read_text())
     assert not hits, (path, hits)
+
+
+def test_the_core_is_made_of_the_stage_folders():
+    folders = {p.name for p in CORE.iterdir() if p.is_dir() and p.name != "__pycache__"}
+    assert folders == set(ALLOWED), folders
+    # nothing but the package's own __init__ lies loose beside the stages
+    assert sorted(p.name for p in CORE.glob("*.py")) == ["__init__.py"]
+    for stage in ALLOWED:  # each stage says what it takes and gives
+        doc = ast.get_docstring(ast.parse((CORE / stage / "__init__.py").read_text()))
+        assert doc and len(doc) > 100, stage
+
+
+def _imported_stages(path: Path) -> list[tuple[int, str]]:
+    """(line, stage) of every core stage a module imports, relative or absolute."""
+    rel = path.relative_to(CORE).with_suffix("").parts
+    package = list(rel[:-1]) if rel[-1] != "__init__" else list(rel[:-1])
+    out = []
+    for node in ast.walk(ast.parse(path.read_text())):
+        targets = []
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                up = node.level - 1
+                if up > len(package):  # above the core: the package's root
+                    continue
+                base = package[:len(package) - up]
+                targets.append(base + (node.module.split(".") if node.module else []))
+                if not node.module:  # from . import a, b: a and b may be modules
+                    targets += [base + [a.name] for a in node.names]
+            elif node.module and node.module.startswith("napari_psfspace.core."):
+                targets.append(node.module.split(".")[2:])
+        elif isinstance(node, ast.Import):
+            targets += [a.name.split(".")[2:] for a in node.names
+                        if a.name.startswith("napari_psfspace.core.")]
+        out += [(node.lineno, t[0]) for t in targets if t]
+    return out
+
+
+@pytest.mark.parametrize("path", sorted(CORE.glob("*/**/*.py")),
+                         ids=lambda p: str(p.relative_to(CORE)))
+def test_no_import_runs_back_up_the_stages(path):
+    stage = path.relative_to(CORE).parts[0]
+    allowed = ALLOWED[stage] | {stage}
+    bad = [(line, s) for line, s in _imported_stages(path) if s not in allowed]
+    assert not bad, f"{path.relative_to(CORE)} imports a later stage: {bad}"
+
+
+def test_the_import_check_sees_a_violation():
+    """Guard against a vacuous check: an import from a later stage is caught, relative
+    (inside a function too) or absolute."""
+    fake = CORE / "beads" / "_probe_not_a_module.py"
+    assert not fake.exists()
+    src = "def f():\n    from ..model.estimate import iter_estimate\n"
+    src += "import napari_psfspace.core.diagnosis.loop\n"
+    try:
+        fake.write_text(src)
+        assert sorted(s for _, s in _imported_stages(fake)) == ["diagnosis", "model"]
+    finally:
+        fake.unlink()
+
+
+def test_old_flat_paths_import_the_same_modules():
+    """Flat module paths of earlier versions still import, as the stage modules."""
+    import importlib
+
+    import napari_psfspace.core as core
+
+    for old, new in core.MOVED.items():
+        a = importlib.import_module(f"napari_psfspace.core.{old}")
+        b = importlib.import_module(f"napari_psfspace.core.{new}")
+        assert a is b, old
+    from napari_psfspace.core.effects.nonlinearity import Nonlinearity as Old
+
+    from napari_psfspace.core.diagnosis.effects.nonlinearity import Nonlinearity
+
+    assert Old is Nonlinearity  # one class, registered once

@@ -15,9 +15,9 @@ import numpy as np
 import tifffile
 from scipy import stats
 
-from napari_psfspace.core.detect import KEPT
-from napari_psfspace.core.diagnose import prepare_beads
-from napari_psfspace.core.photometry import throughput_at
+from napari_psfspace.core.beads.detect import KEPT
+from napari_psfspace.core.diagnosis.loop import prepare_beads
+from napari_psfspace.core.diagnosis.photometry import throughput_at
 
 root = Path(__file__).resolve().parents[2]
 stack = tifffile.imread(root.parent / "shared/data/sp8_confocal_beads/"

@@ -15,13 +15,13 @@ top of it. Typical use::
 
 __version__ = "0.1.0"
 
-from .core.detect import Beads, NoBeadsError, detect_beads, suggest_psf_radius
-from .core.diagnose import Diagnosis, diagnose
-from .core.estimate import Estimation, Progress, estimate_operator, iter_estimate
-from .core.metrics import psf_error
-from .core.operator import ProductConvolution, load_operator
-from .core.patches import Patches, extract_patches
-from .core.simulate import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
+from .core.beads.detect import Beads, NoBeadsError, detect_beads, suggest_psf_radius
+from .core.beads.patches import Patches, extract_patches
+from .core.diagnosis.loop import Diagnosis, diagnose
+from .core.model.estimate import Estimation, Progress, estimate_operator, iter_estimate
+from .core.model.operator import ProductConvolution, load_operator
+from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
+from .core.simulation.metrics import psf_error
 
 __all__ = [
     "Beads",

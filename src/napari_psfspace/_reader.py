@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .core.operator import FORMAT_NAME, load_operator
+from .core.model.operator import FORMAT_NAME, load_operator
 
 
 def _single_path(path) -> str | None:

@@ -6,7 +6,7 @@ importing napari.
 
 from __future__ import annotations
 
-from .core.simulate import simulate_beads
+from .core.simulation import simulate_beads
 
 
 def simulated_beads(seed: int = 0):

@@ -30,7 +30,7 @@ def _progress_printer(stream=None):
 
 
 def _cmd_simulate(args) -> int:
-    from .core.simulate import simulate_beads
+    from .core.simulation import simulate_beads
     from .io import write_tiff
 
     image, truth = simulate_beads(tuple(args.shape), args.beads, aberrations=args.aberrations,
@@ -72,7 +72,7 @@ def _image_and_radius(args):
         info = dataclasses.replace(info, pixel_size=args.pixel_size_nm / 1000.0)
     r = _psf_radius_px(args, info)
     if r is None:
-        from .core.detect import suggest_psf_radius
+        from .core.beads.detect import suggest_psf_radius
 
         r = suggest_psf_radius(image)
         print(f"no --psf-radius given: using {r:g} px, measured from the image "
@@ -94,7 +94,7 @@ def _bead_diameter_px(args, info) -> float:
 
 
 def _cmd_estimate(args) -> int:
-    from .core.estimate import iter_estimate, run_with_progress
+    from .core.model.estimate import iter_estimate, run_with_progress
     from .report import model_lines
 
     image, info, r = _image_and_radius(args)
@@ -125,8 +125,8 @@ def _cmd_estimate(args) -> int:
 
 
 def _cmd_diagnose(args) -> int:
-    from .core.diagnose import iter_diagnose
-    from .core.estimate import run_with_progress
+    from .core.diagnosis.loop import iter_diagnose
+    from .core.model.estimate import run_with_progress
     from .report import model_lines, summary_text, write_report
 
     if args.read_noise is not None and args.gain is None:
@@ -158,7 +158,7 @@ def _cmd_diagnose(args) -> int:
 
 
 def _cmd_psf(args) -> int:
-    from .core.operator import load_operator
+    from .core.model.operator import load_operator
     from .io import write_tiff
 
     op = load_operator(args.model)
@@ -175,7 +175,7 @@ def _cmd_psf(args) -> int:
 
 
 def _cmd_apply(args) -> int:
-    from .core.operator import load_operator
+    from .core.model.operator import load_operator
     from .io import read_image, write_tiff
 
     op = load_operator(args.model)

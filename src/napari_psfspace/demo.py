@@ -25,11 +25,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .core._atomic import atomic_write
-from .core.estimate import Progress, iter_estimate, run_with_progress
-from .core.metrics import evaluate_against_truth, grid_positions
-from .core.mosaic import mosaic
-from .core.simulate import simulate_beads
+from .core.common.atomic import atomic_write
+from .core.common.mosaic import mosaic
+from .core.model.estimate import Progress, iter_estimate, run_with_progress
+from .core.simulation import simulate_beads
+from .core.simulation.metrics import evaluate_against_truth, grid_positions
 from .io import write_png, write_tiff
 
 #: Embedded default scenes: (shape, number of beads, aberration preset).

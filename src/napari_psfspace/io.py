@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from .core._atomic import atomic_open
+from .core.common.atomic import atomic_open
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """The report of a diagnosis: ``report.json``, ``report.md`` and PNG figures.
 
-:func:`write_report` turns a :class:`~napari_psfspace.core.diagnose.Diagnosis` into a
+:func:`write_report` turns a :class:`~napari_psfspace.core.diagnosis.loop.Diagnosis` into a
 folder a microscopist can read (``report.md``), a program can parse (``report.json``,
 documented in ``docs/report-format.md``) and figures (PNG, drawn with numpy alone):
 
@@ -30,9 +30,9 @@ from typing import Any
 import numpy as np
 
 from . import __version__
-from .core._atomic import atomic_write
-from .core.mosaic import mosaic
-from .core.residuals import BeadResiduals
+from .core.common.atomic import atomic_write
+from .core.common.mosaic import mosaic
+from .core.diagnosis.residuals import BeadResiduals
 
 #: ``format`` and ``version`` of report.json (docs/report-format.md).
 REPORT_FORMAT = "napari-psfspace/diagnosis-report"
@@ -360,7 +360,7 @@ def _tests_section(analysis, when: str) -> list[str]:
 
 
 def _effect_descriptions(diagnosis) -> dict[str, str]:
-    from .core.effects import REGISTRY
+    from .core.diagnosis.effects import REGISTRY
 
     out = {}
     for s in diagnosis.steps:
@@ -530,7 +530,7 @@ def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "im
     Parameters
     ----------
     diagnosis : Diagnosis
-        From :func:`~napari_psfspace.core.diagnose.diagnose`.
+        From :func:`~napari_psfspace.core.diagnosis.loop.diagnose`.
     out_dir : str or path-like
         Folder, created if needed; files of the same names are replaced (atomically).
     image_name : str

@@ -18,7 +18,7 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_info
 
-from ..core.diagnose import iter_diagnose
+from ..core.diagnosis.loop import iter_diagnose
 from ..report import (
     STEP_COLUMNS,
     figure_arrays,
@@ -86,7 +86,7 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
 class DiagnoseWidget(FollowsBeads, Container):
     """Trace the held-out residual of the model to what it lacks, add it, report.
 
-    Runs :func:`~napari_psfspace.core.diagnose.iter_diagnose` on the image (the slice and
+    Runs :func:`~napari_psfspace.core.diagnosis.loop.iter_diagnose` on the image (the slice and
     radius of the chosen beads layer; the beads are detected and centred again), then
     shows the table of steps, the residual maps and the mean residual patches before and
     after, and writes the report (report.md, report.json, figures) when a folder is given.

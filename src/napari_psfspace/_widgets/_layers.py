@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.detect import COMPANION, HELDOUT, KEPT, REJECTED, STATUSES, STRUCTURE, Beads
-from ..core.mosaic import mosaic
+from ..core.beads.detect import COMPANION, HELDOUT, KEPT, REJECTED, STATUSES, STRUCTURE, Beads
+from ..core.common.mosaic import mosaic
 
 #: Every status a bead of the Points layer can have ("rejected": by the user in the
 #: review; not used for the model).

@@ -18,8 +18,8 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_info
 
-from ..core.estimate import iter_estimate
-from ..core.operator import ProductConvolution
+from ..core.model.estimate import iter_estimate
+from ..core.model.operator import ProductConvolution
 from ..io import default_model_path
 from ..report import model_lines
 from ._layers import (

@@ -8,7 +8,7 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, Label, PushButton, SpinBox
 from napari.layers import Image
 
-from ..core.review import VIEWS, PatchReview, iter_patch_review
+from ..core.model.review import VIEWS, PatchReview, iter_patch_review
 from ._layers import (
     GALLERY,
     REJECTED,

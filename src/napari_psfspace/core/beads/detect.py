@@ -1,0 +1,516 @@
+"""Rough bead detection and rejection of beads that cannot give a clean PSF patch.
+
+Paper, Appendix A: beads are the maxima of the Laplacian of a smoothed image above a
+threshold; beads closer than ``r`` to the border or ``2 r`` to another bead are
+rejected, so every kept patch holds one isolated PSF.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import ndimage as ndi
+from skimage.feature import peak_local_max
+
+from ..common.threads import filter_by_rows
+from ..common.validate import as_image, check_positive, check_psf_radius
+from .spikes import (
+    QUANTISATION_VARIANCE,
+    find_spikes,
+    inpaint_pixels,
+    is_integer_valued,
+    pixel_noise_sd,
+)
+
+#: Status codes of a bead, in the order in which they are assigned.
+KEPT = "kept"
+SATURATED = "saturated"
+BORDER = "border"
+NEIGHBOUR = "neighbour"
+FAINT = "faint"
+OUTLIER = "outlier"
+REJECTED = "rejected"  # by the user (napari widgets)
+HELDOUT = "heldout"  # held out of a fit, still counted as a neighbour
+COMPANION = "companion"  # has a companion in its patch: judged (fitted jointly), not learnt
+STRUCTURE = "structure"  # background structure, not a bead: spoils no neighbour
+STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION,
+            STRUCTURE)
+
+
+#: A detection fainter than this fraction of a bead's peak amplitude does not spoil it as a
+#: neighbour (see :func:`flag_unusable`).
+NEIGHBOUR_RATIO = 0.05
+
+
+class NoBeadsError(ValueError):
+    """Raised when an image holds no usable bead."""
+
+
+@dataclass
+class Beads:
+    """Detected beads and why each was kept or rejected.
+
+    Attributes
+    ----------
+    positions : ndarray of shape (M, 2), float64
+        Bead centres (row, column) in pixels; integer peaks after detection,
+        sub-pixel after :func:`~napari_psfspace.core.beads.centering.refine_centers`.
+    response : ndarray of shape (M,)
+        Detection strength: the scale-normalised negative Laplacian of Gaussian at the
+        peak, in units of its robust noise standard deviation.
+    status : ndarray of shape (M,), str
+        One of :data:`STATUSES` for each bead.
+    amplitude : ndarray of shape (M,)
+        Peak value above the local background (median of the window edge), image
+        units; NaN where unknown (e.g. beads added by hand).
+    hot_pixels : ndarray of shape (S, 2), int64, or None
+        ``(row, column)`` of the pixels found narrower than the optics can form (hot
+        pixels, cosmic rays; :mod:`~napari_psfspace.core.beads.spikes`): inpainted before
+        detection and masked downstream. None: not searched (e.g. a table made by hand).
+    """
+
+    positions: np.ndarray
+    response: np.ndarray
+    status: np.ndarray = field(default=None)
+    amplitude: np.ndarray = field(default=None)
+    hot_pixels: np.ndarray | None = None
+
+    def __post_init__(self):
+        self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 2)
+        self.response = np.asarray(self.response, dtype=np.float64).reshape(-1)
+        if self.status is None:
+            self.status = np.full(len(self.positions), KEPT, dtype="<U10")
+        self.status = np.asarray(self.status, dtype="<U10")
+        if self.amplitude is None:
+            self.amplitude = np.full(len(self.positions), np.nan)
+        self.amplitude = np.asarray(self.amplitude, dtype=np.float64).reshape(-1)
+        if self.hot_pixels is not None:
+            self.hot_pixels = np.asarray(self.hot_pixels, dtype=np.int64).reshape(-1, 2)
+        n = {len(self.positions), len(self.response), len(self.status), len(self.amplitude)}
+        if len(n) != 1:
+            raise ValueError(
+                "`positions`, `response`, `status` and `amplitude` must have the same length, "
+                f"got {len(self.positions)}, {len(self.response)}, {len(self.status)} and "
+                f"{len(self.amplitude)}."
+            )
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @property
+    def kept(self) -> np.ndarray:
+        """Boolean mask of the beads kept for estimation, shape (M,)."""
+        return self.status == KEPT
+
+    def counts(self) -> dict[str, int]:
+        """Number of beads per status."""
+        return {s: int(np.count_nonzero(self.status == s)) for s in STATUSES}
+
+    def summary(self) -> str:
+        c = self.counts()
+        parts = [f"{v} {k}" for k, v in c.items() if v]
+        out = f"{len(self)} beads detected: " + ", ".join(parts)
+        if self.hot_pixels is not None and len(self.hot_pixels):
+            out += (f"; {len(self.hot_pixels)} hot pixel(s) masked (narrower than the "
+                    "optics can form)")
+        return out
+
+    def copy(self, status: np.ndarray | None = None) -> Beads:
+        """A deep copy, optionally with another status array."""
+        return Beads(self.positions.copy(), self.response.copy(),
+                     self.status.copy() if status is None else status,
+                     self.amplitude.copy(),
+                     None if self.hot_pixels is None else self.hot_pixels.copy())
+
+    def clean_image(self, image: np.ndarray) -> np.ndarray:
+        """``image`` (floating) with the hot pixels inpainted (a copy when there are any)."""
+        if self.hot_pixels is None or len(self.hot_pixels) == 0:
+            return image
+        return inpaint_pixels(image, self.hot_pixels)
+
+
+def log_kernel_norm(sigma: float) -> float:
+    """l2 norm of the scale-normalised LoG kernel ``sigma^2 LoG`` as sampled by
+    :func:`scipy.ndimage.gaussian_laplace` (about ``1 / (sigma sqrt(2 pi))``): the
+    response's standard deviation for white noise of unit variance."""
+    half = int(np.ceil(4 * sigma)) + 1
+    delta = np.zeros((2 * half + 1, 2 * half + 1))
+    delta[half, half] = 1.0
+    return float(sigma**2 * np.linalg.norm(ndi.gaussian_laplace(delta, sigma)))
+
+
+def log_response(image, sigma: float, *, pixel_sd_floor: float = 0.0) -> np.ndarray:
+    """Scale-normalised negative Laplacian of Gaussian, in robust noise units.
+
+    Parameters
+    ----------
+    image : ndarray of shape (M, N)
+    sigma : float
+        Gaussian scale in pixels.
+    pixel_sd_floor : float
+        Smallest per-pixel noise sd (image units) the response's noise level may
+        correspond to: for integer images the rounding noise ``sqrt(1/12)``, so that
+        a nearly constant integer background (MAD of zero) does not turn every
+        one-count bump into a detection.
+
+    Returns
+    -------
+    ndarray of shape (M, N), float32
+        ``-sigma**2 * LoG(image)`` divided by its robust standard deviation (MAD,
+        at least ``pixel_sd_floor`` times the kernel's l2 norm) and shifted so that its
+        median is 0: a bead of detection strength 10 stands ten noise standard
+        deviations above the filtered background.
+    """
+    img = as_image(image, dtype=np.float32)
+    # the kernel reaches int(4 sigma + 0.5) pixels (scipy's truncate=4): blocks of rows
+    # filtered in parallel with that halo give the same result
+    resp = filter_by_rows(lambda a: ndi.gaussian_laplace(a, sigma, mode="reflect"), img,
+                          int(4 * sigma + 0.5) + 1)
+    resp *= -(sigma**2)
+    # Robust noise level from a subsample: median and MAD are O(N) but slow on 5 Mpx.
+    step = max(1, int(np.sqrt(resp.size / 250_000)))
+    sample = resp[::step, ::step]
+    med = float(np.median(sample))
+    mad = float(np.median(np.abs(sample - med))) * 1.4826
+    floor = pixel_sd_floor * log_kernel_norm(sigma) if pixel_sd_floor > 0 else 0.0
+    if not np.isfinite(mad) or mad <= floor:
+        mad = max(floor, mad if np.isfinite(mad) else 0.0)
+    if mad <= 0:
+        spread = float(sample.std())
+        mad = spread if spread > 0 else 1.0
+    resp -= med
+    resp /= mad
+    return resp
+
+
+def detect_beads(
+    image,
+    psf_radius: float,
+    *,
+    threshold: float = 8.0,
+    sigma: float | None = None,
+    saturation: float | None = None,
+    border: float | None = None,
+    min_separation: float | None = None,
+    neighbour_ratio: float = NEIGHBOUR_RATIO,
+    hot_pixels: bool = True,
+) -> Beads:
+    """Find beads and flag those that cannot give a clean, isolated PSF patch.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Bead image, any real dtype.
+    psf_radius : float
+        Upper bound ``r`` of the PSF radius in pixels (the radius beyond which the PSF
+        is lost in the noise).
+    threshold : float, optional
+        Detection threshold in robust noise standard deviations of the filtered image
+        (see :func:`log_response`). Lower finds fainter beads.
+    sigma : float, optional
+        Scale of the Laplacian of Gaussian in pixels; default ``max(1, r / 4)``.
+    saturation : float, optional
+        Pixel value at or above which the detector is saturated. Default: the maximum
+        of the dtype for integer images, none for floating images.
+    border : float, optional
+        Beads whose centre lies closer than this to the border are rejected. Default
+        ``ceil(1.2 r) + 2``: the PSF patch (radius ``1.2 r``, Appendix A) must fit in
+        the image with room for sub-pixel re-sampling.
+    min_separation : float, optional
+        A bead closer than this to another detection at least ``neighbour_ratio`` as
+        bright is rejected. Default ``2 r``.
+    neighbour_ratio : float
+        A detection fainter than this fraction of a bead's peak does not spoil it
+        (:data:`NEIGHBOUR_RATIO`; 0: every detection does).
+    hot_pixels : bool
+        Find pixels narrower than the optics can form (hot pixels, cosmic rays,
+        :func:`~napari_psfspace.core.beads.spikes.find_spikes`), inpaint them before
+        detection and record them in ``Beads.hot_pixels`` for the later steps to mask.
+
+    Returns
+    -------
+    Beads
+        All detections with their status (kept, saturated, border, neighbour).
+
+    Notes
+    -----
+    The noise level of the filtered image is its robust (MAD) spread, never below what
+    the rounding of an integer image gives (variance 1/12 ADU^2 per pixel): on a nearly
+    constant integer background the MAD collapses towards zero and every one-count bump
+    would otherwise stand many "noise sd" out.
+
+    Raises
+    ------
+    NoBeadsError
+        When nothing stands above the threshold; the message gives the strongest
+        response found so that the user knows how far to lower ``threshold``.
+    """
+    raw = np.asarray(image)
+    img = as_image(raw, dtype=np.float32)
+    r = check_psf_radius(psf_radius, img.shape)
+    threshold = check_positive(threshold, "threshold")
+    neighbour_ratio = check_positive(neighbour_ratio, "neighbour_ratio", allow_zero=True)
+    sigma = max(1.0, r / 4.0) if sigma is None else check_positive(sigma, "sigma")
+    if border is None:
+        border = np.ceil(1.2 * r) + 2
+    if min_separation is None:
+        min_separation = 2.0 * r
+    if saturation is None and raw.dtype.kind in "ui":
+        saturation = float(np.iinfo(raw.dtype).max)
+
+    if float(img.max()) == float(img.min()):
+        raise NoBeadsError(
+            f"`image` is constant (every pixel equals {float(img.min()):g}): no beads to "
+            "detect. Check that the right image or slice was passed."
+        )
+
+    integer = is_integer_valued(raw)
+    spikes = (find_spikes(img, noise_sd=pixel_noise_sd(raw, integer=integer),
+                          integer=integer) if hot_pixels else np.zeros((0, 2), np.int64))
+    if len(spikes):
+        img = inpaint_pixels(img, spikes)
+    resp = log_response(img, sigma,
+                        pixel_sd_floor=np.sqrt(QUANTISATION_VARIANCE) if integer else 0.0)
+    peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
+    if len(peaks) == 0:
+        raise NoBeadsError(
+            f"No beads found: no maximum of the filtered image reaches `threshold` = "
+            f"{threshold:g} noise standard deviations (the strongest reaches "
+            f"{float(resp.max()):.3g}). Lower `threshold`, or check `psf_radius` = {r:g} px."
+        )
+    strength = resp[peaks[:, 0], peaks[:, 1]].astype(np.float64)
+    order = np.argsort(-strength, kind="stable")
+    peaks, strength = peaks[order], strength[order]
+    peaks, strength = _merge_secondary_maxima(peaks, strength, r)
+
+    beads = Beads(peaks.astype(np.float64), strength,
+                  amplitude=peak_amplitude(img, peaks, int(np.ceil(r))),
+                  hot_pixels=spikes if hot_pixels else None)
+    flag_unusable(beads, img, r, saturation=saturation, border=border,
+                  min_separation=min_separation, neighbour_ratio=neighbour_ratio)
+    return beads
+
+
+def local_peaks(response: np.ndarray, min_distance: int, threshold: float) -> np.ndarray:
+    """Maxima of ``response`` over a ``(2 d + 1)`` square, above ``threshold``, strongest
+    first: :func:`skimage.feature.peak_local_max` with ``exclude_border=False``, computed
+    on the pixels above the threshold only (the full-image maximum filter cost as much as
+    the hot-pixel search it makes room for).
+
+    Returns
+    -------
+    ndarray of shape (K, 2), int
+        ``(row, column)``, by decreasing response; peaks closer than ``d`` (Chebyshev) to
+        a stronger one are dropped (plateaus).
+    """
+    resp = np.asarray(response)
+    h, w = resp.shape
+    ys, xs = np.nonzero(resp > threshold)
+    if len(ys) == 0:
+        return np.zeros((0, 2), np.intp)
+    vals = resp[ys, xs]
+    for half in (1, int(min_distance)):  # 3 x 3 first: a cheap, exact pre-selection
+        if half < 1:
+            continue
+        d = np.arange(-half, half + 1)
+        # clipped indices: the maximum filter's "nearest" mode, whose padding repeats
+        # values already in the window
+        rows = np.clip(ys[:, None, None] + d[None, :, None], 0, h - 1)
+        cols = np.clip(xs[:, None, None] + d[None, None, :], 0, w - 1)
+        top = resp[rows, cols].reshape(len(ys), -1).max(axis=1)
+        keep = vals >= top
+        ys, xs, vals = ys[keep], xs[keep], vals[keep]
+    order = np.argsort(-vals, kind="stable")
+    peaks = np.column_stack([ys, xs])[order]
+    if len(peaks) > 1 and min_distance > 1:  # equal maxima within d: keep the first
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(peaks)
+        drop = np.zeros(len(peaks), bool)
+        for i, near in enumerate(tree.query_ball_point(peaks, r=min_distance, p=np.inf)):
+            if drop[i]:
+                continue
+            for j in near:
+                if j > i and np.abs(peaks[j] - peaks[i]).max() < min_distance:
+                    drop[j] = True
+        peaks = peaks[~drop]
+    return peaks
+
+
+def peak_amplitude(image: np.ndarray, peaks: np.ndarray, half: int) -> np.ndarray:
+    """Peak value above the median of the edge of a ``(2 half + 1)`` window, shape (M,)."""
+    from .centering import gather_windows
+
+    if len(peaks) == 0:
+        return np.zeros(0)
+    win = gather_windows(image, np.asarray(peaks, dtype=np.float64), half)
+    edge = np.concatenate([win[:, 0, :], win[:, -1, :], win[:, 1:-1, 0], win[:, 1:-1, -1]],
+                          axis=1)
+    return (win[:, half, half] - np.median(edge, axis=1)).astype(np.float64)
+
+
+def _merge_secondary_maxima(peaks, strength, r):
+    """Drop weak maxima within ``r`` of a much stronger one (rings of one defocused PSF)."""
+    from scipy.spatial import cKDTree
+
+    if len(peaks) < 2:
+        return peaks, strength
+    tree = cKDTree(peaks)
+    drop = np.zeros(len(peaks), dtype=bool)
+    for i, j in sorted(tree.query_pairs(r)):
+        # peaks are sorted by decreasing strength, so i is the stronger one
+        if not drop[i] and strength[j] < 0.5 * strength[i]:
+            drop[j] = True
+    return peaks[~drop], strength[~drop]
+
+
+def flag_unusable(
+    beads: Beads,
+    image: np.ndarray,
+    psf_radius: float,
+    *,
+    saturation: float | None,
+    border: float,
+    min_separation: float,
+    neighbour_ratio: float = NEIGHBOUR_RATIO,
+) -> Beads:
+    """Set the status of beads that are saturated, at the border or crowded (in place).
+
+    Only beads whose status is ``kept`` are re-examined, so statuses set by a user
+    (e.g. a rejected outlier) are preserved. Neighbours are counted among all
+    detections, whatever their status: a rejected bead still spoils its neighbour;
+    only detections found to be background structure (status "structure", removed from
+    the image) are not counted, and, with ``neighbour_ratio`` > 0, detections whose peak
+    amplitude is below that fraction of the bead's (a faint speck beside a bright bead
+    changes its patch by less than the noise). Beads of unknown amplitude (added by
+    hand) are always counted.
+
+    Returns
+    -------
+    Beads
+        The same object, for chaining.
+    """
+    from scipy.spatial import cKDTree
+
+    pos = beads.positions
+    h, w = image.shape
+    keep = beads.status == KEPT
+    if saturation is not None and len(pos):
+        iy = np.clip(np.round(pos[:, 0]).astype(int), 0, h - 1)
+        ix = np.clip(np.round(pos[:, 1]).astype(int), 0, w - 1)
+        core = max(1, int(round(psf_radius / 3)))
+        d = np.arange(-core, core + 1)
+        rows = np.clip(iy[:, None, None] + d[None, :, None], 0, h - 1)
+        cols = np.clip(ix[:, None, None] + d[None, None, :], 0, w - 1)
+        sat = image[rows, cols].reshape(len(pos), -1).max(axis=1) >= saturation
+        beads.status[keep & sat] = SATURATED
+        keep &= ~sat
+    at_border = (
+        (pos[:, 0] < border)
+        | (pos[:, 1] < border)
+        | (pos[:, 0] > h - 1 - border)
+        | (pos[:, 1] > w - 1 - border)
+    )
+    beads.status[keep & at_border] = BORDER
+    keep &= ~at_border
+    real = np.flatnonzero(beads.status != STRUCTURE)
+    if len(real) > 1 and keep.any():
+        tree = cKDTree(pos[real])
+        amp = beads.amplitude
+        todo = np.flatnonzero(keep)
+        lists = tree.query_ball_point(pos[todo], np.nextafter(min_separation, 0))
+        for i, found in zip(todo, lists, strict=True):
+            near = real[np.asarray(found, dtype=np.intp)]
+            near = near[near != i]
+            if len(near) == 0:
+                continue
+            if neighbour_ratio > 0 and np.isfinite(amp[i]) and amp[i] > 0:
+                a = amp[near]
+                if not np.any(~np.isfinite(a) | (a >= neighbour_ratio * amp[i])):
+                    continue
+            beads.status[i] = NEIGHBOUR
+    return beads
+
+
+def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
+    """Raise :class:`NoBeadsError` when fewer than ``minimum`` beads are kept."""
+    n = int(np.count_nonzero(beads.kept))
+    if n < minimum:
+        raise NoBeadsError(
+            f"Too few usable beads: {n} kept, need at least {minimum} {reason}. "
+            f"{beads.summary()}. Lower `threshold`, check `psf_radius`, or image a "
+            "denser bead slide."
+        )
+
+
+def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
+                       max_radius: float | None = None) -> float:
+    """Suggest the PSF radius ``r`` (pixels) from the bright isolated spots of an image.
+
+    The spots are maxima of a Laplacian-of-Gaussian response (scale 2 px, at least 10
+    noise sd, 8 px apart), the strongest few in each cell of a 4 x 4 tiling of the field
+    (the PSF varies over the field). For each, the azimuthal median profile above
+    the local background gives the enclosed energy; its radius is where it reaches
+    ``energy`` of the total within the signal's extent (the profile above 3 noise sd of
+    a ring median). The radius must bound the widest PSFs of the field, so the 75th
+    percentile over the spots (robust to a few aggregates), plus one pixel, is returned.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+    n_beads : int
+        About how many spots are used (spread over the field).
+    energy : float
+        Enclosed-energy fraction that defines a spot's radius.
+    max_radius : float, optional
+        Largest radius considered; default ``min(M, N) / 8``.
+
+    Returns
+    -------
+    float
+        Suggested radius in pixels, at least 3.
+
+    Raises
+    ------
+    NoBeadsError
+        No spot stands out of the noise.
+    """
+    img = as_image(image, dtype=np.float32)
+    h, w = img.shape
+    rmax = int(max_radius or max(6, min(h, w) // 8))
+    resp = log_response(img, 2.0)
+    peaks = peak_local_max(resp, min_distance=8, exclude_border=rmax, threshold_abs=10.0)
+    if len(peaks):  # the strongest few in each cell of a 4 x 4 tiling: the whole field
+        cell = (peaks[:, 0] * 4 // h) * 4 + peaks[:, 1] * 4 // w
+        strength = resp[peaks[:, 0], peaks[:, 1]]
+        order = np.lexsort((-strength, cell))
+        rank = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
+        peaks = peaks[order[rank < max(1, n_beads // 16 + 1)]]
+    if len(peaks) == 0:
+        raise NoBeadsError("No bright spot stands out of the noise: cannot suggest a "
+                           "`psf_radius`; check the image, or give the radius yourself.")
+    yy, xx = np.mgrid[-rmax:rmax + 1, -rmax:rmax + 1]
+    dist = np.hypot(yy, xx).round().astype(int)
+    counts = np.bincount(dist.ravel(), minlength=rmax + 1)[:rmax + 1]
+    tail = max(3, rmax // 5)
+    radii = []
+    for y, x in peaks:
+        win = img[y - rmax:y + rmax + 1, x - rmax:x + rmax + 1].astype(np.float64)
+        prof = np.asarray(ndi.median(win, labels=dist, index=np.arange(rmax + 1)))
+        edge = win[dist >= rmax - tail]
+        bg = float(np.median(edge))
+        sd = 1.4826 * float(np.median(np.abs(edge - bg)))
+        prof = prof - bg
+        # the median of a ring of ~2 pi rho pixels has sd ~ 1.25 sd / sqrt(2 pi rho)
+        ring_sd = 1.25 * sd / np.sqrt(2 * np.pi * np.maximum(np.arange(rmax + 1), 1))
+        low = np.flatnonzero(prof < 3 * ring_sd)
+        extent = int(low[0]) if len(low) else rmax
+        if extent < 1 or prof[0] <= 0:
+            continue
+        enclosed = np.cumsum(np.clip(prof[:extent + 1], 0, None) * counts[:extent + 1])
+        radii.append(int(np.searchsorted(enclosed, energy * enclosed[-1])))
+    if not radii:
+        raise NoBeadsError("Could not measure the width of any bright spot: give "
+                           "`psf_radius` yourself.")
+    return float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))

@@ -1,0 +1,445 @@
+"""Estimate a product-convolution operator from one image of beads (paper, sec. 2.3).
+
+detect -> centre -> extract patches (background, window, normalise) -> PCA with z-score
+rejection -> weighted thin-plate splines of the coefficients on a coarse grid -> cone
+projection -> :class:`~napari_psfspace.core.model.operator.ProductConvolution`.
+
+The work is a generator (:func:`iter_estimate`) that yields :class:`Progress` records and
+returns an :class:`Estimation`; :func:`estimate_operator` drains it and returns the
+operator. A GUI runs the generator in a worker thread and can stop between steps.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..beads.centering import refine_centers
+from ..beads.detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
+from ..beads.patches import Patches, extract_patches
+from ..beads.sphere import remove_sphere
+from ..beads.spikes import find_spikes
+from ..beads.window import bump_window, radial_distance
+from ..common.validate import as_image, check_positive, check_psf_radius
+from .cone import Cone
+from .denoise import band_limit, refit_basis
+from .fewbeads import FEW_BEADS, fit_few_beads
+from .field import fit_field
+from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
+from .motion import detect_motion
+from .motion import remove_motion as divide_motion
+from .operator import ProductConvolution
+from .pca import PsfBasis, learn_basis, min_beads_for
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One step of a long computation.
+
+    Attributes
+    ----------
+    stage : str
+        Short name of the step that just finished.
+    fraction : float
+        Fraction of the whole computation done, in [0, 1].
+    message : str
+        Human-readable detail.
+    """
+
+    stage: str
+    fraction: float
+    message: str = ""
+
+
+@dataclass
+class Estimation:
+    """Everything an estimation produced, for review and diagnostics.
+
+    Attributes
+    ----------
+    operator : ProductConvolution
+        The model fitted on all usable beads.
+    beads : Beads
+        Every detection with its final status (kept, border, neighbour, saturated,
+        faint, outlier).
+    patches : Patches
+        Patches of the beads that entered the PCA (status kept or outlier), in the
+        order of ``patch_index``.
+    patch_index : ndarray of shape (K,)
+        Index into ``beads`` of each patch.
+    basis : PsfBasis
+        The PCA result (basis, coefficients, z-scores, singular values).
+    cone : Cone
+        Reduced cone of the observed coefficients.
+    heldout : HeldoutResiduals or None
+        Residuals on held-out beads of a model fitted without them.
+    """
+
+    operator: ProductConvolution
+    beads: Beads
+    patches: Patches
+    patch_index: np.ndarray
+    basis: PsfBasis
+    cone: Cone
+    heldout: HeldoutResiduals | None = None
+    info: dict = field(default_factory=dict)
+
+
+def iter_estimate(
+    image,
+    *,
+    psf_radius: float,
+    n_psf: int | str | None = None,
+    smoothing: float | None = None,
+    threshold: float = 8.0,
+    beads: Beads | None = None,
+    holdout: float | None = 0.2,
+    grid_step: float = 32.0,
+    saturation: float | None = None,
+    z_threshold: float = 3.0,
+    patch_filter: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
+    bead_diameter: float = 0.0,
+    denoise: bool = True,
+    remove_motion: bool = False,
+    motion_test: bool = True,
+) -> Generator[Progress, None, Estimation]:
+    """Generator form of :func:`estimate_operator`: yields progress, returns the result.
+
+    Parameters are those of :func:`estimate_operator`, plus ``beads`` (a :class:`Beads`
+    table, e.g. edited by hand, used instead of detection: its ``kept`` beads are used)
+    and ``holdout`` (fraction of beads held out to measure the model's error, then
+    refitted on all beads; ``None`` or 0 skips it), and ``patch_filter``
+    (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
+    (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
+    different sizes to one, :class:`~napari_psfspace.core.diagnosis.effects.bead_size.SizeFilter`).
+    ``motion_test`` (False: skip the motion-blur test, for models whose metadata nothing
+    reads, e.g. the folds of a cross-fit; ``metadata["motion"]`` is then None).
+    ``bead_diameter``, ``denoise`` and ``remove_motion`` are those of
+    :func:`estimate_operator`: with a
+    diameter, the returned operator's PSFs are point-source PSFs; the held-out residual
+    is measured with the uncorrected model (the beads' own images).
+
+    Returns
+    -------
+    Estimation
+        (as the generator's return value, ``StopIteration.value``)
+    """
+    raw = np.asarray(image)
+    img = as_image(raw)
+    shape = img.shape
+    r = check_psf_radius(psf_radius, shape)
+    grid_step = check_positive(grid_step, "grid_step")
+    if n_psf is not None and not isinstance(n_psf, str) and (int(n_psf) != n_psf or n_psf < 1):
+        raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
+                         f"got {n_psf!r}.")
+    fixed_n = n_psf if isinstance(n_psf, (int, np.integer)) else None
+    if smoothing is not None:
+        check_positive(smoothing, "smoothing", allow_zero=True)
+    bead_diameter = check_bead_diameter(bead_diameter, r)
+
+    if beads is None:
+        beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
+        img = beads.clean_image(img)
+    else:
+        beads = beads.copy()
+        if beads.hot_pixels is None:  # a table made by hand: look for spikes here
+            beads.hot_pixels = find_spikes(raw)
+        img = beads.clean_image(img)
+        if saturation is None and raw.dtype.kind in "ui":
+            saturation = float(np.iinfo(raw.dtype).max)
+        flag_unusable(beads, img, r, saturation=saturation, border=np.ceil(1.2 * r) + 2,
+                      min_separation=2 * r)
+    yield Progress("detect", 0.15, beads.summary())
+
+    kept = np.flatnonzero(beads.kept)
+    if len(kept) == 0:
+        raise NoBeadsError(
+            f"No usable bead (0 kept): {beads.summary()}. Lower `threshold`, check "
+            f"`psf_radius` = {r:g} px, or image a denser bead slide."
+        )
+    sigma = max(1.0, r / 4.0)
+    beads.positions[kept] = refine_centers(img, beads.positions[kept], sigma=sigma,
+                                           half=int(np.ceil(r)))
+    # a bead may have moved closer to the border while being centred
+    flag_unusable(beads, img, r, saturation=None, border=np.ceil(1.2 * r) + 2,
+                  min_separation=2 * r)
+    kept = np.flatnonzero(beads.kept)
+    yield Progress("centre", 0.3, f"{len(kept)} beads centred to sub-pixel precision")
+
+    patches = extract_patches(img, beads.positions[kept], r)
+    faint = patches.flux <= 0
+    if faint.any():
+        beads.status[kept[faint]] = FAINT
+        kept, patches = kept[~faint], patches.subset(~faint)
+    if len(kept) == 0:
+        raise NoBeadsError(f"No usable bead after background removal. {beads.summary()}.")
+    if patch_filter is not None:
+        psf = patch_filter(patches.psf, patches.centers)
+        total = psf.sum(axis=(1, 2))
+        psf = psf / np.where(total > 0, total, 1.0)[:, None, None]
+        patches = Patches(patches.centers, patches.raw, patches.background, psf,
+                          patches.flux, patches.noise, patches.r, patches.r_ext)
+    yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
+
+    support = radial_distance(patches.size) < patches.r_ext
+    sphere: dict = {}
+
+    window = bump_window(patches.size, patches.r, patches.r_ext)
+    sd_all = patches.noise / patches.flux
+    motion = (detect_motion(patches.psf, sd_all, window, positions=patches.centers)
+              if motion_test or remove_motion else None)
+    motion_record = None if motion is None else motion.to_dict()
+    removed: dict = {}
+    if remove_motion and not motion.detected:  # (motion is tested when asked to remove)
+        motion_record["removed"] = None
+        motion_record["note"] = "remove_motion was asked, but no motion blur was found: " \
+            "nothing removed"
+
+    def point_source(psf: np.ndarray):
+        """The basis filter that removes the beads' own size and, on request, a smear
+        found in them (None when there is nothing to remove)."""
+        steps = []
+        if bead_diameter:
+            steps.append(_basis_remover(
+                psf, lambda h, **kw: remove_sphere(h, bead_diameter, **kw), sphere))
+        if remove_motion and motion.detected:
+            steps.append(_basis_remover(
+                psf, lambda h, **kw: divide_motion(h, motion.length_px, motion.angle_deg,
+                                                   **kw), removed))
+        if not steps:
+            return None
+
+        def chain(h):
+            for step in steps:
+                h = step(h)
+            return h
+        return chain
+
+    few = None
+    heldout = None
+    denoised: dict = {}
+    if len(kept) <= FEW_BEADS:  # a handful of beads: the richest model they support
+        few = fit_few_beads(patches, shape, n_psf=fixed_n, support=support,
+                            grid_step=grid_step, basis_filter=point_source(patches.psf))
+        heldout, op, cone = few.heldout, few.operator, few.cone
+        n = len(patches)
+        basis = PsfBasis(few.basis, few.coefficients, np.ones(n, bool), np.zeros(n),
+                         np.zeros(0), float("nan"), few.n_psf)
+        spline = None
+        yield Progress("held-out", 0.7, few.reason)
+    else:
+        def fit(sub: Patches, *, final: bool = False):
+            learn, weights, refit = sub.psf, None, None
+            if denoise:
+                sd = sub.noise / sub.flux  # per-pixel noise of the sum-1 patches
+                weights = 1.0 / (sub.psf[:, support] ** 2).sum(axis=1)
+                learn, info = band_limit(sub.psf, sd, window)
+                denoised.update(info)
+            b = learn_basis(learn, n_psf, support=support, positions=sub.centers,
+                            z_threshold=z_threshold, weights=weights)
+            if denoise:
+                inl = b.inliers
+
+                def refit(a):
+                    h, info = refit_basis(sub.psf[inl], a, sd[inl], window,
+                                          weights=weights[inl], prior=b.basis)
+                    denoised.update(info)
+                    return h
+            filt = point_source(sub.psf[b.inliers]) if final else None
+            o, c, sp = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
+                                 basis_filter=filt, refit=refit)
+            return b, o, c, sp
+
+        need = min_beads_for(fixed_n or 1)
+        if holdout:
+            held = split_holdout(patches.centers, shape, holdout)
+            if np.count_nonzero(~held) >= need and np.count_nonzero(held) >= 1:
+                _, op_train, _, _ = fit(patches.subset(~held))
+                heldout = heldout_residuals(op_train, patches.subset(held))
+                yield Progress("held-out", 0.7,
+                               f"held-out residual {heldout.summary()['residual_mean']:.3f} "
+                               f"on {int(held.sum())} beads")
+        basis, op, cone, spline = fit(patches, final=True)
+        beads.status[kept[~basis.inliers]] = OUTLIER
+    meta = {
+        "psf_radius": r,
+        "r_ext": patches.r_ext,
+        "n_psf": basis.n_psf,
+        "n_psf_rule": basis.n_psf_rule,
+        "n_psf_requested": n_psf,
+        "heldout_error_by_n_psf": (None if basis.heldout_errors is None
+                                   else [float(v) for v in basis.heldout_errors]),
+        "smoothing": None if spline is None else [float(s) for s in spline.smoothing],
+        "smoothing_requested": smoothing,
+        "effective_dof": None if spline is None else [float(d) for d in spline.effective_dof],
+        "field_model": "thin-plate" if few is None else few.field_model,
+        "field_model_reason": None if few is None else few.reason,
+        "few_beads_loo_errors": None if few is None else few.metadata()["loo_errors"],
+        "threshold": threshold,
+        "z_threshold": z_threshold,
+        "grid_step": grid_step,
+        "image_shape": list(shape),
+        "image_dtype": str(raw.dtype),
+        "bead_counts": beads.counts(),
+        "hot_pixels": hot_pixel_record(beads.hot_pixels),
+        "n_beads_used": int(basis.inliers.sum()),
+        "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
+        "cone_generators": int(len(cone.generators)),
+        "heldout": heldout.summary() if heldout is not None else None,
+        "denoise": ({"passband": denoised.get("passband"),
+                     "basis_noise": denoised.get("noise_rel")} if denoised else None),
+        "motion": (None if motion_record is None
+                   else {**motion_record, **({"removed": removed} if removed else {})}),
+        "bead_diameter_px": bead_diameter,
+        "bead_correction": ({**sphere, "note": "the PSFs are those of a point source: the "
+                             "beads' projected sphere was divided out; the held-out "
+                             "residual judges bead images with the uncorrected model"}
+                            if bead_diameter else None),
+    }
+    op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
+    yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads"
+                   + ("" if few is None or few.field_model != "shift-invariant"
+                      else " (one PSF for the whole field)"))
+    return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+def _basis_remover(psf: np.ndarray, remove: Callable, record: dict):
+    """A basis filter ``h -> remove(h, reference=..., noise=...)[0]`` for PSFs learnt
+    from ``psf`` (K, P, P) sum-1 patches: their mean sets the signal-to-noise ratio, the
+    difference of two halves' means its noise (the re-sampling colours it). ``record``
+    receives the remover's info (:func:`~napari_psfspace.core.beads.sphere.remove_sphere`,
+    :func:`~napari_psfspace.core.model.motion.remove_motion`)."""
+    noise = None
+    if len(psf) >= 2:
+        # var(A - B) = s^2 K / (n_a n_b); the mean of all K has s^2 / K
+        noise = psf[0::2].mean(axis=0) - psf[1::2].mean(axis=0)
+        noise *= np.sqrt(len(psf[0::2]) * len(psf[1::2])) / len(psf)
+    reference = psf.mean(axis=0)
+
+    def apply(h):
+        out, info = remove(h, reference=reference, noise=noise)
+        record.update(info)
+        return out
+
+    return apply
+
+
+def check_bead_diameter(bead_diameter, psf_radius: float) -> float:
+    """Check ``bead_diameter`` (pixels): 0 (point sources) up to the PSF radius."""
+    d = check_positive(bead_diameter if bead_diameter is not None else 0.0, "bead_diameter",
+                       allow_zero=True)
+    if d > psf_radius:
+        raise ValueError(
+            f"`bead_diameter` = {d:g} px is larger than `psf_radius` = {psf_radius:g} px: a "
+            "bead that large is not a point source for these optics. Check the units (the "
+            "API takes pixels; the command line and the widgets take nanometres).")
+    return d
+
+
+def hot_pixel_record(pixels, limit: int = 10_000) -> dict:
+    """JSON-ready record of the masked hot pixels: their count and (up to ``limit``)
+    ``(row, column)`` positions."""
+    pix = np.zeros((0, 2), int) if pixels is None else np.asarray(pixels).reshape(-1, 2)
+    return {"count": int(len(pix)), "positions": pix[:limit].astype(int).tolist()}
+
+
+def run_with_progress(gen: Generator, progress: Callable[[Progress], None] | None = None):
+    """Drain a progress generator, calling ``progress`` on each record; return its value."""
+    while True:
+        try:
+            rec = next(gen)
+        except StopIteration as stop:
+            return stop.value
+        if progress is not None:
+            progress(rec)
+
+
+def estimate_operator(
+    image,
+    *,
+    psf_radius: float,
+    n_psf: int | str | None = None,
+    smoothing: float | None = None,
+    threshold: float = 8.0,
+    holdout: float | None = 0.2,
+    grid_step: float = 32.0,
+    saturation: float | None = None,
+    bead_diameter: float = 0.0,
+    denoise: bool = True,
+    remove_motion: bool = False,
+    progress: Callable[[Progress], None] | None = None,
+) -> ProductConvolution:
+    """Learn the space-varying PSF of a microscope from one image of beads.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Image of scattered sub-resolution beads, any real dtype. A 3-D stack is
+        refused with a hint to pass one slice.
+    psf_radius : float
+        Upper bound ``r`` of the PSF radius in pixels: beyond it the PSF is lost in
+        the noise. Beads closer than ``2 r`` to each other are not used.
+    n_psf : int, "heldout", "rule" or None
+        Size ``I`` of the PSF basis. Default (None, "heldout"): the size with the
+        lowest leave-one-bead-out error of the whole model. "rule": the
+        Gavish-Donoho threshold ``omega(beta) sigma_med`` on the singular values
+        (2.858 sigma_med for a square matrix, section 2.5 of the paper).
+    smoothing : float, optional
+        Thin-plate smoothing ``eta`` (coordinates scaled to the half-diagonal of the
+        image). Default: chosen per coefficient by leave-one-bead-out
+        cross-validation.
+    threshold : float
+        Detection threshold in noise standard deviations of the filtered image.
+    holdout : float or None
+        Fraction of the beads held out to measure the model's residual (stored in
+        ``operator.metadata['heldout']``); the returned model is refitted on all beads.
+    grid_step : float
+        Spacing (pixels) of the grid on which the coefficient maps are stored.
+    saturation : float, optional
+        Pixel value at which the detector saturates (default: the dtype maximum for
+        integer images); beads touching it are not used.
+    bead_diameter : float
+        Diameter of the beads in pixels (from their data sheet: e.g. 200 nm beads at
+        100 nm pixels give 2.0). The learnt PSFs are corrected for the bead's projected
+        sphere (divided out in Fourier where the signal stands above the noise, so that
+        noise is not amplified; :func:`~napari_psfspace.core.beads.sphere.remove_sphere`) and
+        the correction is recorded in ``metadata["bead_correction"]``. 0: point sources.
+    denoise : bool
+        Use the beads by their information (:mod:`~napari_psfspace.core.model.denoise`): the
+        basis is learnt from patches filtered by one Wiener filter, each bead weighted
+        by ``1 / ||p||^2`` of its raw patch, and the basis images are then refitted to
+        the raw patches of all beads at once given the smooth field and shrunk by
+        their own noise. Recorded in ``metadata["denoise"]``. False: the paper's
+        plain PCA of l2-normalised patches.
+    remove_motion : bool
+        Motion blur (a smear common to all beads, :mod:`~napari_psfspace.core.model.motion`)
+        is always looked for and reported in ``metadata["motion"]``; the model keeps it
+        (it blurs a sample imaged in the same exposure just as much). True: divide the
+        smear found out of the PSFs, for a calibration of the optics alone, when the
+        sample was still. Nothing is removed when no smear is found (said in the record).
+    progress : callable, optional
+        Called with a :class:`Progress` record after each step.
+
+    Returns
+    -------
+    ProductConvolution
+        ``H u = sum_i h_i * (alpha_i u)``; ``psf_at(y, x)`` gives the PSF anywhere.
+
+    Raises
+    ------
+    ValueError
+        Bad input (wrong dimensions, NaN, parameters out of range), and
+        :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (a ValueError) when there are
+        no beads or too few usable beads for the basis size.
+    """
+    gen = iter_estimate(image, psf_radius=psf_radius, n_psf=n_psf, smoothing=smoothing,
+                        threshold=threshold, holdout=holdout, grid_step=grid_step,
+                        saturation=saturation, bead_diameter=bead_diameter,
+                        denoise=denoise, remove_motion=remove_motion)
+    return run_with_progress(gen, progress).operator
+
+
+__all__ = ["KEPT", "Estimation", "Progress", "estimate_operator", "iter_estimate",
+           "run_with_progress", "fit_field"]

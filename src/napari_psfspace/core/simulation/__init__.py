@@ -1,0 +1,31 @@
+"""Beside the flow: the bead-image simulator, its known truth, and the scene family.
+
+Gives synthetic bead images with their ground truth for tests and benches: optics and
+field aberrations, the bead scene, the camera and the effects a real image holds
+(:mod:`.scene`), Zernike polynomials (:mod:`.zernike`), seeded random scenes over a
+family of settings (:mod:`.family`) and errors against the truth (:mod:`.metrics`).
+Nothing in it is needed to process a measured image, and no stage imports it; it may
+import ``beads`` (a bead's size) and ``common``.
+
+The names below are those the single ``core/simulate.py`` of earlier versions gave.
+"""
+
+from ..beads.sphere import sphere_transfer
+from .scene import (
+    EFFECTS,
+    FieldAberrations,
+    Optics,
+    SimulationTruth,
+    simulate_beads,
+    simulate_psf,
+)
+
+__all__ = [
+    "EFFECTS",
+    "FieldAberrations",
+    "Optics",
+    "SimulationTruth",
+    "simulate_beads",
+    "simulate_psf",
+    "sphere_transfer",
+]
