@@ -2,7 +2,8 @@
 
 Gives synthetic bead images with their ground truth for tests and benches: optics and
 field aberrations, the bead scene, the camera and the effects a real image holds
-(:mod:`.scene`), Zernike polynomials (:mod:`.zernike`), seeded random scenes over a
+(:mod:`.optics`, :mod:`.aberrations`, :mod:`.scene`, :mod:`.render`, :mod:`.camera`,
+:mod:`.effects`, :mod:`.truth`), Zernike polynomials (:mod:`.zernike`), seeded random scenes over a
 family of settings (:mod:`.family`) and errors against the truth (:mod:`.metrics`).
 Nothing in it is needed to process a measured image, and no stage imports it; it may
 import ``beads`` (a bead's size) and ``common``.
@@ -11,14 +12,11 @@ The names below are those the single ``core/simulate.py`` of earlier versions ga
 """
 
 from ..beads.sphere import sphere_transfer
-from .scene import (
-    EFFECTS,
-    FieldAberrations,
-    Optics,
-    SimulationTruth,
-    simulate_beads,
-    simulate_psf,
-)
+from .aberrations import FieldAberrations
+from .effects import EFFECTS
+from .optics import Optics, simulate_psf
+from .scene import simulate_beads
+from .truth import SimulationTruth
 
 __all__ = [
     "EFFECTS",

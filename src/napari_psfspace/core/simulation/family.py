@@ -21,15 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from .scene import (
-    PSF_ENERGY_FRACTION,
-    FieldAberrations,
-    Optics,
-    SimulationTruth,
-    _field_psf_radius,
-    simulate_beads,
-    simulate_psf,
-)
+from .aberrations import FieldAberrations
+from .optics import PSF_ENERGY_FRACTION, Optics, _field_psf_radius, simulate_psf
+from .scene import simulate_beads
+from .truth import SimulationTruth
 
 #: Default range of every scene parameter (units in :func:`random_scene`).
 RANGES: dict[str, Any] = {
