@@ -1,0 +1,153 @@
+"""Checks of a product-convolution model's inputs, each error naming the parameter,
+what was expected and what was received (:class:`~.psf_field.PsfField`)."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+
+def _shape_str(a: Any) -> str:
+    return str(tuple(np.shape(a)))
+
+
+def _as_real_array(value: Any, name: str) -> np.ndarray:
+    """Convert to a float64 array, rejecting complex, object and non-finite data."""
+    try:
+        arr = np.asarray(value)
+    except Exception as exc:  # pragma: no cover - exotic inputs
+        raise ValueError(f"`{name}` must be array-like, got {type(value).__name__}") from exc
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"`{name}` must be a real numeric array, got dtype {arr.dtype}")
+    arr = arr.astype(np.float64)  # always a copy: the operator owns its data
+    if not np.isfinite(arr).all():
+        n_bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
+        raise ValueError(f"`{name}` contains {n_bad} NaN or infinite value(s)")
+    return arr
+
+
+
+def _normalise_metadata(metadata: Mapping[str, Any] | None) -> dict[str, Any]:
+    """Deep-copy ``metadata`` through JSON, converting numpy scalars and arrays."""
+    if metadata is None:
+        return {}
+    if not isinstance(metadata, Mapping):
+        raise ValueError(f"`metadata` must be a dict, got {type(metadata).__name__}")
+
+    def default(obj: Any) -> Any:
+        if isinstance(obj, np.generic):
+            return obj.item()
+        if isinstance(obj, np.ndarray):
+            return obj.tolist()
+        raise TypeError(f"object of type {type(obj).__name__} is not JSON serialisable")
+
+    try:
+        text = json.dumps(dict(metadata), default=default, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(
+            f"`metadata` must be JSON-serialisable (str keys; numbers, strings, lists, "
+            f"dicts, None; no NaN/inf - use None instead): {exc}"
+        ) from exc
+    return json.loads(text)
+
+
+
+def validated_inputs(
+    basis: ArrayLike,
+    coefficients: ArrayLike,
+    shape: tuple[int, int] | None,
+    grid: tuple[ArrayLike, ArrayLike] | None,
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int], np.ndarray, np.ndarray]:
+    """The model's arrays as float64 copies, checked against each other.
+
+    Parameters are those of :class:`~.operator.ProductConvolution`.
+
+    Returns
+    -------
+    basis : ndarray of float64, shape (I, P, P)
+    coefficients : ndarray of float64, shape (I, H, W) or (I, gy, gx)
+    shape : (int, int)
+        ``(H, W)``.
+    grid_y, grid_x : ndarray of float64, shapes (gy,) and (gx,)
+        The nodes; ``arange(H)`` and ``arange(W)`` for full-resolution maps.
+
+    Raises
+    ------
+    ValueError
+        With the parameter's name, what was expected and what was received.
+    """
+    basis = _as_real_array(basis, "basis")
+    if basis.ndim != 3:
+        raise ValueError(f"`basis` must have shape (I, P, P), got {_shape_str(basis)}")
+    n_psf, p0, p1 = basis.shape
+    if n_psf < 1:
+        raise ValueError(f"`basis` must contain at least one patch, got {_shape_str(basis)}")
+    if p0 != p1:
+        raise ValueError(f"`basis` must have square patches (I, P, P), got {_shape_str(basis)}")
+    if p0 % 2 != 1:
+        raise ValueError(f"`basis` must have odd patch size, got {_shape_str(basis)}")
+
+    coefficients = _as_real_array(coefficients, "coefficients")
+    if coefficients.ndim != 3:
+        raise ValueError(
+            f"`coefficients` must have shape (I, H, W) or (I, gy, gx), "
+            f"got {_shape_str(coefficients)}"
+        )
+    if coefficients.shape[0] != n_psf:
+        raise ValueError(
+            f"`coefficients` must have I={n_psf} maps (first axis) to match `basis` "
+            f"{_shape_str(basis)}, got {_shape_str(coefficients)}"
+        )
+    if min(coefficients.shape[1:]) < 1:
+        raise ValueError(f"`coefficients` must not be empty, got {_shape_str(coefficients)}")
+
+    if shape is not None:
+        try:
+            shape_t = tuple(int(s) for s in shape)
+            ok = len(shape_t) == 2 and all(
+                int(s) == s and not isinstance(s, (bool, np.bool_)) for s in shape
+            )
+        except (TypeError, ValueError):
+            ok = False
+        if not ok or min(shape_t) < 1:
+            raise ValueError(f"`shape` must be two positive integers (H, W), got {shape!r}")
+        shape = shape_t
+
+    if grid is None:
+        if shape is not None and shape != coefficients.shape[1:]:
+            raise ValueError(
+                f"`shape` {shape} does not match full-resolution `coefficients` "
+                f"{_shape_str(coefficients)} (expected (I, {shape[0]}, {shape[1]}); "
+                f"pass `grid` for coarse coefficients)"
+            )
+        shape = (int(coefficients.shape[1]), int(coefficients.shape[2]))
+        grid_y = np.arange(shape[0], dtype=np.float64)
+        grid_x = np.arange(shape[1], dtype=np.float64)
+    else:
+        if shape is None:
+            raise ValueError("`shape` (H, W) is required when `grid` is given, got None")
+        try:
+            gy_in, gx_in = grid
+        except (TypeError, ValueError) as exc:
+            raise ValueError(
+                f"`grid` must be a pair (grid_y, grid_x), got {type(grid).__name__}"
+            ) from exc
+        grid_y = _as_real_array(gy_in, "grid[0] (grid_y)")
+        grid_x = _as_real_array(gx_in, "grid[1] (grid_x)")
+        for name, g, n in (
+            ("grid[0] (grid_y)", grid_y, coefficients.shape[1]),
+            ("grid[1] (grid_x)", grid_x, coefficients.shape[2]),
+        ):
+            if g.ndim != 1 or g.size != n:
+                raise ValueError(
+                    f"`{name}` must have shape ({n},) to match `coefficients` "
+                    f"{_shape_str(coefficients)}, got {_shape_str(g)}"
+                )
+            if g.size > 1 and not np.all(np.diff(g) > 0):
+                shown = np.array2string(g, threshold=8)
+                raise ValueError(f"`{name}` must be strictly increasing, got {shown}")
+    return basis, coefficients, shape, grid_y, grid_x

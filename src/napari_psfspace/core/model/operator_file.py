@@ -1,0 +1,129 @@
+"""The model file format of :class:`~.operator.ProductConvolution`: a NumPy ``.npz``
+archive of plain arrays and a JSON header, written atomically and read without pickle
+(``docs/file-format.md``), so that a model from a colleague never runs code.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any
+
+import numpy as np
+
+from ..common.atomic import atomic_open
+
+#: Value of the ``"format"`` field of the JSON header of a saved model.
+FORMAT_NAME = "napari-psfspace/product-convolution"
+#: Major version of the model file format written by this module.
+FORMAT_VERSION = 1
+
+
+_REQUIRED_KEYS = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header")
+
+
+def _software_string() -> str:
+    try:
+        from ... import __version__
+    except Exception:  # pragma: no cover - broken install
+        __version__ = "unknown"
+    return f"napari-psfspace {__version__}"
+
+
+
+def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
+                full_resolution: bool, metadata: dict[str, Any]) -> None:
+    """Write a model's arrays and header to ``path``, atomically.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Destination; used as given (no suffix is appended). An existing file there is
+        replaced only once the new one is complete.
+    arrays : dict
+        ``basis``, ``coefficients``, ``grid_y``, ``grid_x`` and ``shape``.
+    full_resolution : bool
+        Whether the coefficients are stored per pixel.
+    metadata : dict
+        JSON-ready metadata.
+    """
+    header = {
+        "format": FORMAT_NAME,
+        "version": FORMAT_VERSION,
+        "software": _software_string(),
+        "full_resolution": bool(full_resolution),
+        "metadata": metadata,
+    }
+    header_bytes = np.frombuffer(
+        json.dumps(header, allow_nan=False).encode("utf-8"), dtype=np.uint8
+    )
+    with atomic_open(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays, header=header_bytes)
+
+
+def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """Read and check a model file: its arrays and its JSON header.
+
+    Returns
+    -------
+    arrays : dict
+        ``basis``, ``coefficients``, ``grid_y``, ``grid_x`` and ``shape`` (two integers).
+    header : dict
+        ``format``, ``version``, ``software``, ``full_resolution``, ``metadata``.
+
+    Raises
+    ------
+    ValueError
+        If the file is not a napari-psfspace model, has a newer format version, or
+        holds inconsistent arrays.
+    FileNotFoundError
+        If ``path`` does not exist.
+    """
+    path = os.fspath(path)
+    what = f"{path!r} is not a napari-psfspace model file"
+    try:
+        data = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise
+    except (ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"{what} (could not read it as a NumPy .npz archive: {exc})") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise ValueError(f"{what} (it is a single .npy array, expected an .npz archive)")
+    with data:
+        missing = [k for k in _REQUIRED_KEYS if k not in data.files]
+        if "header" in missing:
+            raise ValueError(f"{what} (no 'header' entry; entries: {sorted(data.files)})")
+        try:
+            raw = data["header"]
+            if raw.dtype != np.uint8 or raw.ndim != 1:
+                raise ValueError(
+                    f"header must be a 1-D uint8 array, got {raw.dtype} {raw.shape}"
+                )
+            header = json.loads(raw.tobytes().decode("utf-8"))
+            if not isinstance(header, dict):
+                raise ValueError("header is not a JSON object")
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{what} (unreadable header: {exc})") from exc
+        fmt = header.get("format")
+        if fmt != FORMAT_NAME:
+            raise ValueError(f"{what} (header format is {fmt!r}, expected {FORMAT_NAME!r})")
+        version = header.get("version")
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise ValueError(f"{path!r}: invalid file format version {version!r}")
+        if version > FORMAT_VERSION:
+            raise ValueError(
+                f"{path!r}: file format version {version} is newer than this "
+                f"napari-psfspace supports ({FORMAT_VERSION}); please upgrade napari-psfspace"
+            )
+        if missing:
+            raise ValueError(f"{path!r}: corrupt model file, missing entries {missing}")
+        try:
+            arrays = {k: data[k] for k in _REQUIRED_KEYS if k != "header"}
+        except (ValueError, OSError, EOFError) as exc:
+            raise ValueError(f"{path!r}: corrupt model file ({exc})") from exc
+    shape = arrays["shape"]
+    if shape.shape != (2,) or shape.dtype.kind not in "iu":
+        raise ValueError(
+            f"{path!r}: corrupt model file, 'shape' must be 2 integers, got {shape!r}"
+        )
+    return arrays, header
