@@ -1,0 +1,91 @@
+"""One image's contribution to a subspace: its beads' patches (step 1 of section 2.4).
+
+The beads stage as the single-image estimate runs it (detection with hot pixels masked,
+sub-pixel centring, rejection of beads that moved to the border, windowed background-free
+patches), without learning anything: the basis is learnt from the patches of all
+images together. Runs as one dask task per image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..beads.centering import refine_centers
+from ..beads.detect import NoBeadsError, detect_beads, flag_unusable
+from ..beads.patches import Patches, extract_patches
+from ..common.validate import as_image
+
+
+@dataclass
+class ImagePatches:
+    """The usable beads of one image of a stack.
+
+    Attributes
+    ----------
+    index : int
+        Position of the image in the stack.
+    shape : (int, int)
+        Image shape, pixels.
+    patches : Patches or None
+        Windowed, background-free, sum-1 patches of the kept beads (None: none usable).
+    summary : str
+        The bead table's summary (what was kept and why the others were not).
+    """
+
+    index: int
+    shape: tuple[int, int]
+    patches: Patches | None
+    summary: str
+
+    @property
+    def n_beads(self) -> int:
+        """Number of usable beads."""
+        return 0 if self.patches is None else len(self.patches.centers)
+
+
+def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: float, *,
+                  index: int = 0, threshold: float = 8.0,
+                  saturation: float | None = None) -> ImagePatches:
+    """The usable bead patches of one image (read here when given as a loader).
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W), or a callable returning one
+        The image, or a zero-argument loader (so that a task reads its own image and
+        no process holds the whole stack).
+    psf_radius : float
+        PSF radius, pixels (the same for every image of a stack: one patch size).
+    index : int
+        Position of the image in the stack (for the record).
+    threshold, saturation
+        As in :func:`~napari_psfspace.core.beads.detect.detect_beads`.
+
+    Returns
+    -------
+    ImagePatches
+        With ``patches=None`` where no bead is usable (a named skip, not an error).
+    """
+    raw = image() if callable(image) else image
+    img = as_image(raw)
+    r = float(psf_radius)
+    try:
+        beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
+    except NoBeadsError as err:
+        return ImagePatches(int(index), img.shape, None, str(err))
+    img = beads.clean_image(img)
+    kept = np.flatnonzero(beads.kept)
+    if len(kept):
+        beads.positions[kept] = refine_centers(img, beads.positions[kept],
+                                               sigma=max(1.0, r / 4.0), half=int(np.ceil(r)))
+        flag_unusable(beads, img, r, saturation=None, border=np.ceil(1.2 * r) + 2,
+                      min_separation=2 * r)
+        kept = np.flatnonzero(beads.kept)
+    if len(kept) == 0:
+        return ImagePatches(int(index), img.shape, None, beads.summary())
+    patches = extract_patches(img, beads.positions[kept], r)
+    usable = patches.flux > 0
+    patches = patches.subset(usable) if usable.any() else None
+    return ImagePatches(int(index), img.shape, patches, beads.summary())

@@ -1,0 +1,121 @@
+"""A learnt family of operators: :class:`OperatorSubspace` (section 2.4).
+
+The operator of condition ``k`` is ``H_k u = sum_ij Gamma_k[i, j] h_i * (a_j . u)``: a PSF
+basis ``h_i`` (I, P, P), a basis of spatial variations ``a_j`` sampled on the coarse grid
+the single operator uses (J, gy, gx), and one small matrix ``Gamma_k`` (I, J) per image.
+The family is the cone of the ``Gamma_k`` (section 2.5): :meth:`project` brings any
+``Gamma`` into it, :meth:`operator_from` builds its operator.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..model.cone import Cone, project_onto_cone
+from ..model.field import assemble_operator
+from ..model.operator import ProductConvolution
+
+
+@dataclass
+class OperatorSubspace:
+    """Bases ``h_i`` and ``a_j``, one ``Gamma_k`` per image, and the cone they span.
+
+    Attributes
+    ----------
+    basis : ndarray of shape (I, P, P)
+        PSF basis ``h_i`` (orthonormal, learnt from the patches of all images).
+    space : ndarray of shape (J, gy, gx)
+        Spatial basis ``a_j`` on the coarse grid (orthonormal over the grid's nodes).
+    grid : (ndarray (gy,), ndarray (gx,))
+        Node coordinates, pixels (row, column).
+    shape : (int, int)
+        Image shape the operators act on.
+    gammas : ndarray of shape (K, I, J)
+        ``Gamma_k`` of each image.
+    cone : Cone
+        Reduced conic hull of the observed bead coefficients (the PSFs of every operator
+        are kept inside it, as for one operator).
+    grid_step : float
+        The grid's largest spacing asked for, pixels (it gives back ``grid``).
+    metadata : dict
+        JSON-ready record (sizes, their choice, per-image bead counts and held-out
+        errors, timings).
+    """
+
+    basis: np.ndarray
+    space: np.ndarray
+    grid: tuple[np.ndarray, np.ndarray]
+    shape: tuple[int, int]
+    gammas: np.ndarray
+    cone: Cone
+    grid_step: float = 32.0
+    metadata: dict = field(default_factory=dict)
+
+    @property
+    def n_psf(self) -> int:
+        """``I``, the size of the PSF basis."""
+        return int(self.basis.shape[0])
+
+    @property
+    def n_space(self) -> int:
+        """``J``, the size of the spatial basis."""
+        return int(self.space.shape[0])
+
+    @property
+    def n_images(self) -> int:
+        """``K``, the number of images (conditions) learnt from."""
+        return int(self.gammas.shape[0])
+
+    def maps(self, gamma: np.ndarray) -> np.ndarray:
+        """Coefficient maps ``sum_j Gamma[i, j] a_j`` on the grid, shape (I, gy, gx)."""
+        g = np.asarray(gamma, dtype=np.float64).reshape(self.n_psf, self.n_space)
+        return np.tensordot(g, self.space, axes=(1, 0))
+
+    def operator_from(self, gamma: np.ndarray, *, project: bool = True,
+                      metadata: dict | None = None) -> ProductConvolution:
+        """The operator of a ``Gamma`` (I, J), projected onto the family's cone first.
+
+        Its PSFs are kept inside the cone of observed PSFs and sum to 1 everywhere, as a
+        single image's operator's are.
+        """
+        g = self.project(gamma) if project else np.asarray(gamma, dtype=np.float64)
+        coarse = self.maps(g).reshape(self.n_psf, -1).T  # (G, I), nodes row-major
+        op, _ = assemble_operator(self.basis, self.cone.generators, lambda nodes: coarse,
+                                  self.shape, grid_step=self.grid_step, metadata=metadata)
+        return op
+
+    def operator(self, k: int) -> ProductConvolution:
+        """The operator of image ``k`` of the stack learnt from."""
+        k = int(k)
+        if not 0 <= k < self.n_images:
+            raise ValueError(f"`k` must be an image index in [0, {self.n_images}), got {k}")
+        return self.operator_from(self.gammas[k], project=False,
+                                  metadata={"subspace_image": k})
+
+    def project(self, gamma: np.ndarray) -> np.ndarray:
+        """Euclidean projection of ``Gamma`` (I, J) onto the cone of the ``Gamma_k``."""
+        g = np.asarray(gamma, dtype=np.float64)
+        if g.size != self.n_psf * self.n_space:
+            raise ValueError(f"`gamma` must have shape ({self.n_psf}, {self.n_space}), "
+                             f"got {g.shape}")
+        gens = self.gammas.reshape(self.n_images, -1)
+        return project_onto_cone(g.reshape(1, -1), gens)[0].reshape(self.n_psf, self.n_space)
+
+    def psf_at(self, k: int, y: float, x: float) -> np.ndarray:
+        """PSF (P, P), sum 1, of image ``k`` at pixel ``(y, x)``."""
+        return self.operator(k).psf_at(y, x)
+
+    def save(self, path) -> None:
+        """Save to a ``.npz`` file (atomically, no pickle; ``docs/file-format.md``)."""
+        from .subspace_file import save_subspace
+
+        save_subspace(self, path)
+
+    @classmethod
+    def load(cls, path) -> OperatorSubspace:
+        """Read a subspace written by :meth:`save`."""
+        from .subspace_file import load_subspace
+
+        return load_subspace(path)
