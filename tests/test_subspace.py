@@ -116,3 +116,41 @@ def test_bad_stacks_get_clear_errors_or_named_skips():
     assert "1" in sub.metadata["skipped"] and sub.n_images == 3  # the blank one, named
     with pytest.raises(ValueError, match="with usable beads"):
         estimate_subspace([blank, blank, images[0]], psf_radius=r)
+
+
+def test_learn_and_psf_from_the_command_line(tmp_path, capsys):
+    from napari_psfspace.cli import main
+    from napari_psfspace.io import read_image, write_tiff
+
+    images, truths, _ = simulate_stack(4, (256, 256), 8, seed=3, **LOW)
+    stack = tmp_path / "stack.tif"
+    write_tiff(stack, np.stack(images))
+    folder = tmp_path / "conditions"
+    folder.mkdir()
+    for k, im in enumerate(images[:3]):
+        write_tiff(folder / f"c{k}.tif", im)
+    r = str(truths[0].psf_radius)
+    out = tmp_path / "family.npz"
+    assert main(["learn", str(stack), "--slices", "1:4", "-o", str(out), "--psf-radius", r,
+                 "-q"]) == 0
+    assert "3 images" in capsys.readouterr().out
+    sub = OperatorSubspace.load(out)
+    assert sub.n_images == 3 and sub.metadata["inputs"][0] == "stack.tif[1]"
+    assert main(["learn", str(folder), "-o", str(tmp_path / "f2.npz"), "--psf-radius", r,
+                 "-q"]) == 0
+    psf_file = tmp_path / "psf.tif"
+    assert main(["psf", str(out), "--image", "2", "--at", "100", "120", "-o",
+                 str(psf_file)]) == 0
+    psf, _ = read_image(psf_file)
+    np.testing.assert_allclose(psf, sub.operator(2).psf_at(100.0, 120.0), rtol=1e-5)
+    capsys.readouterr()
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for argv, message in (
+            (["psf", str(out), "--at", "100", "120", "-o", str(psf_file)], "--image K"),
+            (["learn", str(folder / "c0.tif"), "-o", str(out), "--psf-radius", r],
+             "at least 2 images"),
+            (["learn", str(empty), "-o", str(out)], "holds no .tif"),
+            (["learn", str(tmp_path / "absent"), "-o", str(out)], "neither a file")):
+        assert main(argv) != 0, argv
+        assert message in capsys.readouterr().err, argv

@@ -157,11 +157,126 @@ def _cmd_diagnose(args) -> int:
     return 0
 
 
+def _read_slice(path: str, index: int | None):
+    """Loader of one image of a stack (module level: a dask worker can unpickle it)."""
+    from .io import read_image
+
+    return read_image(path, index=index)[0]
+
+
+def stack_loaders(inputs: list[str], slices: str | None = None) -> tuple[list, list[str]]:
+    """Zero-argument loaders, one per image, and a label for each.
+
+    ``inputs``: TIFF files (each 2-D, or a stack whose slices are the conditions) or one
+    folder of TIFFs (sorted by name). ``slices``: ``"A:B"`` (``B`` excluded) keeps those
+    slices of a stack. Each image is read when its loader is called.
+    """
+    import functools
+
+    import tifffile
+
+    files: list[Path] = []
+    for item in inputs:
+        path = Path(item)
+        if path.is_dir():
+            found = sorted(q for q in path.iterdir()
+                           if q.suffix.lower() in (".tif", ".tiff") and q.is_file())
+            if not found:
+                raise ValueError(f"INPUT folder {path} holds no .tif/.tiff file")
+            files += found
+        elif path.is_file():
+            files.append(path)
+        else:
+            raise ValueError(f"INPUT {path} is neither a file nor a folder")
+    lo = hi = None
+    if slices:
+        try:
+            a, b = slices.split(":")
+            lo, hi = (int(a) if a else None), (int(b) if b else None)
+        except ValueError:
+            raise ValueError(f"--slices must be A:B (B excluded), got {slices!r}") from None
+    loaders, labels = [], []
+    for f in files:
+        with tifffile.TiffFile(f) as tif:
+            shape = tif.series[0].shape
+        if len(shape) == 2:
+            loaders.append(functools.partial(_read_slice, str(f), None))
+            labels.append(f.name)
+        elif len(shape) == 3:
+            for z in range(shape[0])[slice(lo, hi)]:
+                loaders.append(functools.partial(_read_slice, str(f), z))
+                labels.append(f"{f.name}[{z}]")
+        else:
+            raise ValueError(f"{f} has shape {shape}: expected 2-D images or a (Z, Y, X) stack")
+    return loaders, labels
+
+
+def _cmd_learn(args) -> int:
+    from .core.beads.detect import suggest_psf_radius
+    from .core.model.estimate import run_with_progress
+    from .core.subspace import iter_estimate_subspace
+    from .io import read_image
+
+    loaders, labels = stack_loaders(args.inputs, args.slices)
+    if len(loaders) < 2:
+        raise ValueError(f"learn needs at least 2 images (conditions), got {len(loaders)}: "
+                         "pass several TIFFs, a folder, or a stack (with --slices)")
+    r = args.psf_radius
+    if r is None:
+        first, info = read_image(loaders[0].args[0], index=loaders[0].args[1])
+        if args.psf_radius_um is not None:
+            if not info.pixel_size:
+                raise ValueError("--psf-radius-um needs the pixel size, which the file does "
+                                 "not give: pass --psf-radius in pixels instead.")
+            r = args.psf_radius_um / info.pixel_size
+        else:
+            r = suggest_psf_radius(first)
+            print(f"no --psf-radius given: using {r:g} px, measured from {labels[0]}",
+                  file=sys.stderr)
+    client = None
+    if args.scheduler:
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ValueError("--scheduler needs dask.distributed: pip install "
+                             "'napari-psfspace[cluster]'") from None
+        client = Client(args.scheduler)
+    try:
+        gen = iter_estimate_subspace(loaders, psf_radius=r, n_psf=args.n_psf,
+                                     n_space=args.n_space, client=client,
+                                     threshold=args.threshold)
+        sub = run_with_progress(gen, None if args.quiet else _progress_printer())
+    finally:
+        if client is not None:
+            client.close()
+    sub.metadata["inputs"] = [labels[k] for k in sub.metadata["images"]]
+    sub.save(args.output)
+    m = sub.metadata
+    print(f"wrote {args.output}: {sub.n_images} images, I = {sub.n_psf} PSFs, J = "
+          f"{sub.n_space} spatial maps, {sum(m['beads_per_image'])} beads")
+    for k, why in m["skipped"].items():
+        print(f"skipped {labels[int(k)]}: {why}")
+    return 0
+
+
 def _cmd_psf(args) -> int:
     from .core.model.operator import load_operator
+    from .core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
+    from .core.subspace.subspace_file import load_subspace
     from .io import write_tiff
 
-    op = load_operator(args.model)
+    with np.load(args.model, allow_pickle=False) as f:
+        header = json.loads(f["header"].tobytes().decode("utf-8")) if "header" in f else {}
+    if header.get("format") == SUBSPACE:
+        sub = load_subspace(args.model)
+        if args.image is None:
+            raise ValueError(f"{args.model} is a subspace of {sub.n_images} images: pass "
+                             f"--image K (0 to {sub.n_images - 1})")
+        op = sub.operator(args.image)
+    elif args.image is not None:
+        raise ValueError(f"--image is for a subspace; {args.model} is a single model")
+    else:
+        op = load_operator(args.model)
     y, x = args.at
     h, w = op.shape
     if not (0 <= y <= h - 1 and 0 <= x <= w - 1):
@@ -272,8 +387,31 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     dg.set_defaults(func=_cmd_diagnose)
 
-    f = sub.add_parser("psf", help="write the PSF of a model at a field position")
-    f.add_argument("model", help="model file (.npz)")
+    ln = sub.add_parser("learn", help="learn the subspace of a microscope's operators from "
+                        "bead images under many conditions")
+    ln.add_argument("inputs", nargs="+", metavar="INPUT",
+                    help="TIFF images (one per condition), a folder of them, or a stack "
+                         "whose slices are the conditions")
+    ln.add_argument("-o", "--output", required=True, help="subspace file to write (.npz)")
+    g = ln.add_mutually_exclusive_group()
+    g.add_argument("--psf-radius", type=float,
+                   help="PSF radius r in pixels (default: suggested from the first image)")
+    g.add_argument("--psf-radius-um", type=float,
+                   help="PSF radius in micrometres (needs the pixel size in the TIFF)")
+    ln.add_argument("--slices", metavar="A:B", help="slices A to B-1 of a stack")
+    ln.add_argument("--n-psf", type=int, help="PSF basis size I (default: Gavish-Donoho)")
+    ln.add_argument("--n-space", type=int, help="spatial basis size J (default: the rule)")
+    ln.add_argument("--threshold", type=float, default=8.0,
+                    help="detection threshold in noise standard deviations (default 8)")
+    ln.add_argument("--scheduler", metavar="ADDRESS",
+                    help="run on this dask.distributed scheduler (default: this machine)")
+    ln.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    ln.set_defaults(func=_cmd_learn)
+
+    f = sub.add_parser("psf", help="write the PSF of a model (or of image K of a subspace) "
+                       "at a field position")
+    f.add_argument("model", help="model or subspace file (.npz)")
+    f.add_argument("--image", type=int, metavar="K", help="image K of a subspace")
     f.add_argument("--at", type=float, nargs=2, required=True, metavar=("ROW", "COL"))
     f.add_argument("-o", "--output", required=True, help="output TIFF")
     f.set_defaults(func=_cmd_psf)
