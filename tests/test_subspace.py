@@ -69,6 +69,10 @@ def test_the_family_is_consistent(few_beads, tmp_path):
     np.testing.assert_allclose(back.operator(5).psf_at(50.0, 60.0),
                                sub.operator(5).psf_at(50.0, 60.0))
     assert back.metadata["n_psf"] == sub.n_psf
+    # each image's operator judged on beads of its own that the family never saw
+    held = sub.metadata["heldout"]
+    assert len(held) == sub.n_images and all(h["n_beads"] >= 1 for h in held)
+    assert all(0 < h["residual_mean"] < 1 for h in held)
     with np.load(path, allow_pickle=False) as f:
         assert "header" in f.files
 

@@ -30,6 +30,7 @@ from ..model.cone import reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.estimate import Progress, run_with_progress
 from ..model.field import _coarse_grid
+from ..model.heldout import heldout_residuals, split_holdout
 from ..model.pca import learn_basis, rank_by_threshold
 from ..model.psf_field import _interp_weights
 from ..model.tps import ThinPlateSpline
@@ -103,54 +104,9 @@ def _refit_gamma(gamma: np.ndarray, coef: np.ndarray, at: np.ndarray) -> np.ndar
     return np.linalg.solve(lhs, rhs).T
 
 
-def iter_estimate_subspace(
-    images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
-    *,
-    psf_radius: float,
-    n_psf: int | None = None,
-    n_space: int | None = None,
-    client=None,
-    threshold: float = 8.0,
-    grid_step: float = 32.0,
-    refine: bool = False,
-    denoise: bool = True,
-    chunk: int = 8,
-) -> Generator[Progress, None, OperatorSubspace]:
-    """Generator form of :func:`estimate_subspace`: yields progress, returns the result."""
-    t0 = time.perf_counter()
-    items = _items(images)
-    if len(items) < 2:
-        raise ValueError(f"`images` must hold at least 2 images to learn a family, got "
-                         f"{len(items)}: learn one operator with estimate_operator instead")
-    if not (np.isfinite(psf_radius) and psf_radius > 0):
-        raise ValueError(f"`psf_radius` must be a positive number of pixels, got {psf_radius!r}")
-    for name, v in (("n_psf", n_psf), ("n_space", n_space)):
-        if v is not None and (int(v) != v or v < 1):
-            raise ValueError(f"`{name}` must be a positive integer or None, got {v!r}")
-    import dask
-
-    tasks = [dask.delayed(image_patches)(item, float(psf_radius), index=k, threshold=threshold)
-             for k, item in enumerate(items)]
-    found: list[ImagePatches] = []
-    step = max(1, int(chunk))
-    for start in range(0, len(tasks), step):
-        found += _compute(tasks[start:start + step], client)
-        yield Progress("patches", 0.6 * len(found) / len(tasks),
-                       f"{len(found)} of {len(tasks)} images: "
-                       f"{sum(f.n_beads for f in found)} beads")
-    shapes = {f.shape for f in found}
-    if len(shapes) > 1:
-        first = found[0].shape
-        odd = next(f for f in found if f.shape != first)
-        raise ValueError(f"every image of `images` must have the same shape: image 0 is "
-                         f"{first}, image {odd.index} is {odd.shape}")
-    shape = found[0].shape
-    used = [f for f in found if f.patches is not None]
-    skipped = {f.index: f.summary for f in found if f.patches is None}
-    if len(used) < 2:
-        raise ValueError(f"at least 2 images with usable beads are needed, got {len(used)} "
-                         f"of {len(found)} (no usable bead in images {sorted(skipped)})")
-
+def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
+           grid_step: float, refine: bool, denoise: bool) -> OperatorSubspace:
+    """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
     psf = np.concatenate([f.patches.psf for f in used])
     owner = np.concatenate([np.full(f.n_beads, i) for i, f in enumerate(used)])
     first = used[0].patches
@@ -164,8 +120,6 @@ def iter_estimate_subspace(
     basis = learn_basis(learn, int(n_psf) if n_psf is not None else "rule", support=support,
                         weights=weights)
     n_i = basis.basis.shape[0]
-    yield Progress("basis", 0.7, f"PSF basis of {n_i} from {int(basis.inliers.sum())} of "
-                                 f"{len(psf)} patches")
     coef_all = np.zeros((len(psf), n_i))
     coef_all[basis.inliers] = basis.coefficients
     gy, gx = _coarse_grid(shape, grid_step)
@@ -179,8 +133,6 @@ def iter_estimate_subspace(
             maps.append(_image_map(centers, coef_all[mine], nodes, shape))  # (G, I)
         else:  # every bead of this image an outlier: the mean PSF of all
             maps.append(np.tile(basis.coefficients.mean(axis=0), (len(nodes), 1)))
-    yield Progress("maps", 0.85, f"coefficient maps of {len(used)} images on a "
-                                 f"{len(gy)} x {len(gx)} grid")
     stacked = np.concatenate([m.T for m in maps])  # (K I, G): one row per map alpha_ik
     _, s, vt = np.linalg.svd(stacked, full_matrices=False)
     if n_space is None:
@@ -206,14 +158,87 @@ def iter_estimate_subspace(
     meta = {
         "n_psf": int(n_i), "n_psf_rule": int(basis.n_psf_rule),
         "n_space": int(n_j), "n_space_rule": int(rank_by_threshold(s, stacked.shape)[0]),
-        "images": [f.index for f in used], "skipped": {str(k): v for k, v in skipped.items()},
-        "beads_per_image": [int(f.n_beads) for f in used],
-        "psf_radius": float(psf_radius), "refine": bool(refine), "denoise": bool(denoise),
-        "seconds": round(time.perf_counter() - t0, 3),
+        "refine": bool(refine), "denoise": bool(denoise),
     }
-    yield Progress("subspace", 1.0, f"I = {n_i}, J = {n_j} from {len(used)} images")
     return OperatorSubspace(images, space_grid, (gy, gx), shape, gammas, cone,
                             grid_step=float(grid_step), metadata=meta)
+
+
+def iter_estimate_subspace(
+    images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
+    *,
+    psf_radius: float,
+    n_psf: int | None = None,
+    n_space: int | None = None,
+    client=None,
+    threshold: float = 8.0,
+    grid_step: float = 32.0,
+    refine: bool = False,
+    denoise: bool = True,
+    holdout: float | None = 0.2,
+    chunk: int = 8,
+) -> Generator[Progress, None, OperatorSubspace]:
+    """Generator form of :func:`estimate_subspace`: yields progress, returns the result."""
+    t0 = time.perf_counter()
+    items = _items(images)
+    if len(items) < 2:
+        raise ValueError(f"`images` must hold at least 2 images to learn a family, got "
+                         f"{len(items)}: learn one operator with estimate_operator instead")
+    if not (np.isfinite(psf_radius) and psf_radius > 0):
+        raise ValueError(f"`psf_radius` must be a positive number of pixels, got {psf_radius!r}")
+    for name, v in (("n_psf", n_psf), ("n_space", n_space)):
+        if v is not None and (int(v) != v or v < 1):
+            raise ValueError(f"`{name}` must be a positive integer or None, got {v!r}")
+    options = {"n_psf": n_psf, "n_space": n_space, "grid_step": grid_step, "refine": refine,
+               "denoise": denoise}
+    import dask
+
+    tasks = [dask.delayed(image_patches)(item, float(psf_radius), index=k, threshold=threshold)
+             for k, item in enumerate(items)]
+    found: list[ImagePatches] = []
+    step = max(1, int(chunk))
+    for start in range(0, len(tasks), step):
+        found += _compute(tasks[start:start + step], client)
+        yield Progress("patches", 0.6 * len(found) / len(tasks),
+                       f"{len(found)} of {len(tasks)} images: "
+                       f"{sum(f.n_beads for f in found)} beads")
+    shapes = {f.shape for f in found}
+    if len(shapes) > 1:
+        first = found[0].shape
+        odd = next(f for f in found if f.shape != first)
+        raise ValueError(f"every image of `images` must have the same shape: image 0 is "
+                         f"{first}, image {odd.index} is {odd.shape}")
+    shape = found[0].shape
+    used = [f for f in found if f.patches is not None]
+    skipped = {f.index: f.summary for f in found if f.patches is None}
+    if len(used) < 2:
+        raise ValueError(f"at least 2 images with usable beads are needed, got {len(used)} "
+                         f"of {len(found)} (no usable bead in images {sorted(skipped)})")
+
+    heldout = None
+    if holdout:
+        # the error of each image's operator on beads of its own the family never saw
+        held, train = {}, []
+        for i, f in enumerate(used):
+            mask = (split_holdout(f.patches.centers, shape, holdout)
+                    if f.n_beads >= 5 else np.zeros(f.n_beads, bool))
+            if mask.any() and (~mask).any():
+                held[i] = mask
+                f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
+            train.append(f)
+        trained = _learn(train, shape, **options)
+        heldout = [heldout_residuals(trained.operator(i),
+                                     used[i].patches.subset(held[i])).summary()
+                   if i in held else {"n_beads": 0} for i in range(len(used))]
+        yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged")
+    sub = _learn(used, shape, **options)
+    sub.metadata.update({
+        "images": [f.index for f in used], "skipped": {str(k): v for k, v in skipped.items()},
+        "beads_per_image": [int(f.n_beads) for f in used], "psf_radius": float(psf_radius),
+        "heldout": heldout, "seconds": round(time.perf_counter() - t0, 3)})
+    yield Progress("subspace", 1.0, f"I = {sub.n_psf}, J = {sub.n_space} from {len(used)} "
+                                    "images")
+    return sub
 
 
 def estimate_subspace(
