@@ -261,13 +261,12 @@ def _cmd_learn(args) -> int:
 
 def _cmd_psf(args) -> int:
     from .core.model.operator import load_operator
+    from .core.model.operator_file import archive_format
     from .core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
     from .core.subspace.subspace_file import load_subspace
     from .io import write_tiff
 
-    with np.load(args.model, allow_pickle=False) as f:
-        header = json.loads(f["header"].tobytes().decode("utf-8")) if "header" in f else {}
-    if header.get("format") == SUBSPACE:
+    if archive_format(args.model) == SUBSPACE:
         sub = load_subspace(args.model)
         if args.image is None:
             raise ValueError(f"{args.model} is a subspace of {sub.n_images} images: pass "

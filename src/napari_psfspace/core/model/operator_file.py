@@ -54,11 +54,87 @@ def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
         "full_resolution": bool(full_resolution),
         "metadata": metadata,
     }
-    header_bytes = np.frombuffer(
-        json.dumps(header, allow_nan=False).encode("utf-8"), dtype=np.uint8
-    )
+    write_archive(path, arrays, header)
+
+
+def write_archive(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
+                  header: dict[str, Any]) -> None:
+    """The file family's writer: ``arrays`` and the JSON ``header`` (entry ``header``, UTF-8
+    bytes) in one compressed ``.npz``, written atomically (an existing file is replaced
+    only once the new one is complete).
+
+    Raises
+    ------
+    ValueError
+        If the header is not JSON-ready (NaN or infinity included).
+    """
+    try:
+        text = json.dumps(header, allow_nan=False)
+    except ValueError as err:
+        raise ValueError(f"the header's metadata must be JSON-ready (no NaN): {err}") from err
+    header_bytes = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
     with atomic_open(path, "wb") as fh:
         np.savez_compressed(fh, **arrays, header=header_bytes)
+
+
+def read_archive(path: str | os.PathLike[str], *, format_name: str, format_version: int,
+                 entries: tuple[str, ...], kind: str = "model"
+                 ) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+    """The file family's reader: the ``entries`` (``header`` among them) of an ``.npz``
+    read without pickle, its JSON header checked for ``format_name`` and a version no
+    newer than ``format_version``. ``kind`` names the file in messages.
+
+    Raises
+    ------
+    ValueError
+        Not an ``.npz``, no or an unreadable header, another format, a newer version, a
+        missing entry: the message says which.
+    FileNotFoundError
+        If ``path`` does not exist.
+    """
+    path = os.fspath(path)
+    what = f"{path!r} is not a napari-psfspace {kind} file"
+    try:
+        data = np.load(path, allow_pickle=False)
+    except FileNotFoundError:
+        raise
+    except (ValueError, OSError, EOFError) as exc:
+        raise ValueError(f"{what} (could not read it as a NumPy .npz archive: {exc})") from exc
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise ValueError(f"{what} (it is a single .npy array, expected an .npz archive)")
+    with data:
+        missing = [k for k in entries if k not in data.files]
+        if "header" in missing:
+            raise ValueError(f"{what} (no 'header' entry; entries: {sorted(data.files)})")
+        try:
+            raw = data["header"]
+            if raw.dtype != np.uint8 or raw.ndim != 1:
+                raise ValueError(
+                    f"header must be a 1-D uint8 array, got {raw.dtype} {raw.shape}"
+                )
+            header = json.loads(raw.tobytes().decode("utf-8"))
+            if not isinstance(header, dict):
+                raise ValueError("header is not a JSON object")
+        except (ValueError, UnicodeDecodeError) as exc:
+            raise ValueError(f"{what} (unreadable header: {exc})") from exc
+        fmt = header.get("format")
+        if fmt != format_name:
+            raise ValueError(f"{what} (header format is {fmt!r}, expected {format_name!r})")
+        version = header.get("version")
+        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
+            raise ValueError(f"{path!r}: invalid file format version {version!r}")
+        if version > format_version:
+            raise ValueError(
+                f"{path!r}: file format version {version} is newer than this "
+                f"napari-psfspace supports ({format_version}); please upgrade napari-psfspace"
+            )
+        if missing:
+            raise ValueError(f"{path!r}: corrupt {kind} file, missing entries {missing}")
+        try:
+            arrays = {k: data[k] for k in entries if k != "header"}
+        except (ValueError, OSError, EOFError) as exc:
+            raise ValueError(f"{path!r}: corrupt {kind} file ({exc})") from exc
+    return arrays, header
 
 
 def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -79,51 +155,23 @@ def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dic
     FileNotFoundError
         If ``path`` does not exist.
     """
-    path = os.fspath(path)
-    what = f"{path!r} is not a napari-psfspace model file"
-    try:
-        data = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise
-    except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{what} (could not read it as a NumPy .npz archive: {exc})") from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ValueError(f"{what} (it is a single .npy array, expected an .npz archive)")
-    with data:
-        missing = [k for k in _REQUIRED_KEYS if k not in data.files]
-        if "header" in missing:
-            raise ValueError(f"{what} (no 'header' entry; entries: {sorted(data.files)})")
-        try:
-            raw = data["header"]
-            if raw.dtype != np.uint8 or raw.ndim != 1:
-                raise ValueError(
-                    f"header must be a 1-D uint8 array, got {raw.dtype} {raw.shape}"
-                )
-            header = json.loads(raw.tobytes().decode("utf-8"))
-            if not isinstance(header, dict):
-                raise ValueError("header is not a JSON object")
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{what} (unreadable header: {exc})") from exc
-        fmt = header.get("format")
-        if fmt != FORMAT_NAME:
-            raise ValueError(f"{what} (header format is {fmt!r}, expected {FORMAT_NAME!r})")
-        version = header.get("version")
-        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-            raise ValueError(f"{path!r}: invalid file format version {version!r}")
-        if version > FORMAT_VERSION:
-            raise ValueError(
-                f"{path!r}: file format version {version} is newer than this "
-                f"napari-psfspace supports ({FORMAT_VERSION}); please upgrade napari-psfspace"
-            )
-        if missing:
-            raise ValueError(f"{path!r}: corrupt model file, missing entries {missing}")
-        try:
-            arrays = {k: data[k] for k in _REQUIRED_KEYS if k != "header"}
-        except (ValueError, OSError, EOFError) as exc:
-            raise ValueError(f"{path!r}: corrupt model file ({exc})") from exc
+    arrays, header = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
+                                  entries=_REQUIRED_KEYS)
     shape = arrays["shape"]
     if shape.shape != (2,) or shape.dtype.kind not in "iu":
         raise ValueError(
             f"{path!r}: corrupt model file, 'shape' must be 2 integers, got {shape!r}"
         )
     return arrays, header
+
+
+def archive_format(path: str | os.PathLike[str]) -> str | None:
+    """The ``format`` named in a file's JSON header, or None where there is none to read
+    (then the reader of the expected format gives the precise error)."""
+    try:
+        with np.load(os.fspath(path), allow_pickle=False) as data:
+            header = json.loads(data["header"].tobytes().decode("utf-8"))
+    except Exception:  # not an npz, no header, unreadable: for the reader to explain
+        return None
+    return header.get("format") if isinstance(header, dict) else None
+

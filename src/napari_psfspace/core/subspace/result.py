@@ -52,6 +52,7 @@ class OperatorSubspace:
     cone: Cone
     grid_step: float = 32.0
     metadata: dict = field(default_factory=dict)
+    _operators: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n_psf(self) -> int:
@@ -87,12 +88,15 @@ class OperatorSubspace:
         return op
 
     def operator(self, k: int) -> ProductConvolution:
-        """The operator of image ``k`` of the stack learnt from."""
+        """The operator of image ``k`` of the stack learnt from (built once and kept: make
+        a new subspace rather than editing ``gammas`` in place)."""
         k = int(k)
         if not 0 <= k < self.n_images:
             raise ValueError(f"`k` must be an image index in [0, {self.n_images}), got {k}")
-        return self.operator_from(self.gammas[k], project=False,
-                                  metadata={"subspace_image": k})
+        if k not in self._operators:  # built once: psf_at(k, ...) in a loop stays cheap
+            self._operators[k] = self.operator_from(self.gammas[k], project=False,
+                                                    metadata={"subspace_image": k})
+        return self._operators[k]
 
     def project(self, gamma: np.ndarray) -> np.ndarray:
         """Euclidean projection of ``Gamma`` (I, J) onto the cone of the ``Gamma_k``."""

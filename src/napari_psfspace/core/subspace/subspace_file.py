@@ -5,15 +5,12 @@ header, written atomically, read without pickle.
 
 from __future__ import annotations
 
-import json
 import os
-from typing import Any
 
 import numpy as np
 
-from ..common.atomic import atomic_open
 from ..model.cone import Cone
-from ..model.operator_file import _software_string
+from ..model.operator_file import _software_string, read_archive, write_archive
 from .result import OperatorSubspace
 
 #: Value of the ``"format"`` field of the JSON header of a saved subspace.
@@ -30,17 +27,11 @@ def save_subspace(subspace: OperatorSubspace, path: str | os.PathLike[str]) -> N
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
               "software": _software_string(), "grid_step": float(subspace.grid_step),
               "metadata": subspace.metadata}
-    try:
-        text = json.dumps(header, allow_nan=False)
-    except ValueError as err:
-        raise ValueError(f"the subspace's metadata must be JSON-ready (no NaN): {err}") from err
     arrays = {"basis": subspace.basis, "space": subspace.space,
               "grid_y": subspace.grid[0], "grid_x": subspace.grid[1],
               "shape": np.asarray(subspace.shape, dtype=np.int64),
-              "gammas": subspace.gammas, "cone": subspace.cone.generators,
-              "header": np.frombuffer(text.encode("utf-8"), dtype=np.uint8)}
-    with atomic_open(path, "wb") as fh:
-        np.savez_compressed(fh, **arrays)
+              "gammas": subspace.gammas, "cone": subspace.cone.generators}
+    write_archive(path, arrays, header)
 
 
 def load_subspace(path: str | os.PathLike[str]) -> OperatorSubspace:
@@ -55,35 +46,8 @@ def load_subspace(path: str | os.PathLike[str]) -> OperatorSubspace:
         If ``path`` does not exist.
     """
     path = os.fspath(path)
-    what = f"{path!r} is not a napari-psfspace subspace file"
-    try:
-        data = np.load(path, allow_pickle=False)
-    except FileNotFoundError:
-        raise
-    except (ValueError, OSError, EOFError) as exc:
-        raise ValueError(f"{what} (could not read it as a NumPy .npz archive: {exc})") from exc
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise ValueError(f"{what} (a single .npy array, expected an .npz archive)")
-    with data:
-        if "header" not in data.files:
-            raise ValueError(f"{what} (no 'header' entry; entries: {sorted(data.files)})")
-        try:
-            header: dict[str, Any] = json.loads(data["header"].tobytes().decode("utf-8"))
-        except (ValueError, UnicodeDecodeError) as exc:
-            raise ValueError(f"{what} (unreadable header: {exc})") from exc
-        if not isinstance(header, dict) or header.get("format") != FORMAT_NAME:
-            fmt = header.get("format") if isinstance(header, dict) else None
-            raise ValueError(f"{what} (header format is {fmt!r}, expected {FORMAT_NAME!r})")
-        version = header.get("version")
-        if not isinstance(version, int) or isinstance(version, bool) or version < 1:
-            raise ValueError(f"{path!r}: invalid file format version {version!r}")
-        if version > FORMAT_VERSION:
-            raise ValueError(f"{path!r}: file format version {version} is newer than this "
-                             f"napari-psfspace supports ({FORMAT_VERSION}); please upgrade")
-        missing = [k for k in _ARRAYS if k not in data.files]
-        if missing:
-            raise ValueError(f"{path!r}: corrupt subspace file, missing entries {missing}")
-        arr = {k: np.asarray(data[k]) for k in _ARRAYS}
+    arr, header = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
+                               entries=(*_ARRAYS, "header"), kind="subspace")
     basis, space, gammas = arr["basis"], arr["space"], arr["gammas"]
     ok = (basis.ndim == 3 and space.ndim == 3 and gammas.ndim == 3
           and gammas.shape[1:] == (basis.shape[0], space.shape[0])
