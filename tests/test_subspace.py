@@ -142,6 +142,11 @@ def test_learn_and_psf_from_the_command_line(tmp_path, capsys):
     assert sub.n_images == 3 and sub.metadata["inputs"][0] == "stack.tif[1]"
     assert main(["learn", str(folder), "-o", str(tmp_path / "f2.npz"), "--psf-radius", r,
                  "-q"]) == 0
+    # no radius given: measured on the middle image, not on an empty first slice
+    with_blank = tmp_path / "blank_first.tif"
+    write_tiff(with_blank, np.stack([np.full_like(images[0], 100), *images]))
+    assert main(["learn", str(with_blank), "-o", str(tmp_path / "f3.npz"), "-q"]) == 0
+    assert "measured from blank_first.tif[2]" in capsys.readouterr().err
     psf_file = tmp_path / "psf.tif"
     assert main(["psf", str(out), "--image", "2", "--at", "100", "120", "-o",
                  str(psf_file)]) == 0

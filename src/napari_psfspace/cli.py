@@ -223,16 +223,28 @@ def _cmd_learn(args) -> int:
                          "pass several TIFFs, a folder, or a stack (with --slices)")
     r = args.psf_radius
     if r is None:
-        first, info = read_image(loaders[0].args[0], index=loaders[0].args[1])
+        _, info = read_image(loaders[0].args[0], index=loaders[0].args[1])
         if args.psf_radius_um is not None:
             if not info.pixel_size:
                 raise ValueError("--psf-radius-um needs the pixel size, which the file does "
                                  "not give: pass --psf-radius in pixels instead.")
             r = args.psf_radius_um / info.pixel_size
         else:
-            r = suggest_psf_radius(first)
-            print(f"no --psf-radius given: using {r:g} px, measured from {labels[0]}",
-                  file=sys.stderr)
+            # the middle image first, then outwards: a stack's ends are often out of focus
+            # or empty, where no radius can be measured
+            n = len(loaders)
+            for i in sorted(range(n), key=lambda j: abs(j - n // 2))[:7]:
+                try:
+                    r = suggest_psf_radius(_read_slice(*loaders[i].args))
+                except ValueError:
+                    continue
+                print(f"no --psf-radius given: using {r:g} px, measured from {labels[i]}",
+                      file=sys.stderr)
+                break
+            else:
+                raise ValueError("no --psf-radius given and none could be measured on the "
+                                 "middle images (no bright spot stands out of the noise): "
+                                 "give --psf-radius")
     client = None
     if args.scheduler:
         try:
