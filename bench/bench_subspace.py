@@ -23,11 +23,13 @@ from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
 from napari_psfspace.core.subspace import estimate_subspace
 
-LOW = {"amplitude": (4e3, 1.2e4)}
+LOW = (4e3, 1.2e4)
 
 
-def row(k, n_beads, seed, n_psf=None, n_space=None, alone=None):
-    images, truths, _ = simulate_stack(k, (384, 384), n_beads, seed=seed, **LOW)
+def row(k, n_beads, seed, n_psf=None, n_space=None, alone=None, photons=1.0):
+    amplitude = (LOW[0] * photons, LOW[1] * photons)
+    images, truths, _ = simulate_stack(k, (384, 384), n_beads, seed=seed,
+                                       amplitude=amplitude)
     r = int(np.median([t.psf_radius for t in truths]))
     t0 = time.perf_counter()
     sub = estimate_subspace(images, psf_radius=r, n_psf=n_psf, n_space=n_space)
@@ -37,7 +39,8 @@ def row(k, n_beads, seed, n_psf=None, n_space=None, alone=None):
     if alone is None:
         alone = np.mean([np.mean(grid_errors(estimate_operator(im, psf_radius=r), t, n=4))
                          for im, t in zip(images, truths, strict=True)])
-    return {"K": k, "beads": n_beads, "seed": seed, "I": sub.n_psf, "J": sub.n_space,
+    return {"K": k, "beads": n_beads, "seed": seed, "photons": 0.2 * photons,
+            "I": sub.n_psf, "J": sub.n_space,
             "subspace": float(pooled), "alone": float(alone),
             "ratio": float(pooled / alone), "seconds": seconds}
 
@@ -45,7 +48,11 @@ def row(k, n_beads, seed, n_psf=None, n_space=None, alone=None):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="K = 5 and 10 only, one seed")
+    ap.add_argument("--noise", action="store_true",
+                    help="only the ratio against the beads' photons (K = 10, seeds 0-2)")
     args = ap.parse_args()
+    if args.noise:
+        return noise_sweep()
     ks = [5, 10] if args.quick else [5, 10, 20]
     rows = []
     for n_beads in (24, 7):
@@ -55,9 +62,24 @@ def main():
     base = row(10, 24, 0)
     for n_psf, n_space in ((5, 5), (5, 10), (8, 16)):
         rows.append(row(10, 24, 0, n_psf, n_space, alone=base["alone"]))
-    cols = [("K", "d"), ("beads", "d"), ("seed", "d"), ("I", "d"), ("J", "d"),
+    cols = [("K", "d"), ("beads", "d"), ("seed", "d"), ("photons", ".2f"), ("I", "d"), ("J", "d"),
             ("subspace", ".4f"), ("alone", ".4f"), ("ratio", ".2f"), ("seconds", ".1f")]
     print("\nSubspace against one image at a time (mean per-image PSF-field error)")
+    print(table(rows, cols))
+
+
+def noise_sweep():
+    """The ratio against the beads' photons (x the simulator's default), K = 10."""
+    rows = []
+    for n_beads in (24, 7):
+        for photons in (5.0, 1.0, 0.25):
+            for seed in (0, 1, 2):
+                rows.append(row(10, n_beads, seed, photons=photons))
+                print(f"  {n_beads} beads, photons x{0.2 * photons:g}, seed {seed}: ratio "
+                      f"{rows[-1]['ratio']:.2f}", flush=True)
+    cols = [("K", "d"), ("beads", "d"), ("seed", "d"), ("photons", ".2f"), ("I", "d"),
+            ("J", "d"), ("subspace", ".4f"), ("alone", ".4f"), ("ratio", ".2f")]
+    print("\nSubspace against one image at a time, against the beads' photons")
     print(table(rows, cols))
 
 

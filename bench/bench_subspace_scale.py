@@ -30,7 +30,7 @@ N_BEADS = 100
 CHILD = """
 import json, resource, sys, time
 import dask
-from napari_psfspace.cli import stack_loaders
+from napari_psfspace.io import stack_loaders
 from napari_psfspace.core.subspace import estimate_subspace
 files, r = json.loads(sys.argv[1]), float(sys.argv[2])
 loaders, _ = stack_loaders(files)

@@ -33,9 +33,10 @@ def test_few_beads_images_gain_from_the_family(few_beads):
     images, truths, r, sub = few_beads
     alone = _errors([estimate_operator(im, psf_radius=r) for im in images], truths)
     pooled = _errors([sub.operator(k) for k in range(len(images))], truths)
-    # measured: 0.194 against 0.278 (ratio 0.70; seed 1: 0.69). Issue 11 asks for 0.5:
-    # not reached yet, see bench/RESULTS.md
-    assert pooled.mean() <= 0.8 * alone.mean(), (pooled.mean(), alone.mean())
+    # measured: 0.190 against 0.278 (ratio 0.68). Issue 11 asks for 0.5: reached only on
+    # fainter stacks (photons x0.05: 0.47-0.51); at x0.2 even the true maps on the
+    # learnt basis give 0.50 (bench/RESULTS.md, the oracle)
+    assert pooled.mean() <= 0.75 * alone.mean(), (pooled.mean(), alone.mean())
 
 
 def test_a_stack_of_dense_images_does_better_than_each_alone():
@@ -44,8 +45,9 @@ def test_a_stack_of_dense_images_does_better_than_each_alone():
     sub = estimate_subspace(images, psf_radius=r)
     alone = _errors([estimate_operator(im, psf_radius=r) for im in images], truths)
     pooled = _errors([sub.operator(k) for k in range(len(images))], truths)
-    # measured: 0.100 against 0.121 (ratio 0.83; seed 0: 0.95). Issue 11 asks for 0.6
-    assert pooled.mean() <= 1.0 * alone.mean(), (pooled.mean(), alone.mean())
+    # measured: 0.099 against 0.121 (ratio 0.82). Issue 11 asks for 0.6: out of reach of
+    # the basis and cone (bench/RESULTS.md, the oracle)
+    assert pooled.mean() <= 0.9 * alone.mean(), (pooled.mean(), alone.mean())
 
 
 def test_the_family_is_consistent(few_beads, tmp_path):
@@ -163,3 +165,55 @@ def test_learn_and_psf_from_the_command_line(tmp_path, capsys):
             (["learn", str(tmp_path / "absent"), "-o", str(out)], "neither a file")):
         assert main(argv) != 0, argv
         assert message in capsys.readouterr().err, argv
+
+
+def test_faint_dense_stacks_are_not_made_worse_by_the_family():
+    """Bead photons x0.05: the rank rule on the (Wiener-filtered) pooled patches kept 49
+    components and the family's operators were 1.08-1.45 times as far from the truth as
+    each image's own (bench_subspace --noise). The sizes are now chosen from whitened
+    patches (and the basis images refitted to each bead's own coefficients)."""
+    images, truths, _ = simulate_stack(8, (384, 384), 24, seed=1, amplitude=(1e3, 3e3))
+    r = int(np.median([t.psf_radius for t in truths]))
+    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    assert sub.metadata["psf_size_by"] == "whitened rule"
+    assert sub.metadata["space_size_by"] == "rule"
+    assert sub.n_psf <= 6, sub.n_psf  # measured 4 (the rule on the filtered patches: 49)
+    alone = _errors([estimate_operator(im, psf_radius=r) for im in images], truths)
+    pooled = _errors([sub.operator(k) for k in range(len(images))], truths)
+    assert pooled.mean() <= 1.0 * alone.mean(), (pooled.mean(), alone.mean())
+
+
+def test_whitened_rank_finds_the_signal_of_beads_of_unequal_noise():
+    from napari_psfspace.core.beads.window import bump_window
+    from napari_psfspace.core.subspace.sizes import white_rank
+
+    rng = np.random.default_rng(0)
+    size, n = 31, 300
+    yy, xx = np.mgrid[:size, :size] - size // 2
+    shapes = [np.exp(-(yy**2 + xx**2) / (2 * s**2)) for s in (2.0, 3.0)]
+    shapes.append(xx * shapes[0] / 3)
+    window = bump_window(size, 10.0, 14.0)
+    for rank in (1, 2, 3):
+        coef = rng.uniform(0.5, 1.5, (n, rank))
+        clean = np.tensordot(coef, np.array(shapes[:rank]), axes=1) * window
+        clean /= clean.sum(axis=(1, 2), keepdims=True)
+        sd = clean.max(axis=(1, 2)) * rng.uniform(0.01, 0.05, n)  # peak SNR 20-100
+        noisy = clean + sd[:, None, None] * rng.standard_normal(clean.shape) * window
+        assert white_rank(noisy, sd, window) == rank
+    # the same beads buried in noise (peak SNR 1): nothing but the mean shape
+    sd = clean.max(axis=(1, 2)) * 1.0
+    noisy = clean + sd[:, None, None] * rng.standard_normal(clean.shape) * window
+    assert white_rank(noisy, sd, window) == 1
+
+
+def test_whitened_rank_survives_a_bead_without_measured_noise():
+    from napari_psfspace.core.beads.window import bump_window
+    from napari_psfspace.core.subspace.sizes import white_rank
+
+    rng = np.random.default_rng(1)
+    window = bump_window(21, 6.0, 9.0)
+    psf = rng.random((40, 21, 21)) * window
+    sd = np.full(40, 0.01)
+    sd[3] = 0.0  # an 8-bit background's MAD can be 0
+    assert 1 <= white_rank(psf, sd, window) <= 20
+    assert 1 <= white_rank(psf, np.zeros(40), window) <= 20

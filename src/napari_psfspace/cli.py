@@ -157,65 +157,11 @@ def _cmd_diagnose(args) -> int:
     return 0
 
 
-def _read_slice(path: str, index: int | None):
-    """Loader of one image of a stack (module level: a dask worker can unpickle it)."""
-    from .io import read_image
-
-    return read_image(path, index=index)[0]
-
-
-def stack_loaders(inputs: list[str], slices: str | None = None) -> tuple[list, list[str]]:
-    """Zero-argument loaders, one per image, and a label for each.
-
-    ``inputs``: TIFF files (each 2-D, or a stack whose slices are the conditions) or one
-    folder of TIFFs (sorted by name). ``slices``: ``"A:B"`` (``B`` excluded) keeps those
-    slices of a stack. Each image is read when its loader is called.
-    """
-    import functools
-
-    import tifffile
-
-    files: list[Path] = []
-    for item in inputs:
-        path = Path(item)
-        if path.is_dir():
-            found = sorted(q for q in path.iterdir()
-                           if q.suffix.lower() in (".tif", ".tiff") and q.is_file())
-            if not found:
-                raise ValueError(f"INPUT folder {path} holds no .tif/.tiff file")
-            files += found
-        elif path.is_file():
-            files.append(path)
-        else:
-            raise ValueError(f"INPUT {path} is neither a file nor a folder")
-    lo = hi = None
-    if slices:
-        try:
-            a, b = slices.split(":")
-            lo, hi = (int(a) if a else None), (int(b) if b else None)
-        except ValueError:
-            raise ValueError(f"--slices must be A:B (B excluded), got {slices!r}") from None
-    loaders, labels = [], []
-    for f in files:
-        with tifffile.TiffFile(f) as tif:
-            shape = tif.series[0].shape
-        if len(shape) == 2:
-            loaders.append(functools.partial(_read_slice, str(f), None))
-            labels.append(f.name)
-        elif len(shape) == 3:
-            for z in range(shape[0])[slice(lo, hi)]:
-                loaders.append(functools.partial(_read_slice, str(f), z))
-                labels.append(f"{f.name}[{z}]")
-        else:
-            raise ValueError(f"{f} has shape {shape}: expected 2-D images or a (Z, Y, X) stack")
-    return loaders, labels
-
-
 def _cmd_learn(args) -> int:
     from .core.beads.detect import suggest_psf_radius
     from .core.model.estimate import run_with_progress
     from .core.subspace import iter_estimate_subspace
-    from .io import read_image
+    from .io import read_image, read_slice, stack_loaders
 
     loaders, labels = stack_loaders(args.inputs, args.slices)
     if len(loaders) < 2:
@@ -235,7 +181,7 @@ def _cmd_learn(args) -> int:
             n = len(loaders)
             for i in sorted(range(n), key=lambda j: abs(j - n // 2))[:7]:
                 try:
-                    r = suggest_psf_radius(_read_slice(*loaders[i].args))
+                    r = suggest_psf_radius(read_slice(*loaders[i].args))
                 except ValueError:
                     continue
                 print(f"no --psf-radius given: using {r:g} px, measured from {labels[i]}",

@@ -114,6 +114,63 @@ def read_image(path: str | os.PathLike, *, index: int | None = None):
     return data[index], info
 
 
+def read_slice(path: str, index: int | None) -> np.ndarray:
+    """One image of a file (``index``: its slice; None for a 2-D image). Module level, so
+    that a ``functools.partial`` of it is a loader a dask worker can unpickle."""
+    return read_image(path, index=index)[0]
+
+
+def stack_loaders(inputs: list[str], slices: str | None = None) -> tuple[list, list[str]]:
+    """Zero-argument loaders, one per image, and a label for each.
+
+    ``inputs``: TIFF files (each 2-D, or a stack whose slices are the conditions) or one
+    folder of TIFFs (sorted by name). ``slices``: ``"A:B"`` (``B`` excluded) keeps those
+    slices of a stack. Each image is read when its loader is called.
+
+    Raises
+    ------
+    ValueError
+        An input that is neither a file nor a folder, a folder without TIFFs, a bad
+        ``slices``, or a file that is neither 2-D nor a (Z, Y, X) stack.
+    """
+    import functools
+
+    files: list[Path] = []
+    for item in inputs:
+        path = Path(item)
+        if path.is_dir():
+            found = sorted(q for q in path.iterdir()
+                           if q.suffix.lower() in (".tif", ".tiff") and q.is_file())
+            if not found:
+                raise ValueError(f"INPUT folder {path} holds no .tif/.tiff file")
+            files += found
+        elif path.is_file():
+            files.append(path)
+        else:
+            raise ValueError(f"INPUT {path} is neither a file nor a folder")
+    lo = hi = None
+    if slices:
+        try:
+            a, b = slices.split(":")
+            lo, hi = (int(a) if a else None), (int(b) if b else None)
+        except ValueError:
+            raise ValueError(f"--slices must be A:B (B excluded), got {slices!r}") from None
+    loaders, labels = [], []
+    for f in files:
+        with tifffile.TiffFile(f) as tif:
+            shape = tif.series[0].shape
+        if len(shape) == 2:
+            loaders.append(functools.partial(read_slice, str(f), None))
+            labels.append(f.name)
+        elif len(shape) == 3:
+            for z in range(shape[0])[slice(lo, hi)]:
+                loaders.append(functools.partial(read_slice, str(f), z))
+                labels.append(f"{f.name}[{z}]")
+        else:
+            raise ValueError(f"{f} has shape {shape}: expected 2-D images or a (Z, Y, X) stack")
+    return loaders, labels
+
+
 def best_focus_index(stack: np.ndarray) -> int:
     """Index of the slice with the highest standard deviation (the sharpest, usually)."""
     stack = np.asarray(stack)

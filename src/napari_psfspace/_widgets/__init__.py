@@ -5,7 +5,8 @@ One module per dock widget; ``_layers`` converts between layers and core objects
 names the classes directly, so importing this package stays cheap.
 """
 
-__all__ = ["DiagnoseWidget", "LearnOperatorWidget", "PickBeadsWidget", "ReviewPatchesWidget"]
+__all__ = ["DiagnoseWidget", "LearnOperatorWidget", "LearnSubspaceWidget", "PickBeadsWidget",
+           "ReviewPatchesWidget"]
 
 
 def __getattr__(name: str):
@@ -25,4 +26,8 @@ def __getattr__(name: str):
         from ._diagnose import DiagnoseWidget
 
         return DiagnoseWidget
+    if name == "LearnSubspaceWidget":
+        from ._learn_subspace import LearnSubspaceWidget
+
+        return LearnSubspaceWidget
     raise AttributeError(name)

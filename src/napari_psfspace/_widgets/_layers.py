@@ -58,6 +58,12 @@ BASIS = "PSF basis h_i"
 MAPS = "coefficient maps alpha_i"
 HELDOUT = "held-out residual"
 PSF_AT = "PSF at position"
+SUB_GRID = "subspace PSF grid"
+SUB_BASIS = "subspace PSF basis h_i"
+SUB_SPACE = "subspace spatial basis a_j"
+SUB_CONDITIONS = "subspace conditions"
+#: Key of the subspace layer metadata that holds the OperatorSubspace.
+SUBSPACE_KEY = "psfspace_subspace"
 HOT_PIXELS = "hot pixels"
 #: Key of the layer metadata that holds the operator (read by the model writer).
 OPERATOR_KEY = "psfspace_operator"
@@ -335,6 +341,94 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
                  "colormap": "twilight_shifted",
                  "contrast_limits": _symmetric(basis),
                  "metadata": {"about": "orthonormal PSF basis h_i (slider: i)"}}, "image"),
+    ]
+
+
+def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
+                    coords: np.ndarray, frame: Frame, *,
+                    stack_axis: tuple[float, float] = (0.0, 1.0)) -> list[LayerTuple]:
+    """Layer-data tuples showing a family of operators.
+
+    Parameters
+    ----------
+    sub : OperatorSubspace
+    ys, xs, psfs
+        :meth:`OperatorSubspace.psf_grids`: psfs of shape (K, n, n, P, P).
+    coords : ndarray of shape (K, 2)
+        :meth:`OperatorSubspace.condition_coordinates`.
+    frame : Frame
+        One image's frame (the spatial basis gets its scale and position).
+    stack_axis : (float, float)
+        World position and step of the PSF-grid stack's first axis: for a z-stack's
+        slices, those of the first slice learnt from, so that the z slider shows each
+        slice with its own PSF grid.
+
+    Returns
+    -------
+    list of (data, kwargs, layer_type)
+        The PSF grid of each image as a stack (slider: image), the PSF basis ``h_i``,
+        the spatial basis ``a_j`` on the image, and the images' conditions as points
+        beside the grid. The PSF-grid layer's metadata holds the subspace under
+        :data:`SUBSPACE_KEY`.
+    """
+    images = [int(i) for i in sub.metadata.get("images", range(sub.n_images))]
+    one = [mosaic(p, gap=1, normalize="each", gamma=0.5) for p in psfs]
+    tiles = np.zeros((max(images) + 1, *one[0].shape))  # a skipped image: an empty slice
+    tiles[images] = one
+    s_mosaic = frame.height / tiles.shape[1]
+    y0, x0 = _beside(frame, 1.0)
+    basis = np.asarray(sub.basis, np.float32)
+    s_basis = 0.45 * frame.height / basis.shape[-1]
+    gy, gx = sub.grid
+    dy = float(gy[1] - gy[0]) if len(gy) > 1 else float(frame.shape[0])
+    dx = float(gx[1] - gx[0]) if len(gx) > 1 else float(frame.shape[1])
+    space = np.asarray(sub.space, np.float32)
+    box = 0.45 * frame.height
+    c = np.asarray(coords, float)[:, :2]
+    span = float(np.abs(c).max()) or 1.0
+    cy, cx = _beside(frame, 2.0)
+    points = np.stack([cy + box / 2 - c[:, 1] / span * box / 2,
+                       cx + box / 2 + c[:, 0] / span * box / 2], axis=1)
+    held = sub.metadata.get("heldout") or []
+    residual = np.array([h.get("residual_mean", np.nan) if h.get("n_beads") else np.nan
+                         for h in held] if len(held) == sub.n_images
+                        else [np.nan] * sub.n_images, float)
+    labels = sub.metadata.get("labels") or [str(i) for i in images]
+    # on the canvas, a stack slice's number ("stack[12]" -> "12") or the layer's name
+    short = [lab.rsplit("[", 1)[-1].rstrip("]") if lab.endswith("]") else lab
+             for lab in labels]
+    return [
+        (space, {"name": SUB_SPACE, "scale": (1.0, dy * frame.scale[0], dx * frame.scale[1]),
+                 "translate": (0.0, frame.translate[0] + gy[0] * frame.scale[0],
+                               frame.translate[1] + gx[0] * frame.scale[1]),
+                 "colormap": "twilight_shifted", "contrast_limits": _symmetric(space),
+                 "opacity": 0.8, "visible": False,
+                 "metadata": {"about": "a_j: spatial basis on the coarse grid (slider: j)"}},
+         "image"),
+        (tiles.astype(np.float32), {
+            "name": SUB_GRID, "scale": (float(stack_axis[1]), s_mosaic, s_mosaic),
+            "translate": (float(stack_axis[0]), y0, x0),
+            "colormap": "magma",
+            "metadata": {SUBSPACE_KEY: sub, "psf_grid_rows": np.asarray(ys).tolist(),
+                         "psf_grid_columns": np.asarray(xs).tolist(), "images": images,
+                         "about": "PSF of each image's operator at field positions, each "
+                                  "scaled to its maximum, gamma 0.5 (slider: image)"}},
+         "image"),
+        (basis, {"name": SUB_BASIS, "scale": (1.0, s_basis, s_basis),
+                 "translate": (0.0, y0 + 1.04 * frame.height, x0), "colormap": "twilight_shifted",
+                 "contrast_limits": _symmetric(basis),
+                 "metadata": {"about": "orthonormal PSF basis h_i of the family (slider: i)"}},
+         "image"),
+        (points, {"name": SUB_CONDITIONS, "size": 0.03 * frame.height,
+                  "features": {"image": np.asarray(images, int), "label": list(labels),
+                               "short": short,
+                               "heldout": residual},
+                  "text": {"string": "{short}", "size": 9, "color": "white"},
+                  "face_color": "#29c8ff", "border_width": 0,
+                  "metadata": {"about": "conditions: first two principal coordinates of "
+                                        "the Gamma_k (label: the image)",
+                               "coordinates": c.tolist()}},
+         "points"),
     ]
 
 

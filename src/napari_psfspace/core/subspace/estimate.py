@@ -14,17 +14,21 @@ Steps, on top of the single-image pipeline:
    of one image's error on dense stacks, so off by default);
 and the cone of the observed PSFs that every operator's PSFs are kept in (2.5).
 
-``I`` and ``J`` default to the Gavish-Donoho rule (``2.858 sigma_med`` for a square
-matrix, :func:`~napari_psfspace.core.model.pca.rank_by_threshold`), capped.
+``I`` defaults to the Gavish-Donoho rule (``2.858 sigma_med`` for a square matrix,
+:func:`~napari_psfspace.core.model.pca.rank_by_threshold`) on the raw patches whitened by
+each bead's noise (:func:`~.sizes.white_rank`), ``J`` to the rule on the stacked maps;
+both capped.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
+from ..beads.patches import Patches
 from ..beads.window import bump_window, radial_distance
 from ..model.cone import reduce_cone
 from ..model.denoise import band_limit, refit_basis
@@ -37,9 +41,12 @@ from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .patches import ImagePatches, image_patches
 from .result import OperatorSubspace
+from .sizes import white_rank
 
 #: Largest ``J`` the rule may choose.
 MAX_SPACE = 16
+#: Largest ``I`` chosen from the data.
+MAX_PSF = 12
 #: Fewest beads for an image's own thin-plate map; below, its map is constant.
 MIN_BEADS_TPS = 4
 #: Ridge of the refit of ``Gamma_k`` towards its projection, relative to the mean
@@ -104,9 +111,21 @@ def _refit_gamma(gamma: np.ndarray, coef: np.ndarray, at: np.ndarray) -> np.ndar
     return np.linalg.solve(lhs, rhs).T
 
 
-def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
-           grid_step: float, refine: bool, denoise: bool) -> OperatorSubspace:
-    """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
+@dataclass
+class _Pooled:
+    """The pooled patches of the images ``used`` and their PSF basis (steps 2-4)."""
+
+    psf: np.ndarray  # (N, P, P) raw sum-1 patches of all images
+    owner: np.ndarray  # (N,) position of each bead's image in ``used``
+    sd: np.ndarray  # (N,) per-pixel noise / flux
+    weights: np.ndarray | None
+    window: np.ndarray
+    support: np.ndarray
+    basis: object  # PsfBasis
+
+
+def _pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
+    """Steps 2-4: one (noise-aware) PCA of the patches of all images."""
     psf = np.concatenate([f.patches.psf for f in used])
     owner = np.concatenate([np.full(f.n_beads, i) for i, f in enumerate(used)])
     first = used[0].patches
@@ -119,11 +138,16 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
         learn, _ = band_limit(psf, sd, window)
     basis = learn_basis(learn, int(n_psf) if n_psf is not None else "rule", support=support,
                         weights=weights)
-    n_i = basis.basis.shape[0]
-    coef_all = np.zeros((len(psf), n_i))
+    return _Pooled(psf, owner, sd, weights, window, support, basis)
+
+
+def _maps(used: list[ImagePatches], pooled: _Pooled, nodes: np.ndarray,
+          shape: tuple[int, int]) -> tuple[list[np.ndarray], list[tuple]]:
+    """Step 5: each image's coefficient maps at the nodes (G, I), and its inlier beads'
+    (centers, coefficients)."""
+    basis, owner = pooled.basis, pooled.owner
+    coef_all = np.zeros((len(owner), basis.basis.shape[0]))
     coef_all[basis.inliers] = basis.coefficients
-    gy, gx = _coarse_grid(shape, grid_step)
-    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     maps, bead_coef = [], []
     for i, f in enumerate(used):
         mine = (owner == i) & basis.inliers
@@ -133,6 +157,23 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
             maps.append(_image_map(centers, coef_all[mine], nodes, shape))  # (G, I)
         else:  # every bead of this image an outlier: the mean PSF of all
             maps.append(np.tile(basis.coefficients.mean(axis=0), (len(nodes), 1)))
+    return maps, bead_coef
+
+
+def _nodes(shape, grid_step):
+    gy, gx = _coarse_grid(shape, grid_step)
+    return (gy, gx), np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
+           grid_step: float, refine: bool, denoise: bool) -> OperatorSubspace:
+    """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
+    pooled = _pool(used, n_psf, denoise)
+    basis, psf, sd, weights, window = (pooled.basis, pooled.psf, pooled.sd, pooled.weights,
+                                       pooled.window)
+    n_i = basis.basis.shape[0]
+    (gy, gx), nodes = _nodes(shape, grid_step)
+    maps, bead_coef = _maps(used, pooled, nodes, shape)
     stacked = np.concatenate([m.T for m in maps])  # (K I, G): one row per map alpha_ik
     _, s, vt = np.linalg.svd(stacked, full_matrices=False)
     if n_space is None:
@@ -148,10 +189,14 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
                 continue
             gammas[k] = _refit_gamma(gammas[k], coef, _at_beads(space_grid, (gy, gx), centers))
     images = basis.basis
-    if denoise:  # basis images refitted to the raw patches of all beads, given the family
+    if denoise:
+        # basis images refitted to the raw patches of all beads given each bead's own
+        # coefficients. Given the family's coefficients at the beads instead (as one
+        # image's operator does with its maps), the refit takes in the maps' errors:
+        # with bead photons x0.05, 1.18 of one image's error against 0.84 (0.88 against
+        # 0.90 at x0.2; bench_subspace --noise, seed 1)
         inl = basis.inliers
-        at = np.concatenate([_at_beads(space_grid, (gy, gx), c) @ gammas[k].T
-                             for k, (c, _) in enumerate(bead_coef)])  # (n_inliers, I)
+        at = np.concatenate([c for _, c in bead_coef])  # (n_inliers, I), image order
         images, _ = refit_basis(psf[inl], at, sd[inl], window, weights=weights[inl],
                                 prior=basis.basis)
     cone = reduce_cone(basis.coefficients)
@@ -215,23 +260,38 @@ def iter_estimate_subspace(
         raise ValueError(f"at least 2 images with usable beads are needed, got {len(used)} "
                          f"of {len(found)} (no usable bead in images {sorted(skipped)})")
 
+    # I and J (unless both are set): cross-validated on every image's beads
+    # I: the rank rule on the patches whitened by their noise; J: the rule on the maps
+    sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
+    if n_psf is None:
+        first = used[0].patches
+        n_psf = min(white_rank(np.concatenate([f.patches.psf for f in used]),
+                               np.concatenate([f.patches.noise / f.patches.flux for f in used]),
+                               bump_window(first.size, first.r, first.r_ext)),
+                    MAX_PSF, max(1, (sum(f.n_beads for f in used) - 2) // 2))
+        sizes_meta["psf_size_by"] = "whitened rule"
+        options["n_psf"] = n_psf
+    if n_space is None:
+        sizes_meta["space_size_by"] = "rule"
     heldout = None
     if holdout:
-        # the error of each image's operator on beads of its own the family never saw
-        held, train = {}, []
+        # the error of each image's operator on beads of its own (about a fifth, spread
+        # over the field) that the family never saw
+        held: dict[int, Patches] = {}
+        train: list[ImagePatches] = []
         for i, f in enumerate(used):
             mask = (split_holdout(f.patches.centers, shape, holdout)
                     if f.n_beads >= 5 else np.zeros(f.n_beads, bool))
             if mask.any() and (~mask).any():
-                held[i] = mask
+                held[i] = f.patches.subset(mask)
                 f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
             train.append(f)
         trained = _learn(train, shape, **options)
-        heldout = [heldout_residuals(trained.operator(i),
-                                     used[i].patches.subset(held[i])).summary()
+        heldout = [heldout_residuals(trained.operator(i), held[i]).summary()
                    if i in held else {"n_beads": 0} for i in range(len(used))]
         yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged")
     sub = _learn(used, shape, **options)
+    sub.metadata.update(sizes_meta)
     sub.metadata.update({
         "images": [f.index for f in used], "skipped": {str(k): v for k, v in skipped.items()},
         "beads_per_image": [int(f.n_beads) for f in used], "psf_radius": float(psf_radius),
@@ -261,7 +321,8 @@ def estimate_subspace(
     psf_radius : float
         PSF radius, pixels (one patch size for every image).
     n_psf, n_space : int, optional
-        ``I`` and ``J``; default: the Gavish-Donoho rule on the patches and on the maps.
+        ``I`` and ``J``; default: the Gavish-Donoho rule on the patches whitened by their
+        noise (capped at 12) and on the maps (capped at 16).
     client : dask.distributed.Client, optional
         Run the per-image tasks on this cluster; default: dask's local threaded scheduler.
     progress : callable, optional

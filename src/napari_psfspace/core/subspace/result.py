@@ -107,6 +107,45 @@ class OperatorSubspace:
         gens = self.gammas.reshape(self.n_images, -1)
         return project_onto_cone(g.reshape(1, -1), gens)[0].reshape(self.n_psf, self.n_space)
 
+    def condition_coordinates(self, n: int = 2) -> np.ndarray:
+        """The images' conditions as points: the first ``n`` principal coordinates of the
+        ``Gamma_k`` (flattened, centred), shape (K, n); 0 beyond the family's rank.
+
+        Images taken under close conditions lie close together; a drift of focus or
+        temperature shows as a path.
+        """
+        g = self.gammas.reshape(self.n_images, -1)
+        g = g - g.mean(axis=0)
+        u, s, _ = np.linalg.svd(g, full_matrices=False)
+        out = np.zeros((self.n_images, int(n)))
+        m = min(int(n), len(s))
+        out[:, :m] = u[:, :m] * s[:m]
+        return out
+
+    def psf_grids(self, n: int = 6, *, images=None) -> tuple[np.ndarray, np.ndarray,
+                                                               np.ndarray]:
+        """The PSFs of each image's operator at ``n x n`` field positions.
+
+        Parameters
+        ----------
+        n : int
+            Positions per side (as :meth:`ProductConvolution.psf_grid`).
+        images : sequence of int, optional
+            Which images; default all.
+
+        Returns
+        -------
+        ys, xs : ndarray of shape (n,)
+            Row and column of the positions, pixels.
+        psfs : ndarray of shape (len(images), n, n, P, P)
+        """
+        ks = range(self.n_images) if images is None else [int(k) for k in images]
+        grids = [self.operator(k).psf_grid(n, n) for k in ks]
+        if not grids:
+            raise ValueError("`images` must name at least one image")
+        ys, xs, _ = grids[0]
+        return ys, xs, np.stack([g[2] for g in grids])
+
     def psf_at(self, k: int, y: float, x: float) -> np.ndarray:
         """PSF (P, P), sum 1, of image ``k`` at pixel ``(y, x)``."""
         return self.operator(k).psf_at(y, x)
