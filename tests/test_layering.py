@@ -37,7 +37,7 @@ ALLOWED = {
     "model": {"common", "beads"},
     "diagnosis": {"common", "beads", "model"},
     "subspace": {"common", "beads", "model"},
-    "restore": {"common", "beads", "model", "subspace"},
+    "restore": {"common", "beads", "model", "subspace", "diagnosis"},
     "simulation": {"common", "beads"},
 }
 

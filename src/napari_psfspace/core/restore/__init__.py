@@ -1,7 +1,13 @@
 """Stage 5, restore (issue 12): blind deblurring with a family of operators.
 
-Will take an image of a sample with a few beads and a subspace of stage 4; will identify
-an operator of the family from the beads and solve a sparse + smooth deconvolution
-(identification, deblurring and their solvers). May import every stage before it;
-empty until issue 12.
+Takes an image of a sample with a few beads and a family of stage 4: identifies the
+operator of the family that explains the beads (:mod:`.identify`, problem (9) of the
+paper) and solves a sparse + smooth deconvolution with it (:mod:`.deblur`, by the block
+FISTA of :mod:`.fista`). Imports ``subspace``, ``model``, ``beads``, ``common`` and the
+noise model of ``diagnosis``.
 """
+
+from .deblur import Deblurred, deblur, iter_deblur
+from .identify import identify_operator
+
+__all__ = ["Deblurred", "deblur", "identify_operator", "iter_deblur"]

@@ -60,6 +60,14 @@ def random_conditions(k: int, seed: int | np.random.Generator | None = 0,
             for _ in range(int(k))]
 
 
+def within(conditions: list[Condition], reference: list[Condition]) -> np.ndarray:
+    """Which ``conditions`` lie inside the range of ``reference`` on every parameter (a
+    family learnt from ``reference`` interpolates them rather than extrapolates)."""
+    ref = np.array([[c.focus, c.tilt_u, c.tilt_v, c.spherical] for c in reference])
+    got = np.array([[c.focus, c.tilt_u, c.tilt_v, c.spherical] for c in conditions])
+    return np.all((got >= ref.min(axis=0)) & (got <= ref.max(axis=0)), axis=1)
+
+
 def simulate_stack(
     k: int = 10,
     shape: tuple[int, int] = (512, 512),

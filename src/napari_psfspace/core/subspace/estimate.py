@@ -36,11 +36,10 @@ from ..model.estimate import Progress, run_with_progress
 from ..model.field import _coarse_grid
 from ..model.heldout import heldout_residuals, split_holdout
 from ..model.pca import learn_basis, rank_by_threshold
-from ..model.psf_field import _interp_weights
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .patches import ImagePatches, image_patches
-from .result import OperatorSubspace
+from .result import OperatorSubspace, space_at
 from .sizes import white_rank
 
 #: Largest ``J`` the rule may choose.
@@ -89,17 +88,6 @@ def _image_map(centers: np.ndarray, coef: np.ndarray, nodes: np.ndarray,
     spline = ThinPlateSpline(centers, coef, weights=voronoi_areas(centers, shape),
                              scale=0.5 * float(np.hypot(*shape)))
     return np.asarray(spline(nodes), dtype=np.float64).reshape(len(nodes), -1)
-
-
-def _at_beads(space: np.ndarray, grid, centers: np.ndarray) -> np.ndarray:
-    """The spatial basis at bead positions by bilinear interpolation, shape (n, J)."""
-    gy, gx = grid
-    j0, j1, ty = _interp_weights(gy, centers[:, 0])
-    k0, k1, tx = _interp_weights(gx, centers[:, 1])
-    a = space  # (J, gy, gx)
-    out = ((1 - ty) * ((1 - tx) * a[:, j0, k0] + tx * a[:, j0, k1])
-           + ty * ((1 - tx) * a[:, j1, k0] + tx * a[:, j1, k1]))
-    return out.T
 
 
 def _refit_gamma(gamma: np.ndarray, coef: np.ndarray, at: np.ndarray) -> np.ndarray:
@@ -187,7 +175,7 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
         for k, (centers, coef) in enumerate(bead_coef):
             if len(centers) == 0:
                 continue
-            gammas[k] = _refit_gamma(gammas[k], coef, _at_beads(space_grid, (gy, gx), centers))
+            gammas[k] = _refit_gamma(gammas[k], coef, space_at(space_grid, (gy, gx), centers))
     images = basis.basis
     if denoise:
         # basis images refitted to the raw patches of all beads given each bead's own

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..beads.centering import refine_centers
-from ..beads.detect import NoBeadsError, detect_beads, flag_unusable
+from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches, extract_patches
 from ..common.validate import as_image
 
@@ -46,9 +46,29 @@ class ImagePatches:
         return 0 if self.patches is None else len(self.patches.centers)
 
 
+def given_beads(image: np.ndarray, positions, detected: Beads | None) -> Beads:
+    """A bead table of the user's ``positions`` (N, 2), keeping the hot pixels found by
+    the detection (``detected``, None: none searched)."""
+    pos = np.asarray(positions, dtype=np.float64)
+    if pos.ndim != 2 or pos.shape[1] != 2 or len(pos) == 0:
+        raise ValueError(f"`beads` must be an (N, 2) array of (row, column) positions with "
+                         f"N >= 1, got shape {pos.shape}")
+    if not np.all(np.isfinite(pos)):
+        raise ValueError("`beads` holds NaN or infinite positions")
+    h, w = image.shape
+    outside = (pos[:, 0] < 0) | (pos[:, 0] > h - 1) | (pos[:, 1] < 0) | (pos[:, 1] > w - 1)
+    if outside.any():
+        raise ValueError(f"`beads` must lie inside the image (rows 0-{h - 1}, columns "
+                         f"0-{w - 1}); {int(outside.sum())} do not, e.g. "
+                         f"{pos[outside][0].tolist()}")
+    hot = None if detected is None else detected.hot_pixels
+    return Beads(pos.copy(), np.ones(len(pos)), hot_pixels=hot)
+
+
 def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: float, *,
                   index: int = 0, threshold: float = 8.0,
-                  saturation: float | None = None) -> ImagePatches:
+                  saturation: float | None = None,
+                  positions: np.ndarray | None = None) -> ImagePatches:
     """The usable bead patches of one image (read here when given as a loader).
 
     Parameters
@@ -62,6 +82,10 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
         Position of the image in the stack (for the record).
     threshold, saturation
         As in :func:`~napari_psfspace.core.beads.detect.detect_beads`.
+    positions : ndarray of shape (N, 2), optional
+        Beads given by the user (row, column), pixels: they replace the detection (hot
+        pixels are still masked) and are centred sub-pixel, then checked as detected
+        beads are (border, neighbours, saturation).
 
     Returns
     -------
@@ -74,7 +98,11 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     try:
         beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
     except NoBeadsError as err:
-        return ImagePatches(int(index), img.shape, None, str(err))
+        if positions is None:
+            return ImagePatches(int(index), img.shape, None, str(err))
+        beads = None
+    if positions is not None:
+        beads = given_beads(img, positions, beads)
     img = beads.clean_image(img)
     kept = np.flatnonzero(beads.kept)
     if len(kept):

@@ -16,6 +16,32 @@ import numpy as np
 from ..model.cone import Cone, project_onto_cone
 from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
+from ..model.psf_field import _interp_weights
+
+
+def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
+    """The spatial basis at positions by bilinear interpolation between the nodes.
+
+    Parameters
+    ----------
+    space : ndarray of shape (J, gy, gx)
+    grid : (ndarray (gy,), ndarray (gx,))
+        Node coordinates, pixels.
+    points : ndarray of shape (n, 2)
+        Positions (row, column), pixels.
+
+    Returns
+    -------
+    ndarray of shape (n, J)
+    """
+    gy, gx = grid
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    j0, j1, ty = _interp_weights(gy, pts[:, 0])
+    k0, k1, tx = _interp_weights(gx, pts[:, 1])
+    a = space
+    out = ((1 - ty) * ((1 - tx) * a[:, j0, k0] + tx * a[:, j0, k1])
+           + ty * ((1 - tx) * a[:, j1, k0] + tx * a[:, j1, k1]))
+    return out.T
 
 
 @dataclass

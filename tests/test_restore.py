@@ -1,0 +1,184 @@
+"""Blind deblurring (core/restore, issue 12; paper, Appendix D): identifying an operator
+of a family from a few beads, and the sparse + smooth deconvolution."""
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from napari_psfspace.core.model.estimate import estimate_operator
+from napari_psfspace.core.model.operator import ProductConvolution
+from napari_psfspace.core.restore.deblur import SmoothGrid, deblur, iter_deblur
+from napari_psfspace.core.restore.fista import BlockFista
+from napari_psfspace.core.restore.identify import identify_operator, solve_identification
+from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
+from napari_psfspace.core.subspace import estimate_subspace
+
+LOW = {"amplitude": (4e3, 1.2e4)}  # bead photons x0.2 of the default: noisy beads
+
+
+def _gaussian_operator(shape, sigma=2.5, half=12):
+    yy, xx = np.mgrid[-half:half + 1, -half:half + 1]
+    psf = np.exp(-(yy**2 + xx**2) / (2 * sigma**2))
+    psf /= psf.sum()
+    h, w = shape
+    return ProductConvolution(psf[None], np.ones((1, 2, 2)), shape=shape,
+                              grid=(np.array([0.0, h - 1]), np.array([0.0, w - 1])))
+
+
+def _point_scene(seed=0, shape=(256, 256), n=60):
+    rng = np.random.default_rng(seed)
+    h, w = shape
+    truth = np.zeros(shape, np.float32)
+    pts = np.round(rng.uniform(10, h - 10, (n, 2)))
+    amps = rng.uniform(500, 2000, n)
+    for (y, x), a in zip(pts.astype(int), amps, strict=True):
+        truth[y, x] += a
+    bg = (100 + 50 * np.sin(np.linspace(0, 3, w))[None, :]
+          * np.cos(np.linspace(0, 2, h))[:, None]).astype(np.float32)
+    op = _gaussian_operator(shape)
+    clean = op.apply(truth) + op.apply(bg)
+    image = rng.poisson(np.clip(clean, 0, None)).astype(np.float32)
+    return image, op, truth, pts, bg
+
+
+def test_smooth_grid_is_nonnegative_with_its_adjoint():
+    rng = np.random.default_rng(0)
+    g = SmoothGrid((97, 130), 12)
+    w = rng.random(g.grid_shape).astype(np.float32)
+    u = rng.standard_normal((97, 130)).astype(np.float32)
+    lhs, rhs = np.vdot(g.synthesis(w), u), np.vdot(w, g.adjoint(u))
+    assert abs(lhs - rhs) <= 1e-4 * abs(lhs)  # dot test
+    assert g.synthesis(w).min() >= 0  # u2 = U w >= 0 wherever w >= 0
+    v = rng.standard_normal(g.grid_shape)
+    assert np.vdot(g.laplacian(w.astype(float)), v) == pytest.approx(
+        np.vdot(w, g.laplacian(v)))  # symmetric
+    assert np.allclose(g.laplacian(np.ones(g.grid_shape)), 0)  # constants are smooth
+    # the exact ||U||^2 bounds ||U w||^2 / ||w||^2
+    assert np.linalg.norm(g.synthesis(w)) ** 2 <= g.norm2() * np.linalg.norm(w) ** 2 * 1.0001
+
+
+def test_block_fista_solves_a_nonnegative_lasso():
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(1)
+    a = rng.standard_normal((40, 15))
+    x_true = np.maximum(rng.standard_normal(15), 0)
+    b = a @ x_true + 0.01 * rng.standard_normal(40)
+    lam = 0.0  # with no l1 weight: the non-negative least squares solution
+    big = float(np.linalg.norm(a, 2) ** 2)
+
+    def gradient(x):
+        r = a @ x[0] - b
+        return [a.T @ r], 0.5 * float(r @ r)
+
+    solver = BlockFista(gradient, [lambda v, t: np.maximum(v - lam * t, 0)], [big],
+                        penalty=lambda x: 0.0)
+    solver.setup([np.zeros(15)])
+    list(solver.run(5000, 1e-12))
+    ref, _ = nnls(a, b)
+    np.testing.assert_allclose(solver.finalize()[0], ref, atol=1e-6)
+    obj = solver.objective
+    assert obj[-1] <= obj[0]
+
+
+def test_deblur_finds_the_points_and_the_background():
+    image, op, truth, pts, bg = _point_scene()
+    res = deblur(image, op)
+    assert res.sparse.dtype == np.float32 and res.smooth.shape == image.shape
+    assert res.sparse.min() >= 0 and res.smooth.min() >= 0
+    assert res.converged and res.iterations < 500  # measured 328
+    from skimage.feature import peak_local_max
+
+    peaks = peak_local_max(res.sparse, min_distance=2, threshold_abs=50.0)
+    d, i = cKDTree(pts).query(peaks)
+    recall = len(set(i[d <= 1.5])) / len(pts)
+    precision = float(np.mean(d <= 1.5))
+    # measured: recall 0.93 (pairs closer than the blur merge), precision 1.0
+    assert recall >= 0.88 and precision >= 0.97, (recall, precision)
+    # the background to within a tenth of the noise (sd 10): measured 0.53
+    assert np.abs(res.smooth - bg).mean() < 1.5
+    # the objective went down
+    assert res.objective[-1] < 0.5 * res.objective[0]
+
+
+def test_deblur_is_a_generator_that_can_stop_and_checks_its_input():
+    image, op, *_ = _point_scene(n=5, shape=(96, 96))
+    gen = iter_deblur(image, op, max_iter=50)
+    first = next(gen)
+    assert first.stage == "setup"
+    gen.close()  # cancelled between iterations: nothing else runs
+    with pytest.raises(ValueError, match="shape"):
+        deblur(image[:90], op)
+    bad = image.copy()
+    bad[3, 3] = np.nan
+    with pytest.raises(ValueError, match="NaN|finite"):
+        deblur(bad, op)
+    with pytest.raises(ValueError, match="sparse_weight"):
+        deblur(image, op, sparse_weight=-1.0)
+
+
+def test_solve_identification_recovers_the_cone_weights():
+    rng = np.random.default_rng(3)
+    v = rng.random((6, 8, 4))  # K = 6 operators, P = 8 beads, I = 4
+    lam = np.array([0.0, 0.7, 0.0, 0.3, 0.0, 0.0])
+    g = rng.uniform(0.8, 1.25, 8)
+    c = g[:, None] * np.tensordot(lam, v, axes=1)
+    weights, amps, history = solve_identification(c, v)
+    m = np.tensordot(weights, v, axes=1)
+    # the product g Gamma is identified (the scale trades between g and lambda)
+    np.testing.assert_allclose(amps[:, None] * m, c, atol=1e-6)
+    assert history[-1] <= history[0]
+    with pytest.raises(ValueError, match="amplitude_range"):
+        solve_identification(c, v, amplitude_range=(2.0, 3.0))
+
+
+@pytest.fixture(scope="module")
+def family():
+    """A family learnt from 16 images, and 3 images under conditions it never saw, within
+    the range of those it saw (beyond it, the family extrapolates: a tilt of 3 sd gave
+    0.134 with every bead against 0.061 for the image alone)."""
+    images, truths, seen = simulate_stack(16, (384, 384), 24, seed=0, **LOW)
+    r = int(np.median([t.psf_radius for t in truths]))
+    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    draws = random_conditions(40, seed=11)
+    unseen = [c for c, ok in zip(draws, within(draws, seen), strict=True) if ok][:3]
+    new, new_truths, _ = simulate_stack(3, (384, 384), 24, seed=11, conditions=unseen,
+                                        **LOW)
+    return sub, r, new, new_truths
+
+
+def test_five_beads_identify_the_operator_of_a_new_image(family):
+    sub, r, new, truths = family
+    rng = np.random.default_rng(0)
+    ratios = []
+    for image, truth in zip(new, truths, strict=True):
+        alone = np.mean(grid_errors(estimate_operator(image, psf_radius=r), truth, n=4))
+        inner = truth.positions[(truth.positions.min(axis=1) > 2 * r)
+                                & (truth.positions.max(axis=1) < 384 - 2 * r)]
+        five = inner[rng.choice(len(inner), 5, replace=False)]
+        five = five + rng.normal(0, 0.5, five.shape)  # clicked, not centred
+        op = identify_operator(image, sub, beads=five)
+        info = op.metadata["identification"]
+        assert info["n_beads"] >= 4 and len(info["weights"]) == sub.n_images
+        assert np.all(np.asarray(info["weights"]) >= 0)
+        ratios.append(np.mean(grid_errors(op, truth, n=4)) / alone)
+    # issue 12: at most 1.5x the error of estimate_operator on all the beads;
+    # measured 1.14, 1.42, 0.84 (noisy beads; with bright beads 1.93, 1.08, 1.33: there
+    # one image alone is already good, bench/bench_identify.py)
+    assert np.mean(ratios) <= 1.5, ratios
+
+
+def test_identification_refuses_what_it_cannot_do(family):
+    sub, r, new, _ = family
+    with pytest.raises(ValueError, match="shape"):
+        identify_operator(new[0][:300], sub)
+    with pytest.raises(ValueError, match="inside the image"):
+        identify_operator(new[0], sub, beads=np.array([[10.0, 500.0]]))
+    with pytest.raises(ValueError, match=r"\(N, 2\)"):
+        identify_operator(new[0], sub, beads=np.zeros((3, 3)))
+    flat = np.random.default_rng(0).normal(100, 3, new[0].shape)
+    with pytest.raises(ValueError, match="no usable bead"):
+        identify_operator(flat, sub)
+    with pytest.raises(ValueError, match="patches"):
+        identify_operator(new[0], sub, psf_radius=r + 6)
