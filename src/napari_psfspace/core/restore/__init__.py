@@ -2,12 +2,12 @@
 
 Takes an image of a sample with a few beads and a family of stage 4: identifies the
 operator of the family that explains the beads (:mod:`.identify`, problem (9) of the
-paper) and solves a sparse + smooth deconvolution with it (:mod:`.deblur`, by the block
+paper) and solves a sparse + smooth deconvolution with it (:mod:`.deconvolve`, by the block
 FISTA of :mod:`.fista`). Imports ``subspace``, ``model``, ``beads``, ``common`` and the
 noise model of ``diagnosis``.
 """
 
-from .deblur import Deblurred, deblur, iter_deblur
+from .deconvolve import Deblurred, deblur, iter_deblur
 from .identify import identify_operator
 
 __all__ = ["Deblurred", "deblur", "identify_operator", "iter_deblur"]
