@@ -189,3 +189,56 @@ def test_identification_refuses_what_it_cannot_do(family):
         identify_operator(flat, sub)
     with pytest.raises(ValueError, match="patches"):
         identify_operator(new[0], sub, psf_radius=r + 6)
+
+
+def test_cli_deblur_with_a_subspace_and_clicked_beads(family, tmp_path):
+    import tifffile
+
+    from napari_psfspace.cli import main
+
+    sub, r, new, truths = family
+    path = tmp_path / "family.npz"
+    sub.save(path)
+    image = tmp_path / "image.tif"
+    tifffile.imwrite(image, new[0])
+    beads = tmp_path / "beads.csv"
+    inner = truths[0].positions[(truths[0].positions.min(axis=1) > 2 * r)
+                                & (truths[0].positions.max(axis=1) < 384 - 2 * r)][:6]
+    rows = "\n".join(f"{i},{y},{x}" for i, (y, x) in enumerate(inner))
+    beads.write_text("index,axis-0,axis-1\n" + rows + "\n")  # napari's Points CSV
+    out = tmp_path / "out.tif"
+    assert main(["deblur", str(image), "--subspace", str(path), "--beads", str(beads),
+                 "-o", str(out), "--parts", "-q", "--max-iter", "40"]) == 0
+    got = tifffile.imread(out)
+    assert got.shape == new[0].shape and got.dtype == np.float32 and got.min() >= 0
+    sparse = tifffile.imread(tmp_path / "out.sparse.tif")
+    smooth = tifffile.imread(tmp_path / "out.smooth.tif")
+    np.testing.assert_allclose(sparse + smooth, got, rtol=1e-5, atol=1e-3)
+    # the beads are where the sparse part is
+    for y, x in inner:
+        assert sparse[int(round(y)) - 2:int(round(y)) + 3,
+                      int(round(x)) - 2:int(round(x)) + 3].sum() > 0
+    # a single model is used as it is; --beads goes with a subspace only
+    model = tmp_path / "model.npz"
+    sub.operator(0).save(model)
+    assert main(["deblur", str(image), "--model", str(model), "--beads", str(beads),
+                 "-o", str(out), "-q"]) == 2
+    assert main(["deblur", str(image), "--subspace", str(model), "-o", str(out), "-q"]) == 2
+
+
+def test_points_csv_forms(tmp_path):
+    from napari_psfspace.io import read_points_csv
+
+    p = tmp_path / "a.csv"
+    p.write_text("index,axis-0,axis-1,axis-2\n0,3,10.5,20\n1,3,11,21.5\n")
+    np.testing.assert_allclose(read_points_csv(p), [[10.5, 20], [11, 21.5]])
+    p.write_text("10,20\n30,40\n")
+    np.testing.assert_allclose(read_points_csv(p), [[10, 20], [30, 40]])
+    p.write_text("row,column\n1,2\n")
+    np.testing.assert_allclose(read_points_csv(p), [[1, 2]])
+    p.write_text("a,b,c\n1,2,3\n")
+    with pytest.raises(ValueError, match="axis-0"):
+        read_points_csv(p)
+    p.write_text("")
+    with pytest.raises(ValueError, match="no bead"):
+        read_points_csv(p)

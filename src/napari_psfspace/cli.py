@@ -246,6 +246,54 @@ def _cmd_psf(args) -> int:
     return 0
 
 
+def _cmd_deblur(args) -> int:
+    from .core.model.estimate import run_with_progress
+    from .core.model.operator import load_operator
+    from .core.model.operator_file import archive_format
+    from .core.restore import identify_operator, iter_deblur
+    from .core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
+    from .core.subspace.subspace_file import load_subspace
+    from .io import read_image, read_points_csv, write_tiff
+
+    image, info = read_image(args.image, index=args.slice)
+    t0 = time.perf_counter()
+    if args.subspace is not None:
+        if archive_format(args.subspace) != SUBSPACE:
+            raise ValueError(f"--subspace {args.subspace} is not a subspace file (learn one "
+                             "with psfspace learn); a single model goes with --model")
+        sub = load_subspace(args.subspace)
+        beads = read_points_csv(args.beads) if args.beads else None
+        op = identify_operator(image, sub, beads=beads)
+        ident = op.metadata["identification"]
+        print(f"operator identified from {ident['n_beads']} beads "
+              f"({'given' if beads is not None else 'detected'}; the family's J = "
+              f"{sub.n_space}{'' if ident['enough_beads'] else ': fewer beads than J'}) "
+              f"in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    else:
+        if args.beads:
+            raise ValueError("--beads identifies an operator of a --subspace; with --model "
+                             "the model is used as it is")
+        op = load_operator(args.model)
+    gen = iter_deblur(image, op, sparse_weight=args.sparse_weight,
+                      smooth_weight=args.smooth_weight, max_iter=args.max_iter)
+    res = run_with_progress(gen, None if args.quiet else _progress_printer())
+    out = Path(args.output)
+    write_tiff(out, res.image, pixel_size=info.pixel_size,
+               metadata={"deblur": res.parameters, "iterations": res.iterations})
+    written = [str(out)]
+    if args.parts:
+        for name, part in (("sparse", res.sparse), ("smooth", res.smooth)):
+            path = out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}")
+            write_tiff(path, part, pixel_size=info.pixel_size)
+            written.append(str(path))
+    p = res.parameters
+    print(f"wrote {', '.join(written)}: {res.iterations} iterations "
+          f"({'converged' if res.converged else 'max_iter reached'}), sparse weight "
+          f"{p['sparse_weight']:.3g}, smooth weight {p['smooth_weight']:.3g}, noise sd "
+          f"{p['noise_sd']:.3g}, {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def _cmd_apply(args) -> int:
     from .core.model.operator import load_operator
     from .io import read_image, write_tiff
@@ -380,6 +428,26 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("--slice", type=int, help="slice of a stack to use")
     a.add_argument("--adjoint", action="store_true", help="apply the adjoint H^T instead")
     a.set_defaults(func=_cmd_apply)
+
+    db = sub.add_parser("deblur", help="deblur point sources on a smooth background: with "
+                        "an operator identified from a subspace (blind) or a model")
+    db.add_argument("image", help="TIFF image (a slice of a stack with --slice)")
+    src = db.add_mutually_exclusive_group(required=True)
+    src.add_argument("--subspace", metavar="FILE", help="family of operators (psfspace "
+                     "learn): the image's operator is identified from its beads")
+    src.add_argument("--model", metavar="FILE", help="one operator (psfspace estimate)")
+    db.add_argument("--beads", metavar="CSV", help="bead positions to identify from "
+                    "(napari Points CSV or row,column; default: detected)")
+    db.add_argument("--slice", type=int, help="slice of a stack to deblur")
+    db.add_argument("-o", "--output", required=True, help="deblurred image (TIFF, float32: "
+                    "sparse + smooth parts)")
+    db.add_argument("--parts", action="store_true", help="also write OUT.sparse.tif and "
+                    "OUT.smooth.tif")
+    db.add_argument("--sparse-weight", type=float, help="gamma1 (default: from the noise)")
+    db.add_argument("--smooth-weight", type=float, help="gamma2 (default: 0.05 step^4)")
+    db.add_argument("--max-iter", type=int, default=500)
+    db.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    db.set_defaults(func=_cmd_deblur)
 
     d = sub.add_parser("demo", help="simulate a wide field, estimate, report errors, draw")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")

@@ -171,6 +171,44 @@ def stack_loaders(inputs: list[str], slices: str | None = None) -> tuple[list, l
     return loaders, labels
 
 
+def read_points_csv(path: str | os.PathLike) -> np.ndarray:
+    """Bead positions (N, 2) (row, column), pixels, from a CSV file.
+
+    Reads napari's *File > Save Selected Layer* CSV of a Points layer (columns
+    ``axis-0, axis-1[, axis-2]``: the last two are row and column) or a plain table of
+    two numeric columns (row, column), with or without a header line.
+    """
+    import csv
+
+    with open(path, newline="") as fh:
+        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise ValueError(f"{path} holds no bead position")
+    header = rows[0]
+    numeric = True
+    try:
+        [float(c) for c in header]
+    except ValueError:
+        numeric = False
+    body, cols = rows, None
+    if not numeric:
+        body = rows[1:]
+        names = [c.strip() for c in header]
+        axes = sorted((n for n in names if n.startswith("axis-")),
+                      key=lambda n: int(n.split("-")[1]))
+        cols = [names.index(n) for n in axes[-2:]] if len(axes) >= 2 else None
+        if cols is None and len(names) != 2:
+            raise ValueError(f"{path}: expected napari's axis-0, axis-1 columns or two "
+                             f"columns (row, column), got {names}")
+    try:
+        pts = np.array([[float(r[i]) for i in (cols or (0, 1))] for r in body])
+    except (ValueError, IndexError) as exc:
+        raise ValueError(f"{path}: a row is not two numbers (row, column): {exc}") from None
+    if pts.ndim != 2 or len(pts) == 0:
+        raise ValueError(f"{path} holds no bead position")
+    return pts
+
+
 def best_focus_index(stack: np.ndarray) -> int:
     """Index of the slice with the highest standard deviation (the sharpest, usually)."""
     stack = np.asarray(stack)
