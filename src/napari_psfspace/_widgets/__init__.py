@@ -5,8 +5,8 @@ One module per dock widget; ``_layers`` converts between layers and core objects
 names the classes directly, so importing this package stays cheap.
 """
 
-__all__ = ["DiagnoseWidget", "LearnOperatorWidget", "LearnSubspaceWidget", "PickBeadsWidget",
-           "ReviewPatchesWidget"]
+__all__ = ["DeblurWidget", "DiagnoseWidget", "LearnOperatorWidget", "LearnSubspaceWidget",
+           "PickBeadsWidget", "ReviewPatchesWidget"]
 
 
 def __getattr__(name: str):
@@ -30,4 +30,8 @@ def __getattr__(name: str):
         from ._learn_subspace import LearnSubspaceWidget
 
         return LearnSubspaceWidget
+    if name == "DeblurWidget":
+        from ._deblur import DeblurWidget
+
+        return DeblurWidget
     raise AttributeError(name)

@@ -1,0 +1,179 @@
+"""Dock widget 6: deblur an image of point sources with a model or a family of operators.
+
+With a family (a subspace file, or the *Learn subspace* result in the viewer), the
+image's operator is first identified from its beads (a Points layer, or detected); with a
+single model it is used as it is. The work (:func:`~napari_psfspace.core.restore.
+identify_operator` then :func:`~napari_psfspace.core.restore.iter_deblur`) runs in a
+worker thread with progress and *Cancel*; the sparse and smooth parts come back as
+layers with the image's scale.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    PushButton,
+    SpinBox,
+)
+from napari.layers import Image, Points
+from napari.utils.notifications import show_error
+
+from ..core.model.estimate import Progress
+from ..core.restore import identify_operator, iter_deblur
+from ._layers import OPERATOR_KEY, SUBSPACE_KEY, image_plane, show_layers
+from ._worker import CoreTask, layer_choices
+
+if TYPE_CHECKING:
+    import napari
+
+SPARSE = "deblurred: sparse part"
+SMOOTH = "deblurred: smooth part"
+SOURCES = ("file (subspace or model)", "from the viewer")
+
+
+def _identify_and_deblur(plane, model, beads, **kwargs):
+    """Identify the operator when ``model`` is a family, then deblur (in the worker)."""
+    from ..core.subspace import OperatorSubspace
+
+    op, note = model, "the model as it is"
+    if isinstance(model, OperatorSubspace):
+        yield Progress("identify", 0.0, "identifying the operator from the beads")
+        op = identify_operator(plane, model, beads=beads)
+        info = op.metadata["identification"]
+        note = (f"identified from {info['n_beads']} beads"
+                + ("" if info["enough_beads"] else f" (fewer than J = {info['n_space']})"))
+    res = yield from iter_deblur(plane, op, **kwargs)
+    return res, op, note
+
+
+def _viewer_models(viewer) -> list:
+    """(name, object) of the operators and families the plugin's layers hold."""
+    out = []
+    for layer in viewer.layers:
+        meta = getattr(layer, "metadata", None) or {}
+        if SUBSPACE_KEY in meta:
+            out.append((f"family: {layer.name}", meta[SUBSPACE_KEY]))
+        elif OPERATOR_KEY in meta:
+            out.append((f"model: {layer.name}", meta[OPERATOR_KEY]))
+    return out
+
+
+class DeblurWidget(Container):
+    """Sparse + smooth deblurring with a model, or blind with a family (BSS)."""
+
+    def __init__(self, viewer: napari.viewer.Viewer) -> None:
+        self._viewer = viewer
+        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.source = ComboBox(label="operator", choices=list(SOURCES))
+        self.path = FileEdit(mode="r", filter="*.npz", label="file")
+        self.in_viewer = ComboBox(label="in the viewer", choices=self._models, visible=False)
+        self.points = ComboBox(label="beads", choices=self._points)
+        self.points.tooltip = ("Beads to identify a family's operator from (at least J, "
+                               "typically 5); (detect) finds them. Ignored for a model.")
+        self.auto = CheckBox(value=True, text="weights from the noise")
+        self.sparse_weight = FloatSpinBox(label="sparse weight", min=0.0, max=1e12,
+                                          value=1.0, visible=False)
+        self.smooth_weight = FloatSpinBox(label="smooth weight", min=0.0, max=1e12,
+                                          value=1e3, visible=False)
+        self.max_iter = SpinBox(label="iterations at most", min=1, max=100000, value=500)
+        self.run_button = PushButton(text="Deblur")
+        self.task = CoreTask(self.run_button)
+        self.result = Label(value="")
+        self.result.native.setWordWrap(True)
+        super().__init__(widgets=[
+            self.image, self.source, self.path, self.in_viewer, self.points, self.auto,
+            self.sparse_weight, self.smooth_weight, self.max_iter, self.run_button,
+            self.task, self.result])
+        self.source.changed.connect(self._on_source)
+        self.auto.changed.connect(self._on_auto)
+        self.run_button.changed.connect(self.run)
+        viewer.layers.events.inserted.connect(lambda *_: self.reset_choices())
+        viewer.layers.events.removed.connect(lambda *_: self.reset_choices())
+        self.last = None  # the last Deblurred
+        self.operator = None  # and the operator it used (identified or given)
+
+    def _models(self, _widget=None) -> list:
+        return _viewer_models(self._viewer)
+
+    def _points(self, _widget=None) -> list:
+        pts = [(p.name, p) for p in self._viewer.layers if isinstance(p, Points)]
+        return [("(detect)", None), *pts]
+
+    def _on_source(self, *_) -> None:
+        file = self.source.value == SOURCES[0]
+        self.path.visible = file
+        self.in_viewer.visible = not file
+
+    def _on_auto(self, *_) -> None:
+        for w in (self.sparse_weight, self.smooth_weight):
+            w.visible = not self.auto.value
+
+    def _model(self):
+        """The chosen operator or family; raises ValueError naming the field."""
+        if self.source.value == SOURCES[1]:
+            model = self.in_viewer.value
+            if model is None:
+                raise ValueError("in the viewer: no model or family yet (learn one with "
+                                 "Learn operator or Learn subspace, or open a file)")
+            return model
+        path = str(self.path.value)
+        if path in ("", "."):
+            raise ValueError("file: choose a model or subspace file (.npz)")
+        from ..core.model.operator import load_operator
+        from ..core.model.operator_file import archive_format
+        from ..core.subspace.subspace_file import FORMAT_NAME, load_subspace
+
+        p = Path(path)
+        return load_subspace(p) if archive_format(p) == FORMAT_NAME else load_operator(p)
+
+    def run(self, *_) -> None:
+        """Deblur in a worker thread; add the sparse and smooth parts when done."""
+        layer = self.image.value
+        try:
+            if layer is None:
+                raise ValueError("image: open an image first")
+            plane, frame = image_plane(layer, self._viewer.dims.point)
+            model = self._model()
+            beads = None
+            pts = self.points.value
+            if pts is not None and len(pts.data):
+                beads = np.asarray(pts.data, float)[:, -2:]
+                beads = (beads - np.asarray(frame.translate)) / np.asarray(frame.scale)
+        except (ValueError, OSError) as exc:
+            show_error(str(exc))
+            self.task.status.value = str(exc)
+            return
+        weights = {} if self.auto.value else {
+            "sparse_weight": float(self.sparse_weight.value),
+            "smooth_weight": float(self.smooth_weight.value)}
+        gen = _identify_and_deblur(plane, model, beads, max_iter=int(self.max_iter.value),
+                                   **weights)
+
+        def on_result(got) -> None:
+            res, op, note = got
+            self.last, self.operator = res, op
+            common = {"scale": frame.scale, "translate": frame.translate,
+                      "metadata": {"pixel_size_um": frame.pixel_size,
+                                   "deblur": res.parameters, "source": layer.name}}
+            show_layers(self._viewer, [
+                (res.smooth, {"name": SMOOTH, "colormap": "gray", "visible": False,
+                              **common}, "image"),
+                (res.sparse, {"name": SPARSE, "colormap": "magma",
+                              "blending": "additive", **common}, "image")])
+            p = res.parameters
+            self.result.value = (
+                f"{note}; {res.iterations} iterations "
+                f"({'converged' if res.converged else 'stopped at the limit'}), "
+                f"{p['seconds']:.1f} s\nsparse weight {p['sparse_weight']:.3g}, smooth "
+                f"weight {p['smooth_weight']:.3g} (noise sd {p['noise_sd']:.3g})")
+
+        self.task.run(gen, on_result)

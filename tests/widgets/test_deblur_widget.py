@@ -1,0 +1,81 @@
+"""Deblur: a family from the viewer with clicked beads, a model file; cancel; errors."""
+
+import numpy as np
+import pytest
+
+from conftest import wait_task
+from napari_psfspace._widgets._deblur import SMOOTH, SOURCES, SPARSE, DeblurWidget
+from napari_psfspace._widgets._layers import SUBSPACE_KEY
+from napari_psfspace.core.simulation.stacks import simulate_stack
+from napari_psfspace.core.subspace import estimate_subspace
+
+
+@pytest.fixture(scope="module")
+def family():
+    images, truths, _ = simulate_stack(6, (256, 256), 12, seed=5)
+    r = int(np.median([t.psf_radius for t in truths]))
+    sub = estimate_subspace(images[:5], psf_radius=r, holdout=None)
+    return sub, images[5], truths[5]
+
+
+def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
+    sub, image, truth = family
+    v = make_napari_viewer()
+    v.add_image(image, name="sample", scale=(0.065, 0.065))
+    v.add_image(np.zeros((2, 2)), name="holder", metadata={SUBSPACE_KEY: sub})
+    clicked = truth.positions[:5] * 0.065  # world coordinates, as napari stores them
+    v.add_points(clicked, name="my beads")
+    w = DeblurWidget(v)
+    w.image.value = v.layers["sample"]
+    w.source.value = SOURCES[1]
+    assert w.in_viewer.value is sub
+    w.points.value = v.layers["my beads"]
+    w.max_iter.value = 60
+    w.run_button.clicked()
+    wait_task(qtbot, w.task, timeout=120_000)
+    sparse, smooth = v.layers[SPARSE], v.layers[SMOOTH]
+    assert sparse.data.shape == image.shape and np.allclose(sparse.scale, (0.065, 0.065))
+    assert sparse.data.min() >= 0 and smooth.data.min() >= 0
+    assert "identified from" in w.result.value
+    # the operator was identified from the clicked beads, taken to pixels and centred
+    used = np.asarray(w.operator.metadata["identification"]["positions"])
+    assert 1 <= len(used) <= 5
+    assert np.all(np.min(np.hypot(*(used[:, None] - truth.positions[None, :5]).transpose(
+        2, 0, 1)), axis=1) < 1.0)
+    # the points come back where the beads are
+    for y, x in truth.positions[:5]:
+        yy, xx = int(round(y)), int(round(x))
+        assert sparse.data[yy - 2:yy + 3, xx - 2:xx + 3].sum() > 0
+
+
+def test_model_file_cancel_and_errors(make_napari_viewer, qtbot, family, tmp_path,
+                                      monkeypatch):
+    import napari_psfspace._widgets._deblur as mod
+
+    shown = []
+    monkeypatch.setattr(mod, "show_error", shown.append)
+    sub, image, _ = family
+    v = make_napari_viewer()
+    v.add_image(image, name="sample")
+    w = DeblurWidget(v)
+    w.run_button.clicked()
+    assert "file" in shown[-1]
+    w.source.value = SOURCES[1]
+    w.run_button.clicked()
+    assert "in the viewer" in shown[-1]
+    path = tmp_path / "model.npz"
+    sub.operator(0).save(path)
+    w.source.value = SOURCES[0]
+    w.path.value = path
+    n = len(v.layers)
+    w.max_iter.value = 100000
+    w.run_button.clicked()
+    assert w.task.running
+    with qtbot.waitSignal(w.task.worker.aborted, timeout=60_000):
+        w.task.cancel.clicked()
+    wait_task(qtbot, w.task)
+    assert len(v.layers) == n and "cancelled" in w.task.status.value
+    w.max_iter.value = 30
+    w.run_button.clicked()
+    wait_task(qtbot, w.task, timeout=120_000)
+    assert SPARSE in v.layers and "the model as it is" in w.result.value
