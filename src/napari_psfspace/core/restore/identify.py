@@ -28,6 +28,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from ..common.validate import as_image
+from ..model.heldout import heldout_residuals
 from ..model.operator import ProductConvolution
 from ..subspace.patches import image_patches
 from ..subspace.result import OperatorSubspace, space_at
@@ -127,7 +128,11 @@ def identify_operator(
     ProductConvolution
         Its PSFs lie in the family's cone and sum to 1. ``metadata["identification"]``
         holds ``gamma`` (I, J), the cone ``weights`` (K,), the beads' ``positions`` and
-        ``amplitudes``, the ``objective`` history and ``n_beads``.
+        ``amplitudes``, the ``objective`` history, ``n_beads``, and how well the
+        operator fits those beads: the median relative residual of their patches, its
+        noise floor, and ``model_error = sqrt(median residual^2 - median floor^2)``, the
+        relative error of the operator beyond the noise (which
+        :func:`~napari_psfspace.core.restore.deconvolve.deblur` allows for).
 
     Raises
     ------
@@ -164,9 +169,16 @@ def identify_operator(
         raise ValueError("the beads' PSFs lie outside the family's cone (every weight is "
                          "0): is this image from the same microscope and PSF radius?")
     gamma = np.tensordot(lam, subspace.gammas, axes=1)
+    op = subspace.operator_from(gamma, project=False)
+    fit = heldout_residuals(op, patches)  # on the beads it was identified from
+    excess = float(np.median(fit.residual ** 2) - np.median(fit.noise_floor ** 2))
     meta = {"identification": {
+        "model_error": float(np.sqrt(max(excess, 0.0))),
+        "residual_median": float(np.median(fit.residual)),
+        "noise_floor_median": float(np.median(fit.noise_floor)),
         "gamma": gamma.tolist(), "weights": lam.tolist(),
         "positions": patches.centers.tolist(), "amplitudes": g.tolist(),
         "objective": history, "n_beads": int(len(c)), "n_space": subspace.n_space,
         "enough_beads": bool(len(c) >= subspace.n_space), "beads_table": found.summary}}
-    return subspace.operator_from(gamma, project=False, metadata=meta)
+    return ProductConvolution(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+                              metadata=meta)
