@@ -161,8 +161,7 @@ def test_old_flat_paths_import_the_same_modules():
         a = importlib.import_module(f"napari_psfspace.core.{old}")
         b = importlib.import_module(f"napari_psfspace.core.{new}")
         assert a is b, old
-    from napari_psfspace.core.effects.nonlinearity import Nonlinearity as Old
-
     from napari_psfspace.core.diagnosis.effects.nonlinearity import Nonlinearity
+    from napari_psfspace.core.effects.nonlinearity import Nonlinearity as Old
 
     assert Old is Nonlinearity  # one class, registered once

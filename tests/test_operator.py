@@ -88,6 +88,23 @@ def test_linear_operator_wraps_apply_and_adjoint(rng):
     assert err_rmv < 1e-14 * np.abs(op.adjoint(u)).max() + 1e-300
 
 
+@pytest.mark.parametrize("n_psf", [1, 3])
+def test_data_gradient_is_the_adjoint_of_the_residual(rng, n_psf):
+    # 300 rows: the element-wise steps run split over threads (by_rows: >= 256 rows)
+    op = _full_model(rng, shape=(300, 270), n_psf=n_psf)
+    u = rng.standard_normal(op.shape)
+    y = rng.standard_normal(op.shape)
+    r = op.apply(u, workers=1) - y
+    g, value = op.data_gradient(u, y, workers=2)
+    np.testing.assert_allclose(g, op.adjoint(r, workers=1), rtol=0,
+                               atol=1e-12 * np.abs(g).max())
+    assert value == pytest.approx(float(np.vdot(r, r)), rel=1e-12)
+    # threads change nothing (float64: the same products in the same order)
+    np.testing.assert_array_equal(op.apply(u, workers=2), op.apply(u, workers=1))
+    with pytest.raises(ValueError, match="`y` of shape"):
+        op.data_gradient(u, y[:-1])
+
+
 # --------------------------------------------------------------------------- apply
 def test_stationary_limit_matches_fftconvolve(rng):
     """Constant coefficients (1x1 grid): H u == fftconvolve(u, sum_i a_i h_i, 'same')."""

@@ -72,7 +72,7 @@ def test_block_fista_solves_a_nonnegative_lasso():
         r = a @ x[0] - b
         return [a.T @ r], 0.5 * float(r @ r)
 
-    solver = BlockFista(gradient, [lambda v, t: np.maximum(v - lam * t, 0)], [big])
+    solver = BlockFista(gradient, [lambda v, t, rows: np.maximum(v - lam * t, 0)], [big])
     solver.setup([np.zeros(15)])
     assert list(solver.run(5000, 1e-12))[-1][0] < 5000  # stopped on the iterate's change
     ref, _ = nnls(a, b)
@@ -81,7 +81,7 @@ def test_block_fista_solves_a_nonnegative_lasso():
     # promote them: NEP 50), so that the FFTs run in single precision
     a32, b32 = a.astype(np.float32), b.astype(np.float32)
     solver = BlockFista(lambda x: ([a32.T @ (a32 @ x[0] - b32)], 0.0),
-                        [lambda v, t: np.maximum(v, 0)], [big])
+                        [lambda v, t, rows: np.maximum(v, 0)], [big])
     solver.setup([np.zeros(15, np.float32)])
     list(solver.run(20, 0.0))
     assert solver.finalize()[0].dtype == np.float32 and solver.z[0].dtype == np.float32
@@ -261,3 +261,14 @@ def test_sparse_weight_allows_for_the_operators_error_near_bright_sources():
                               metadata={"heldout": {"residual_mean": 0.05,
                                                     "noise_floor_mean": 0.03}})
     assert model_error_of(meta) == pytest.approx(0.04)
+
+
+def test_row_helpers_cover_every_row_once_in_order():
+    from napari_psfspace.core.common.threads import by_rows_many, map_rows
+
+    out = map_rows(lambda rows: (rows.start, rows.stop), 1000, 2, chunk=32)
+    assert out[0] == (0, 32) and out[-1] == (992, 1000)
+    assert all(a[1] == b[0] for a, b in zip(out, out[1:], strict=False))
+    a, b = np.zeros((600, 3)), np.zeros((300, 5))
+    by_rows_many([(lambda x: x.__iadd__(1), (a,)), (lambda x: x.__iadd__(2), (b,))], 2)
+    assert (a == 1).all() and (b == 2).all()

@@ -37,15 +37,15 @@ import scipy.fft
 from numpy.typing import ArrayLike, DTypeLike
 from scipy.sparse.linalg import LinearOperator
 
-from ..common.threads import by_rows
+from ..common.threads import by_rows, by_rows_many
 from .operator_fft import (
-    _accumulate_product,
     _computation_dtype,
     _conj_multiply,
     _copy_into,
     _cropped_irfft2,
     _multiply_accumulate,
     _multiply_into,
+    _subtract_into,
     check_dc,
     kernel_spectra,
     n_workers,
@@ -159,23 +159,7 @@ class ProductConvolution(PsfField):
         w = n_workers(workers)
         H, W = self._shape
         fshape = self.padded_shape()
-        spectra = self._kernel_spectra(fshape, dt)
-        maps = self.coefficient_maps(dt)
-
-        buf = np.zeros(fshape, dtype=dt)  # zero padding written once, reused
-        view = buf[:H, :W]
-        acc = None
-        for i in range(self.n_psf):
-            by_rows(_multiply_into, (maps[i], u, view), w)
-            spec = scipy.fft.rfft2(buf, workers=w)
-            if acc is None:
-                check_dc(spec, "u")
-                acc = spec
-                by_rows(_multiply_into, (acc, spectra[i], acc), w)
-            else:
-                by_rows(_multiply_accumulate, (acc, spec, spectra[i]), w)
-            del spec
-        full = _cropped_irfft2(acc, fshape, H, w)
+        full = _cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
         out = np.empty((H, W), dtype=full.dtype)
         by_rows(_copy_into, (out, full[:, :W]), w)
         return out
@@ -200,24 +184,94 @@ class ProductConvolution(PsfField):
         v, dt = self._check_image(v, "v")
         w = n_workers(workers)
         H, W = self._shape
-        fshape = self.padded_shape()
-        spectra = self._kernel_spectra(fshape, dt)
-        maps = self.coefficient_maps(dt)
-
-        buf = np.zeros(fshape, dtype=dt)
+        buf = np.zeros(self.padded_shape(), dtype=dt)
         buf[:H, :W] = v
         vhat = scipy.fft.rfft2(buf, workers=w)
         del buf
         check_dc(vhat, "v")
+        return self._adjoint_of_spectrum(vhat, dt, w)
+
+    def data_gradient(self, u: ArrayLike, y: ArrayLike, *, workers: int | None = None
+                      ) -> tuple[np.ndarray, float]:
+        """The gradient and value of the data term ``||H u - y||^2 / 2``, fused.
+
+        ``H^T (H u - y)`` and ``||H u - y||^2`` as :meth:`adjoint` of :meth:`apply`
+        minus ``y`` would give them, with the residual formed straight in the padded
+        buffer of the adjoint's transform (no intermediate image): what a deblurring
+        iteration needs.
+
+        Parameters
+        ----------
+        u : array_like, shape (H, W)
+            Image; same dtype rules as :meth:`apply`.
+        y : array_like, shape (H, W)
+            Data, in the units of ``H u``.
+        workers : int, optional
+            Threads for ``scipy.fft``; default ``os.cpu_count()``.
+
+        Returns
+        -------
+        gradient : ndarray, shape (H, W), the dtype of :meth:`apply`'s result
+        value : float
+            ``||H u - y||^2`` (summed in float64 over row chunks).
+        """
+        u, dt = self._check_image(u, "u")
+        y = np.asarray(y)
+        if y.shape != self._shape:
+            raise ValueError(f"model was estimated for an image of shape {self._shape}, "
+                             f"got `y` of shape {y.shape}")
+        w = n_workers(workers)
+        H, W = self._shape
+        fshape = self.padded_shape()
+        full = _cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
+        buf = np.zeros(fshape, dtype=dt)
+        by_rows(_subtract_into, (full[:, :W], y, buf[:H, :W]), w)
+        del full
+        value = sum(float(np.vdot(c, c)) for c in np.array_split(buf[:H], 16))
+        vhat = scipy.fft.rfft2(buf, workers=w)
+        del buf
+        check_dc(vhat, "y")
+        return self._adjoint_of_spectrum(vhat, dt, w), value
+
+    def _forward_spectrum(self, u: np.ndarray, dt: np.dtype, w: int) -> np.ndarray:
+        """``sum_i K_i . rfft2(alpha_i . u)`` on the padded shape (complex)."""
+        H, W = self._shape
+        fshape = self.padded_shape()
+        spectra = self._kernel_spectra(fshape, dt)
+        maps = self.coefficient_maps(dt)
+        buf = np.zeros(fshape, dtype=dt)  # zero padding written once, reused
+        view = buf[:H, :W]
+        by_rows(_multiply_into, (maps[0], u, view), w)
+        acc = scipy.fft.rfft2(buf, workers=w)
+        check_dc(acc, "u")
+        pending = (_multiply_into, (acc, spectra[0], acc))  # the last spectrum's product
+        for i in range(1, self.n_psf):
+            # this kernel's map product and the last spectrum's product: one hand-over
+            by_rows_many([(_multiply_into, (maps[i], u, view)), pending], w)
+            spec = scipy.fft.rfft2(buf, workers=w)
+            pending = (_multiply_accumulate, (acc, spec, spectra[i]))
+        by_rows(*pending, w)
+        return acc
+
+    def _adjoint_of_spectrum(self, vhat: np.ndarray, dt: np.dtype, w: int) -> np.ndarray:
+        """``sum_i alpha_i . irfft2(conj(K_i) . vhat)`` cropped to the image."""
+        H, W = self._shape
+        fshape = self.padded_shape()
+        spectra = self._kernel_spectra(fshape, dt)
+        maps = self.coefficient_maps(dt)
         out = np.empty((H, W), dtype=dt)
         prod = np.empty_like(vhat)
+        by_rows(_conj_multiply, (spectra[0], vhat, prod), w)
         for i in range(self.n_psf):
-            by_rows(_conj_multiply, (spectra[i], vhat, prod), w)
-            r = _cropped_irfft2(prod, fshape, H, w)
+            r = _cropped_irfft2(prod, fshape, H, w)[:, :W]  # prod is free again
+            # this kernel's accumulation, and the next kernel's product, in one hand-over
             if i == 0:
-                by_rows(_multiply_into, (maps[i], r[:, :W], out), w)
-            else:
-                by_rows(_accumulate_product, (out, maps[i], r[:, :W]), w)
+                tasks = [(_multiply_into, (maps[i], r, out))]
+            else:  # out += alpha_i r, in r's buffer (no temporary)
+                tasks = [(_multiply_accumulate, (out, r, maps[i]))]
+            if i + 1 < self.n_psf:
+                tasks.append((_conj_multiply, (spectra[i + 1], vhat, prod)))
+            by_rows_many(tasks, w)
             del r
         return out
 

@@ -31,9 +31,8 @@ def _conj_multiply(k: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     np.multiply(out, v, out=out)
 
 
-def _accumulate_product(acc: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
-    """``acc += a * b`` (one temporary per block)."""
-    acc += a * b
+def _subtract_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    np.subtract(a, b, out=out, casting="unsafe")
 
 
 def _cropped_irfft2(spec: np.ndarray, fshape: tuple[int, int], n_rows: int, workers: int):

@@ -107,6 +107,9 @@ class SmoothGrid:
         self.ry = _interp_matrix(self.nodes[0], h).astype(np.float32).tocsr()  # (H, ny)
         self.rx = _interp_matrix(self.nodes[1], w).astype(np.float32).tocsr()  # (W, nx)
         self.ryt, self.rxt = self.ry.T.tocsr(), self.rx.T.tocsr()
+        # synthesis as dense products (BLAS): 5 ms against 30 ms sparse at 2048 x 2048
+        self._ry_dense = self.ry.toarray()
+        self._rxt_dense = np.ascontiguousarray(self.rxt.toarray())  # (nx, W)
         self.step = float(max((h - 1) / (ny - 1), (w - 1) / (nx - 1)))
 
     @property
@@ -115,8 +118,8 @@ class SmoothGrid:
 
     def synthesis(self, w: np.ndarray) -> np.ndarray:
         """``U w``: (ny, nx) -> (H, W)."""
-        a = self.ry @ w  # (H, nx)
-        return np.ascontiguousarray((self.rx @ a.T).T)
+        a = self._ry_dense @ np.asarray(w, np.float32)  # (H, nx)
+        return a @ self._rxt_dense
 
     def adjoint(self, g: np.ndarray) -> np.ndarray:
         """``U^T g``: (H, W) -> (ny, nx)."""
@@ -243,24 +246,31 @@ def iter_deblur(
 
     def gradient(x):
         u1, w = x
-        r = operator.apply(u1 + grid.synthesis(w), workers=workers)
-        r -= y
-        g = operator.adjoint(r, workers=workers)
+        z = grid.synthesis(w)
+        z += u1
+        g, value = operator.data_gradient(z, y, workers=workers)
         lw = grid.laplacian(w)
-        value = 0.5 * float(np.vdot(r, r)) + pen * float(np.vdot(lw, lw))
+        value = 0.5 * value + pen * float(np.vdot(lw, lw))
         return [g, grid.adjoint(g) + (2.0 * pen) * grid.laplacian(lw)], value
 
-    def prox_sparse(v, t):  # soft threshold at t gamma1(x), then >= 0
-        v -= np.float32(t) * gmap
+    thresholds = {}
+
+    def prox_sparse(v, t, rows):  # soft threshold at t gamma1(x), then >= 0
+        if t not in thresholds:  # the step is fixed: scale the map once
+            thresholds[t] = gmap * np.float32(t)
+        v -= thresholds[t][rows]
         np.maximum(v, 0, out=v)
         return v
 
-    def prox_smooth(v, t):
+    def prox_smooth(v, t, rows):
         np.maximum(v, 0, out=v)
         return v
+
+    def penalty_sparse(v, rows):
+        return float(np.vdot(gmap[rows], np.abs(v)))
 
     solver = BlockFista(gradient, [prox_sparse, prox_smooth], lips,
-                        penalty=lambda x: float(np.vdot(gmap, np.abs(x[0]))))
+                        penalty=[penalty_sparse, None], workers=workers)
     # start: no source, the background at the image's level seen through H
     level = max(float(np.median(y)), 0.0)
     solver.setup([np.zeros(y.shape, np.float32),
