@@ -275,7 +275,8 @@ def _cmd_deblur(args) -> int:
                              "the model is used as it is")
         op = load_operator(args.model)
     gen = iter_deblur(image, op, sparse_weight=args.sparse_weight,
-                      smooth_weight=args.smooth_weight, max_iter=args.max_iter)
+                      smooth_weight=args.smooth_weight, max_iter=args.max_iter,
+                      debias=args.refit_amplitudes)
     res = run_with_progress(gen, None if args.quiet else _progress_printer())
     out = Path(args.output)
     write_tiff(out, res.image, pixel_size=info.pixel_size,
@@ -446,6 +447,10 @@ def build_parser() -> argparse.ArgumentParser:
     db.add_argument("--sparse-weight", type=float, help="gamma1 (default: from the noise)")
     db.add_argument("--smooth-weight", type=float, help="gamma2 (default: 0.05 step^4)")
     db.add_argument("--max-iter", type=int, default=500)
+    db.add_argument("--refit-amplitudes", action="store_true",
+                    help="then refit each cluster of points' flux by least squares (the l1 "
+                         "term shrinks it; also raises spurious points: see deblur's "
+                         "`debias`)")
     db.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     db.set_defaults(func=_cmd_deblur)
 

@@ -85,13 +85,18 @@ class DeblurWidget(Container):
         self.smooth_weight = FloatSpinBox(label="smooth weight", min=0.0, max=1e12,
                                           value=1e3, visible=False)
         self.max_iter = SpinBox(label="iterations at most", min=1, max=100000, value=500)
+        self.refit = CheckBox(value=False, text="refit the points' flux")
+        self.refit.tooltip = ("After the deblurring, one least-squares scale per cluster of "
+                              "points: their flux without the l1 shrinkage (spurious "
+                              "points rise too)")
         self.run_button = PushButton(text="Deblur")
         self.task = CoreTask(self.run_button)
         self.result = Label(value="")
         self.result.native.setWordWrap(True)
         super().__init__(widgets=[
             self.image, self.source, self.path, self.in_viewer, self.points, self.auto,
-            self.sparse_weight, self.smooth_weight, self.max_iter, self.run_button,
+            self.sparse_weight, self.smooth_weight, self.max_iter, self.refit,
+            self.run_button,
             self.task, self.result])
         self.source.changed.connect(self._on_source)
         self.auto.changed.connect(self._on_auto)
@@ -156,7 +161,7 @@ class DeblurWidget(Container):
             "sparse_weight": float(self.sparse_weight.value),
             "smooth_weight": float(self.smooth_weight.value)}
         gen = _identify_and_deblur(plane, model, beads, max_iter=int(self.max_iter.value),
-                                   **weights)
+                                   debias=bool(self.refit.value), **weights)
 
         def on_result(got) -> None:
             res, op, note = got

@@ -55,6 +55,8 @@ from .fista import BlockFista
 
 #: ``gamma2 = SMOOTH_WEIGHT * grid_step**4`` by default.
 SMOOTH_WEIGHT = 0.05
+#: Iterations at most of the amplitudes' refit (``debias``).
+DEBIAS_MAX_ITER = 100
 #: Margin on the power-iteration estimate of ``||H||^2``.
 NORM_MARGIN = 1.2
 
@@ -70,7 +72,8 @@ class Deblurred:
     smooth : ndarray of shape (H, W), float32
         ``u2``: the smooth background (non-negative).
     objective : list of float
-        The objective at each iteration's extrapolated point.
+        The objective at each iteration's extrapolated point (the sparse + smooth
+        problem; the refit of the amplitudes is not in it).
     iterations : int
     converged : bool
         The objective fell by less than ``tol`` (relatively) over the last 10 iterations
@@ -78,7 +81,9 @@ class Deblurred:
     parameters : dict
         ``sparse_weight`` (the median of its map), ``model_error``, ``smooth_weight``,
         ``grid_step``, ``noise_sd``, ``lipschitz``, ``tol``, ``max_iter``, ``seconds``,
-        ``restarts``.
+        ``restarts``, ``debias``; after a refit of the amplitudes also
+        ``debias_iterations``, ``debias_converged`` and ``amplitude_gain`` (the sparse
+        part's total after the refit over before).
     """
 
     sparse: np.ndarray
@@ -208,6 +213,7 @@ def iter_deblur(
     model_error: float | None = None,
     max_iter: int = 500,
     tol: float = 1e-4,
+    debias: bool = False,
     workers: int | None = None,
 ) -> Generator[Progress, None, Deblurred]:
     """Generator form of :func:`deblur`: yields progress between iterations (stop it
@@ -275,31 +281,90 @@ def iter_deblur(
     level = max(float(np.median(y)), 0.0)
     solver.setup([np.zeros(y.shape, np.float32),
                   np.full(grid.grid_shape, level, np.float32)])
-    converged = False
+    converged = yield from _iterate(solver, max_iter, tol, "deblur")
+    u1, w = solver.finalize()
+    params = {"sparse_weight": g1, "model_error": eps, "smooth_weight": g2,
+              "grid_step": grid.step,
+              "noise_sd": sigma, "lipschitz": lips, "tol": float(tol),
+              "max_iter": int(max_iter), "restarts": solver.restarts, "debias": bool(debias)}
+    objective, iterations = solver.objective, solver.iterations
+    if debias and u1.any():
+        u1, w = yield from _refit_amplitudes(u1, w, gradient, prox_smooth, lips, tol,
+                                             min(int(max_iter), DEBIAS_MAX_ITER), workers,
+                                             params)
+    u2 = grid.synthesis(w)
+    params["seconds"] = round(time.perf_counter() - t0, 3)
+    yield Progress("deblur", 1.0, f"{iterations} iterations"
+                   + (f" + {params['debias_iterations']} to refit the amplitudes"
+                      if "debias_iterations" in params else ""))
+    return Deblurred(u1.astype(np.float32), u2.astype(np.float32), objective,
+                     iterations, converged, params)
+
+
+def _refit_amplitudes(u1: np.ndarray, w: np.ndarray, gradient: Callable,
+                      prox_smooth: Callable, lips: list[float], tol: float, max_iter: int,
+                      workers: int | None, params: dict
+                      ) -> Generator[Progress, None, tuple[np.ndarray, np.ndarray]]:
+    """Refit one scale per cluster of points of ``u1`` (8-connected), the background
+    free: ``u1 = sum_c v_c phi_c`` with ``phi_c`` the cluster's normalised shape.
+
+    The l1 term shrinks every amplitude by about ``gamma1 / ||h||^2``. Refitting every
+    pixel of the support instead was ill-conditioned: neighbouring pixels seen through
+    the blur are nearly the same column of ``H``, and the flux moved between them (on
+    the tests' scene: precision 0.95 -> 0.84, spurious peaks as bright as the points).
+    One scale per cluster keeps each cluster's shape; the shapes have disjoint supports
+    and unit norm, so ``||H Phi||^2 <= ||H||^2``: the sparse block's step holds.
+    """
+    labels, n = ndi.label(u1 > 0, structure=np.ones((3, 3), bool))
+    idx = np.flatnonzero(labels)
+    lab = labels.ravel()[idx] - 1
+    vals = u1.ravel()[idx].astype(np.float64)
+    norms = np.sqrt(np.bincount(lab, weights=vals ** 2, minlength=n))
+    phi = (vals / norms[lab]).astype(np.float32)
+
+    def points(v: np.ndarray) -> np.ndarray:
+        out = np.zeros(u1.shape, np.float32)
+        out.ravel()[idx] = phi * v[lab]
+        return out
+
+    def refit_gradient(x):
+        v, wb = x
+        (g, gw), value = gradient([points(v), wb])
+        gv = np.bincount(lab, weights=phi * g.ravel()[idx], minlength=n)
+        return [gv.astype(np.float32), gw], value
+
+    def prox_scale(v, t, rows):
+        np.maximum(v, 0, out=v)
+        return v
+
+    refit = BlockFista(refit_gradient, [prox_scale, prox_smooth], lips,
+                       penalty=[lambda v, rows: 0.0, None], workers=workers)
+    refit.setup([norms.astype(np.float32), w])
+    params["debias_converged"] = yield from _iterate(refit, max_iter, tol, "debias")
+    params["debias_iterations"] = refit.iterations
+    params["debias_clusters"] = int(n)
+    v, w = refit.finalize()
+    new = points(v)
+    params["amplitude_gain"] = float(new.sum() / max(float(u1.sum()), 1e-30))
+    return new, w
+
+
+def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str
+             ) -> Generator[Progress, None, bool]:
+    """Run ``solver``, yielding progress every 5 iterations; returns whether it
+    converged."""
     run = solver.run(max_iter, tol)
     while True:
         try:
             it, change = next(run)
         except StopIteration as done:
-            converged = bool(done.value)
-            break
+            return bool(done.value)
         if it == 1 or it % 5 == 0:
             obj = solver.objective
             fall = (obj[-11] - obj[-1]) / abs(obj[-1]) if len(obj) > 10 else float("nan")
-            yield Progress("deblur", it / max_iter,
-                           f"iteration {it}: objective fell {fall:.1e} over 10 iterations "
-                           f"(stops below {tol:g}); iterate change {change:.1e}")
-    u1, w = solver.finalize()
-    u2 = grid.synthesis(w)
-    params = {"sparse_weight": g1, "model_error": eps, "smooth_weight": g2,
-              "grid_step": grid.step,
-              "noise_sd": sigma, "lipschitz": lips, "tol": float(tol),
-              "max_iter": int(max_iter), "restarts": solver.restarts,
-              "seconds": round(time.perf_counter() - t0, 3)}
-    yield Progress("deblur", 1.0, f"{solver.iterations} iterations")
-    return Deblurred(u1.astype(np.float32), u2.astype(np.float32), solver.objective,
-                     solver.iterations, converged, params)
-
+            yield Progress(stage, it / max_iter,
+                           f"{stage} iteration {it}: objective fell {fall:.1e} over 10 "
+                           f"iterations (stops below {tol:g}); iterate change {change:.1e}")
 
 def deblur(
     image: np.ndarray,
@@ -311,6 +376,7 @@ def deblur(
     model_error: float | None = None,
     max_iter: int = 500,
     tol: float = 1e-4,
+    debias: bool = False,
     workers: int | None = None,
     progress: Callable[[Progress], None] | None = None,
 ) -> Deblurred:
@@ -340,6 +406,16 @@ def deblur(
         Stop when the objective falls by less than this (relatively) over 10 iterations.
         At 1e-4 the points found no longer change (on 512 x 512 scenes: recall 0.933
         after 150 iterations, 0.938 after 500).
+    debias : bool
+        Then refit one scale per cluster of points (8-connected), by least squares with
+        the background free (at most ``DEBIAS_MAX_ITER`` iterations, same ``tol``). The
+        l1 term shrinks each amplitude by about ``gamma1 / ||h||^2``: with the exact
+        operator, 500-2000-photon points keep a median 0.72-0.79 of their flux, 1.05-1.08
+        after the refit. Off by default: the refit also raises every spurious point
+        the l1 term let through (noise that correlates with the PSF) to about the
+        detection level, 240-445 photons on the tests' scene against 16-60 before, so
+        that amplitudes no longer tell them from real points. For photometry of points
+        known to be real; no point is added or removed.
     workers : int, optional
         FFT threads.
     progress : callable, optional
@@ -353,4 +429,4 @@ def deblur(
     return run_with_progress(iter_deblur(
         image, operator, sparse_weight=sparse_weight, smooth_weight=smooth_weight,
         grid_step=grid_step, model_error=model_error, max_iter=max_iter, tol=tol,
-        workers=workers), progress)
+        debias=debias, workers=workers), progress)
