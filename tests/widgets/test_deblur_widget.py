@@ -31,8 +31,10 @@ def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
     assert w.in_viewer.value is sub
     w.points.value = v.layers["my beads"]
     w.max_iter.value = 60
+    w.refit.value = True  # the points' flux refitted after the deblurring
     w.run_button.clicked()
     wait_task(qtbot, w.task, timeout=120_000)
+    assert w.last.parameters["debias"] and w.last.parameters["debias_iterations"] > 0
     sparse, smooth = v.layers[SPARSE], v.layers[SMOOTH]
     assert sparse.data.shape == image.shape and np.allclose(sparse.scale, (0.065, 0.065))
     assert sparse.data.min() >= 0 and smooth.data.min() >= 0
