@@ -101,6 +101,14 @@ def test_data_gradient_is_the_adjoint_of_the_residual(rng, n_psf):
     assert value == pytest.approx(float(np.vdot(r, r)), rel=1e-12)
     # threads change nothing (float64: the same products in the same order)
     np.testing.assert_array_equal(op.apply(u, workers=2), op.apply(u, workers=1))
+    # censored pixels (saturated: y only a lower bound) count only where H u < y
+    cens = np.nonzero(rng.random(op.shape) < 0.05)
+    rc = r.copy()
+    rc[cens] = np.minimum(rc[cens], 0)
+    g, value = op.data_gradient(u, y, censored=cens, workers=2)
+    np.testing.assert_allclose(g, op.adjoint(rc, workers=1), rtol=0,
+                               atol=1e-12 * np.abs(g).max())
+    assert value == pytest.approx(float(np.vdot(rc, rc)), rel=1e-12)
     with pytest.raises(ValueError, match="`y` of shape"):
         op.data_gradient(u, y[:-1])
 

@@ -191,8 +191,9 @@ class ProductConvolution(PsfField):
         check_dc(vhat, "v")
         return self._adjoint_of_spectrum(vhat, dt, w)
 
-    def data_gradient(self, u: ArrayLike, y: ArrayLike, *, workers: int | None = None
-                      ) -> tuple[np.ndarray, float]:
+    def data_gradient(self, u: ArrayLike, y: ArrayLike, *,
+                      censored: tuple[np.ndarray, np.ndarray] | None = None,
+                      workers: int | None = None) -> tuple[np.ndarray, float]:
         """The gradient and value of the data term ``||H u - y||^2 / 2``, fused.
 
         ``H^T (H u - y)`` and ``||H u - y||^2`` as :meth:`adjoint` of :meth:`apply`
@@ -206,6 +207,10 @@ class ProductConvolution(PsfField):
             Image; same dtype rules as :meth:`apply`.
         y : array_like, shape (H, W)
             Data, in the units of ``H u``.
+        censored : (rows, cols) of int arrays, optional
+            Pixels where ``y`` is only a lower bound of ``H u`` (saturated ones): their
+            residual counts only where ``H u < y`` (a one-sided quadratic, still convex
+            with the same Lipschitz bound).
         workers : int, optional
             Threads for ``scipy.fft``; default ``os.cpu_count()``.
 
@@ -227,6 +232,8 @@ class ProductConvolution(PsfField):
         buf = np.zeros(fshape, dtype=dt)
         by_rows(_subtract_into, (full[:, :W], y, buf[:H, :W]), w)
         del full
+        if censored is not None:
+            buf[censored] = np.minimum(buf[censored], 0)
         value = sum(float(np.vdot(c, c)) for c in np.array_split(buf[:H], 16))
         vhat = scipy.fft.rfft2(buf, workers=w)
         del buf
