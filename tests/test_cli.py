@@ -114,3 +114,25 @@ def test_few_beads_say_the_model_is_shift_invariant(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "The model is shift-invariant (one PSF for the whole field)" in out
     assert "2 usable beads: too few" in out
+
+
+def test_deblur_with_a_model_writes_the_parts_and_names_saturated_pixels(workdir, capsys):
+    d = workdir
+    if not (d / "model.npz").exists():
+        radius = json.loads(tifffile.TiffFile(d / "beads.tif").imagej_metadata["Info"])[
+            "psf_radius"]
+        assert main(["estimate", str(d / "beads.tif"), "-o", str(d / "model.npz"),
+                     "--psf-radius", str(radius), "-q"]) == 0
+    img = tifffile.imread(d / "beads.tif").astype(float)
+    # a 16-bit camera whose brightest pixels clip: the top 0.01 % at 65535
+    img16 = np.clip(img * 65535 / np.percentile(img, 99.99), 0, 65535).astype(np.uint16)
+    tifffile.imwrite(d / "clipped.tif", img16)
+    capsys.readouterr()
+    assert main(["deblur", str(d / "clipped.tif"), "--model", str(d / "model.npz"),
+                 "-o", str(d / "out.tif"), "--parts", "--max-iter", "40", "-q"]) == 0
+    out = capsys.readouterr().out
+    n = int((img16 == 65535).sum())
+    assert n > 0 and f"{n} saturated pixels (>= 65535)" in out
+    for name in ("out.tif", "out.sparse.tif", "out.smooth.tif"):
+        part = tifffile.imread(d / name)
+        assert part.shape == (384, 384) and np.isfinite(part).all() and part.min() >= 0

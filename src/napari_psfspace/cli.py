@@ -291,7 +291,9 @@ def _cmd_deblur(args) -> int:
     print(f"wrote {', '.join(written)}: {res.iterations} iterations "
           f"({'converged' if res.converged else 'max_iter reached'}), sparse weight "
           f"{p['sparse_weight']:.3g}, smooth weight {p['smooth_weight']:.3g}, noise sd "
-          f"{p['noise_sd']:.3g}, {time.perf_counter() - t0:.1f} s")
+          f"{p['noise_sd']:.3g}, {time.perf_counter() - t0:.1f} s"
+          + (f"; {p['saturated_pixels']} saturated pixels (>= {p['saturation']:g}) fitted "
+             "as lower bounds" if p["saturated_pixels"] else ""))
     return 0
 
 
