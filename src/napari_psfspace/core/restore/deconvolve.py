@@ -235,10 +235,10 @@ def iter_deblur(
     grid = SmoothGrid(y.shape, step)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
-    ignore = np.nonzero(y >= saturation) if saturation is not None else None
-    n_saturated = 0 if ignore is None else len(ignore[0])
+    censored = np.nonzero(y >= saturation) if saturation is not None else None
+    n_saturated = 0 if censored is None else len(censored[0])
     if n_saturated == 0:
-        ignore = None
+        censored = None
     elif n_saturated > 0.01 * y.size:
         raise ValueError(f"`image` has {n_saturated} pixels at or above the saturation level "
                          f"{saturation:g} ({100 * n_saturated / y.size:.1f} %, expected at "
@@ -267,7 +267,7 @@ def iter_deblur(
         u1, w = x
         z = grid.synthesis(w)
         z += u1
-        g, value = operator.data_gradient(z, y, censored=ignore, workers=workers)
+        g, value = operator.data_gradient(z, y, censored=censored, workers=workers)
         lw = grid.laplacian(w)
         value = 0.5 * value + pen * float(np.vdot(lw, lw))
         return [g, grid.adjoint(g) + (2.0 * pen) * grid.laplacian(lw)], value
@@ -379,6 +379,7 @@ def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str
             yield Progress(stage, it / max_iter,
                            f"{stage} iteration {it}: objective fell {fall:.1e} over 10 "
                            f"iterations (stops below {tol:g}); iterate change {change:.1e}")
+
 
 def deblur(
     image: np.ndarray,
