@@ -8,6 +8,7 @@ import tifffile
 
 from napari_psfspace.cli import main
 from napari_psfspace.core.operator import load_operator
+from tolerances import product_convolution_errors, sum_error
 
 
 @pytest.fixture(scope="module")
@@ -40,14 +41,17 @@ def test_estimate_psf_apply(workdir, capsys):
     assert main(["psf", str(d / "model.npz"), "--at", "100", "200", "-o",
                  str(d / "psf.tif")]) == 0
     psf = tifffile.imread(d / "psf.tif")
-    assert psf.shape == (op.psf_size,) * 2 and abs(psf.sum() - 1) < 1e-5
+    # float32 values of a sum-1 PSF, summed in float32 (tests/tolerances.py)
+    assert psf.shape == (op.psf_size,) * 2 and abs(psf.sum() - 1) <= sum_error(psf)
 
     assert main(["apply", str(d / "model.npz"), str(d / "beads.tif"), "-o",
                  str(d / "blurred.tif")]) == 0
     blurred = tifffile.imread(d / "blurred.tif")
     image = tifffile.imread(d / "beads.tif").astype(np.float32)
     assert blurred.dtype == np.float32
-    np.testing.assert_allclose(blurred, op.apply(image), rtol=1e-5, atol=1e-3)
+    # two float32 runs of H u, each within the bound of the exact one
+    ref = op.apply(image)
+    assert np.abs(blurred - ref).max() <= 2 * product_convolution_errors(op, image, image)[0]
 
 
 def test_errors_are_one_line_messages(workdir, capsys):
