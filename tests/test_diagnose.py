@@ -6,6 +6,7 @@ Effects with a module of their own are tested in ``test_effect_<name>.py``.
 import numpy as np
 import pytest
 
+from diagnosis_checks import assert_figures_chain
 from napari_psfspace import simulate_beads
 from napari_psfspace.core.diagnose import diagnose
 from napari_psfspace.core.effects import REGISTRY, Effect
@@ -18,6 +19,7 @@ def test_effect_free_image_adds_nothing():
     assert d.added == []
     assert d.error_after == d.error_before
     assert d.steps[0].effect is None
+    assert_figures_chain(d)
 
 
 def test_hot_pixels_are_masked_before_the_loop():
@@ -58,10 +60,11 @@ def test_merged_companions_are_fitted_jointly():
                                   effects={"neighbours": 0.3})
     d = diagnose(image, psf_radius=truth.psf_radius)
     assert "neighbours" in d.added
+    assert_figures_chain(d)
     assert d.context.beads.hot_pixels is not None  # the bead table keeps what it masked
     step = next(s for s in d.steps if s.effect == "neighbours")
     # measured: 0.040 -> 0.010 on the same beads (chi2/dof 10.7 -> 1.9)
-    assert step.paired_after < 0.5 * step.paired_before
+    assert step.error_after < 0.5 * step.error_before
     # the companions found lie near true ones (within 2 px)
     true = np.asarray(truth.effects["companion_positions"])
     found = np.asarray(step.params["companions"])
@@ -75,10 +78,11 @@ def test_fixed_pattern_offsets_are_found_and_subtracted():
     d = diagnose(image, psf_radius=truth.psf_radius,
                  effects=["fixed_pattern", "basis_size", "field_smoothing"])
     assert "fixed_pattern" in d.added
+    assert_figures_chain(d)
     step = next(s for s in d.steps if s.effect == "fixed_pattern")
     cmp = step.params["_comparison"]
     # measured: error 0.0285 -> 0.0251, excess chi2/dof -31 % or more
-    assert step.paired_after < step.paired_before
+    assert step.error_after < step.error_before
     assert cmp["chi2_improvement"] > 0.15
     # the subtracted offsets are the camera's (up to a constant)
     rows = np.asarray(d.context.params["fixed_pattern"]["rows"])

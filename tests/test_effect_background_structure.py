@@ -43,7 +43,7 @@ def test_structure_is_found_and_lowers_the_error(structured):
     # measured: 0.0501 -> 0.0130 on the beads both judge (-74 %; before faint blobs
     # stopped counting as a bright bead's neighbours: 0.180 -> 0.0165; oracle, true map
     # subtracted and beads re-detected: 0.0106)
-    assert step.paired_after < 0.35 * step.paired_before
+    assert step.error_after < 0.35 * step.error_before
     assert d.error_after < 0.03
 
 

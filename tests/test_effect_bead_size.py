@@ -59,8 +59,8 @@ def test_bead_sizes_are_found_and_lower_the_error(sized):
     # measured: 0.0415 -> 0.022 (0.054 -> 0.022 before the noise-aware estimate of issue
     # 9, whose plain model absorbs part of the spread; same seed without the effect:
     # 0.013; with the true diameters: 0.021); bead_width z 9.7 before
-    assert step.paired_before > 0.035
-    assert step.paired_after < 0.03
+    assert step.error_before > 0.035
+    assert step.error_after < 0.03
     assert d.analysis_before.tests["bead_width"].significant
     # the parameters are small and JSON-ready
     json.dumps(step.params)

@@ -20,7 +20,7 @@ def test_a_basis_too_small_is_enlarged(strong):
     step = d.steps[1]
     assert step.params["n_psf"] == 3
     # measured: 0.0878 -> 0.0486 (the automatic basis: 0.0248)
-    assert step.paired_after < 0.7 * step.paired_before
+    assert step.error_after < 0.7 * step.error_before
 
 
 def test_a_field_smoothed_too_much_is_relaxed(strong):
@@ -31,4 +31,4 @@ def test_a_field_smoothed_too_much_is_relaxed(strong):
     step = next(s for s in d.steps if s.effect == "field_smoothing")
     assert step.params["smoothing"] == pytest.approx(1.0)
     # measured: 0.0524 -> 0.0346
-    assert step.paired_after < 0.8 * step.paired_before
+    assert step.error_after < 0.8 * step.error_before

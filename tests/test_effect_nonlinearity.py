@@ -30,7 +30,7 @@ def test_compressive_response_is_found_and_lowers_the_error(c):
     assert "nonlinearity" in d.added
     step = next(s for s in d.steps if s.effect == "nonlinearity")
     # measured: 0.0020 -> 0.0017 (-12 %), excess chi2/dof -51 %
-    assert step.paired_after < 0.93 * step.paired_before
+    assert step.error_after < 0.93 * step.error_before
     # the fitted coefficient, expressed against the recorded maximum, is near the truth:
     # c_true * x_ref / (e_ref * gain) = 0.21; measured 0.16
     x_ref = step.params["x_ref_adu"]

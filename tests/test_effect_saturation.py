@@ -17,10 +17,10 @@ def test_saturation_is_found_and_lowers_the_error_to_the_unsaturated_level():
     assert step.params["level"] == 3000
     assert step.params["filled_beads"] >= 10
     # measured: 0.0233 -> 0.0132; the same field without clipping: 0.0132
-    assert step.paired_after < 0.7 * step.paired_before
+    assert step.error_after < 0.7 * step.error_before
     clean, t = simulate_beads((640, 640), 70, aberrations="moderate", seed=0)
     base = diagnose(clean, psf_radius=t.psf_radius, effects=[])
-    assert step.paired_after < 1.15 * base.error_before
+    assert step.error_after < 1.15 * base.error_before
     # the model never sees a clipped value: filled pixels are at or above the level
     ctx = d.context
     clipped = image >= 3000

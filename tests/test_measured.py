@@ -7,6 +7,7 @@ GPL-3.0); HC PL APO 100x/1.40 oil, pixel 44.35 nm, z step 100 nm.
 import numpy as np
 import pytest
 
+from diagnosis_checks import assert_figures_chain
 from napari_psfspace.core.estimate import iter_estimate, run_with_progress
 from napari_psfspace.io import best_focus_index, read_image
 
@@ -70,10 +71,11 @@ def test_sp8_diagnosis_traces_the_residual(sp8):
     for name in ("neighbours", "bead_size"):
         step = next(s for s in d.steps if s.effect == name)
         # measured: 0.0413 -> 0.0333 (neighbours), 0.0333 -> 0.0280 (bead size)
-        assert step.paired_after < 0.9 * step.paired_before
+        assert step.error_after < 0.9 * step.error_before
         assert step.p_no_drop <= 0.005
     assert d.error_after < 0.75 * d.error_before
     assert d.error_after > d.noise_floor  # and it says what is left: not at the floor
+    assert_figures_chain(d)
 
 
 # --------------------------------------------------------------------------- every set
@@ -149,9 +151,5 @@ def test_astigmatic_8_bit_diagnosis_numbers_agree(shared_data):
     d = diagnose(image, psf_radius=10)
     assert 0.5 < d.chi2_before < 5  # measured 1.25 (it was 1.4e6 on another 8-bit stack)
     assert d.noise_floor > 1e-3
-    current = d.steps[0].error_after
-    for s in d.steps[1:]:
-        assert s.error_before == current
-        current = s.error_after if s.accepted else current
-    assert d.error_after == current
+    assert_figures_chain(d)
     assert d.error_after <= d.error_before

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from diagnosis_checks import assert_figures_chain
 from napari_psfspace import simulate_beads
 from napari_psfspace.core.diagnose import diagnose
 from napari_psfspace.report import (
@@ -99,12 +100,17 @@ def test_markdown_says_what_was_found(hot):
     for s in d.steps[1:]:
         assert f"| {s.effect} |" in text
     found = text.split("## What was found")[1].split("## ")[0]
+    # the verdict first: whether the model explains its own held-out beads
+    assert found.strip().splitlines()[0] == f"**{d.verdict.headline}**"
     if d.added:
         for name in d.added:
             assert f"**{name}**" in found
         assert f"{d.error_before:.4g} -> {d.error_after:.4g}" in found
+    elif d.verdict.level == "not explained":
+        assert "No effect was added" in found and "No effect was found" not in found
     else:
         assert "No effect was found" in found
+    assert_figures_chain(d)
     assert "noise floor" in found and f"{d.noise_floor:.4g}" in found
     assert d.noise_source in text
     for name in FIGURES:

@@ -229,12 +229,17 @@ def steps_table(diagnosis) -> list[list[str]]:
             continue
         cmp = (s.params or {}).get("_comparison") or {}
         chi2_drop = cmp.get("chi2_improvement")
-        n = cmp.get("n_beads")
+        n = s.n_beads
+        if "_error" in (s.params or {}):
+            drop = f"not applied ({s.params['_error']})"
+        elif "note" in cmp or not math.isfinite(s.improvement):
+            drop = cmp.get("note", "not compared")
+        else:
+            drop = f"{_num(100 * s.improvement, '.1f')} % ({n} beads)"
         rows.append([s.effect, _num(s.evidence, ".2f"), ", ".join(s.tests) or "-",
                      f"{_num(s.error_before)} -> {_num(s.error_after)}",
                      f"{_num(s.chi2_before, '.3g')} -> {_num(s.chi2_after, '.3g')}",
-                     f"{_num(100 * s.improvement, '.1f')} %"
-                     + (f" ({n} beads)" if n is not None else ""),
+                     drop,
                      _num(s.p_no_drop, ".3g"),
                      "" if chi2_drop is None else f"{_num(100 * chi2_drop, '.1f')} %",
                      _num(cmp["chi2_p_no_drop"], ".3g") if "chi2_p_no_drop" in cmp else "",
@@ -246,19 +251,26 @@ def steps_table(diagnosis) -> list[list[str]]:
 
 
 def summary_text(diagnosis) -> str:
-    """Two or three lines: what was added, the held-out error before -> after, the floor."""
+    """A few lines: the verdict, what was added, the held-out error before -> after and
+    the floor."""
     d = diagnosis
-    added = ", ".join(d.added) if d.added else "nothing (no effect was found)"
+    v = d.verdict
+    if d.added:
+        added = ", ".join(d.added)
+    elif v.level != "not explained":
+        added = "nothing (no effect was found)"
+    else:
+        added = "nothing (no candidate effect lowered the error)"
     hot = (f"{len(d.hot_pixels)} hot pixel(s) masked (narrower than the optics can form)\n"
            if len(d.hot_pixels) else "")
     kind = d.context.noise.kind
     assumed = ("" if kind in ("camera", "photon transfer") else
                f"\nnoise model assumed ({kind}: photon transfer was not possible): the floor "
                "and chi2/dof are only indicative")
-    return (f"{hot}added: {added}\n"
-            f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} "
-            f"(noise floor {_num(d.noise_floor)}); chi2/dof {_num(d.chi2_before, '.3g')} -> "
-            f"{_num(d.chi2_after, '.3g')}{assumed}")
+    return (f"{v.headline}\n{hot}added: {added}\n"
+            f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} on "
+            f"{d.n_beads} beads (noise floor {_num(d.noise_floor)}); chi2/dof "
+            f"{_num(d.chi2_before, '.3g')} -> {_num(d.chi2_after, '.3g')}{assumed}")
 
 
 def floor_caveat(noise, ratio: float) -> str:
@@ -381,28 +393,46 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
              + f"; PSF radius {run['psf_radius_px']:.3g} px; "
              f"{len(d.crossfit_before.residuals)} beads judged by models that did not see "
              "them (cross-fitting).", "", "## What was found", ""]
+    v = d.verdict
+    lines += [f"**{v.headline}**", ""]
+    if v.hints:
+        lines += ["What to look at:", "", *[f"- {h}" for h in v.hints], ""]
     drop = (1 - d.error_after / d.error_before) if d.error_before else float("nan")
     if d.added:
         lines.append("The model lacked, and now includes:")
         lines.append("")
         lines += [f"- **{name}**: {descr.get(name, '')}" for name in d.added]
         lines += ["", f"Held-out error {_num(d.error_before)} -> {_num(d.error_after)} "
-                      f"({_num(100 * drop, '.1f')} % lower); chi-square per degree of "
-                      f"freedom {_num(d.chi2_before, '.3g')} -> {_num(d.chi2_after, '.3g')}."]
+                      f"({_num(100 * drop, '.1f')} % lower) on the same {d.n_beads} beads; "
+                      f"chi-square per degree of freedom {_num(d.chi2_before, '.3g')} -> "
+                      f"{_num(d.chi2_after, '.3g')}."]
     else:
         tried = [s.effect for s in d.steps if s.effect]
-        lines.append("**No effect was found**: " + (
-            f"{len(tried)} candidate(s) tried ({', '.join(tried)}), none lowered the "
-            "held-out error significantly" if tried else
-            "no residual test pointed at a candidate") + "; the plain model is kept.")
-        lines += ["", f"Held-out error {_num(d.error_after)}; chi-square per degree of "
-                      f"freedom {_num(d.chi2_after, '.3g')}."]
+        sig = [t.name for t in d.analysis_before.significant()]
+        if tried:
+            why = (f"{len(tried)} candidate(s) tried ({', '.join(tried)}), none lowered the "
+                   "held-out error significantly")
+        elif sig:
+            why = (f"{len(sig)} residual test(s) significant ({', '.join(sig)}), none "
+                   "answered by a candidate effect")
+        else:
+            why = "no residual test is significant"
+        head = ("**No effect was added**" if v.level == "not explained"
+                else "**No effect was found**")
+        lines.append(f"{head}: {why}; the plain model is kept.")
+        lines += ["", f"Held-out error {_num(d.error_after)} on {d.n_beads} beads; "
+                      f"chi-square per degree of freedom {_num(d.chi2_after, '.3g')}."]
     lines += model_lines(d.operator.metadata)
     motion = d.operator.metadata.get("motion") or {}
     if motion and not motion.get("detected") and not motion.get("note"):
         lines += ["", "**Motion blur**: " + str(motion.get("reason", "not tested")) + "."]
     af = d.analysis_before.tests.get("amplitude_field")
-    if af is not None and "illumination" not in d.added and "min_corner_loss" in af.detail:
+    if af is not None and "illumination" not in d.added and af.significant:
+        lines += ["", f"**Vignetting**: the beads' brightness varies over the field "
+                      f"(amplitude_field z {_num(af.z, '.3g')} > {_num(af.threshold, '.3g')}), "
+                      "but a smooth throughput did not lower the held-out error: not "
+                      "added (the variation may be the beads' own)."]
+    elif af is not None and "illumination" not in d.added and "min_corner_loss" in af.detail:
         lines += ["", "**Vignetting**: none found; with these beads' brightness spread and "
                       "number, a fall-off from the centre to the corners of "
                       f"{_num(100 * af.detail['min_corner_loss'], '.0f')} % or more "
@@ -417,11 +447,12 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
                       "(hot pixels, cosmic rays: a bright pixel, or two, on a dark "
                       "neighbourhood) were masked before anything was fitted; their "
                       "positions are in `report.json` (`hot_pixels`)."]
-    ratio = d.error_after / d.noise_floor if d.noise_floor else float("nan")
+    ratio = v.ratio
     lines += ["", f"Noise alone would leave an error of {_num(d.noise_floor)} (the noise "
                   f"floor): the final model's error is {_num(ratio, '.3g')} times the floor"
-                  + (" (it explains everything but the noise)." if ratio < 1.2 else
-                     " (what is left above it is not explained by any candidate effect).")
+                  + (" (it explains everything but the noise)." if v.level == "explained"
+                     else " (what is left above it is not explained by any candidate "
+                          "effect).")
                   + floor_caveat(d.context.noise, ratio),
               "", "## Residual tests", ""]
     lines += _tests_section(d.analysis_before, "Plain model")
@@ -433,9 +464,11 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "drops by at least the required fraction with a bootstrap probability `p` of "
               "no drop below the limit, and neither gets worse by that fraction. The "
               "held-out error and chi2/dof columns are those of the model before and after "
-              "the step, each over all the beads it judges: every step starts where the "
-              "last kept one ended, and a rejected step leaves the model as it was. The "
-              "drops that decide are paired, on the beads both models judge.", "",
+              "the step on the same beads (the plain model's informative beads that both "
+              "judge), and the error drop is theirs: every step starts where the last kept "
+              "one ended, and a rejected step leaves the model as it was. The excess chi2 "
+              "drop is that of the beads' chi2/dof - 1, each winsorised at the 95th "
+              "percentile, against at least its own uncertainty.", "",
               *_md_table(STEP_COLUMNS, steps_table(d)), ""]
     lines += ["## Noise model", "", noise_text(d.context.noise), "",
               "## Figures", "",

@@ -13,6 +13,7 @@ import numpy as np
 from scipy import ndimage as ndi
 from skimage.feature import peak_local_max
 
+from ..common.errors import PsfSpaceError
 from ..common.threads import filter_by_rows
 from ..common.validate import as_image, check_positive, check_psf_radius
 from .spikes import (
@@ -43,7 +44,7 @@ STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOU
 NEIGHBOUR_RATIO = 0.05
 
 
-class NoBeadsError(ValueError):
+class NoBeadsError(PsfSpaceError):
     """Raised when an image holds no usable bead."""
 
 

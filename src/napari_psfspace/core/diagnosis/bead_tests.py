@@ -134,6 +134,10 @@ def _secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,
     dist = radial_distance(p)
     # the ring between the core and the fit radius (smoothing bleeds zeros from beyond)
     ring = (dist > max(2.0, psf_radius / 3)) & (dist < psf_radius - 1.5)
+    if len(res) == 0 or not ring.any():  # a PSF too small for a ring beside its core
+        return {"count": 0, "beads": [], "peaks": [], "max_relative": 0.0,
+                "note": f"not tested: no ring between the core and the fit radius at a PSF "
+                        f"radius of {psf_radius:g} px"}
     resid = ndi.gaussian_filter(res.residual, (0, 1.0, 1.0))
     noise = ndi.gaussian_filter(np.where(res.fit_mask, res.normalised_residual, 0.0),
                                 (0, 1.0, 1.0))

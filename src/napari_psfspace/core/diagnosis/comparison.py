@@ -71,10 +71,58 @@ def _compare_photometry(before: CrossFit, after: CrossFit, shape: tuple[int, int
     return out
 
 
+#: Fewest beads a paired comparison is made on; with fewer, no drop is measured.
+MIN_PAIRED = 5
+
+
+def paired_beads(before: CrossFit, after: CrossFit,
+                 reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray,
+                                                               np.ndarray]:
+    """The beads two cross-fits both judge informatively (and that are in ``reference``,
+    bead table indices, when given): ``(bead index, entry in before, entry in after)``.
+
+    Every figure of a diagnosis step (the error before, after and its drop) is a mean
+    over these beads, so that the three are one quantity; with one ``reference`` (the
+    plain model's informative beads) the figures of successive steps chain.
+    """
+    common, i0, i1 = np.intersect1d(before.bead_index, after.bead_index,
+                                    return_indices=True)
+    keep = before.residuals.informative[i0] & after.residuals.informative[i1]
+    if reference is not None:
+        keep &= np.isin(common, reference)
+    return common[keep], i0[keep], i1[keep]
+
+
+def paired_errors(before: CrossFit, after: CrossFit, noise: NoiseModel,
+                  reference: np.ndarray | None = None) -> dict:
+    """Mean held-out error and chi-square per dof of two cross-fits on the beads both
+    judge (:func:`paired_beads`): ``error_before``, ``error_after``, ``chi2_before``,
+    ``chi2_after``, ``noise_floor`` (``after``'s) and ``n_beads``; NaN without beads."""
+    common, i0, i1 = paired_beads(before, after, reference)
+    if len(common) == 0:
+        nan = float("nan")
+        return {"error_before": nan, "error_after": nan, "chi2_before": nan,
+                "chi2_after": nan, "noise_floor": nan, "n_beads": 0}
+    r0, r1 = before.residuals, after.residuals
+    return {"error_before": float(r0.rel_energy[i0].mean()),
+            "error_after": float(r1.rel_energy[i1].mean()),
+            "chi2_before": float((r0.chi2_under(noise)[i0] / r0.dof[i0]).mean()),
+            "chi2_after": float((r1.chi2_under(noise)[i1] / r1.dof[i1]).mean()),
+            "noise_floor": float(r1.floor[i1].mean()), "n_beads": int(len(common))}
+
+
 def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 1000,
              seed: int = 0, *, shape: tuple[int, int] | None = None,
-             throughput: tuple[int, int] = (0, 0), flux: np.ndarray | None = None) -> dict:
-    """Paired comparison of two cross-fits on the informative beads both judge.
+             throughput: tuple[int, int] = (0, 0), flux: np.ndarray | None = None,
+             reference: np.ndarray | None = None) -> dict:
+    """Paired comparison of two cross-fits on the informative beads both judge
+    (:func:`paired_beads`; restricted to ``reference`` when given).
+
+    ``error_before``, ``error_after`` and ``improvement`` (``1 - after / before``) are
+    means over the same beads; ``chi2_before`` and ``chi2_after`` the beads' mean chi-square
+    per dof under ``noise``. With fewer than :data:`MIN_PAIRED` such beads nothing is
+    measured: the errors are those beads' (or NaN), ``improvement`` is NaN and
+    ``p_no_drop`` 1, and ``note`` says why.
 
     Two held-out metrics, each averaged over beads: the relative residual energy
     (signal-normalised: PSF shape) and the excess chi-square per dof, ``chi2/dof - 1``
@@ -97,14 +145,13 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     """
     photometry = (_compare_photometry(before, after, shape, throughput, flux, n_boot, seed)
                   if shape is not None and throughput[0] != throughput[1] else {})
-    common, i0, i1 = np.intersect1d(before.bead_index, after.bead_index,
-                                    return_indices=True)
-    keep = before.residuals.informative[i0] & after.residuals.informative[i1]
-    common, i0, i1 = common[keep], i0[keep], i1[keep]
-    if len(common) < 5:
-        return {"error_before": np.nan, "error_after": np.nan, "improvement": 0.0,
-                "p_no_drop": 1.0, "chi2_improvement": 0.0, "chi2_p_no_drop": 1.0,
-                "n_beads": int(len(common)), **photometry}
+    common, i0, i1 = paired_beads(before, after, reference)
+    shown = paired_errors(before, after, noise, reference)
+    if len(common) < MIN_PAIRED:
+        return {**shown, "improvement": float("nan"), "p_no_drop": 1.0,
+                "chi2_improvement": float("nan"), "chi2_p_no_drop": 1.0,
+                "note": f"not compared: {len(common)} bead(s) judged informatively by both "
+                        f"models, need {MIN_PAIRED}", **photometry}
     r0, r1 = before.residuals, after.residuals
     e0, e1 = r0.rel_energy[i0], r1.rel_energy[i1]
     c0 = r0.chi2_under(noise)[i0] / r0.dof[i0] - 1.0
@@ -142,8 +189,7 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     se_model = float((noise.checks or {}).get("gain_relative_error", 0.0) or 0.0)
     chi2_noise = CHI2_EXCESS_Z * float(np.hypot(se_noise, se_model))
     cimp, cp = drop(c0, c1, floor=chi2_noise, excess=True)
-    out = {"error_before": float(e0.mean()), "error_after": float(e1.mean()),
-           "improvement": imp, "p_no_drop": min(p, p_log), "p_mean": p,
+    out = {**shown, "improvement": imp, "p_no_drop": min(p, p_log), "p_mean": p,
            "p_log_ratio": p_log, "median_ratio": float(np.exp(np.median(lr))),
            "chi2_improvement": cimp,
            "chi2_p_no_drop": cp, "n_beads": int(len(common))}

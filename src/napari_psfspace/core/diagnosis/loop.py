@@ -48,7 +48,7 @@ from ..model.estimate import (
 )
 from ..model.operator import ProductConvolution
 from .analysis import Analysis, analyse, bead_flux
-from .comparison import _compare
+from .comparison import _compare, paired_errors
 from .crossfit import CrossFit, iter_crossfit
 from .effects import REGISTRY, Context, Effect
 from .noise import NoiseModel, noise_model
@@ -69,9 +69,11 @@ class Step:
     """One candidate effect tried by the loop (or the baseline, ``effect=None``).
 
     ``error_before`` / ``error_after`` and ``chi2_before`` / ``chi2_after`` are those of
-    the model before and after the step, each over all the beads it judges (a step
-    starts where the last kept one ended); ``improvement`` and ``p_no_drop`` are paired,
-    on the beads both judge (:attr:`paired_before`, :attr:`paired_after`).
+    the model before and after the step on the same beads (the plain model's
+    informative beads that both judge, :func:`~.comparison.paired_beads`), and
+    ``improvement`` is ``1 - error_after / error_before`` on them: one quantity. A step
+    starts where the last kept one ended (on the same beads, the same figure). NaN
+    ``improvement``: fewer than :data:`~.comparison.MIN_PAIRED` beads to compare.
     """
 
     effect: str | None
@@ -87,15 +89,10 @@ class Step:
     params: dict = field(default_factory=dict)
 
     @property
-    def paired_before(self) -> float:
-        """Mean held-out error of the model before the step on the beads both models
-        judge (what the decision compared; NaN for the baseline)."""
-        return float((self.params or {}).get("_comparison", {}).get("error_before", np.nan))
-
-    @property
-    def paired_after(self) -> float:
-        """The same for the model with the effect added."""
-        return float((self.params or {}).get("_comparison", {}).get("error_after", np.nan))
+    def n_beads(self) -> int:
+        """The beads the step's figures are means over."""
+        p = self.params or {}
+        return int(p.get("_comparison", {}).get("n_beads", p.get("n_beads", 0)))
 
     def to_dict(self) -> dict:
         def short(v):
@@ -121,11 +118,14 @@ class Diagnosis:
         The baseline, then every effect tried, in order.
     error_before, error_after : float
         Held-out (cross-fitted) relative residual energy of the plain model and of the
-        final one.
+        final one: means over the same :attr:`n_beads` beads (the plain model's
+        informative beads that the final model judges too), as every step's figures.
     chi2_before, chi2_after : float
-        Chi-square per degree of freedom under the noise model.
+        Mean chi-square per degree of freedom of those beads under the noise model.
     noise_floor : float
-        The error noise alone would leave (the final model's beads).
+        The error noise alone would leave on those beads (the final model's fits).
+    n_beads : int
+        The beads the figures are means over.
     operator : ProductConvolution
         The refined model, estimated on all beads with the effects kept.
     context : Context
@@ -151,11 +151,21 @@ class Diagnosis:
     noise_source: str
     options: dict = field(default_factory=dict)
     masked_pixels: np.ndarray | None = None
+    n_beads: int = 0
 
     @property
     def added(self) -> list[str]:
         """Names of the effects kept."""
         return [s.effect for s in self.steps if s.effect and s.accepted]
+
+    @property
+    def verdict(self):
+        """Whether the final model explains its held-out beads
+        (:class:`~napari_psfspace.core.diagnosis.verdict.Verdict`): the first line of
+        every report."""
+        from .verdict import verdict
+
+        return verdict(self)
 
     @property
     def hot_pixels(self) -> np.ndarray:
@@ -168,7 +178,8 @@ class Diagnosis:
         return {
             "error_before": self.error_before, "error_after": self.error_after,
             "chi2_dof_before": self.chi2_before, "chi2_dof_after": self.chi2_after,
-            "noise_floor": self.noise_floor, "added": self.added, "options": self.options,
+            "noise_floor": self.noise_floor, "n_beads": self.n_beads,
+            "verdict": self.verdict.to_dict(), "added": self.added, "options": self.options,
             "noise_model": {**self.context.noise.to_dict(), "source": self.noise_source},
             "hot_pixels": hot_pixel_record(self.hot_pixels),
             "steps": [s.to_dict() for s in self.steps],
@@ -260,11 +271,16 @@ def iter_diagnose(
     cf, an = evaluate(ctx)
     ctx = ctx.with_effect("_model", cf.model_meta) if cf.model_meta else ctx
     first_cf, first_an = cf, an
-    s = cf.summary()
-    steps = [Step(None, 0.0, [t.name for t in an.significant()], s["error"], s["error"],
-                  s["chi2_dof"], s["chi2_dof"], 0.0, 1.0, True)]
-    yield Progress("baseline", 0.2, f"held-out error {s['error']:.4g} (noise floor "
-                   f"{s['noise_floor']:.4g}), chi2/dof {s['chi2_dof']:.3g}")
+    # every figure of the diagnosis is a mean over the plain model's informative beads
+    # (those each compared model judges too): the figures of successive steps chain
+    reference = cf.bead_index[cf.residuals.informative]
+    base = paired_errors(cf, cf, noise, reference)
+    steps = [Step(None, 0.0, [t.name for t in an.significant()], base["error_before"],
+                  base["error_before"], base["chi2_before"], base["chi2_before"], 0.0, 1.0,
+                  True, {"n_beads": base["n_beads"]})]
+    yield Progress("baseline", 0.2, f"held-out error {base['error_before']:.4g} on "
+                   f"{base['n_beads']} beads (noise floor {base['noise_floor']:.4g}), "
+                   f"chi2/dof {base['chi2_before']:.3g}")
     tried: set[str] = set()
     for k in range(max_steps):
         ranked = sorted(((e.evidence(an), e) for e in candidates
@@ -288,11 +304,12 @@ def iter_diagnose(
             new_ctx = eff.apply(ctx, params)
             new_cf, new_an = evaluate(new_ctx)
         except ValueError as exc:  # e.g. too few beads left to learn from: not kept
-            s0 = cf.summary()
+            s0 = paired_errors(cf, cf, ctx.noise, reference)
             steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                       and an.tests[t].significant],
-                              s0["error"], s0["error"], s0["chi2_dof"], s0["chi2_dof"], 0.0,
-                              1.0, False, {"_error": str(exc)}))
+                              s0["error_before"], s0["error_before"], s0["chi2_before"],
+                              s0["chi2_before"], float("nan"), 1.0, False,
+                              {"_error": str(exc), "n_beads": s0["n_beads"]}))
             yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
                            f"{eff.name}: could not be applied ({exc}), rejected")
             continue
@@ -300,7 +317,7 @@ def iter_diagnose(
         flux = (bead_flux(new_ctx.image, new_cf.residuals.positions, r)
                 if throughput[0] != throughput[1] else None)
         cmp = _compare(cf, new_cf, new_ctx.noise, shape=img.shape, throughput=throughput,
-                       flux=flux)
+                       flux=flux, reference=reference)
         # one held-out metric must drop (by min_improvement, p <= max_p / 2) and none
         # may get worse by as much
         metrics = [m for m in ("", "chi2_", "photometric_") if f"{m}improvement" in cmp]
@@ -316,25 +333,26 @@ def iter_diagnose(
         ok = bool(any(cmp[f"{m}improvement"] >= need
                       and cmp[f"{m}p_no_drop"] <= max_p / 2 for m in metrics)
                   and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
-        # the step's figures are those of the model before and after it, each on all the
-        # beads it judges, so that each step starts where the last kept one ended; the
-        # decision figures are paired, on the beads both judge (``_comparison``)
-        s0, s1 = cf.summary(), new_cf.summary()
-        err0, err1 = s0["error"], s1["error"]
+        # the step's figures are the decision's: the model before and after it on the
+        # same beads (the plain model's informative beads both judge), so that before,
+        # after and the drop are one quantity and each step starts where the last kept
+        # one ended
+        err0, err1 = cmp["error_before"], cmp["error_after"]
         steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                   and an.tests[t].significant],
-                          err0, err1, s0["chi2_dof"], s1["chi2_dof"],
+                          err0, err1, cmp["chi2_before"], cmp["chi2_after"],
                           float(cmp["improvement"]), cmp["p_no_drop"], ok,
                           {**new_ctx.params.get(eff.name, params), "_comparison": cmp}))
         if ok:
             ctx, cf, an = new_ctx, new_cf, new_an
             if cf.model_meta:
                 ctx = ctx.with_effect("_model", cf.model_meta)
+        drop = ("not compared: " + cmp["note"].split(": ", 1)[-1] if "note" in cmp
+                else f"{-100 * cmp['improvement']:+.1f} %, excess chi2 "
+                     f"{-100 * cmp['chi2_improvement']:+.1f} %")
         yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
-                       f"{eff.name}: error {err0:.4g} -> {err1:.4g} (paired "
-                       f"{100 * cmp['improvement']:.1f} %; excess chi2 "
-                       f"{100 * cmp['chi2_improvement']:.1f} %), "
-                       f"{'kept' if ok else 'rejected'}")
+                       f"{eff.name}: error {err0:.4g} -> {err1:.4g} on {cmp['n_beads']} "
+                       f"beads ({drop}), {'kept' if ok else 'rejected'}")
 
     # the final operator: a point source's PSFs when the beads' size is known (the
     # nominal one, which the bead-size effect then takes for the median bead's)
@@ -343,9 +361,12 @@ def iter_diagnose(
                                           remove_motion=remove_motion,
                                           **ctx.estimate_kwargs))
     added = [s.effect for s in steps if s.effect and s.accepted]
+    total = paired_errors(first_cf, cf, ctx.noise, reference)
     meta = {**est.operator.metadata, "diagnosis": {"added": added,
-                                                   "error_before": first_cf.summary()["error"],
-                                                   "error_after": cf.summary()["error"]}}
+                                                   "error_before": total["error_before"],
+                                                   "error_after": total["error_after"],
+                                                   "noise_floor": total["noise_floor"],
+                                                   "n_beads": total["n_beads"]}}
     coefficients = est.operator.coefficients
     if "bead_size" in ctx.params:  # the PSFs are those of a bead of the reference size
         meta["bead_size"] = {"d_ref_px": ctx.params["bead_size"].get("d_ref_px")}
@@ -363,7 +384,7 @@ def iter_diagnose(
                               "normalisation": "mean over the field = 1"}
     op = ProductConvolution(est.operator.basis, coefficients,
                             shape=est.operator.shape, grid=est.operator.grid, metadata=meta)
-    s0, s1 = first_cf.summary(), cf.summary()
+    total = paired_errors(first_cf, cf, ctx.noise, reference)
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
     options = {"folds": folds, "leave_one_bead_out": folds == n_kept,
                "min_improvement": min_improvement,
@@ -372,9 +393,10 @@ def iter_diagnose(
                "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
                "bead_diameter": bead_diameter, "remove_motion": remove_motion,
                "effects": names}
-    return Diagnosis(steps, s0["error"], s1["error"], s0["chi2_dof"], s1["chi2_dof"],
-                     s1["noise_floor"], op, ctx, first_an, an, first_cf, cf, noise_source,
-                     options, beads.hot_pixels)
+    return Diagnosis(steps, total["error_before"], total["error_after"],
+                     total["chi2_before"], total["chi2_after"], total["noise_floor"], op, ctx,
+                     first_an, an, first_cf, cf, noise_source, options, beads.hot_pixels,
+                     n_beads=total["n_beads"])
 
 
 def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] | None = None,

@@ -19,6 +19,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ..beads.spikes import QUANTISATION_VARIANCE, is_integer_valued
+from ..common.errors import PsfSpaceError
 from ..common.validate import as_image
 
 
@@ -117,7 +118,7 @@ def _structure_mask(img: np.ndarray, sigma: float, k: float,
     return out
 
 
-class NoiseModelError(ValueError):
+class NoiseModelError(PsfSpaceError):
     """Photon transfer failed one of its checks (the message says which and why)."""
 
 
@@ -296,12 +297,14 @@ def estimate_noise(
     checks = {"n_levels": int(len(means)),
               "mean_range": [float(means.min()), float(means.max())] if len(means) else []}
     if len(means) < 3 or np.ptp(means) <= 1e-9:
+        levels = np.unique(local[use])
+        span = (f"{levels.min():.4g}-{levels.max():.4g} ADU" if len(levels) > 1
+                else f"all at {levels[0]:.4g} ADU")
         raise NoiseModelError(
-            f"No Poisson signature in `image`: the structure-free pixels span "
-            f"{len(means)} distinct level(s) "
-            f"({means.min():.4g}-{means.max():.4g} ADU): the slope of variance against "
-            "mean (the gain) cannot be measured. Pass the camera's gain, offset and read "
-            "noise instead.")
+            f"No Poisson signature in `image`: the structure-free pixels' local levels "
+            f"({span}) fill {len(means)} bin(s) of at least 50 pixels, need 3 distinct "
+            "ones: the slope of variance against mean (the gain) cannot be measured. "
+            "Pass the camera's gain, offset and read noise instead.")
     # weighted least squares with the bins' sampling variance; the slope's standard
     # error is scaled up by the fit's reduced chi-square when that exceeds 1
     sd_v = np.sqrt(MAD_VARIANCE_FACTOR * SAMPLE_CORRELATION / counts) * variances
@@ -311,7 +314,7 @@ def estimate_noise(
     resid = (variances - (a * means + b)) / sd_v
     dof = max(len(means) - 2, 1)
     chi2 = float(resid @ resid) / dof
-    cov = np.linalg.inv(design.T @ design) * max(chi2, 1.0)
+    cov = np.linalg.pinv(design.T @ design) * max(chi2, 1.0)
     se_a = float(np.sqrt(cov[0, 0]))
     z = a / se_a if se_a > 0 else np.inf
     # the levels are box means, noisy themselves: binned by a noisy level the slope is
