@@ -11,7 +11,7 @@ import napari_psfspace as ps
 from napari_psfspace.core.diagnose import diagnose
 from napari_psfspace.core.estimate import iter_estimate, run_with_progress
 from napari_psfspace.core.fewbeads import FEW_BEADS
-from napari_psfspace.core.metrics import evaluate_against_truth
+from napari_psfspace.core.metrics import evaluate_against_truth, grid_errors
 from napari_psfspace.core.noise import noise_model
 from napari_psfspace.core.scenes import LOW_COUNT_8BIT, isolated, match, random_scene
 from napari_psfspace.core.simulate import FieldAberrations, Optics
@@ -183,3 +183,48 @@ def test_diagnose_by_leaving_one_bead_out_from_five_beads():
     few, t = ps.simulate_beads((256, 256), 3, seed=2)
     with pytest.raises(ps.NoBeadsError, match="at least 5.*leave-one-bead-out"):
         diagnose(few, psf_radius=t.psf_radius)
+
+
+def _with_a_faint_spot(seed: int, fraction: float):
+    """5-8 bright beads of a seeded optics, and one spot of ``fraction`` of the median
+    bead's photons (a speck of dust, a noise bump): the image with it and without it
+    (the same scene and layout)."""
+    rng = np.random.default_rng([seed, 77])
+    n = int(rng.integers(5, 9))
+    optics = Optics(na=float(rng.uniform(0.8, 1.45)), wavelength=float(rng.uniform(0.5, 0.68)),
+                    pixel_size=float(rng.uniform(0.06, 0.12)))
+    photons = rng.uniform(4e4, 1.2e5, n + 1)
+    photons[-1] = fraction * np.median(photons[:-1])
+    kw = dict(aberrations=["moderate", "strong", "none"][seed % 3], optics=optics,
+              background=(2, 6), gain=1.0, read_noise=1.0, seed=seed)
+    with_spot = ps.simulate_beads((384, 384), n + 1, bead_photons=photons, **kw)
+    without = ps.simulate_beads((384, 384), n + 1, bead_photons=np.r_[photons[:-1], 0], **kw)
+    return with_spot, without
+
+
+def test_a_faint_detection_never_shapes_a_few_bead_model():
+    """A detection at 1 % of the median bead's flux is left out as faint (and says why);
+    the field error is that of the image without it. Without the rule it was used in 6 of
+    the first 8 seeds, the error up to 1.6 x."""
+    tested = 0
+    for seed in range(20):
+        (image, truth), (clean, _) = _with_a_faint_spot(seed, 0.01)
+        est = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius))
+        spot = truth.positions[-1]
+        dist = np.hypot(*(est.beads.positions - spot).T)
+        j = int(np.argmin(dist))
+        assert dist[j] < 3  # it is detected
+        meta = est.operator.metadata
+        used = np.asarray(meta["bead_positions"])
+        assert np.hypot(*(used - spot).T).min() > 3  # and never used
+        if est.beads.status[j] == "border":
+            continue
+        tested += 1
+        assert est.beads.status[j] == "faint"
+        left = [b for b in meta["left_out"]["beads"] if b["status"] == "faint"]
+        assert any("too faint to shape the PSF" in b["why"] for b in left)
+        ref = run_with_progress(iter_estimate(clean, psf_radius=truth.psf_radius)).operator
+        # the field error on a 5 x 5 grid (aligned), with and without the spot
+        err, ref = (float(grid_errors(op, truth, n=5).mean()) for op in (est.operator, ref))
+        assert err <= 1.2 * ref  # measured: 0.994-1.022 (8 x 8 grid)
+    assert tested >= 15  # measured: 18 of 20 away from the border

@@ -307,6 +307,18 @@ def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
     elif meta.get("field_model_reason"):
         out.append(bold("The field model was chosen for few beads") + ": "
                    + str(meta["field_model_reason"]))
+    used = meta.get("n_beads_used")
+    left = (meta.get("left_out") or {}).get("beads", [])
+    if used is not None and used <= 10:  # a few-bead model: each bead counts
+        pos = meta.get("bead_positions") or []
+        lines = [f"({p[0]:.0f}, {p[1]:.0f})" for p in pos]
+        text = (bold(f"Beads used: {used}") + (" at " + ", ".join(lines) if lines else "")
+                + " (row, column).")
+        if left:
+            text += " Left out: " + "; ".join(
+                f"({b['position'][0]:.0f}, {b['position'][1]:.0f}) {b['status']}: {b['why']}"
+                for b in left[:20]) + ("; ..." if len(left) > 20 else "") + "."
+        out.append(text)
     corr = meta.get("bead_correction")
     if corr:
         out.append(bold("Bead size corrected") + f": the beads' diameter, "

@@ -154,6 +154,7 @@ def iter_estimate(
     yield Progress("detect", 0.15, beads.summary())
 
     kept = np.flatnonzero(beads.kept)
+    reasons: dict[int, str] = {}  # why a detection was left out, beyond its status
     if len(kept) == 0:
         raise NoBeadsError(
             f"No usable bead (0 kept): {beads.summary()}. Lower `threshold`, check "
@@ -169,9 +170,10 @@ def iter_estimate(
     yield Progress("centre", 0.3, f"{len(kept)} beads centred to sub-pixel precision")
 
     patches = extract_patches(img, beads.positions[kept], r)
-    faint = patches.flux <= 0
+    faint, why_faint = faint_beads(patches.flux)
     if faint.any():
         beads.status[kept[faint]] = FAINT
+        reasons.update({int(i): w for i, w in zip(kept[faint], why_faint[faint], strict=True)})
         kept, patches = kept[~faint], patches.subset(~faint)
     if len(kept) == 0:
         raise NoBeadsError(f"No usable bead after background removal. {beads.summary()}.")
@@ -286,6 +288,7 @@ def iter_estimate(
         "hot_pixels": hot_pixel_record(beads.hot_pixels),
         "n_beads_used": int(basis.inliers.sum()),
         "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
+        "left_out": left_out_record(beads, reasons),
         "cone_generators": int(len(cone.generators)),
         "heldout": heldout.summary() if heldout is not None else None,
         "denoise": ({"passband": denoised.get("passband"),
@@ -303,6 +306,66 @@ def iter_estimate(
                    + ("" if few is None or few.field_model != "shift-invariant"
                       else " (one PSF for the whole field)"))
     return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+#: A detection whose flux is below this fraction of the median kept bead's carries too
+#: little of the PSF to shape it (a noise spot, a speck of dust): it is left out as faint.
+#: A bead two and a half sd below the median of a log-normal brightness spread of sd 1 (the
+#: widest of the scene family) still has 8 % of it.
+FAINT_RATIO = 0.05
+
+#: Why a detection of each status is not used, for :func:`left_out_record`.
+STATUS_REASONS = {
+    "saturated": "saturated pixels in its core",
+    "border": "too close to the image border for its patch",
+    "neighbour": "another detection within 2 PSF radii",
+    "faint": "too faint to shape the PSF",
+    "outlier": "its shape is an outlier among the beads (PCA z-score)",
+    "rejected": "rejected by the user",
+    "companion": "a companion inside its patch",
+    "structure": "background structure, not a bead",
+}
+
+
+def faint_beads(flux: np.ndarray, ratio: float = FAINT_RATIO) -> tuple[np.ndarray, np.ndarray]:
+    """Which beads are too faint to shape the PSF, and why, shapes (K,) and (K,) str.
+
+    A bead's patch flux (background removed) at or below zero holds no signal; one below
+    ``ratio`` times the median flux of the beads with signal is noise or dust beside
+    them: its normalised patch is mostly noise, and in a few-bead model it would weigh as
+    much as a real bead.
+    """
+    flux = np.asarray(flux, np.float64)
+    why = np.full(len(flux), "", dtype=object)
+    none = ~(flux > 0)
+    why[none] = "no signal above its background (flux <= 0)"
+    faint = none.copy()
+    if (~none).any():
+        median = float(np.median(flux[~none]))
+        low = ~none & (flux < ratio * median)
+        for i in np.flatnonzero(low):
+            why[i] = (f"flux {100 * flux[i] / median:.2g} % of the median bead's, below "
+                      f"{100 * ratio:g} %: too faint to shape the PSF")
+        faint |= low
+    return faint, why.astype(str)
+
+
+def left_out_record(beads: Beads, reasons: dict[int, str] | None = None,
+                    limit: int = 500) -> dict:
+    """JSON-ready record of the detections not used and why: counts by status and, for
+    up to ``limit`` of them, ``{"position", "status", "why"}``."""
+    reasons = reasons or {}
+    out = np.flatnonzero(~np.isin(beads.status, ("kept", "heldout")))
+    counts: dict[str, int] = {}
+    items = []
+    for i in out:
+        st = str(beads.status[i])
+        counts[st] = counts.get(st, 0) + 1
+        if len(items) < limit:
+            items.append({"position": [round(float(v), 2) for v in beads.positions[i]],
+                          "status": st,
+                          "why": reasons.get(int(i), STATUS_REASONS.get(st, st))})
+    return {"counts": counts, "beads": items}
 
 
 def _basis_remover(psf: np.ndarray, remove: Callable, record: dict):
