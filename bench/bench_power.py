@@ -64,6 +64,7 @@ def _drift(length, seed):
 
 #: case -> (effect that must be named, strengths at issue 9's level, sweep, effects(s, seed))
 CASES = {
+    "none": ("-", [0], [0], lambda s, seed: {}),
     "vignetting": ("illumination", [0.4], [0.2, 0.4, 0.6],
                    lambda s, seed: {"illumination": s}),
     "defocus gradient": ("model", [0.15], [0.075, 0.15, 0.3],
@@ -131,11 +132,23 @@ def _oracle(image, truth, p, name) -> bool:
     return name in d.added
 
 
+def _optics_type(generator: str):
+    if generator == "pyotf":
+        from independent import PyotfOptics
+
+        return PyotfOptics
+    from napari_psfspace.core.simulation.optics import Optics
+
+    return Optics
+
+
 def run(job) -> dict:
-    case, strength, seed = job
+    case, strength, seed, generator = job
     name, _, _, make = CASES[case]
     row = {"case": case, "strength": str(strength), "seed": seed}
-    image, truth, p = random_scene(seed, effects=make(strength, seed), **SETTING)
+    optics_type = _optics_type(generator)
+    image, truth, p = random_scene(seed, effects=make(strength, seed), optics_type=optics_type,
+                                   **SETTING)
     t0 = time.perf_counter()
     try:
         d = diagnose(image, psf_radius=truth.psf_radius)
@@ -170,9 +183,12 @@ def run(job) -> dict:
         # amplitudes (illumination and the beads' own spread, no measurement noise);
         # below the test's threshold no method sees the vignetting at that significance
         row["visible"] = _truth_trend_z(truth, image.shape) >= THRESHOLDS["amplitude_field"]
+    elif name == "-":  # no effect: nothing about the data may be added
+        row["named"] = not others
+        row["dropped"] = row["named"]
     elif name == "model":
         changed = [e for e in added if e in MODEL_SETTINGS]
-        clean, ctruth, _ = random_scene(seed, **SETTING)
+        clean, ctruth, _ = random_scene(seed, optics_type=optics_type, **SETTING)
         try:
             ref = diagnose(clean, psf_radius=ctruth.psf_radius)
             row["truth_clean"] = float(np.mean(grid_errors(ref.operator, ctruth, n=6)))
@@ -199,12 +215,15 @@ def main():
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--verbose", action="store_true", help="one line per scene")
     ap.add_argument("--json", help="also write the per-scene rows to this file")
+    ap.add_argument("--generator", choices=("ours", "pyotf"), default="ours",
+                    help="the optics code of the PSFs: the project's simulator, or pyotf "
+                         "(bench/independent.py; pip install -e '.[bench]')")
     args = ap.parse_args()
     issue = ["vignetting", "defocus gradient", "compressive response",
              "companions 1-3 px", "motion"]
     cases = (issue if args.cases == "issue" else list(CASES) if args.cases == "all"
              else [c.strip() for c in args.cases.split(",")])
-    jobs = [(c, s, seed) for c in cases
+    jobs = [(c, s, seed, args.generator) for c in cases
             for s in CASES[c][1 if args.strengths == "issue" else 2]
             for seed in range(args.first, args.first + args.scenes)]
     rows = []

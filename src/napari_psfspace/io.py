@@ -100,12 +100,11 @@ def read_image(path: str | os.PathLike, *, index: int | None = None):
             "or a 3-D stack (Z, Y, X)."
         )
     if index is None:
-        sharpness = data.reshape(data.shape[0], -1).astype(np.float32).std(axis=1)
-        best = int(np.argmax(sharpness))
+        best = best_focus_index(data)
         raise ValueError(
             f"{os.fspath(path)!r} is a stack of {data.shape[0]} slices of {data.shape[1:]}: "
             f"choose one (`index`, or --slice on the command line), e.g. --slice {best}: "
-            f"slice {best} has the highest contrast, likely the one in focus."
+            f"slice {best} is where the beads are most concentrated, the one in focus."
         )
     if not -data.shape[0] <= index < data.shape[0]:
         raise ValueError(
@@ -210,11 +209,12 @@ def read_points_csv(path: str | os.PathLike) -> np.ndarray:
 
 
 def best_focus_index(stack: np.ndarray) -> int:
-    """Index of the slice with the highest standard deviation (the sharpest, usually)."""
-    stack = np.asarray(stack)
-    if stack.ndim != 3:
-        raise ValueError(f"`stack` must be 3-D (Z, Y, X), got shape {stack.shape}.")
-    return int(np.argmax(stack.reshape(stack.shape[0], -1).astype(np.float32).std(axis=1)))
+    """Index of the slice in focus: where the beads concentrate their light
+    (:func:`napari_psfspace.core.beads.focus.best_focus_index`; not raw contrast, which
+    prefers a defocused ring at high NA)."""
+    from .core.beads.focus import best_focus_index as best
+
+    return best(stack)
 
 
 def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float | None = None,

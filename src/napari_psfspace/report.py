@@ -319,6 +319,9 @@ def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
                 f"({b['position'][0]:.0f}, {b['position'][1]:.0f}) {b['status']}: {b['why']}"
                 for b in left[:20]) + ("; ..." if len(left) > 20 else "") + "."
         out.append(text)
+    fd = meta.get("field_dof") or {}
+    if fd.get("note"):
+        out.append(bold("A rich field") + ": " + str(fd["note"]) + ".")
     corr = meta.get("bead_correction")
     if corr:
         out.append(bold("Bead size corrected") + f": the beads' diameter, "

@@ -11,7 +11,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import ndimage as ndi
-from skimage.feature import peak_local_max
 
 from ..common.errors import PsfSpaceError
 from ..common.threads import filter_by_rows
@@ -42,6 +41,9 @@ STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOU
 #: A detection fainter than this fraction of a bead's peak amplitude does not spoil it as a
 #: neighbour (see :func:`flag_unusable`).
 NEIGHBOUR_RATIO = 0.05
+#: Detection moves to the scale of the spots the image shows when that scale is at least
+#: this many times the default ``r / 4`` (rings out of focus; a spot in focus keeps it).
+RESCALE_FACTOR = 1.4
 
 
 class NoBeadsError(PsfSpaceError):
@@ -210,7 +212,11 @@ def detect_beads(
         Detection threshold in robust noise standard deviations of the filtered image
         (see :func:`log_response`). Lower finds fainter beads.
     sigma : float, optional
-        Scale of the Laplacian of Gaussian in pixels; default ``max(1, r / 4)``.
+        Scale of the Laplacian of Gaussian in pixels. Default: ``max(1, r / 4)``, or the
+        scale of the spots the image shows when it is at least :data:`RESCALE_FACTOR`
+        times larger (:func:`~napari_psfspace.core.beads.scale.characteristic_scale`: a
+        ring out of focus is found once, at its centre, not as several spots on its
+        edge).
     saturation : float, optional
         Pixel value at or above which the detector is saturated. Default: the maximum
         of the dtype for integer images, none for floating images.
@@ -239,7 +245,11 @@ def detect_beads(
     The noise level of the filtered image is its robust (MAD) spread, never below what
     the rounding of an integer image gives (variance 1/12 ADU^2 per pixel): on a nearly
     constant integer background the MAD collapses towards zero and every one-count bump
-    would otherwise stand many "noise sd" out.
+    would otherwise stand many "noise sd" out. At low counts (integer values, background
+    noise below :data:`~napari_psfspace.core.beads.scale.LOW_COUNT_SD` ADU) the filter
+    runs on the variance-stabilised image
+    (:func:`~napari_psfspace.core.beads.scale.detection_image`): there the noise is skewed
+    and its filtered tail far heavier than its spread says.
 
     Raises
     ------
@@ -252,6 +262,7 @@ def detect_beads(
     r = check_psf_radius(psf_radius, img.shape)
     threshold = check_positive(threshold, "threshold")
     neighbour_ratio = check_positive(neighbour_ratio, "neighbour_ratio", allow_zero=True)
+    auto_sigma = sigma is None
     sigma = max(1.0, r / 4.0) if sigma is None else check_positive(sigma, "sigma")
     if border is None:
         border = np.ceil(1.2 * r) + 2
@@ -267,13 +278,24 @@ def detect_beads(
         )
 
     integer = is_integer_valued(raw)
-    spikes = (find_spikes(img, noise_sd=pixel_noise_sd(raw, integer=integer),
-                          integer=integer) if hot_pixels else np.zeros((0, 2), np.int64))
+    pixel_sd = pixel_noise_sd(raw, integer=integer)
+    spikes = (find_spikes(img, noise_sd=pixel_sd, integer=integer) if hot_pixels
+              else np.zeros((0, 2), np.int64))
     if len(spikes):
         img = inpaint_pixels(img, spikes)
-    resp = log_response(img, sigma,
-                        pixel_sd_floor=np.sqrt(QUANTISATION_VARIANCE) if integer else 0.0)
+    det, stabilised = detection_image(img, integer=integer, noise_sd=pixel_sd)
+    floor = np.sqrt(QUANTISATION_VARIANCE) if integer and not stabilised else 0.0
+    resp = log_response(det, sigma, pixel_sd_floor=floor)
     peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
+    if auto_sigma and len(peaks):
+        # the scale of the PSF the image shows: a ring out of focus responds at its centre
+        # at a scale near its radius, not at r / 4 (where it is several spots on its edge)
+        found, _ = characteristic_scale(img, peaks[:16], sigma, max_sigma=r,
+                                        noise_sd=pixel_sd, threshold=threshold)
+        if found >= RESCALE_FACTOR * sigma:
+            sigma = found
+            resp = log_response(det, sigma, pixel_sd_floor=floor)
+            peaks = local_peaks(resp, max(1, int(round(max(r / 2, sigma)))), threshold)
     if len(peaks) == 0:
         raise NoBeadsError(
             f"No beads found: no maximum of the filtered image reaches `threshold` = "
@@ -284,6 +306,7 @@ def detect_beads(
     order = np.argsort(-strength, kind="stable")
     peaks, strength = peaks[order], strength[order]
     peaks, strength = _merge_secondary_maxima(peaks, strength, r)
+    peaks, strength = merge_one_psf(img, peaks, strength, r, sigma)
 
     beads = Beads(peaks.astype(np.float64), strength,
                   amplitude=peak_amplitude(img, peaks, int(np.ceil(r))),
@@ -366,6 +389,76 @@ def _merge_secondary_maxima(peaks, strength, r):
     return peaks[~drop], strength[~drop]
 
 
+def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r: float,
+                  sigma: float, *, saddle: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
+    """Merge maxima that one PSF makes: two maxima within ``r`` of each other whose
+    smoothed image stays, all along the segment between them, at least ``saddle`` of the
+    lower one's height above the local background (two arcs of a defocused ring; two
+    separate spots dip to the background between them). A group becomes one detection at
+    its maxima's strength-weighted mean, with the strongest one's strength.
+
+    Parameters
+    ----------
+    image : ndarray of shape (M, N)
+    peaks : ndarray of shape (K, 2), int
+        Maxima, strongest first.
+    strength : ndarray of shape (K,)
+    r : float
+        PSF radius, pixels.
+    sigma : float
+        Detection scale, pixels (the image is smoothed by it).
+
+    Returns
+    -------
+    peaks, strength
+        The merged maxima (rounded positions), strongest first.
+    """
+    from scipy.spatial import cKDTree
+
+    if len(peaks) < 2:
+        return peaks, strength
+    pairs = sorted(cKDTree(peaks).query_pairs(r))
+    if not pairs:
+        return peaks, strength
+    h, w = image.shape
+    half = int(np.ceil(r + 3 * sigma))
+    parent = np.arange(len(peaks))
+
+    def root(i):
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    t = np.linspace(0.0, 1.0, 2 * int(np.ceil(r)) + 1)
+    for i, j in pairs:
+        mid = (peaks[i] + peaks[j]) // 2
+        y0, x0 = max(0, mid[0] - half), max(0, mid[1] - half)
+        win = np.asarray(image[y0:min(h, mid[0] + half + 1), x0:min(w, mid[1] + half + 1)],
+                         np.float64)
+        smooth = ndi.gaussian_filter(win, sigma / 2, mode="nearest")
+        bg = float(np.percentile(smooth, 10))
+        line = (peaks[i][None, :] * (1 - t[:, None]) + peaks[j][None, :] * t[:, None]
+                - np.array([y0, x0]))
+        along = ndi.map_coordinates(smooth, line.T, order=1, mode="nearest")
+        low = min(along[0], along[-1]) - bg
+        if low > 0 and along.min() - bg >= saddle * low:
+            a, b = root(i), root(j)
+            parent[max(a, b)] = min(a, b)
+    groups = np.array([root(i) for i in range(len(peaks))])
+    if len(np.unique(groups)) == len(peaks):
+        return peaks, strength
+    keep = np.unique(groups)
+    out = np.empty((len(keep), 2))
+    for k, g in enumerate(keep):
+        members = groups == g
+        wgt = np.maximum(strength[members], 1e-12)
+        out[k] = (peaks[members] * wgt[:, None]).sum(axis=0) / wgt.sum()
+    st = np.array([strength[groups == g].max() for g in keep])
+    order = np.argsort(-st, kind="stable")
+    return np.rint(out[order]).astype(peaks.dtype), st[order]
+
+
 def flag_unusable(
     beads: Beads,
     image: np.ndarray,
@@ -445,73 +538,6 @@ def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
         )
 
 
-def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
-                       max_radius: float | None = None) -> float:
-    """Suggest the PSF radius ``r`` (pixels) from the bright isolated spots of an image.
-
-    The spots are maxima of a Laplacian-of-Gaussian response (scale 2 px, at least 10
-    noise sd, 8 px apart), the strongest few in each cell of a 4 x 4 tiling of the field
-    (the PSF varies over the field). For each, the azimuthal median profile above
-    the local background gives the enclosed energy; its radius is where it reaches
-    ``energy`` of the total within the signal's extent (the profile above 3 noise sd of
-    a ring median). The radius must bound the widest PSFs of the field, so the 75th
-    percentile over the spots (robust to a few aggregates), plus one pixel, is returned.
-
-    Parameters
-    ----------
-    image : array_like of shape (M, N)
-    n_beads : int
-        About how many spots are used (spread over the field).
-    energy : float
-        Enclosed-energy fraction that defines a spot's radius.
-    max_radius : float, optional
-        Largest radius considered; default ``min(M, N) / 8``.
-
-    Returns
-    -------
-    float
-        Suggested radius in pixels, at least 3.
-
-    Raises
-    ------
-    NoBeadsError
-        No spot stands out of the noise.
-    """
-    img = as_image(image, dtype=np.float32)
-    h, w = img.shape
-    rmax = int(max_radius or max(6, min(h, w) // 8))
-    resp = log_response(img, 2.0)
-    peaks = peak_local_max(resp, min_distance=8, exclude_border=rmax, threshold_abs=10.0)
-    if len(peaks):  # the strongest few in each cell of a 4 x 4 tiling: the whole field
-        cell = (peaks[:, 0] * 4 // h) * 4 + peaks[:, 1] * 4 // w
-        strength = resp[peaks[:, 0], peaks[:, 1]]
-        order = np.lexsort((-strength, cell))
-        rank = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
-        peaks = peaks[order[rank < max(1, n_beads // 16 + 1)]]
-    if len(peaks) == 0:
-        raise NoBeadsError("No bright spot stands out of the noise: cannot suggest a "
-                           "`psf_radius`; check the image, or give the radius yourself.")
-    yy, xx = np.mgrid[-rmax:rmax + 1, -rmax:rmax + 1]
-    dist = np.hypot(yy, xx).round().astype(int)
-    counts = np.bincount(dist.ravel(), minlength=rmax + 1)[:rmax + 1]
-    tail = max(3, rmax // 5)
-    radii = []
-    for y, x in peaks:
-        win = img[y - rmax:y + rmax + 1, x - rmax:x + rmax + 1].astype(np.float64)
-        prof = np.asarray(ndi.median(win, labels=dist, index=np.arange(rmax + 1)))
-        edge = win[dist >= rmax - tail]
-        bg = float(np.median(edge))
-        sd = 1.4826 * float(np.median(np.abs(edge - bg)))
-        prof = prof - bg
-        # the median of a ring of ~2 pi rho pixels has sd ~ 1.25 sd / sqrt(2 pi rho)
-        ring_sd = 1.25 * sd / np.sqrt(2 * np.pi * np.maximum(np.arange(rmax + 1), 1))
-        low = np.flatnonzero(prof < 3 * ring_sd)
-        extent = int(low[0]) if len(low) else rmax
-        if extent < 1 or prof[0] <= 0:
-            continue
-        enclosed = np.cumsum(np.clip(prof[:extent + 1], 0, None) * counts[:extent + 1])
-        radii.append(int(np.searchsorted(enclosed, energy * enclosed[-1])))
-    if not radii:
-        raise NoBeadsError("Could not measure the width of any bright spot: give "
-                           "`psf_radius` yourself.")
-    return float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
+# the spots' own scale; the radius suggested from it (re-exported here, where it lived)
+from .scale import characteristic_scale, detection_image  # noqa: E402
+from .scale import suggest_psf_radius as suggest_psf_radius  # noqa: E402

@@ -276,6 +276,7 @@ def iter_estimate(
         "smoothing": None if spline is None else [float(s) for s in spline.smoothing],
         "smoothing_requested": smoothing,
         "effective_dof": None if spline is None else [float(d) for d in spline.effective_dof],
+        "field_dof": None if spline is None else field_dof_record(spline),
         "field_model": "thin-plate" if few is None else few.field_model,
         "field_model_reason": None if few is None else few.reason,
         "few_beads_loo_errors": None if few is None else few.metadata()["loo_errors"],
@@ -325,6 +326,24 @@ STATUS_REASONS = {
     "companion": "a companion inside its patch",
     "structure": "background structure, not a bead",
 }
+
+
+def field_dof_record(spline) -> dict:
+    """JSON-ready record of how rich the thin-plate field is, and why (see
+    :class:`~napari_psfspace.core.model.tps.ThinPlateSpline`'s ``max_dof``)."""
+    dof = [float(d) for d in spline.effective_dof]
+    richer = [int(i) for i in np.flatnonzero(spline.richer)]
+    rec = {"limit": None if spline.max_dof is None else float(spline.max_dof),
+           "samples": int(spline.n_nodes), "max": float(max(dof)) if dof else 0.0,
+           "richer": richer}
+    if richer:
+        gain = ", ".join(f"{100 * spline.loo_gain[i]:.0f} %" for i in richer)
+        rec["note"] = (f"the field of {len(richer)} basis coefficient(s) uses more than half "
+                       f"as many degrees of freedom as beads ({rec['max']:.1f} for "
+                       f"{rec['samples']}): held-out beads show the richer field predicts "
+                       f"them better (leave-one-out error {gain} lower, at least "
+                       "2 standard errors)")
+    return rec
 
 
 def faint_beads(flux: np.ndarray, ratio: float = FAINT_RATIO) -> tuple[np.ndarray, np.ndarray]:

@@ -52,6 +52,11 @@ def _bin_samples(pts: np.ndarray, vals: np.ndarray, w: np.ndarray, max_nodes: in
     return nodes, node_vals, wsum, cell, w / wsum[cell]
 
 
+#: A field richer than ``max_dof`` must lower the leave-one-out error by this many
+#: standard errors of the paired per-sample difference (:class:`ThinPlateSpline`).
+RICHER_Z = 2.0
+
+
 class ThinPlateSpline:
     """Smoothing thin-plate spline in 2-D, vector-valued, weighted, GCV-tuned.
 
@@ -76,6 +81,13 @@ class ThinPlateSpline:
         the cells of a grid (at most ``max_nodes`` nodes): the solves are O(M^3), and the
         coefficient maps are smooth. Leave-one-out residuals are then those of each
         sample with its share of its node's leverage. None: never.
+    max_dof : float, "half" or None
+        When ``eta`` is chosen by leave-one-out, at most this many effective degrees of
+        freedom ("half": half the samples) unless the held-out samples show that a richer
+        field predicts them better: the leave-one-out error at the unconstrained choice
+        must beat the constrained one by :data:`RICHER_Z` standard errors of the paired
+        per-sample difference (:attr:`richer`). A field that interpolates its samples
+        (as many dof as beads) follows their noise. None: no limit.
     criterion : {"loo", "gcv"}
         How ``eta`` is chosen when ``smoothing`` is None: "loo", the weighted
         leave-one-out error (each bead held out in turn, exact closed form
@@ -93,10 +105,16 @@ class ThinPlateSpline:
         The selection score at the chosen ``eta`` (``nan`` when ``eta`` was given).
     effective_dof : ndarray of shape (K,)
         Trace of the influence matrix: 3 for an affine fit, M for interpolation.
+    richer : ndarray of shape (K,), bool
+        Columns whose field uses more than ``max_dof`` because the held-out samples showed
+        it predicts better.
+    loo_gain : ndarray of shape (K,)
+        For those, the relative drop of the leave-one-out score it brought.
     """
 
     def __init__(self, points, values, *, weights=None, smoothing=None, scale=None,
-                 criterion: str = "loo", max_nodes: int | None = 1000):
+                 criterion: str = "loo", max_nodes: int | None = 1000,
+                 max_dof: float | str | None = "half"):
         if criterion not in ("loo", "gcv"):
             raise ValueError(f"`criterion` must be 'loo' or 'gcv', got {criterion!r}.")
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -123,6 +141,10 @@ class ThinPlateSpline:
             w = w / w.mean()
             m = len(pts)
         self.n_nodes = m
+        self.max_dof = (max(3.0, 0.5 * m) if max_dof == "half" else
+                        None if max_dof is None else float(max_dof))
+        self.richer = np.zeros(vals.shape[1], bool)
+        self.loo_gain = np.zeros(vals.shape[1])
         self._center = pts.mean(axis=0)
         self._scale = scale if scale > 0 else 1.0
         z = (pts - self._center) / self._scale
@@ -184,29 +206,53 @@ class ThinPlateSpline:
         out[ok] = self.residuals[ok] / denom[ok]
         return out if self._vector else out[:, 0]
 
-    @staticmethod
-    def _select(lam, vec, q2, proj, dinv, w, criterion):
-        """Per-column eta minimising the weighted LOO or GCV score on a log grid."""
+    def _select(self, lam, vec, q2, proj, dinv, w, criterion):
+        """Per-column eta minimising the weighted LOO or GCV score on a log grid, with
+        at most :attr:`max_dof` effective degrees of freedom unless the held-out samples
+        show that more predict better (:data:`RICHER_Z` standard errors of the paired
+        per-sample difference of the LOO errors; ``self.richer`` records where)."""
         m = q2.shape[0]
         top = max(float(lam.max()), 1e-12)
         grid = top * np.logspace(-9, 3, 97)
         n_col = proj.shape[1]
-        best = np.full(n_col, np.inf)
-        etas = np.full(n_col, grid[-1])
         basis = q2 @ vec  # (M, M-3)
         u2 = basis**2
-        for eta in grid:
+        scores = np.empty((len(grid), n_col))
+        dof = np.array([m - float(np.sum(eta / (lam + eta))) for eta in grid])
+
+        def loo_at(eta):
             resid = eta * dinv[:, None] * (basis @ (proj / (lam + eta)[:, None]))
+            one_minus_lev = eta * dinv * (u2 @ (1.0 / (lam + eta)))  # diag(I - S)
+            return resid, resid / np.maximum(one_minus_lev, 1e-12)[:, None]
+
+        for g, eta in enumerate(grid):
+            resid, loo = loo_at(eta)
             if criterion == "loo":
-                one_minus_lev = eta * dinv * (u2 @ (1.0 / (lam + eta)))  # diag(I - S)
-                loo = resid / np.maximum(one_minus_lev, 1e-12)[:, None]
-                score = (w[:, None] * loo**2).sum(axis=0) / m
+                scores[g] = (w[:, None] * loo**2).sum(axis=0) / m
             else:
                 denom = (float(np.sum(eta / (lam + eta))) / m) ** 2
-                score = (w[:, None] * resid**2).sum(axis=0) / m / denom
-            better = score < best
-            best[better], etas[better] = score[better], eta
-        return etas, best
+                scores[g] = (w[:, None] * resid**2).sum(axis=0) / m / denom
+        best = np.argmin(scores, axis=0)
+        self.richer = np.zeros(n_col, bool)
+        self.loo_gain = np.zeros(n_col)
+        cap = self.max_dof
+        if cap is not None and criterion == "loo" and (dof <= cap).any():
+            allowed = np.flatnonzero(dof <= cap)
+            for j in range(n_col):
+                if dof[best[j]] <= cap:
+                    continue
+                g_cap = allowed[np.argmin(scores[allowed, j])]
+                _, loo_u = loo_at(grid[best[j]])
+                _, loo_c = loo_at(grid[g_cap])
+                diff = w * (loo_c[:, j] ** 2 - loo_u[:, j] ** 2)
+                se = float(diff.std(ddof=1)) / np.sqrt(m) if m > 1 else np.inf
+                gain = float(diff.mean())
+                if gain > RICHER_Z * se and gain > 0:
+                    self.richer[j] = True
+                    self.loo_gain[j] = gain / max(float(scores[g_cap, j]), 1e-300)
+                else:
+                    best[j] = g_cap
+        return grid[best], scores[best, np.arange(n_col)]
 
     def __call__(self, points) -> np.ndarray:
         """Evaluate the spline at positions (row, column) in pixels, shape (N, 2).

@@ -81,6 +81,7 @@ def random_scene(
     *,
     shape: tuple[int, int] = (512, 512),
     effects: dict | None = None,
+    optics_type: type[Optics] = Optics,
     **overrides,
 ) -> tuple[np.ndarray, SimulationTruth, dict]:
     """Draw one bead scene of the family and render it.
@@ -99,6 +100,9 @@ def random_scene(
         4) growing linearly across the field by this many waves rms from side to side
         (random direction; or ``(span, angle_deg)``); they do not change the draw of the
         scene.
+    optics_type : type
+        The optics' class: :class:`~.optics.Optics`, or a subclass whose PSFs come from
+        other optics code (``bench/independent.py``), the draw of the scene unchanged.
     **overrides
         Any key of :data:`RANGES`, fixed (a number or string) or as a ``(low, high)``
         range, or a list of choices:
@@ -143,7 +147,7 @@ def random_scene(
     full = 2 ** p["bits"] - 1
     if p["bits"] == 8:
         p["offset"] = min(p["offset"], 10.0)
-    optics = Optics(na=p["na"], wavelength=p["wavelength"], pixel_size=p["pixel_size"])
+    optics = optics_type(na=p["na"], wavelength=p["wavelength"], pixel_size=p["pixel_size"])
     if p["aberrations"] == "random":
         aberrations = FieldAberrations.random(p["random_strength"], seed=rng)
     else:

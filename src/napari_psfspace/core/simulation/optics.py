@@ -245,9 +245,17 @@ def _psf_stack(
     sampled, so the product is the exact convolution up to the periodic
     wrap-around of the fine window, which callers keep away from the output
     with :func:`_object_pad`).
+
+    An ``optics`` with a ``psf_stack(noll, coefs, shifts, size, *, diameters, drift)``
+    method (a subclass of :class:`Optics`) computes the PSFs itself: the scene, the
+    effects and the camera stay the simulator's, the optics are another code's (the
+    benches' independent generator, ``bench/independent.py``).
     """
     shifts = np.asarray(shifts, float).reshape(-1, 2)
     coefs = np.asarray(coefs, float).reshape(len(shifts), len(noll))
+    external = getattr(optics, "psf_stack", None)
+    if external is not None:  # optics computed by other code (an independent generator)
+        return external(noll, coefs, shifts, size, diameters=diameters, drift=drift)
     extent = float(_blur_radius(noll, coefs, optics).max(initial=0.0))
     bins = _pupil_bins(optics, size, extent)
     k, index, weight, modes = _pupil(noll, optics, bins)

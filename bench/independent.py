@@ -1,0 +1,125 @@
+"""An independent generator: bead images whose PSFs come from optics code we did not write.
+
+The project's own simulator (``core/simulation``) is one view of the world: a scalar
+pupil with its Zernike phase, computed by our own matrix Fourier transforms. A method
+accepted on it alone may only have learnt its quirks. Here the PSFs come from **pyotf**
+(David Hoffman's implementation of Hanser et al.'s pupil model, J. Microsc. 2004, with
+the sine condition and the vectorial correction of high-NA imaging, ``vec_corr="total"``):
+its own pupil sampling, its own Zernike polynomials, its own propagation. The field
+variation is made by varying pyotf's parameters (its Zernike phase coefficients) across
+the field with the same smooth polynomials as the project's presets, so that the two
+generators describe the same microscope and differ only in the optics code.
+
+Everything else of a scene (bead layout, brightness, background, effects such as drift
+or companions, the camera) is the project's, so that what is compared is the optics.
+``PyotfOptics`` is an :class:`~napari_psfspace.core.simulation.optics.Optics` whose
+PSFs pyotf computes; pass it where the simulator takes optics, e.g.
+``random_scene(seed, optics_type=PyotfOptics)`` or ``simulate_beads(optics=...)``.
+
+pyotf is a ``bench`` extra (``pip install -e ".[bench]"``), not a dependency of the
+package: nothing in ``src`` imports it.
+
+    python bench/independent.py   # a side-by-side look at a few PSFs of both codes
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import fft as sfft
+
+from _common import SRC  # noqa: F401  (puts src on the path)
+from napari_psfspace.core.simulation import sphere_transfer
+from napari_psfspace.core.simulation.optics import Optics
+
+
+@dataclass(frozen=True)
+class PyotfOptics(Optics):
+    """Optics whose PSFs pyotf computes (Hanser's pupil model, vectorial correction).
+
+    Parameters
+    ----------
+    na, wavelength, pixel_size
+        As :class:`~napari_psfspace.core.simulation.optics.Optics` (µm).
+    immersion : float
+        Refractive index of the immersion medium (above the NA).
+    oversample : int
+        Odd sub-sampling of each camera pixel: the intensity is computed on a grid ``q``
+        times finer and summed over each pixel (pixel integration).
+    vec_corr : str
+        pyotf's vectorial correction ("total": both polarisations, high-NA).
+    """
+
+    immersion: float = 1.52
+    oversample: int = 3
+    vec_corr: str = "total"
+
+    def psf_stack(self, noll, coefs, shifts, size, *, diameters=None, drift=None):
+        """Pixel-integrated PSFs, as the simulator's ``_psf_stack`` returns them: shape
+        (B, size, size), each the fraction of unit energy that falls in each pixel."""
+        from pyotf.otf import HanserPSF, apply_aberration
+
+        q = int(self.oversample)
+        coefs = np.atleast_2d(np.asarray(coefs, float))
+        shifts = np.asarray(shifts, float).reshape(-1, 2)
+        # a grid twice the window (and more for a smear or a large bead), so that the
+        # periodic wings of pyotf's FFT propagation stay away from it
+        pad = 8
+        if drift is not None:
+            pad += int(np.ceil(np.hypot(*drift) / 2))
+        if diameters is not None and len(diameters):
+            pad += int(np.ceil(np.max(diameters) / self.pixel_size / 2))
+        span = 2 * size + 2 * pad
+        span += 1 - span % 2  # odd: the centre on a pixel
+        n = q * span
+        na = min(self.na, 0.999 * self.immersion)
+        model = HanserPSF(wl=self.wavelength * 1000.0, na=na, ni=self.immersion,
+                          res=self.pixel_size * 1000.0 / q, size=n, zrange=[0.0],
+                          vec_corr=self.vec_corr, condition="sine")
+        jmax = max(noll) if len(noll) else 1
+        ky = sfft.fftfreq(n)[:, None]
+        kx = sfft.fftfreq(n)[None, :]
+        out = np.empty((len(coefs), size, size))
+        for b in range(len(coefs)):
+            pcoefs = np.zeros(jmax)
+            for j, c in zip(noll, coefs[b], strict=True):
+                pcoefs[j - 1] = 2 * np.pi * c  # pyotf: radians, Noll order, rms-normalised
+            m = apply_aberration(model, None, pcoefs) if len(noll) else model
+            inten = np.asarray(m.PSFi, float).reshape(-1, n, n)[0]
+            total = inten.sum()
+            spec = sfft.fft2(sfft.ifftshift(inten))
+            # the sub-pixel shift (and a smear, a bead's size) in Fourier space, on the
+            # fine grid (cycles per fine sample)
+            spec *= np.exp(-2j * np.pi * (ky * shifts[b, 0] * q + kx * shifts[b, 1] * q))
+            if drift is not None:
+                spec *= np.sinc(ky * drift[0] * q + kx * drift[1] * q)
+            if diameters is not None:
+                k_um = np.hypot(ky, kx) / (self.pixel_size / q)
+                spec *= sphere_transfer(k_um, float(diameters[b]))
+            fine = sfft.fftshift(sfft.ifft2(spec).real)
+            binned = fine.reshape(span, q, span, q).sum(axis=(1, 3))
+            c = span // 2
+            h = size // 2
+            out[b] = binned[c - h:c + h + 1, c - h:c + h + 1] / total
+        return np.maximum(out, 0.0)
+
+
+def _demo() -> None:
+    from napari_psfspace.core.simulation import FieldAberrations, simulate_psf
+
+    field = FieldAberrations.preset("moderate")
+    for na in (0.8, 1.2, 1.45):
+        ours = Optics(na=na, wavelength=0.6, pixel_size=0.08)
+        theirs = PyotfOptics(na=na, wavelength=0.6, pixel_size=0.08)
+        for y, x in ((0.0, 0.0), (255.0, 255.0)):
+            z = field.coefficients(y, x, (512, 512))
+            a = simulate_psf(z, optics=ours, size=31)
+            b = simulate_psf(z, optics=theirs, size=31)
+            diff = np.linalg.norm(a / a.sum() - b / b.sum()) / np.linalg.norm(b / b.sum())
+            print(f"NA {na}: at ({y:.0f}, {x:.0f}) peak ours {a.max():.4f} pyotf "
+                  f"{b.max():.4f}, relative difference {diff:.3f}")
+
+
+if __name__ == "__main__":
+    _demo()
