@@ -59,6 +59,14 @@ def visible(m, truth, length) -> bool:
     return inside and bool((m.checks.get("probe") or {}).get("testable"))
 
 
+#: ``--setting field``: the issue's scenes from another simulator, 1024 x 1024, 150
+#: beads, moderate field-varying aberrations (a smear's zero reads deeper in one part of
+#: the field than in another)
+FIELD_SETTING = {"shape": (1024, 1024), "n_beads": 150, "aberrations": "moderate",
+                 "pixel_size": 0.1, "spread": 0.25, "peak_photons": (300.0, 3e4)}
+SCENE = {"setting": {}, "optics_type": None}
+
+
 def scene(seed, length=0.0):
     rng = np.random.default_rng(10_000 + seed)
     angle = float(rng.uniform(0, 180))
@@ -66,7 +74,11 @@ def scene(seed, length=0.0):
     if length:
         a = np.deg2rad(angle)
         drift = (length * np.sin(a), length * np.cos(a))
-    image, truth, params = random_scene(seed, effects={"drift": drift} if drift else None)
+    extra = dict(SCENE["setting"])
+    if SCENE["optics_type"] is not None:
+        extra["optics_type"] = SCENE["optics_type"]
+    image, truth, params = random_scene(seed, effects={"drift": drift} if drift else None,
+                                        **extra)
     return image, truth, angle
 
 
@@ -155,7 +167,19 @@ def main():
                     help="only the table of still beads near an astigmatic line focus")
     ap.add_argument("--measured", action="store_true",
                     help="only the test on the measured stacks of ../shared/data")
+    ap.add_argument("--setting", choices=("family", "field"), default="family",
+                    help="'field': the issue's 1024 x 1024 scenes of 150 beads with "
+                         "moderate field-varying aberrations")
+    ap.add_argument("--generator", choices=("ours", "pyotf"), default="ours",
+                    help="the optics code of the PSFs (pyotf: bench/independent.py)")
+    ap.add_argument("--lengths", default=None, help="comma-separated smear lengths (px)")
     args = ap.parse_args()
+    if args.setting == "field":
+        SCENE["setting"] = FIELD_SETTING
+    if args.generator == "pyotf":
+        from independent import PyotfOptics
+
+        SCENE["optics_type"] = PyotfOptics
     if args.astigmatism:
         astigmatism_rows()
         return
@@ -164,6 +188,8 @@ def main():
         return
     n = 20 if args.quick else args.scenes
     lengths = [3.0, 5.0] if args.quick else [1.5, 2.0, 3.0, 5.0, 8.0]
+    if args.lengths:
+        lengths = [float(v) for v in args.lengths.split(",")]
     rows = []
     t0 = time.perf_counter()
     for length in [0.0, *lengths]:

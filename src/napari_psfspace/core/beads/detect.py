@@ -16,7 +16,6 @@ from ..common.errors import PsfSpaceError
 from ..common.threads import filter_by_rows
 from ..common.validate import as_image, check_positive, check_psf_radius
 from .spikes import (
-    QUANTISATION_VARIANCE,
     find_spikes,
     inpaint_pixels,
     is_integer_valued,
@@ -283,8 +282,7 @@ def detect_beads(
               else np.zeros((0, 2), np.int64))
     if len(spikes):
         img = inpaint_pixels(img, spikes)
-    det, stabilised = detection_image(img, integer=integer, noise_sd=pixel_sd)
-    floor = np.sqrt(QUANTISATION_VARIANCE) if integer and not stabilised else 0.0
+    det, stabilised, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
     resp = log_response(det, sigma, pixel_sd_floor=floor)
     peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
     if auto_sigma and len(peaks):

@@ -49,7 +49,7 @@ MIN_SEARCH = 24
 
 
 def detection_image(image: np.ndarray, *, integer: bool, noise_sd: float
-                    ) -> tuple[np.ndarray, bool]:
+                    ) -> tuple[np.ndarray, bool, float]:
     """The image detection filters: the variance-stabilised image at low counts.
 
     Parameters
@@ -69,17 +69,25 @@ def detection_image(image: np.ndarray, *, integer: bool, noise_sd: float
     stabilised : bool
         Whether the transform was applied (integer values, ``noise_sd`` below
         :data:`LOW_COUNT_SD`).
+    sd_floor : float
+        The least pixel noise sd in the returned image's units: the rounding of integer
+        values (``sqrt(1/12)`` ADU), through the transform's slope at the background
+        when it was applied (an image of ones and a few twos has a robust spread of 0:
+        its noise is not 0); 0 for floating images.
     """
     img = np.asarray(image, dtype=np.float32)
+    rounding = float(np.sqrt(QUANTISATION_VARIANCE)) if integer else 0.0
     if not integer or noise_sd >= LOW_COUNT_SD:
-        return img, False
+        return img, False, rounding
     step = max(1, int(np.sqrt(img.size / 250_000)))
-    floor = float(np.percentile(img[::step, ::step], 0.1))
+    sample = img[::step, ::step]
+    floor = float(np.percentile(sample, 0.1))
+    level = float(np.median(sample)) - floor
     out = np.maximum(img - floor, 0.0)
     out += 3.0 / 8.0
     np.sqrt(out, out=out)
     out *= 2.0
-    return out, True
+    return out, True, rounding / float(np.sqrt(max(level, 0.0) + 3.0 / 8.0))
 
 
 def _normalised(resp: np.ndarray, floor: float = 0.0) -> tuple[float, float]:
@@ -214,9 +222,9 @@ def _block_mean(img: np.ndarray, b: int) -> np.ndarray:
     return img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
 
 
-def _prepare(image) -> tuple[np.ndarray, np.ndarray, bool, bool]:
-    """The image as float32 with its hot pixels inpainted, the detection image, whether
-    it is integer-valued and whether it was stabilised."""
+def _prepare(image) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """The image as float32 with its hot pixels inpainted, the detection image, its
+    pixel noise sd floor and whether it was stabilised (:func:`detection_image`)."""
     raw = np.asarray(image)
     img = as_image(raw, dtype=np.float32)
     integer = is_integer_valued(raw)
@@ -224,8 +232,8 @@ def _prepare(image) -> tuple[np.ndarray, np.ndarray, bool, bool]:
     spikes = find_spikes(img, noise_sd=sd, integer=integer)
     if len(spikes):
         img = inpaint_pixels(img, spikes)
-    det, stabilised = detection_image(img, integer=integer, noise_sd=sd)
-    return img, det, integer, stabilised
+    det, stabilised, floor = detection_image(img, integer=integer, noise_sd=sd)
+    return img, det, floor, stabilised
 
 
 def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
@@ -249,10 +257,9 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
     """
     from .detect import NoBeadsError, local_peaks, log_kernel_norm
 
-    img, det, integer, stabilised = _prepare(image)
+    img, det, floor, stabilised = _prepare(image)
     h, w = img.shape
     smax = float(max_sigma) if max_sigma else max(2.0, min(h, w) / 16.0)
-    floor = (np.sqrt(QUANTISATION_VARIANCE) if integer and not stabilised else 0.0)
     levels = []  # (sigma, binning, amplitude-normalised response, its median)
     candidates = []  # (row, column, strength)
     k = 0
@@ -320,6 +327,22 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
         key = (own[i], int(cand[i, 0] // max(1.0, s)), int(cand[i, 1] // max(1.0, s)))
         keyed.setdefault(key, i)
     unique = np.array(sorted(keyed.values()))
+    # one PSF, one vote: a spot of a large scale (a ring, at its centre) claims the
+    # smaller ones within its reach (the same ring found on its edge)
+    from scipy.spatial import cKDTree
+
+    order = unique[np.argsort(-sigmas[own[unique]], kind="stable")]
+    claimed = np.zeros(len(cand), bool)
+    tree = cKDTree(cand[unique, :2])
+    for i in order:
+        if claimed[i]:
+            continue
+        s_i = sigmas[own[i]]
+        for k2 in tree.query_ball_point(cand[i, :2], 1.5 * s_i):
+            other = unique[k2]
+            if other != i and sigmas[own[other]] < s_i:
+                claimed[other] = True
+    unique = unique[~claimed[unique]]
     sigma = float(np.exp(np.median(np.log(sigmas[own[unique]]))))
     # snap to the ladder; the spots: those of about that scale, strongest first
     best = int(np.argmin(np.abs(np.log(sigmas / sigma))))

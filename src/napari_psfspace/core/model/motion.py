@@ -49,10 +49,15 @@ ANGLE_STEP = 2.0
 MAX_DIP_RATIO = 0.3
 #: ... by at least this many standard errors of the profile there,
 MIN_DIP_Z = 6.0
-#: ... and still below this ratio in every quarter of the beads (it is common to all of
-#: them), while the perpendicular direction shows no dip below it there (a line, not a
-#: ring).
+#: ... while the perpendicular direction shows no dip below this ratio there (a line, not
+#: a ring); every quarter of the beads must show the same line (MAX_QUARTER_RATIO).
 MAX_CHECK_RATIO = 0.5
+#: Every quarter of the beads must show its own dip, at most this deep a ratio, within
+#: QUARTER_ANGLE degrees and QUARTER_FREQUENCY (relative) of the zero line found in all
+#: of them: the same line, whatever depth the field's aberrations give it there.
+MAX_QUARTER_RATIO = 0.7
+QUARTER_ANGLE = 4.0
+QUARTER_FREQUENCY = 0.15
 #: What every detection says besides the smear (see the module's docstring).
 ALTERNATIVE = ("Motion during the exposure, or the line focus of an astigmatic lens "
                "(astigmatism with about as much defocus, or a cylindrical lens), which one "
@@ -438,14 +443,32 @@ def detect_motion(
     across = angles.size // 2
     perp = _dips(rel[(i0 + across) % angles.size], np.zeros(len(centres)), cnt, centres,
                  band)[0][j]
-    quarters = []
+    # common to every quarter: its own deepest dip near the same direction and frequency
+    # (within QUARTER_ANGLE degrees and QUARTER_FREQUENCY of it). Its depth is not asked
+    # to match: field-varying aberrations change how deep a smear's zero reads from one
+    # part of the field to another (0.12-0.50 over the quarters of one scene), not where
+    # it lies
+    near_angles = [(i0 + d) % angles.size
+                   for d in range(-int(QUARTER_ANGLE // ANGLE_STEP),
+                                  int(QUARTER_ANGLE // ANGLE_STEP) + 1)]
+    near_bins = np.flatnonzero(np.abs(centres - t0) <= max(QUARTER_FREQUENCY * t0,
+                                                          1.01 * (centres[1] - centres[0])))
+    quarters, places = [], []
     for g in range(4):
         if np.count_nonzero(group == g) >= 2:
-            rq = profiles(combine(np.array([2 * g, 2 * g + 1])))[0][i0]
-            quarters.append(float(_dips(rq, np.zeros(len(centres)), cnt, centres, band)[0][j]))
-    checks = {"across": float(perp), "quarters": quarters, **probed}
+            rq = profiles(combine(np.array([2 * g, 2 * g + 1])))[0]
+            best_q = (np.inf, None)
+            for ia in near_angles:
+                rr = _dips(rq[ia], np.zeros(len(centres)), cnt, centres, band)[0]
+                jj = near_bins[np.argmin(rr[near_bins])] if len(near_bins) else j
+                if rr[jj] < best_q[0]:
+                    best_q = (float(rr[jj]), (float(angles[ia]), float(centres[jj])))
+            quarters.append(best_q[0])
+            places.append(best_q[1])
+    checks = {"across": float(perp), "quarters": quarters,
+              "quarter_places": [p_ for p_ in places if p_ is not None], **probed}
     straight = np.isfinite(perp) and perp > MAX_CHECK_RATIO
-    common = all(np.isfinite(q) and q <= MAX_CHECK_RATIO for q in quarters)
+    common = all(np.isfinite(q) and q <= MAX_QUARTER_RATIO for q in quarters)
     if not (straight and common):
         why = (f"the spectrum dips across it too (ratio {perp:.2f}): a ring, not a line"
                if not straight else "it is not common to all beads (quarters: "
