@@ -76,29 +76,33 @@ MIN_PAIRED = 5
 
 
 def paired_beads(before: CrossFit, after: CrossFit,
-                 reference: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray,
-                                                               np.ndarray]:
+                 reference: np.ndarray | None = None, *, informative: bool = True
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The beads two cross-fits both judge informatively (and that are in ``reference``,
     bead table indices, when given): ``(bead index, entry in before, entry in after)``.
 
     Every figure of a diagnosis step (the error before, after and its drop) is a mean
     over these beads, so that the three are one quantity; with one ``reference`` (the
     plain model's informative beads) the figures of successive steps chain.
+    ``informative=False``: every bead both judge (a scene where no bead is informative,
+    as :meth:`~.residuals.BeadResiduals.summary` falls back to).
     """
     common, i0, i1 = np.intersect1d(before.bead_index, after.bead_index,
                                     return_indices=True)
-    keep = before.residuals.informative[i0] & after.residuals.informative[i1]
+    keep = np.ones(len(common), bool)
+    if informative:
+        keep &= before.residuals.informative[i0] & after.residuals.informative[i1]
     if reference is not None:
         keep &= np.isin(common, reference)
     return common[keep], i0[keep], i1[keep]
 
 
 def paired_errors(before: CrossFit, after: CrossFit, noise: NoiseModel,
-                  reference: np.ndarray | None = None) -> dict:
+                  reference: np.ndarray | None = None, *, informative: bool = True) -> dict:
     """Mean held-out error and chi-square per dof of two cross-fits on the beads both
     judge (:func:`paired_beads`): ``error_before``, ``error_after``, ``chi2_before``,
     ``chi2_after``, ``noise_floor`` (``after``'s) and ``n_beads``; NaN without beads."""
-    common, i0, i1 = paired_beads(before, after, reference)
+    common, i0, i1 = paired_beads(before, after, reference, informative=informative)
     if len(common) == 0:
         nan = float("nan")
         return {"error_before": nan, "error_after": nan, "chi2_before": nan,
@@ -114,7 +118,7 @@ def paired_errors(before: CrossFit, after: CrossFit, noise: NoiseModel,
 def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 1000,
              seed: int = 0, *, shape: tuple[int, int] | None = None,
              throughput: tuple[int, int] = (0, 0), flux: np.ndarray | None = None,
-             reference: np.ndarray | None = None) -> dict:
+             reference: np.ndarray | None = None, informative: bool = True) -> dict:
     """Paired comparison of two cross-fits on the informative beads both judge
     (:func:`paired_beads`; restricted to ``reference`` when given).
 
@@ -145,8 +149,8 @@ def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int =
     """
     photometry = (_compare_photometry(before, after, shape, throughput, flux, n_boot, seed)
                   if shape is not None and throughput[0] != throughput[1] else {})
-    common, i0, i1 = paired_beads(before, after, reference)
-    shown = paired_errors(before, after, noise, reference)
+    common, i0, i1 = paired_beads(before, after, reference, informative=informative)
+    shown = paired_errors(before, after, noise, reference, informative=informative)
     if len(common) < MIN_PAIRED:
         return {**shown, "improvement": float("nan"), "p_no_drop": 1.0,
                 "chi2_improvement": float("nan"), "chi2_p_no_drop": 1.0,

@@ -273,8 +273,9 @@ def iter_diagnose(
     first_cf, first_an = cf, an
     # every figure of the diagnosis is a mean over the plain model's informative beads
     # (those each compared model judges too): the figures of successive steps chain
-    reference = cf.bead_index[cf.residuals.informative]
-    base = paired_errors(cf, cf, noise, reference)
+    informative = bool(cf.residuals.informative.any())  # else every bead, as summary()
+    reference = cf.bead_index[cf.residuals.informative] if informative else cf.bead_index
+    base = paired_errors(cf, cf, noise, reference, informative=informative)
     steps = [Step(None, 0.0, [t.name for t in an.significant()], base["error_before"],
                   base["error_before"], base["chi2_before"], base["chi2_before"], 0.0, 1.0,
                   True, {"n_beads": base["n_beads"]})]
@@ -304,7 +305,7 @@ def iter_diagnose(
             new_ctx = eff.apply(ctx, params)
             new_cf, new_an = evaluate(new_ctx)
         except ValueError as exc:  # e.g. too few beads left to learn from: not kept
-            s0 = paired_errors(cf, cf, ctx.noise, reference)
+            s0 = paired_errors(cf, cf, ctx.noise, reference, informative=informative)
             steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
                                                       and an.tests[t].significant],
                               s0["error_before"], s0["error_before"], s0["chi2_before"],
@@ -317,7 +318,7 @@ def iter_diagnose(
         flux = (bead_flux(new_ctx.image, new_cf.residuals.positions, r)
                 if throughput[0] != throughput[1] else None)
         cmp = _compare(cf, new_cf, new_ctx.noise, shape=img.shape, throughput=throughput,
-                       flux=flux, reference=reference)
+                       flux=flux, reference=reference, informative=informative)
         # one held-out metric must drop (by min_improvement, p <= max_p / 2) and none
         # may get worse by as much
         metrics = [m for m in ("", "chi2_", "photometric_") if f"{m}improvement" in cmp]
@@ -361,11 +362,15 @@ def iter_diagnose(
                                           remove_motion=remove_motion,
                                           **ctx.estimate_kwargs))
     added = [s.effect for s in steps if s.effect and s.accepted]
-    total = paired_errors(first_cf, cf, ctx.noise, reference)
+    total = paired_errors(first_cf, cf, ctx.noise, reference, informative=informative)
+
+    def finite(v):
+        return float(v) if np.isfinite(v) else None
+
     meta = {**est.operator.metadata, "diagnosis": {"added": added,
-                                                   "error_before": total["error_before"],
-                                                   "error_after": total["error_after"],
-                                                   "noise_floor": total["noise_floor"],
+                                                   "error_before": finite(total["error_before"]),
+                                                   "error_after": finite(total["error_after"]),
+                                                   "noise_floor": finite(total["noise_floor"]),
                                                    "n_beads": total["n_beads"]}}
     coefficients = est.operator.coefficients
     if "bead_size" in ctx.params:  # the PSFs are those of a bead of the reference size
@@ -384,7 +389,6 @@ def iter_diagnose(
                               "normalisation": "mean over the field = 1"}
     op = ProductConvolution(est.operator.basis, coefficients,
                             shape=est.operator.shape, grid=est.operator.grid, metadata=meta)
-    total = paired_errors(first_cf, cf, ctx.noise, reference)
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
     options = {"folds": folds, "leave_one_bead_out": folds == n_kept,
                "min_improvement": min_improvement,
