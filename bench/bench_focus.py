@@ -63,7 +63,7 @@ def simulated(quick: bool) -> list[dict]:
     for na, ab, seed in cases:
         t = time.perf_counter()
         stack, series = simulate_focus_series(
-            (512, 512), 10, z, optics=Optics(na=na, wavelength=0.6, pixel_size=0.1),
+            (768, 768), 18, z, optics=Optics(na=na, wavelength=0.6, pixel_size=0.1),
             aberrations=astig if ab == "astigmatic" else ab, seed=seed)
         scores = [score_slice(stack[k], series.positions, series.psf_radius[k])
                   for k in range(len(z))]
@@ -136,7 +136,7 @@ def main() -> None:
     ap.add_argument("--no-measured", action="store_true")
     args = ap.parse_args()
     rows = simulated(args.quick)
-    print("\nSimulated focus series (10 isolated beads, 512 x 512, 0.1 um pixels)")
+    print("\nSimulated focus series (18 isolated beads, 768 x 768, 0.1 um pixels)")
     print(table(rows, [("NA", ".1f"), ("aberrations", "s"), ("slices", "d"),
                        ("min_recall", ".2f"), ("max_split_%", ".0f"), ("max_false_%", ".0f"),
                        ("focus_true", "d"), ("focus", "d"), ("focus_std", "d"),

@@ -388,12 +388,13 @@ def _merge_secondary_maxima(peaks, strength, r):
 
 
 def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r: float,
-                  sigma: float, *, saddle: float = 0.3) -> tuple[np.ndarray, np.ndarray]:
-    """Merge maxima that one PSF makes: two maxima within ``r`` of each other whose
-    smoothed image stays, all along the segment between them, at least ``saddle`` of the
-    lower one's height above the local background (two arcs of a defocused ring; two
-    separate spots dip to the background between them). A group becomes one detection at
-    its maxima's strength-weighted mean, with the strongest one's strength.
+                  sigma: float, *, saddle: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """Merge maxima that one PSF makes: two maxima within ``2 r`` of each other joined by a
+    path (straight, or around a ring's dark centre) along which the smoothed image stays
+    at least ``saddle`` of the lower one's height above the local background (two arcs of
+    a defocused ring; two separate spots dip towards the background between them). A
+    group becomes one detection at its maxima's strength-weighted mean, with the
+    strongest one's strength.
 
     Parameters
     ----------
@@ -415,11 +416,14 @@ def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r:
 
     if len(peaks) < 2:
         return peaks, strength
-    pairs = sorted(cKDTree(peaks).query_pairs(r))
+    # within the neighbour distance 2 r: a ring wider than the radius suggested for it
+    # (a corner bead's coma) is still one PSF; two beads that close are unusable anyway,
+    # and they are merged only if joined
+    pairs = sorted(cKDTree(peaks).query_pairs(2 * r))
     if not pairs:
         return peaks, strength
     h, w = image.shape
-    half = int(np.ceil(r + 3 * sigma))
+    half = int(np.ceil(2 * r + 3 * sigma))
     parent = np.arange(len(peaks))
 
     def root(i):
@@ -428,7 +432,7 @@ def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r:
             i = parent[i]
         return i
 
-    t = np.linspace(0.0, 1.0, 2 * int(np.ceil(r)) + 1)
+    t = np.linspace(0.0, 1.0, 4 * int(np.ceil(r)) + 1)
     for i, j in pairs:
         mid = (peaks[i] + peaks[j]) // 2
         y0, x0 = max(0, mid[0] - half), max(0, mid[1] - half)
@@ -436,11 +440,17 @@ def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r:
                          np.float64)
         smooth = ndi.gaussian_filter(win, sigma / 2, mode="nearest")
         bg = float(np.percentile(smooth, 10))
-        line = (peaks[i][None, :] * (1 - t[:, None]) + peaks[j][None, :] * t[:, None]
-                - np.array([y0, x0]))
+        pi, pj = peaks[i] - np.array([y0, x0]), peaks[j] - np.array([y0, x0])
+        line = pi[None, :] * (1 - t[:, None]) + pj[None, :] * t[:, None]
         along = ndi.map_coordinates(smooth, line.T, order=1, mode="nearest")
         low = min(along[0], along[-1]) - bg
-        if low > 0 and along.min() - bg >= saddle * low:
+        if low <= 0:
+            continue
+        joined = along.min() - bg >= saddle * low  # straight across
+        if not joined:  # or around: two arcs of one ring, its dark centre between them
+            lab, _ = ndi.label(smooth - bg >= saddle * low)
+            joined = lab[tuple(pi)] != 0 and lab[tuple(pi)] == lab[tuple(pj)]
+        if joined:
             a, b = root(i), root(j)
             parent[max(a, b)] = min(a, b)
     groups = np.array([root(i) for i in range(len(peaks))])
