@@ -16,7 +16,10 @@ top of it. Typical use::
 __version__ = "0.1.0"
 
 from .core.beads.detect import Beads, NoBeadsError, detect_beads, suggest_psf_radius
+from .core.beads.focus import best_focus_index
 from .core.beads.patches import Patches, extract_patches
+from .core.beads.scale import spot_scale
+from .core.common.errors import PsfSpaceError
 from .core.diagnosis.loop import Diagnosis, diagnose
 from .core.model.estimate import Estimation, Progress, estimate_operator, iter_estimate
 from .core.model.operator import ProductConvolution, load_operator
@@ -33,8 +36,10 @@ __all__ = [
     "Patches",
     "ProductConvolution",
     "Progress",
+    "PsfSpaceError",
     "SimulationTruth",
     "__version__",
+    "best_focus_index",
     "detect_beads",
     "diagnose",
     "estimate_operator",
@@ -44,5 +49,6 @@ __all__ = [
     "psf_error",
     "simulate_beads",
     "simulate_psf",
+    "spot_scale",
     "suggest_psf_radius",
 ]

@@ -1,0 +1,81 @@
+"""Every slice of a bead z-stack: rings are beads, found once, and best focus is focus.
+
+Simulated focus series use the exact defocus phase
+(:mod:`napari_psfspace.core.simulation.focus`); ``bench/bench_focus.py`` runs the full
+set (NA 0.8-1.4, 17 slices, astigmatic objectives, a dense slide of rings).
+"""
+
+import numpy as np
+import pytest
+import tifffile
+from scipy.spatial import cKDTree
+
+from napari_psfspace import best_focus_index, detect_beads, spot_scale, suggest_psf_radius
+from napari_psfspace.core.beads.focus import focus_measure
+from napari_psfspace.core.simulation import Optics
+from napari_psfspace.core.simulation.focus import defocus_zernike, simulate_focus_series
+
+
+def _series(na, aberrations, seed, z=(-2.0, -1.0, 0.0, 1.0, 2.0)):
+    return simulate_focus_series((512, 512), 10, z, aberrations=aberrations, seed=seed,
+                                 optics=Optics(na=na, wavelength=0.6, pixel_size=0.1))
+
+
+def test_defocus_is_the_exact_phase():
+    """The symmetric Zernike terms of 1 um of defocus: mostly Z4 at low NA, a spherical
+    part that grows with the NA; the residual beyond order 12 under 1e-2 waves."""
+    low, r_low = defocus_zernike(1.0, Optics(na=0.8, wavelength=0.6))
+    high, r_high = defocus_zernike(1.0, Optics(na=1.4, wavelength=0.6))
+    assert abs(low[11] / low[4]) < 0.1 < abs(high[11] / high[4])
+    assert max(r_low, r_high) < 1e-2
+    flip, _ = defocus_zernike(-1.0, Optics(na=1.4, wavelength=0.6))
+    assert flip[4] == pytest.approx(-high[4])
+
+
+@pytest.mark.parametrize(("na", "aberrations", "seed"), [(1.2, "none", 1), (0.8, "moderate", 0)])
+def test_every_slice_finds_each_bead_once(na, aberrations, seed):
+    """Rings 2 um out of focus are one bead each, found at their centre: the widefield
+    NA 1.2 ring split into 8 of 10 beads before the spots' scale counted one vote per
+    PSF; the corner bead's comatic ring at NA 0.8 in two before its maxima were joined
+    around its dark centre."""
+    stack, series = _series(na, aberrations, seed, z=(-2.0, -1.0, 0.0, 0.5, 1.5, 2.0))
+    for k in range(len(stack)):
+        r = suggest_psf_radius(stack[k])
+        beads = detect_beads(stack[k], r)
+        d, j = cKDTree(series.positions).query(beads.positions)
+        hit = d <= max(3.0, 0.5 * series.psf_radius[k])
+        found = np.unique(j[hit])
+        assert len(found) >= 0.9 * len(series.positions), k
+        assert hit.sum() - len(found) == 0 and (~hit).sum() == 0, k  # no split, no false
+        # the radius follows the PSF the slice shows (measured 0.7-2.4 x its 90 % energy
+        # radius: a bright in-focus bead's Airy wings are above the noise far out)
+        assert 0.5 * series.psf_radius[k] <= r <= 2.5 * series.psf_radius[k] + 3, k
+    assert best_focus_index(stack) == series.focus_index
+
+
+def test_the_spots_scale_follows_the_defocus():
+    stack, _ = _series(1.4, "none", 2, z=(0.0, 1.0, 2.0))
+    scales = [spot_scale(s).sigma for s in stack]
+    assert scales[0] < scales[1] < scales[2]
+
+
+def test_best_focus_on_every_measured_stack(shared_data):
+    """Within one frame of the slice of highest peak on every stack of ../shared/data
+    (sources and licences: ../shared/data/README.md)."""
+    for path in sorted(shared_data.glob("*/*.tif")):
+        stack = tifffile.imread(path)
+        if stack.ndim != 3:
+            continue
+        peak = int(np.argmax([np.percentile(s, 99.99) for s in stack]))
+        assert abs(best_focus_index(stack) - peak) <= 1, path.name
+
+
+def test_focus_measure_names_its_errors():
+    with pytest.raises(ValueError, match="3-D"):
+        focus_measure(np.zeros((8, 8)))
+    with pytest.raises(ValueError, match="constant"):
+        focus_measure(np.ones((3, 16, 16)))
+    # no bead anywhere: best focus falls back to the highest contrast, and says nothing
+    noise = np.random.default_rng(0).normal(100, 3, (5, 64, 64))
+    noise[3] *= 1.5
+    assert best_focus_index(noise) == 3
