@@ -63,14 +63,17 @@ class PyotfOptics(Optics):
         q = int(self.oversample)
         coefs = np.atleast_2d(np.asarray(coefs, float))
         shifts = np.asarray(shifts, float).reshape(-1, 2)
-        # a grid twice the window (and more for a smear or a large bead), so that the
-        # periodic wings of pyotf's FFT propagation stay away from it
-        pad = 8
+        # a grid a half window wider on each side (and more for a smear or a large bead),
+        # so that the periodic wings of pyotf's FFT propagation stay away from the window
+        pad = max(8, size // 4)
         if drift is not None:
             pad += int(np.ceil(np.hypot(*drift) / 2))
         if diameters is not None and len(diameters):
             pad += int(np.ceil(np.max(diameters) / self.pixel_size / 2))
-        span = 2 * size + 2 * pad
+        span = size + 2 * pad
+        # pyotf samples the pupil at 1 / (grid extent): at least 16 samples across its
+        # radius, or aberrated pupils alias
+        span = max(span, int(np.ceil(16.0 / (self.cutoff * self.pixel_size))))
         span += 1 - span % 2  # odd: the centre on a pixel
         n = q * span
         na = min(self.na, 0.999 * self.immersion)
