@@ -20,3 +20,22 @@ def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:
     out = [line, "-" * len(line)]
     out += [" | ".join(c.rjust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
     return "\n".join(out)
+
+
+def optics_type(generator: str):
+    """The optics class of a bench's scenes: the project's simulator ("ours") or pyotf
+    ("pyotf": ``bench/independent.py``, the ``bench`` extra)."""
+    if generator == "pyotf":
+        from independent import PyotfOptics
+
+        return PyotfOptics
+    from napari_psfspace.core.simulation.optics import Optics
+
+    return Optics
+
+
+def add_generator_argument(parser) -> None:
+    """``--generator {ours,pyotf}``: whose optics code computes the PSFs."""
+    parser.add_argument("--generator", choices=("ours", "pyotf"), default="ours",
+                        help="the optics code of the PSFs: the project's simulator, or "
+                             "pyotf (bench/independent.py; pip install -e '.[bench]')")

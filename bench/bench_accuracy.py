@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from _common import table
+from _common import add_generator_argument, optics_type, table
 from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
 from napari_psfspace.core.simulation import Optics, simulate_beads
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth
@@ -27,8 +27,13 @@ COLUMNS = [("case", "s"), ("seed", "d"), ("beads", "d"), ("peak_snr", ".0f"), ("
            ("SI", ".4f"), ("ratio", ".3f"), ("heldout", ".4f"), ("seconds", ".1f")]
 
 
+#: the optics class of the scenes (``--generator``)
+OPTICS = [Optics]
+
+
 def run_case(case, shape, n_beads, preset, seed, n_psf=None, amplitude=(2e4, 6e4),
              **sim):
+    sim.setdefault("optics", OPTICS[0]())
     image, truth = simulate_beads(shape, n_beads, aberrations=preset, seed=seed,
                                   amplitude=amplitude, **sim)
     t0 = time.perf_counter()
@@ -48,7 +53,10 @@ def run_case(case, shape, n_beads, preset, seed, n_psf=None, amplitude=(2e4, 6e4
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="one seed, fewer sweep points")
+    ap.add_argument("--headline", action="store_true", help="only the headline cases")
+    add_generator_argument(ap)
     args = ap.parse_args()
+    OPTICS[0] = optics_type(args.generator)
     seeds = [0] if args.quick else [0, 1, 2]
 
     print("Headline cases (bounds: moderate mean <= 0.05, strong mean <= 0.12, "
@@ -56,6 +64,8 @@ def main():
     rows = [run_case("1024 moderate", (1024, 1024), 150, "moderate", s) for s in seeds]
     rows += [run_case("2048 strong", (2048, 2048), 400, "strong", s) for s in seeds]
     print(table(rows, COLUMNS), flush=True)
+    if args.headline:
+        return
 
     print("\nError against bead count (1024x1024, moderate, seed 0)")
     counts = [30, 60, 150] if args.quick else [20, 30, 60, 100, 150, 250]

@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from _common import table
+from _common import add_generator_argument, optics_type, table
 from napari_psfspace.core.beads.detect import detect_beads
 from napari_psfspace.core.diagnosis.noise import noise_model
 from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
@@ -34,6 +34,9 @@ from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_b
 from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT as LOW_COUNT
 from napari_psfspace.core.simulation.family import isolated, match, random_scene
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth
+
+#: the optics class of the scenes (``--generator``)
+OPTICS = [Optics]
 
 
 def estimate(image, truth, **kwargs):
@@ -46,7 +49,7 @@ def estimate(image, truth, **kwargs):
 def detection(seeds):
     rows = []
     for seed in seeds:
-        image, truth, p = random_scene(seed, **LOW_COUNT)
+        image, truth, p = random_scene(seed, optics_type=OPTICS[0], **LOW_COUNT)
         r = truth.psf_radius
         beads = detect_beads(image, r)
         found, real = match(beads.positions, truth.positions, max(1.5, r / 3))
@@ -77,7 +80,7 @@ def noise(seeds_low, seeds_all):
                                                          "n_beads": (20, 200)})):
         kinds, ratios = {}, []
         for seed in seeds:
-            image, _, p = random_scene(seed, **kw)
+            image, _, p = random_scene(seed, optics_type=OPTICS[0], **kw)
             m = noise_model(image)
             kinds[m.kind] = kinds.get(m.kind, 0) + 1
             if m.kind == "photon transfer":
@@ -100,11 +103,13 @@ def noise(seeds_low, seeds_all):
 def hot_pixels(seeds):
     rows = []
     for seed in seeds:
-        image, truth = simulate_beads((1024, 1024), 150, aberrations="moderate", seed=seed)
+        image, truth = simulate_beads((1024, 1024), 150, aberrations="moderate", seed=seed,
+                                      optics=OPTICS[0]())
         clean, *_ = estimate(image, truth)
         for frac in (0.0005, 0.001):
             hot, t = simulate_beads((1024, 1024), 150, aberrations="moderate", seed=seed,
-                                    effects={"hot_pixels": (frac, (1.0, 5.0))})
+                                    effects={"hot_pixels": (frac, (1.0, 5.0))},
+                                    optics=OPTICS[0]())
             where = t.effects["hot_pixel_positions"]
             err, _, est, dt = estimate(hot, truth)
             found = {tuple(p) for p in est.beads.hot_pixels.tolist()}
@@ -128,7 +133,7 @@ def bead_size(seeds, quick):
         cases += [(0.1, 0.13, 0), (0.1, 0.065, 0), (0.3, 0.1, 0), (0.5, 0.065, 0),
                   (0.5, 0.13, 0)]
     for d_um, px, seed in cases:
-        optics = Optics(pixel_size=px)
+        optics = OPTICS[0](pixel_size=px)
         point, tp = simulate_beads((1024, 1024), 150, aberrations="moderate", optics=optics,
                                    seed=seed)
         beads, tb = simulate_beads((1024, 1024), 150, aberrations="moderate", optics=optics,
@@ -162,7 +167,7 @@ def few_beads(seeds, counts):
             for seed in seeds:
                 image, truth = simulate_beads(
                     (512, 512), n, aberrations=aberr, seed=seed, min_separation=60,
-                    optics=Optics(na=1.46, wavelength=0.6, pixel_size=0.08),
+                    optics=OPTICS[0](na=1.46, wavelength=0.6, pixel_size=0.08),
                     amplitude=(4e4, 8e4))
                 err, si, est, _ = estimate(image, truth)
                 m = est.operator.metadata
@@ -181,13 +186,22 @@ def few_beads(seeds, counts):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="fewer seeds")
+    add_generator_argument(ap)
+    ap.add_argument("--parts", default="1,2,3,4,5", help="which tables (comma-separated)")
     args = ap.parse_args()
+    OPTICS[0] = optics_type(args.generator)
+    parts = {int(v) for v in args.parts.split(",")}
     q = args.quick
-    detection(range(5 if q else 20))
-    noise(range(5 if q else 20), range(10 if q else 60))
-    hot_pixels([0] if q else [0, 1, 2])
-    bead_size([0] if q else [0, 1, 2], q)
-    few_beads([0] if q else [0, 1, 2], [5, 8] if q else [5, 8, 10, 12])
+    if 1 in parts:
+        detection(range(5 if q else 20))
+    if 2 in parts:
+        noise(range(5 if q else 20), range(10 if q else 60))
+    if 3 in parts:
+        hot_pixels([0] if q else [0, 1, 2])
+    if 4 in parts:
+        bead_size([0] if q else [0, 1, 2], q)
+    if 5 in parts:
+        few_beads([0] if q else [0, 1, 2], [5, 8] if q else [5, 8, 10, 12])
 
 
 if __name__ == "__main__":
