@@ -42,28 +42,6 @@ def test_variance_floor_and_dict():
     assert m.to_dict()["gain"] == 2.0
 
 
-def _damaged(image: np.ndarray, kind: int, rng) -> np.ndarray:
-    """The scene, or one of the ways a camera image goes wrong."""
-    a = image.copy()
-    h, w = a.shape
-    top = np.iinfo(a.dtype).max
-    med = np.median(a)
-    if kind == 1:  # half the field clipped to the floor
-        a[: h // 2] = a.min()
-    elif kind == 2:  # a third saturated
-        a[:, : w // 3] = top
-    elif kind == 3:  # a flat background, beads kept: every local level the same
-        a = np.where(a > med + 3 * a.std(), a, med).astype(a.dtype)
-        a[0, 0] = max(0, int(med) - 1)
-    elif kind == 4:  # the same with one count here and there
-        a = np.where(a > med + 3 * a.std(), a, med + (rng.random(a.shape) < 0.01))
-        a = a.astype(image.dtype)
-        a[0, 0] = 0
-    elif kind == 5:  # a constant block in the centre
-        a[h // 4:3 * h // 4, w // 4:3 * w // 4] = int(med)
-    return a
-
-
 def test_the_noise_model_completes_or_names_its_failure_on_200_scenes():
     """Every path either completes with a named model (photon transfer or a named
     fallback, finite at every level) or raises the project's NoiseModelError with a
@@ -71,6 +49,7 @@ def test_the_noise_model_completes_or_names_its_failure_on_200_scenes():
     saturated, flat and constant. (A flat 8-bit background once raised numpy's
     "zero-size array" from inside the message meant to explain it.)"""
     from napari_psfspace.core.diagnosis.noise import NoiseModelError, noise_model
+    from napari_psfspace.core.simulation.damage import damaged
     from napari_psfspace.core.simulation.family import random_scene
 
     kinds = {}
@@ -81,8 +60,7 @@ def test_the_noise_model_completes_or_names_its_failure_on_200_scenes():
             image, _, _ = random_scene(seed, shape=(160, 160), n_beads=(3, 60))
         except ValueError:  # PSFs too wide for so small a scene: draw the next
             continue
-        rng = np.random.default_rng(seed)
-        variant = _damaged(image, seed % 6, rng)
+        variant = damaged(image, seed % 6, seed)
         try:
             m = noise_model(variant)
         except NoiseModelError as exc:  # the project's error: a message, no traceback
