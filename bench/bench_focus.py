@@ -115,15 +115,21 @@ def measured() -> list[dict]:
             except NoBeadsError:
                 counts.append(0)
         counts = np.array(counts)
-        # a jump: a slice with more than 1.5x the detections of both its neighbours
-        # (that were not empty)
+        # a jump: a slice with more than 1.5x (+2) the detections of both its neighbours
+        # (the edge of detectability, where the beads' response crosses the threshold,
+        # flickers); doubling: a defocused slice with more detections than 1.2x the
+        # slice in focus (a ring found as several spots)
         jumps = [k for k in range(1, len(counts) - 1)
                  if counts[k] > 1.5 * max(counts[k - 1], counts[k + 1]) + 2]
         peak = int(np.argmax([np.percentile(s, 99.99) for s in stack]))
+        focus = best_focus_index(stack)
+        doubled = [k for k in range(len(counts)) if counts[k] > 1.2 * counts[focus] + 2]
         rows.append({"file": path.name, "slices": len(stack),
                      "counts": " ".join(str(c) for c in counts),
                      "jumps": ",".join(map(str, jumps)) or "-",
-                     "focus": best_focus_index(stack), "peak_slice": peak,
+                     "doubled": ",".join(map(str, doubled)) or "-",
+                     "in_focus": int(counts[focus]), "max_count": int(counts.max()),
+                     "focus": focus, "peak_slice": peak,
                      "focus_std": int(np.argmax(
                          stack.reshape(len(stack), -1).astype(np.float32).std(axis=1)))})
         print(rows[-1], flush=True)
@@ -149,8 +155,9 @@ def main() -> None:
         print("\nMeasured stacks: detections per slice (suggested radius per slice)")
         for r in rows:
             print(f"{r['file']} ({r['slices']} slices): {r['counts']}")
-        print(table(rows, [("file", "s"), ("slices", "d"), ("jumps", "s"), ("focus", "d"),
-                           ("peak_slice", "d"), ("focus_std", "d")]))
+        print(table(rows, [("file", "s"), ("slices", "d"), ("in_focus", "d"),
+                           ("max_count", "d"), ("doubled", "s"), ("jumps", "s"),
+                           ("focus", "d"), ("peak_slice", "d"), ("focus_std", "d")]))
 
 
 if __name__ == "__main__":

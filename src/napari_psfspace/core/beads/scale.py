@@ -39,6 +39,9 @@ from .spikes import (
 #: Integer images whose background noise sd is below this (ADU) are treated as counts:
 #: detection runs on the variance-stabilised image (:func:`detection_image`).
 LOW_COUNT_SD = 3.0
+#: A spot must stand out at this many neighbouring scales (a factor sqrt(2) apart) of
+#: :func:`spot_scale`.
+PERSISTENCE = 3
 #: Scales tried around a starting scale, as factors (:func:`characteristic_scale`).
 SCALE_FACTORS = (0.71, 1.0, 1.41, 2.0, 2.83, 4.0)
 #: :func:`suggest_psf_radius` looks this many spot scales around each spot (and at least
@@ -306,12 +309,18 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
         table[:, j] = near[iy, ix]
         signif[:, j] = near_n[iy, ix]
     sig = signif >= threshold
-    # a spot is significant at two neighbouring scales at least: a noise bump (at low
-    # counts, where the noise is skewed) stands out at one scale only
-    lasting = (sig[:, 1:] & sig[:, :-1]).any(axis=1) if sig.shape[1] > 1 else sig[:, 0]
+    # a spot is significant at three neighbouring scales (a factor 2) at least: a noise
+    # bump stands out at one or two of the smallest (at low counts, where the noise is
+    # skewed, and on a camera's noisy first frame); a PSF over a range of scales
+    if sig.shape[1] >= PERSISTENCE:
+        lasting = np.zeros(len(sig), bool)
+        for k in range(sig.shape[1] - PERSISTENCE + 1):
+            lasting |= sig[:, k:k + PERSISTENCE].all(axis=1)
+    else:
+        lasting = sig.any(axis=1)
     if not lasting.any():
         raise NoBeadsError(
-            f"No spot stands out of the noise at two neighbouring scales from 1 to "
+            f"No spot stands out of the noise at {PERSISTENCE} neighbouring scales from 1 to "
             f"{smax:.3g} px (threshold {threshold:g} noise sd): no beads to measure. Check "
             "the image or the slice.")
     cand, table, sig = cand[lasting], table[lasting], sig[lasting]
