@@ -10,14 +10,20 @@ spots along its edge, which then reject one another as neighbours.
   sd lets hundreds of noise bumps through (measured: 160 on a 1024 x 1024 confocal slice
   of noise at scale 1, 4 once stabilised). There the detection runs on the
   variance-stabilised image ``2 sqrt(x - m + 3/8)`` (Anscombe; ``m`` the image's floor).
-* :func:`characteristic_scale`: Lindeberg's scale selection over a population of spots:
-  the scale at which the amplitude-normalised response ``-sigma^2 LoG`` of the strongest
-  spots is largest (a Gaussian spot of sd ``s``: ``sigma = s``; a thin ring of radius
-  ``R``: ``sigma = 1.14 R``, where its centre, not its edge, responds).
-* :func:`spot_scale` finds that scale on the whole image (an image pyramid: coarse scales
-  on binned copies) without a radius to start from; :func:`suggest_psf_radius` measures
-  the radius enclosing most of the spots' energy *within a few scales* of their centre,
-  so that a faint halo far out does not set it.
+* :func:`characteristic_scale`: Lindeberg's scale selection on a few spots (windows about
+  them): the scale at which their amplitude-normalised response ``-sigma^2 LoG`` is
+  largest, where it is significant (a Gaussian spot of sd ``s``: ``sigma = s``; a thin
+  ring of radius ``R``: ``sigma = 1.14 R``, where its centre, not its edge, responds).
+  :func:`~napari_psfspace.core.beads.detect.detect_beads` moves to it when it is well
+  above ``r / 4``.
+* :func:`spot_scale` finds the scale on the whole image without a radius to start from
+  (an image pyramid: coarse scales on binned copies; one vote per PSF: a ring's centre
+  claims the spots along its edge; a spot must stand out at three neighbouring scales).
+* :func:`suggest_psf_radius` measures, around spots found at that scale, the radius
+  that encloses most of their energy within the signal's extent, on each spot's own
+  pixels (those nearer it than any other spot: a neighbour is not its halo), above a
+  plane fitted to its surroundings (a gradient is not a halo either), within
+  :data:`SEARCH_SCALES` scales of it.
 """
 
 from __future__ import annotations
