@@ -41,7 +41,9 @@ def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
         raise ValueError(
             f"`{name}` must be a 2-D image (rows, columns), got a 3-D stack of shape {arr.shape}. "
             f"3-D support has not landed yet: pass one slice, e.g. `{name}[{best}]` "
-            f"(slice {best} has the highest contrast, likely the one in focus)."
+            f"(slice {best} has the highest contrast; `napari_psfspace.best_focus_index` "
+            "finds the slice where the beads are in focus: at high NA a defocused ring "
+            "can have more contrast)."
         )
     if arr.ndim != 2:
         raise ValueError(
