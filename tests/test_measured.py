@@ -153,3 +153,37 @@ def test_astigmatic_8_bit_diagnosis_numbers_agree(shared_data):
     assert d.noise_floor > 1e-3
     assert_figures_chain(d)
     assert d.error_after <= d.error_before
+
+
+def test_every_slice_estimates_or_stops_with_a_message(shared_data):
+    """Every 4th slice of every stack, as the command line runs it without options (the
+    radius measured from the slice): a model, or one of the project's errors with a
+    message, never another exception (``bench/bench_every_slice.py`` runs every slice,
+    the diagnosis too). And the slices of the SP8 stack whose diagnosis once raised
+    numpy's "zero-size array" (a 3 px radius leaves no ring for the secondary-peak test)."""
+    import tifffile
+
+    from napari_psfspace.core.common.errors import PsfSpaceError
+    from napari_psfspace.core.detect import suggest_psf_radius
+    from napari_psfspace.core.diagnose import diagnose
+
+    outcomes = {"model": 0, "stopped": 0}
+    for path in sorted(shared_data.glob("*/*.tif")):
+        stack = tifffile.imread(path)
+        stack = stack if stack.ndim == 3 else stack[None]
+        for z in range(0, len(stack), 4):
+            try:
+                r = suggest_psf_radius(stack[z])
+                run_with_progress(iter_estimate(stack[z], psf_radius=r))
+                outcomes["model"] += 1
+            except PsfSpaceError as exc:
+                assert str(exc)
+                outcomes["stopped"] += 1
+    assert outcomes["model"] >= 20 and outcomes["stopped"] >= 20
+    sp8 = tifffile.imread(shared_data / "sp8_confocal_beads" / "sp8_series045_beads_zyx_uint8.tif")
+    for z in (1, 62):
+        try:
+            d = diagnose(sp8[z], psf_radius=3.0, max_steps=2)
+            assert d.verdict.headline
+        except PsfSpaceError as exc:
+            assert str(exc)
