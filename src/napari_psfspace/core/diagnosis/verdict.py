@@ -91,10 +91,14 @@ def verdict(diagnosis) -> Verdict:
         if t.name in kept_tests:
             continue
         effects = [n for n in REGISTRY if t.name in REGISTRY[n].tests]
-        if t.name in answered:
+        considered = (d.options or {}).get("effects")
+        if t.name in answered and considered is not None and not any(
+                e in considered for e in effects):
+            why = f"its candidate(s) {', '.join(effects)} not among the effects considered"
+        elif t.name in answered:
             why = (f"its candidate(s) {', '.join(effects)} tried and not kept"
                    if any(e in tried for e in effects) else
-                   f"its candidate(s) {', '.join(effects)} could not be tried")
+                   f"its candidate(s) {', '.join(effects)} not applicable here")
         else:
             why = "no candidate effect answers it"
         meaning = TEST_MEANING.get(t.name, "")
