@@ -306,8 +306,17 @@ def detect_beads(
     peaks, strength = _merge_secondary_maxima(peaks, strength, r)
     peaks, strength = merge_one_psf(img, peaks, strength, r, sigma)
 
-    beads = Beads(peaks.astype(np.float64), strength,
-                  amplitude=peak_amplitude(img, peaks, int(np.ceil(r))),
+    amplitude = peak_amplitude(img, peaks, int(np.ceil(r)))
+    # a maximum of the filter that is no brighter than its surroundings is the gap
+    # between two dark structures (absorbing blobs on a structured background), not a bead
+    above = amplitude > 0
+    if not above.any():
+        raise NoBeadsError(
+            f"No beads found: the {len(peaks)} maxima of the filtered image are no brighter "
+            f"than their surroundings (gaps between dark structures). Check the image and "
+            f"`psf_radius` = {r:g} px.")
+    peaks, strength, amplitude = peaks[above], strength[above], amplitude[above]
+    beads = Beads(peaks.astype(np.float64), strength, amplitude=amplitude,
                   hot_pixels=spikes if hot_pixels else None)
     flag_unusable(beads, img, r, saturation=saturation, border=border,
                   min_separation=min_separation, neighbour_ratio=neighbour_ratio)
