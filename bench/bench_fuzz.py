@@ -5,8 +5,9 @@ simulator gives or one from 3 px to twice it), each plain or damaged
 (:mod:`napari_psfspace.core.simulation.damage`: clipped to the floor, saturated, a flat
 background, stray counts, a constant block). Each run of :func:`estimate_operator` and
 :func:`diagnose` ends with a model, with one of the project's errors
-(:class:`PsfSpaceError`, a message), or UNCAUGHT: a bug. Prints the table of outcomes
-and every uncaught exception.
+(:class:`PsfSpaceError`, a message), or UNCAUGHT: a bug, a NaN or an infinity reaching
+a solver of numpy or scipy included (they only print a LAPACK warning). Prints the table
+of outcomes and every uncaught exception.
 
     python bench/bench_fuzz.py [--scenes 60]
 """
@@ -27,10 +28,40 @@ from napari_psfspace.core.simulation.damage import DAMAGES, damaged
 from napari_psfspace.core.simulation.family import random_scene
 
 
+class NonFiniteInput(RuntimeError):
+    """A NaN or infinity reached a linear-algebra routine (LAPACK only prints a warning
+    and returns garbage): a NaN returned silently, somewhere upstream."""
+
+
+def _strict_linear_algebra() -> None:
+    """Make numpy's and scipy's solvers raise :class:`NonFiniteInput` on non-finite
+    input, so that the fuzz counts it as a bug."""
+    import numpy.linalg as nl
+    import scipy.linalg as sl
+
+    def guard(module, name):
+        fn = getattr(module, name)
+
+        def checked(*args, **kwargs):
+            for a in args[:2]:
+                if isinstance(a, np.ndarray) and a.dtype.kind in "fc" and not np.all(
+                        np.isfinite(a)):
+                    raise NonFiniteInput(f"non-finite input to {module.__name__}.{name}")
+            return fn(*args, **kwargs)
+
+        setattr(module, name, checked)
+
+    for name in ("lstsq", "svd", "eigh", "solve", "pinv", "inv"):
+        guard(nl, name)
+    for name in ("eigh", "solve_triangular", "lstsq", "solve"):
+        guard(sl, name)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", type=int, default=60)
     args = ap.parse_args()
+    _strict_linear_algebra()
     counts: dict[tuple[str, str], dict[str, int]] = {}
     bugs = []
     t0 = time.perf_counter()

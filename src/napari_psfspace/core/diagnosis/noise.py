@@ -305,6 +305,15 @@ def estimate_noise(
             f"({span}) fill {len(means)} bin(s) of at least 50 pixels, need 3 distinct "
             "ones: the slope of variance against mean (the gain) cannot be measured. "
             "Pass the camera's gain, offset and read noise instead.")
+    # a bin of pixels without any noise (a constant region a correction left) has no
+    # sampling variance to weigh it by: it says nothing of the slope
+    noisy = np.isfinite(variances) & (variances > 0) & np.isfinite(means)
+    if np.count_nonzero(noisy) < 3:
+        raise NoiseModelError(
+            f"No Poisson signature in `image`: {np.count_nonzero(noisy)} of {len(means)} "
+            "levels of the structure-free pixels show any noise (the rest are constant), "
+            "need 3. Pass the camera's gain, offset and read noise instead.")
+    means, variances, counts = means[noisy], variances[noisy], counts[noisy]
     # weighted least squares with the bins' sampling variance; the slope's standard
     # error is scaled up by the fit's reduced chi-square when that exceeds 1
     sd_v = np.sqrt(MAD_VARIANCE_FACTOR * SAMPLE_CORRELATION / counts) * variances
