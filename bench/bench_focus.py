@@ -15,7 +15,7 @@ then :func:`detect_beads` at that radius.
 * Every stack in ``../shared/data``: beads found per slice (a count that doubles on a
   defocused slice shows), best focus against the slice of highest peak.
 
-    python bench/bench_focus.py [--quick] [--no-measured]
+    python bench/bench_focus.py [--quick] [--no-measured] [--photons 0.1]
 """
 
 from __future__ import annotations
@@ -51,7 +51,7 @@ def score_slice(image, positions, true_r):
         int((~hit).sum())
 
 
-def simulated(quick: bool) -> list[dict]:
+def simulated(quick: bool, photons: float = 1.0) -> list[dict]:
     z = np.arange(-2.0, 2.001, 0.5 if quick else 0.25)
     astig = FieldAberrations({6: (0.12,), 4: (0.0, 0.05), 8: (0.0, 0.04)})
     cases = [(na, ab, seed) for na in (0.8, 1.0, 1.2, 1.4)
@@ -64,7 +64,8 @@ def simulated(quick: bool) -> list[dict]:
         t = time.perf_counter()
         stack, series = simulate_focus_series(
             (768, 768), 18, z, optics=Optics(na=na, wavelength=0.6, pixel_size=0.1),
-            aberrations=astig if ab == "astigmatic" else ab, seed=seed)
+            aberrations=astig if ab == "astigmatic" else ab, seed=seed,
+            amplitude=(5e4 * photons, 1.5e5 * photons))
         scores = [score_slice(stack[k], series.positions, series.psf_radius[k])
                   for k in range(len(z))]
         recall = np.array([s[2] for s in scores])
@@ -140,9 +141,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--no-measured", action="store_true")
+    ap.add_argument("--photons", type=float, default=1.0,
+                    help="scale the beads' photons (default 1: 5e4-1.5e5 per bead and slice; "
+                         "0.1 for faint beads)")
     args = ap.parse_args()
-    rows = simulated(args.quick)
-    print("\nSimulated focus series (18 isolated beads, 768 x 768, 0.1 um pixels)")
+    rows = simulated(args.quick, args.photons)
+    print(f"\nSimulated focus series (18 isolated beads, 768 x 768, 0.1 um pixels, "
+          f"{5e4 * args.photons:.3g}-{1.5e5 * args.photons:.3g} photons per bead)")
     print(table(rows, [("NA", ".1f"), ("aberrations", "s"), ("slices", "d"),
                        ("min_recall", ".2f"), ("max_split_%", ".0f"), ("max_false_%", ".0f"),
                        ("focus_true", "d"), ("focus", "d"), ("focus_std", "d"),
