@@ -43,10 +43,6 @@ NEIGHBOUR_RATIO = 0.05
 #: Detection moves to the scale of the spots the image shows when that scale is at least
 #: this many times the default ``r / 4`` (rings out of focus; a spot in focus keeps it).
 RESCALE_FACTOR = 1.4
-#: The scale is judged on this many of the strongest maxima at ``r / 4``; with fewer (a
-#: few faint wide spots, each found there as noise on its edge, or not at all) it is
-#: searched over all scales (:func:`~napari_psfspace.core.beads.scale.spot_scale`).
-MIN_SCALE_PEAKS = 16
 
 
 class NoBeadsError(PsfSpaceError):
@@ -289,36 +285,15 @@ def detect_beads(
     det, stabilised, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
     resp = log_response(det, sigma, pixel_sd_floor=floor)
     peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
-    if auto_sigma:
+    if auto_sigma and len(peaks):
         # the scale of the PSF the image shows: a ring out of focus responds at its centre
         # at a scale near its radius, not at r / 4 (where it is several spots on its edge)
-        if len(peaks) >= MIN_SCALE_PEAKS:  # the scale of the strongest maxima
-            found, _ = characteristic_scale(img, peaks[:MIN_SCALE_PEAKS], sigma, max_sigma=r,
-                                            noise_sd=pixel_sd, threshold=threshold)
-        else:  # faint wide spots stand out only at their own scale: search all scales
-            try:
-                found = spot_scale(raw, threshold=threshold, max_sigma=r).sigma
-            except NoBeadsError:
-                found = sigma
+        found, _ = characteristic_scale(img, peaks[:16], sigma, max_sigma=r,
+                                        noise_sd=pixel_sd, threshold=threshold)
         if found >= RESCALE_FACTOR * sigma:
             sigma = found
             resp = log_response(det, sigma, pixel_sd_floor=floor)
             peaks = local_peaks(resp, max(1, int(round(max(r / 2, sigma)))), threshold)
-            # a faint wide spot stands out most at a scale above the one that locates it
-            # (the filter then matches its whole disk): add what only a coarser scale finds
-            wide = min(np.sqrt(2.0) * sigma, float(r))
-            if wide >= 1.2 * sigma:
-                resp_wide = log_response(det, wide, pixel_sd_floor=floor)
-                sep = max(1, int(round(max(r / 2, wide))))
-                more = local_peaks(resp_wide, sep, threshold)
-                if len(more) and len(peaks):
-                    from scipy.spatial import cKDTree
-
-                    d, _ = cKDTree(peaks).query(more)
-                    more = more[d > sep]
-                if len(more):
-                    resp = np.maximum(resp, resp_wide)
-                    peaks = np.concatenate([peaks, more])
     if len(peaks) == 0:
         raise NoBeadsError(
             f"No beads found: no maximum of the filtered image reaches `threshold` = "
@@ -333,11 +308,8 @@ def detect_beads(
 
     amplitude = peak_amplitude(img, peaks, int(np.ceil(r)))
     # a maximum of the filter that is no brighter than its surroundings is the gap
-    # between two dark structures (absorbing blobs on a structured background), not a bead;
-    # judged on the image smoothed at half the detection scale (one pixel of a faint wide
-    # spot is mostly noise)
-    level = peak_amplitude(ndi.gaussian_filter(img, sigma / 2.0), peaks, int(np.ceil(r)))
-    above = level > 0
+    # between two dark structures (absorbing blobs on a structured background), not a bead
+    above = amplitude > 0
     if not above.any():
         raise NoBeadsError(
             f"No beads found: the {len(peaks)} maxima of the filtered image are no brighter "
@@ -584,5 +556,5 @@ def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
 
 
 # the spots' own scale; the radius suggested from it (re-exported here, where it lived)
-from .scale import characteristic_scale, detection_image, spot_scale  # noqa: E402
+from .scale import characteristic_scale, detection_image  # noqa: E402
 from .scale import suggest_psf_radius as suggest_psf_radius  # noqa: E402
