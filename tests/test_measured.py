@@ -155,6 +155,34 @@ def test_astigmatic_8_bit_diagnosis_numbers_agree(shared_data):
     assert d.error_after <= d.error_before
 
 
+def _assert_field_is_smooth(meta):
+    """At most half as many effective degrees of freedom as beads per coefficient, unless
+    held-out beads showed the richer field predicts better (and the model says so)."""
+    fd = meta["field_dof"]
+    assert fd is not None and fd["limit"] == pytest.approx(max(3.0, fd["samples"] / 2))
+    if fd["richer"]:
+        assert "held-out beads show the richer field" in fd["note"]
+    else:
+        assert fd["max"] <= fd["limit"] * (1 + 1e-6), fd
+
+
+@pytest.mark.parametrize(("z", "radius"), [(35, 10), (28, 16), (38, 14)])
+def test_the_astigmatic_field_does_not_interpolate_noise(shared_data, z, radius):
+    """The issue's widefield slice interpolated its 24 beads (24.0 dof); the astigmatic
+    slices, 11-13 beads, measured 5.3-6.4 dof against limits of 5.5-6.5."""
+    from napari_psfspace import estimate_operator
+
+    path = SETS["astigmatic"][0]
+    image, _ = read_image(shared_data / path, index=z)
+    _assert_field_is_smooth(estimate_operator(image, psf_radius=radius).metadata)
+
+
+def test_sp8_field_does_not_interpolate_noise(sp8):
+    _, image, info = sp8
+    est = run_with_progress(iter_estimate(image, psf_radius=0.5 / info.pixel_size))
+    _assert_field_is_smooth(est.operator.metadata)
+
+
 def test_every_slice_estimates_or_stops_with_a_message(shared_data):
     """Every 4th slice of every stack, as the command line runs it without options (the
     radius measured from the slice): a model, or one of the project's errors with a
