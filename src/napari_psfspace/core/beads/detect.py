@@ -43,6 +43,10 @@ NEIGHBOUR_RATIO = 0.05
 #: Detection moves to the scale of the spots the image shows when that scale is at least
 #: this many times the default ``r / 4`` (rings out of focus; a spot in focus keeps it).
 RESCALE_FACTOR = 1.4
+#: The scale is judged on this many of the strongest maxima at ``r / 4``; with fewer (a
+#: few faint wide spots, each found there as noise on its edge, or not at all) it is
+#: searched over all scales (:func:`~napari_psfspace.core.beads.scale.spot_scale`).
+MIN_SCALE_PEAKS = 16
 
 
 class NoBeadsError(PsfSpaceError):
@@ -285,15 +289,36 @@ def detect_beads(
     det, stabilised, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
     resp = log_response(det, sigma, pixel_sd_floor=floor)
     peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
-    if auto_sigma and len(peaks):
+    if auto_sigma:
         # the scale of the PSF the image shows: a ring out of focus responds at its centre
         # at a scale near its radius, not at r / 4 (where it is several spots on its edge)
-        found, _ = characteristic_scale(img, peaks[:16], sigma, max_sigma=r,
-                                        noise_sd=pixel_sd, threshold=threshold)
+        if len(peaks) >= MIN_SCALE_PEAKS:  # the scale of the strongest maxima
+            found, _ = characteristic_scale(img, peaks[:MIN_SCALE_PEAKS], sigma, max_sigma=r,
+                                            noise_sd=pixel_sd, threshold=threshold)
+        else:  # faint wide spots stand out only at their own scale: search all scales
+            try:
+                found = spot_scale(raw, threshold=threshold, max_sigma=r).sigma
+            except NoBeadsError:
+                found = sigma
         if found >= RESCALE_FACTOR * sigma:
             sigma = found
             resp = log_response(det, sigma, pixel_sd_floor=floor)
             peaks = local_peaks(resp, max(1, int(round(max(r / 2, sigma)))), threshold)
+            # a faint wide spot stands out most at a scale above the one that locates it
+            # (the filter then matches its whole disk): add what only a coarser scale finds
+            wide = min(np.sqrt(2.0) * sigma, float(r))
+            if wide >= 1.2 * sigma:
+                resp_wide = log_response(det, wide, pixel_sd_floor=floor)
+                sep = max(1, int(round(max(r / 2, wide))))
+                more = local_peaks(resp_wide, sep, threshold)
+                if len(more) and len(peaks):
+                    from scipy.spatial import cKDTree
+
+                    d, _ = cKDTree(peaks).query(more)
+                    more = more[d > sep]
+                if len(more):
+                    resp = np.maximum(resp, resp_wide)
+                    peaks = np.concatenate([peaks, more])
     if len(peaks) == 0:
         raise NoBeadsError(
             f"No beads found: no maximum of the filtered image reaches `threshold` = "
@@ -307,14 +332,14 @@ def detect_beads(
     peaks, strength = merge_one_psf(img, peaks, strength, r, sigma)
 
     amplitude = peak_amplitude(img, peaks, int(np.ceil(r)))
-    # a maximum of the filter that is no brighter than its surroundings is the gap
-    # between two dark structures (absorbing blobs on a structured background), not a bead
-    above = amplitude > 0
+    # a maximum of the filter that does not stand above the background is the gap
+    # between dark structures (absorbing blobs on a structured background), not a bead
+    above = background_excess(img, peaks, r, pixel_sd) >= threshold
     if not above.any():
         raise NoBeadsError(
-            f"No beads found: the {len(peaks)} maxima of the filtered image are no brighter "
-            f"than their surroundings (gaps between dark structures). Check the image and "
-            f"`psf_radius` = {r:g} px.")
+            f"No beads found: none of the {len(peaks)} maxima of the filtered image stands "
+            f"`threshold` = {threshold:g} noise sd above the local background (gaps between "
+            f"dark structures). Check the image and `psf_radius` = {r:g} px.")
     peaks, strength, amplitude = peaks[above], strength[above], amplitude[above]
     beads = Beads(peaks.astype(np.float64), strength, amplitude=amplitude,
                   hot_pixels=spikes if hot_pixels else None)
@@ -367,6 +392,34 @@ def local_peaks(response: np.ndarray, min_distance: int, threshold: float) -> np
                     drop[j] = True
         peaks = peaks[~drop]
     return peaks
+
+
+def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: float
+                      ) -> np.ndarray:
+    """How far each maximum stands above the local background, in noise sd, shape (M,).
+
+    The image smoothed by a Gaussian of ``r / 2`` (as efficient for a spot in focus, of
+    scale ``r / 4``, as for a disk out of focus: one pixel of a faint wide spot is mostly
+    noise), at the maximum, minus a background map (the median over about ``4.5 r`` of
+    the image binned by ``r / 2``: beads, and dark blobs, cover a minority of it), over
+    the smoothed image's noise ``noise_sd / (sqrt(4 pi) r / 2)``. A bead stands out; the
+    gap between dark absorbing blobs is a maximum of the filter only because of what
+    surrounds it, at the level of the background.
+    """
+    if len(peaks) == 0:
+        return np.zeros(0)
+    img = np.asarray(image, np.float32)
+    s = max(0.5, r / 2.0)
+    b = max(1, int(r // 2))
+    h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
+    small = img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+    bg = ndi.median_filter(small, size=min(9, *small.shape), mode="reflect")
+    p = np.rint(np.asarray(peaks, np.float64)).astype(int)
+    iy = np.clip(p[:, 0] // b, 0, bg.shape[0] - 1)
+    ix = np.clip(p[:, 1] // b, 0, bg.shape[1] - 1)
+    level = ndi.gaussian_filter(img, s)[p[:, 0], p[:, 1]] - bg[iy, ix]
+    sd = max(float(noise_sd), 1e-12) / (np.sqrt(4.0 * np.pi) * s)
+    return (level / sd).astype(np.float64)
 
 
 def peak_amplitude(image: np.ndarray, peaks: np.ndarray, half: int) -> np.ndarray:
@@ -556,5 +609,5 @@ def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
 
 
 # the spots' own scale; the radius suggested from it (re-exported here, where it lived)
-from .scale import characteristic_scale, detection_image  # noqa: E402
+from .scale import characteristic_scale, detection_image, spot_scale  # noqa: E402
 from .scale import suggest_psf_radius as suggest_psf_radius  # noqa: E402

@@ -404,9 +404,16 @@ def _spot_radius(win: np.ndarray, own: np.ndarray, energy: float) -> int | None:
     idx = np.union1d(np.flatnonzero(count >= 3), [0])
     prof[idx] = np.asarray(ndi.median(flat, labels=labels, index=idx))
     ring_sd = 1.25 * sd / np.sqrt(np.maximum(count, 1))
-    low = np.flatnonzero(~(prof >= 3 * ring_sd))
-    extent = int(low[0]) if len(low) else room
-    if extent < 1 or not prof[0] > 0:
+    strong = prof >= 3 * ring_sd
+    if not strong.any():
+        return None
+    # the signal's extent: where the profile first falls back to the noise after its
+    # first significant ring (a faint ring out of focus has a dark centre: its profile
+    # starts in the noise)
+    first = int(np.argmax(strong))
+    low = np.flatnonzero(~strong[first:])
+    extent = first + int(low[0]) if len(low) else room
+    if extent < 1:
         return None
     full = 2 * np.pi * np.maximum(np.arange(extent + 1), 0.5)  # a whole ring's pixels
     full[0] = 1.0
