@@ -11,6 +11,7 @@ import tifffile
 from scipy.spatial import cKDTree
 
 from napari_psfspace import best_focus_index, detect_beads, spot_scale, suggest_psf_radius
+from napari_psfspace.core.beads.detect import NoBeadsError
 from napari_psfspace.core.beads.focus import focus_measure
 from napari_psfspace.core.simulation import Optics
 from napari_psfspace.core.simulation.focus import defocus_zernike, simulate_focus_series
@@ -60,10 +61,10 @@ def test_faint_rings_are_found_at_their_own_scale(aberrations, least):
     noise. Before (the bench's case, ``bench_focus.py --photons 0.1``): no radius could be
     suggested at +2 um (a faint profile's noisy, dark centre ended the signal's extent at
     its first pixel); detection at ``r / 4`` judged the scale from the one or two spots
-    it found there; a disk whose centre pixel fell below its surroundings was dropped as
+    it found there; a disk whose centre pixel fell below its window's edge was dropped as
     a gap between dark structures. Now: the symmetric rings are all found, the
-    field-varying ones 12-18 of 18 (the wide, faint corner beads stand 8-16 noise sd out
-    at their best scale), never twice, never where no bead is."""
+    field-varying ones at least 11 of 18 (bench: 12-18; the wide, faint corner beads
+    are the ones missed), never twice, never where no bead is."""
     stack, series = simulate_focus_series(
         (768, 768), 18, (-2.0, 2.0), aberrations=aberrations, seed=0,
         amplitude=(5e3, 1.5e4), optics=Optics(na=1.2, wavelength=0.6, pixel_size=0.1))
@@ -92,6 +93,25 @@ def test_best_focus_on_every_measured_stack(shared_data):
             continue
         peak = int(np.argmax([np.percentile(s, 99.99) for s in stack]))
         assert abs(best_focus_index(stack) - peak) <= 1, path.name
+
+
+def test_gaps_between_absorbing_blobs_are_not_beads(shared_data):
+    """The astigmatic stack (11 beads) has dark absorbing blobs at the top of its field;
+    the bright gaps between them are maxima of the filter. Counted as beads before: 16 on
+    slice 26, 6-7 on slices 17 and 50 where no bead shows. A bead must stand `threshold`
+    noise sd above the local background at the detection's scale."""
+    stack = tifffile.imread(shared_data / "astigmatic_beads"
+                            / "psfextractor_astigmatism_zyx_uint8.tif")
+    counts = {}
+    for k in (17, 26, 33, 50):
+        try:
+            counts[k] = len(detect_beads(stack[k], suggest_psf_radius(stack[k])))
+        except NoBeadsError:
+            counts[k] = 0
+    assert counts[33] == 11, counts
+    # no doubling (bench_focus's rule: at most 1.2 x the slice in focus, + 2), and at most
+    # a couple of detections where no bead shows (measured 13, 0, 1)
+    assert counts[26] <= 1.2 * counts[33] + 2 and counts[17] <= 2 and counts[50] <= 2, counts
 
 
 def test_focus_measure_names_its_errors():

@@ -334,7 +334,7 @@ def detect_beads(
     amplitude = peak_amplitude(img, peaks, int(np.ceil(r)))
     # a maximum of the filter that does not stand above the background is the gap
     # between dark structures (absorbing blobs on a structured background), not a bead
-    above = background_excess(img, peaks, r, pixel_sd) >= threshold
+    above = background_excess(img, peaks, r, pixel_sd, sigma=sigma) >= threshold
     if not above.any():
         raise NoBeadsError(
             f"No beads found: none of the {len(peaks)} maxima of the filtered image stands "
@@ -394,22 +394,22 @@ def local_peaks(response: np.ndarray, min_distance: int, threshold: float) -> np
     return peaks
 
 
-def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: float
-                      ) -> np.ndarray:
+def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: float,
+                      *, sigma: float | None = None) -> np.ndarray:
     """How far each maximum stands above the local background, in noise sd, shape (M,).
 
-    The image smoothed by a Gaussian of ``r / 2`` (as efficient for a spot in focus, of
-    scale ``r / 4``, as for a disk out of focus: one pixel of a faint wide spot is mostly
-    noise), at the maximum, minus a background map (the median over about ``4.5 r`` of
-    the image binned by ``r / 2``: beads, and dark blobs, cover a minority of it), over
-    the smoothed image's noise ``noise_sd / (sqrt(4 pi) r / 2)``. A bead stands out; the
-    gap between dark absorbing blobs is a maximum of the filter only because of what
-    surrounds it, at the level of the background.
+    The image smoothed by a Gaussian of ``sigma / 2`` (``sigma``: the detection's scale,
+    default ``r / 4``; one pixel of a faint wide spot is mostly noise), at the maximum,
+    minus a background map (the median over about ``4.5 r`` of the image binned by
+    ``r / 2``: beads, and dark blobs, cover a minority of it), over the smoothed image's
+    noise ``noise_sd / (sqrt(4 pi) sigma / 2)``. A bead stands out; the gap between dark
+    absorbing blobs is a maximum of the filter only because of what surrounds it, at the
+    level of the background.
     """
     if len(peaks) == 0:
         return np.zeros(0)
     img = np.asarray(image, np.float32)
-    s = max(0.5, r / 2.0)
+    s = max(0.5, (r / 4.0 if sigma is None else float(sigma)) / 2.0)
     b = max(1, int(r // 2))
     h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
     small = img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
