@@ -413,19 +413,20 @@ def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: 
     b = max(1, int(r // 2))
     h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
     small = img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
-    bg = ndi.median_filter(small, size=min(9, *small.shape), mode="reflect")
     p = np.rint(np.asarray(peaks, np.float64)).astype(int)
-    iy = np.clip(p[:, 0] // b, 0, bg.shape[0] - 1)
-    ix = np.clip(p[:, 1] // b, 0, bg.shape[1] - 1)
-    # the Gaussian-smoothed value at each maximum, from its own window (the whole image
-    # need not be filtered for a few hundred maxima)
+    iy = np.clip(p[:, 0] // b, 0, small.shape[0] - 1)
+    ix = np.clip(p[:, 1] // b, 0, small.shape[1] - 1)
+    # the median of the 9 x 9 binned pixels around each maximum, and its Gaussian-smoothed
+    # value from its own window (the whole image need not be filtered for a few hundred)
     from .centering import gather_windows
 
+    bg = np.median(gather_windows(small, np.column_stack([iy, ix]).astype(np.float64), 4)
+                   .reshape(len(p), -1), axis=1)
     half = int(np.ceil(3.0 * s))
     g = np.exp(-0.5 * (np.arange(-half, half + 1) / s) ** 2)
     kernel = np.outer(g, g) / g.sum() ** 2
     win = gather_windows(img, p.astype(np.float64), half)
-    level = np.einsum("kij,ij->k", win.astype(np.float64), kernel) - bg[iy, ix]
+    level = np.einsum("kij,ij->k", win.astype(np.float64), kernel) - bg
     sd = max(float(noise_sd), 1e-12) / (np.sqrt(4.0 * np.pi) * s)
     return (level / sd).astype(np.float64)
 
