@@ -22,6 +22,18 @@ def _series(na, aberrations, seed, z=(-2.0, -1.0, 0.0, 1.0, 2.0)):
                                  optics=Optics(na=na, wavelength=0.6, pixel_size=0.1))
 
 
+def _score_slice(stack, series, k):
+    """Slice ``k`` as a user runs it (the suggested radius, then detection): the radius,
+    the beads found, the splits (a bead found again) and the false detections (far from
+    every bead); a detection within max(3, r/2) of a bead finds it."""
+    r = suggest_psf_radius(stack[k])
+    beads = detect_beads(stack[k], r)
+    d, j = cKDTree(series.positions).query(beads.positions)
+    hit = d <= max(3.0, 0.5 * series.psf_radius[k])
+    found = len(np.unique(j[hit]))
+    return r, found, int(hit.sum()) - found, int((~hit).sum())
+
+
 def test_defocus_is_the_exact_phase():
     """The symmetric Zernike terms of 1 um of defocus: mostly Z4 at low NA, a spherical
     part that grows with the NA; the residual beyond order 12 under 1e-2 waves."""
@@ -41,13 +53,9 @@ def test_every_slice_finds_each_bead_once(na, aberrations, seed):
     around its dark centre."""
     stack, series = _series(na, aberrations, seed, z=(-2.0, -1.0, 0.0, 0.5, 1.5, 2.0))
     for k in range(len(stack)):
-        r = suggest_psf_radius(stack[k])
-        beads = detect_beads(stack[k], r)
-        d, j = cKDTree(series.positions).query(beads.positions)
-        hit = d <= max(3.0, 0.5 * series.psf_radius[k])
-        found = np.unique(j[hit])
-        assert len(found) >= 0.9 * len(series.positions), k
-        assert hit.sum() - len(found) == 0 and (~hit).sum() == 0, k  # no split, no false
+        r, found, split, false = _score_slice(stack, series, k)
+        assert found >= 0.9 * len(series.positions), k
+        assert split == 0 and false == 0, k
         # the radius follows the PSF the slice shows (measured 0.7-2.4 x its 90 % energy
         # radius: a bright in-focus bead's Airy wings are above the noise far out)
         assert 0.5 * series.psf_radius[k] <= r <= 2.5 * series.psf_radius[k] + 3, k
@@ -69,13 +77,9 @@ def test_faint_rings_are_found_at_their_own_scale(aberrations, least):
         (768, 768), 18, (-2.0, 2.0), aberrations=aberrations, seed=0,
         amplitude=(5e3, 1.5e4), optics=Optics(na=1.2, wavelength=0.6, pixel_size=0.1))
     for k in range(len(stack)):
-        r = suggest_psf_radius(stack[k])
-        beads = detect_beads(stack[k], r)
-        d, j = cKDTree(series.positions).query(beads.positions)
-        hit = d <= max(3.0, 0.5 * series.psf_radius[k])
-        found = np.unique(j[hit])
-        assert len(found) >= least, (k, len(found))
-        assert hit.sum() - len(found) == 0 and (~hit).sum() == 0, k
+        _, found, split, false = _score_slice(stack, series, k)
+        assert found >= least, (k, found)
+        assert split == 0 and false == 0, k
 
 
 def test_the_spots_scale_follows_the_defocus():

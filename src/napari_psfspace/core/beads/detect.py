@@ -411,8 +411,7 @@ def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: 
     img = np.asarray(image, np.float32)
     s = max(0.5, (r / 4.0 if sigma is None else float(sigma)) / 2.0)
     b = max(1, int(r // 2))
-    h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
-    small = img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
+    small = _block_mean(img, b)
     p = np.rint(np.asarray(peaks, np.float64)).astype(int)
     iy = np.clip(p[:, 0] // b, 0, small.shape[0] - 1)
     ix = np.clip(p[:, 1] // b, 0, small.shape[1] - 1)
@@ -618,5 +617,5 @@ def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
 
 
 # the spots' own scale; the radius suggested from it (re-exported here, where it lived)
-from .scale import characteristic_scale, detection_image, spot_scale  # noqa: E402
+from .scale import _block_mean, characteristic_scale, detection_image, spot_scale  # noqa: E402
 from .scale import suggest_psf_radius as suggest_psf_radius  # noqa: E402
