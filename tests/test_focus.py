@@ -62,7 +62,7 @@ def test_every_slice_finds_each_bead_once(na, aberrations, seed):
     assert best_focus_index(stack) == series.focus_index
 
 
-@pytest.mark.parametrize(("aberrations", "least"), [("none", 18), ("moderate", 11)])
+@pytest.mark.parametrize(("aberrations", "least"), [("none", 18), ("moderate", 16)])
 def test_faint_rings_are_found_at_their_own_scale(aberrations, least):
     """Ten times fewer photons (5e3-1.5e4 per bead on 20-40 of background per pixel): a
     bead 2 um out of focus is a disk 50-70 px across, a few photons above each pixel's
@@ -70,9 +70,12 @@ def test_faint_rings_are_found_at_their_own_scale(aberrations, least):
     suggested at +2 um (a faint profile's noisy, dark centre ended the signal's extent at
     its first pixel); detection at ``r / 4`` judged the scale from the one or two spots
     it found there; a disk whose centre pixel fell below its window's edge was dropped as
-    a gap between dark structures. Now: the symmetric rings are all found, the
-    field-varying ones at least 11 of 18 (bench: 12-18; the wide, faint corner beads
-    are the ones missed), never twice, never where no bead is."""
+    a gap between dark structures; then (1798539) the field-varying rings' faintest
+    stood below the threshold at the scale the image's median bead set (11-12 of 18).
+    Now, where the weakest maxima found stand near the threshold, wider scales add what
+    they find: the symmetric rings are all found, the field-varying ones at least 16 of
+    18 (the two missed: a bead 12 px from the edge with a radius of 38, and the widest
+    corner ring), never twice, never where no bead is."""
     stack, series = simulate_focus_series(
         (768, 768), 18, (-2.0, 2.0), aberrations=aberrations, seed=0,
         amplitude=(5e3, 1.5e4), optics=Optics(na=1.2, wavelength=0.6, pixel_size=0.1))

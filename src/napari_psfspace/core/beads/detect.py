@@ -47,6 +47,9 @@ RESCALE_FACTOR = 1.4
 #: few faint wide spots, each found there as noise on its edge, or not at all) it is
 #: searched over all scales (:func:`~napari_psfspace.core.beads.scale.spot_scale`).
 MIN_SCALE_PEAKS = 16
+#: Where a quarter of the maxima found stand less than this many times the threshold
+#: out, the beads are faint (more stand just below it): wider scales are searched too.
+FAINT_STRENGTH = 2.0
 
 
 class NoBeadsError(PsfSpaceError):
@@ -289,6 +292,7 @@ def detect_beads(
     det, stabilised, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
     resp = log_response(det, sigma, pixel_sd_floor=floor)
     peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
+    scales = []  # the wider scales that added maxima
     if auto_sigma:
         # the scale of the PSF the image shows: a ring out of focus responds at its centre
         # at a scale near its radius, not at r / 4 (where it is several spots on its edge)
@@ -300,25 +304,35 @@ def detect_beads(
                 found = spot_scale(raw, threshold=threshold, max_sigma=r).sigma
             except NoBeadsError:
                 found = sigma
+        wider = []
         if found >= RESCALE_FACTOR * sigma:
             sigma = found
             resp = log_response(det, sigma, pixel_sd_floor=floor)
             peaks = local_peaks(resp, max(1, int(round(max(r / 2, sigma)))), threshold)
+            wider = [np.sqrt(2.0) * sigma]
+        if len(peaks) == 0 or np.percentile(resp[peaks[:, 0], peaks[:, 1]], 25) < \
+                FAINT_STRENGTH * threshold:
+            # faint beads: the weakest found stand near the threshold, so others stand
+            # just below it; a wider filter (about the whole disk) gains signal to noise
+            wider = [np.sqrt(2.0) * sigma, 2.0 * sigma]
+        for wide in wider:
             # a faint wide spot stands out most at a scale above the one that locates it
             # (the filter then matches its whole disk): add what only a coarser scale finds
-            wide = min(np.sqrt(2.0) * sigma, float(r))
-            if wide >= 1.2 * sigma:
-                resp_wide = log_response(det, wide, pixel_sd_floor=floor)
-                sep = max(1, int(round(max(r / 2, wide))))
-                more = local_peaks(resp_wide, sep, threshold)
-                if len(more) and len(peaks):
-                    from scipy.spatial import cKDTree
+            wide = min(wide, float(r))
+            if wide < 1.2 * sigma:
+                continue
+            resp_wide = log_response(det, wide, pixel_sd_floor=floor)
+            sep = max(1, int(round(max(r / 2, wide))))
+            more = local_peaks(resp_wide, sep, threshold)
+            if len(more) and len(peaks):
+                from scipy.spatial import cKDTree
 
-                    d, _ = cKDTree(peaks).query(more)
-                    more = more[d > sep]
-                if len(more):
-                    resp = np.maximum(resp, resp_wide)
-                    peaks = np.concatenate([peaks, more])
+                d, _ = cKDTree(peaks).query(more)
+                more = more[d > sep]
+            if len(more):
+                resp = np.maximum(resp, resp_wide)
+                peaks = np.concatenate([peaks, more]) if len(peaks) else more
+                scales.append(wide)
     if len(peaks) == 0:
         raise NoBeadsError(
             f"No beads found: no maximum of the filtered image reaches `threshold` = "
@@ -334,7 +348,13 @@ def detect_beads(
     amplitude = peak_amplitude(img, peaks, int(np.ceil(r)))
     # a maximum of the filter that does not stand above the background is the gap
     # between dark structures (absorbing blobs on a structured background), not a bead
-    above = background_excess(img, peaks, r, pixel_sd, sigma=sigma) >= threshold
+    # (a faint wide spot stands out only at a wider scale, and there above the upper
+    # quartile of its surroundings too; a gap between dark blobs only above their median)
+    excess = background_excess(img, peaks, r, pixel_sd, sigma=sigma)
+    for wide in scales:
+        excess = np.maximum(excess, background_excess(img, peaks, r, pixel_sd, sigma=wide,
+                                                      quantile=75.0))
+    above = excess >= threshold
     if not above.any():
         raise NoBeadsError(
             f"No beads found: none of the {len(peaks)} maxima of the filtered image stands "
@@ -395,16 +415,16 @@ def local_peaks(response: np.ndarray, min_distance: int, threshold: float) -> np
 
 
 def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: float,
-                      *, sigma: float | None = None) -> np.ndarray:
+                      *, sigma: float | None = None, quantile: float = 50.0) -> np.ndarray:
     """How far each maximum stands above the local background, in noise sd, shape (M,).
 
     The image smoothed by a Gaussian of ``sigma / 2`` (``sigma``: the detection's scale,
     default ``r / 4``; one pixel of a faint wide spot is mostly noise), at the maximum,
     minus a background map (the median over about ``4.5 r`` of the image binned by
-    ``r / 2``: beads, and dark blobs, cover a minority of it), over the smoothed image's
-    noise ``noise_sd / (sqrt(4 pi) sigma / 2)``. A bead stands out; the gap between dark
-    absorbing blobs is a maximum of the filter only because of what surrounds it, at the
-    level of the background.
+    ``r / 2``: beads, and dark blobs, cover a minority of it; or another ``quantile`` of
+    it, percent), over the smoothed image's noise ``noise_sd / (sqrt(4 pi) sigma / 2)``.
+    A bead stands out; the gap between dark absorbing blobs is a maximum of the filter
+    only because of what surrounds it, at the level of the background.
     """
     if len(peaks) == 0:
         return np.zeros(0)
@@ -419,8 +439,8 @@ def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: 
     # value from its own window (the whole image need not be filtered for a few hundred)
     from .centering import gather_windows
 
-    bg = np.median(gather_windows(small, np.column_stack([iy, ix]).astype(np.float64), 4)
-                   .reshape(len(p), -1), axis=1)
+    bg = np.percentile(gather_windows(small, np.column_stack([iy, ix]).astype(np.float64), 4)
+                       .reshape(len(p), -1), quantile, axis=1)
     half = int(np.ceil(3.0 * s))
     g = np.exp(-0.5 * (np.arange(-half, half + 1) / s) ** 2)
     kernel = np.outer(g, g) / g.sum() ** 2
