@@ -1,0 +1,163 @@
+"""Where a family's error enters, stage by stage, on wide-condition stacks (issue 24).
+
+    python bench/bench_family_oracle.py [--generator ours|pyotf] [--k 10] [--size 512]
+        [--beads 40] [--photons 1] [--seed 0] [--spread wide|default]
+
+A stack of ``K`` images of one microscope (``core/simulation/stacks.py``, the moderate
+field aberrations), each under hidden conditions drawn over a wide range: a focus shift
+through about +-1 depth of field (+-0.2 waves rms of defocus at NA 1.3, +-0.5 um), a
+tilt of the slide (0.06 waves rms of defocus per unit of field coordinate), a drift of
+spherical aberration (+-0.03 waves). ``--generator pyotf`` computes the PSFs with pyotf
+(``bench/independent.py``). For each image, the PSF-field error (bench_accuracy's: after
+the best sub-pixel shift, on an ``n x n`` grid) of
+
+- ``alone``: ``estimate_operator`` on the image alone (the family's radius);
+- ``family``: ``subspace.operator(k)``;
+- ``basis``: the truth's PSFs at every grid node projected onto the learnt ``h_i``, no
+  cone: the floor the PSF basis sets;
+- ``basis_cone``: the same, kept in the family's cone and normalised as an operator's
+  PSFs are (section 2.5): what the cone costs;
+- ``space``: those true maps projected onto the learnt ``a_j`` (in the cone): what the
+  spatial basis costs;
+- ``own_maps``: the image's own thin-plate maps on the pooled basis (step 5, before the
+  projection onto the ``a_j``): the family without its ``Gamma_k`` step;
+- ``family_gamma``: the family's ``Gamma_k`` (= ``own_maps`` projected onto the
+  ``a_j``), i.e. ``family``;
+
+and the ratio ``family / alone``. Each stage's PSFs are built and normalised the same
+way (``assemble_operator`` on the family's basis, grid and cone), so a stage's step up
+is what that stage costs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from _common import table
+from napari_psfspace.core.model.estimate import estimate_operator
+from napari_psfspace.core.model.field import assemble_operator
+from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.optics import Optics
+from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
+from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace.estimate import _maps, _nodes, _pool
+from napari_psfspace.core.subspace.patches import image_patches
+
+#: Wide conditions: defocus through about +-1 depth of field at NA 1.3 (600 nm, oil:
+#: lambda n / NA^2 = 0.54 um, about 0.2 waves rms), tilts, spherical drift.
+WIDE = {"focus": 0.2, "tilt": 0.06, "spherical": 0.03}
+
+
+class Cached:
+    """A truth whose PSFs are computed once per position and size."""
+
+    def __init__(self, truth):
+        self.truth, self.cache = truth, {}
+
+    def psf_at(self, y, x, size):
+        key = (float(y), float(x), int(size))
+        if key not in self.cache:
+            self.cache[key] = self.truth.psf_at(y, x, size)
+        return self.cache[key]
+
+
+def _operator(sub, coarse, *, cone=True):
+    """The operator of coarse maps (G, I) on the family's basis and grid (and cone)."""
+    # no cone: the maps' own values span it, so the projection leaves them as they are
+    gens = sub.cone.generators if cone else np.asarray(coarse)
+    return assemble_operator(sub.basis, gens, lambda nodes: coarse, sub.shape,
+                             grid_step=sub.grid_step)[0]
+
+
+def stack_rows(args) -> list[dict]:
+    optics = None
+    if args.generator == "pyotf":
+        from independent import PyotfOptics
+
+        optics = PyotfOptics(na=1.3, wavelength=0.6, pixel_size=0.065)
+    spread = WIDE if args.spread == "wide" else None
+    conds = random_conditions(args.k, [args.seed, 1], spread)
+    amplitude = (2e4 * args.photons, 2e4 * args.photons * 1.5)
+    images, truths, _ = simulate_stack(args.k, (args.size, args.size), args.beads,
+                                       seed=args.seed, conditions=conds, optics=optics,
+                                       amplitude=amplitude)
+    cached = [Cached(t) for t in truths]
+    r = int(np.median([t.psf_radius for t in truths]))
+    t0 = time.perf_counter()
+    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    t_family = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    alone = [estimate_operator(im, psf_radius=r, holdout=None) for im in images]
+    t_alone = time.perf_counter() - t0
+    # the family's own step 5 maps (before the a_j), recomputed as _learn does
+    used = [image_patches(im, float(r), index=i) for i, im in enumerate(images)]
+    pooled = _pool(used, sub.n_psf, True)
+    (gy, gx), nodes = _nodes(sub.shape, sub.grid_step)
+    own, _ = _maps(used, pooled, nodes, sub.shape)
+    # own maps are on the pooled PCA basis before its refit: express them on sub.basis
+    b0 = pooled.basis.basis.reshape(sub.n_psf, -1)
+    b1 = sub.basis.reshape(sub.n_psf, -1)
+    change = np.linalg.lstsq(b1.T, b0.T, rcond=None)[0]  # (I, I): b0 ~ change^T b1
+    size = sub.basis.shape[1]
+    flat = sub.basis.reshape(sub.n_psf, -1)
+    space = sub.space.reshape(sub.n_space, -1)
+    rows = []
+    for k in range(args.k):
+        true = np.array([cached[k].psf_at(y, x, size) for y, x in nodes])
+        coef = np.linalg.lstsq(flat.T, true.reshape(len(nodes), -1).T, rcond=None)[0].T
+        on_a = ((coef.T @ space.T) @ space).T
+        own_k = own[k] @ change
+        errs = {
+            "alone": grid_errors(alone[k], cached[k], n=args.grid),
+            "family": grid_errors(sub.operator(k), cached[k], n=args.grid),
+            "basis": grid_errors(_operator(sub, coef, cone=False), cached[k], n=args.grid),
+            "basis_cone": grid_errors(_operator(sub, coef), cached[k], n=args.grid),
+            "space": grid_errors(_operator(sub, on_a), cached[k], n=args.grid),
+            "own_maps": grid_errors(_operator(sub, own_k), cached[k], n=args.grid),
+        }
+        row = {"gen": args.generator, "k": k, "focus": conds[k].focus,
+               "beads": int(used[k].n_beads),
+               "inliers": int(pooled.basis.inliers[pooled.owner == k].sum()),
+               "I": sub.n_psf, "J": sub.n_space,
+               **{key: float(np.mean(v)) for key, v in errs.items()}}
+        row["ratio"] = row["family"] / row["alone"]
+        rows.append(row)
+        print(row, flush=True)
+    rows.append({"gen": args.generator, "k": -1, "focus": float("nan"),
+                 "beads": int(np.mean([r_["beads"] for r_ in rows])),
+                 "inliers": int(np.mean([r_["inliers"] for r_ in rows])), "I": sub.n_psf,
+                 "J": sub.n_space,
+                 **{key: float(np.mean([r_[key] for r_ in rows]))
+                    for key in ("alone", "family", "basis", "basis_cone", "space",
+                                "own_maps", "ratio")}})
+    print(f"time: family {t_family:.1f} s, {args.k} single estimates {t_alone:.1f} s "
+          f"({t_family / t_alone:.2f}x)")
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--generator", choices=("ours", "pyotf"), default="ours")
+    ap.add_argument("--k", type=int, default=10)
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--beads", type=int, default=40)
+    ap.add_argument("--photons", type=float, default=1.0,
+                    help="x 2e4-3e4 photons per bead (default 1: bright)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--grid", type=int, default=8)
+    ap.add_argument("--spread", choices=("wide", "default"), default="wide")
+    args = ap.parse_args()
+    _ = Optics  # the default optics: NA 1.3, 600 nm, 65 nm pixels
+    rows = stack_rows(args)
+    print(table(rows, [("gen", "s"), ("k", "d"), ("focus", ".3f"), ("beads", "d"),
+                       ("inliers", "d"), ("I", "d"), ("J", "d"), ("alone", ".4f"),
+                       ("family", ".4f"),
+                       ("basis", ".4f"), ("basis_cone", ".4f"), ("space", ".4f"),
+                       ("own_maps", ".4f"), ("ratio", ".2f")]))
+
+
+if __name__ == "__main__":
+    main()
