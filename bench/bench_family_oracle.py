@@ -37,6 +37,7 @@ import time
 import numpy as np
 
 from _common import table
+from napari_psfspace.core.model.cone import Cone
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.model.field import assemble_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
@@ -66,10 +67,11 @@ class Cached:
 
 def _operator(sub, coarse, *, cone=True):
     """The operator of coarse maps (G, I) on the family's basis and grid (and cone)."""
-    # no cone: the maps' own values span it, so the projection leaves them as they are
-    gens = sub.cone.generators if cone else np.asarray(coarse)
-    return assemble_operator(sub.basis, gens, lambda nodes: coarse, sub.shape,
-                             grid_step=sub.grid_step)[0]
+    # no cone: +-e_i span the whole space, so the projection leaves the maps as they are
+    eye = np.eye(sub.n_psf)
+    kept = sub.cone if cone else Cone(np.vstack([eye, -eye]))
+    return assemble_operator(sub.basis, kept.generators, lambda nodes: coarse, sub.shape,
+                             grid_step=sub.grid_step, cone=kept)[0]
 
 
 def stack_rows(args) -> list[dict]:

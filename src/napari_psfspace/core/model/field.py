@@ -86,6 +86,7 @@ def assemble_operator(
     grid_step: float = 32.0,
     metadata: dict | None = None,
     basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
+    cone: Cone | None = None,
 ) -> tuple[ProductConvolution, Cone]:
     """The operator of a basis and a coefficient field, kept inside the cone.
 
@@ -99,6 +100,9 @@ def assemble_operator(
     shape : tuple of int
     grid_step, metadata, basis_filter
         As in :func:`fit_field`.
+    cone : Cone, optional
+        The cone to keep the field in; default :func:`reduce_cone` of ``beta`` (at most
+        20 generators: one image's PSFs).
 
     Returns
     -------
@@ -107,7 +111,7 @@ def assemble_operator(
     gy, gx = _coarse_grid(shape, grid_step)
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     coarse = np.asarray(field(nodes), dtype=np.float64).reshape(len(nodes), -1)  # (G, I)
-    cone = reduce_cone(beta)
+    cone = reduce_cone(beta) if cone is None else cone
     coarse = cone.project(coarse)
     psfs = basis if basis_filter is None else basis_filter(basis)
     sums = psfs.sum(axis=(1, 2))  # (I,)
