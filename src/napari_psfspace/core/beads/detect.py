@@ -435,7 +435,7 @@ def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: 
     p = np.rint(np.asarray(peaks, np.float64)).astype(int)
     iy = np.clip(p[:, 0] // b, 0, small.shape[0] - 1)
     ix = np.clip(p[:, 1] // b, 0, small.shape[1] - 1)
-    # the median of the 9 x 9 binned pixels around each maximum, and its Gaussian-smoothed
+    # the quantile of the 9 x 9 binned pixels around each maximum, and its Gaussian-smoothed
     # value from its own window (the whole image need not be filtered for a few hundred)
     from .centering import gather_windows
 
