@@ -1,7 +1,7 @@
 """Where a family's error enters, stage by stage, on wide-condition stacks (issue 24).
 
     python bench/bench_family_oracle.py [--generator ours|pyotf] [--k 10] [--size 512]
-        [--beads 40] [--photons 1] [--seed 0] [--spread wide|default]
+        [--beads 40] [--photons 1] [--seed 0] [--spread wide|default] [--no-oracle]
 
 A stack of ``K`` images of one microscope (``core/simulation/stacks.py``, the moderate
 field aberrations), each under hidden conditions drawn over a wide range: a focus shift
@@ -12,7 +12,9 @@ spherical aberration (+-0.03 waves). ``--generator pyotf`` computes the PSFs wit
 the best sub-pixel shift, on an ``n x n`` grid) of
 
 - ``alone``: ``estimate_operator`` on the image alone (the family's radius);
-- ``family``: ``subspace.operator(k)``;
+- ``family``: ``subspace.operator(k)``: the family's operator blended with the image's
+  own estimate by the weight ``w`` its held-out beads chose (1: the family's alone);
+- the oracle stages (skipped with ``--no-oracle``), on the family's basis, grid and cone:
 - ``basis``: the truth's PSFs at every grid node projected onto the learnt ``h_i``, no
   cone: the floor the PSF basis sets;
 - ``basis_cone``: the same, kept in the family's cone and normalised as an operator's
@@ -21,8 +23,9 @@ the best sub-pixel shift, on an ``n x n`` grid) of
   spatial basis costs;
 - ``own_maps``: the image's own thin-plate maps on the pooled basis (step 5, before the
   projection onto the ``a_j``): the family without its ``Gamma_k`` step;
-- ``family_gamma``: the family's ``Gamma_k`` (= ``own_maps`` projected onto the
-  ``a_j``), i.e. ``family``;
+- ``paper``: the family's operator alone (``holdout=None``: the paper's hard constraint,
+  no blend with the image's own estimate);
+- ``mix``: the mean of the PSFs of ``paper`` and ``alone`` (the blend at w = 0.5);
 
 and the ratio ``family / alone``. Each stage's PSFs are built and normalised the same
 way (``assemble_operator`` on the family's basis, grid and cone), so a stage's step up
@@ -50,6 +53,17 @@ from napari_psfspace.core.subspace.patches import image_patches
 #: Wide conditions: defocus through about +-1 depth of field at NA 1.3 (600 nm, oil:
 #: lambda n / NA^2 = 0.54 um, about 0.2 waves rms), tilts, spherical drift.
 WIDE = {"focus": 0.2, "tilt": 0.06, "spherical": 0.03}
+
+
+class Mixed:
+    """The PSFs ``w a + (1 - w) b`` of two operators (for the error only)."""
+
+    def __init__(self, a, b, w=0.5):
+        self.a, self.b, self.w = a, b, w
+        self.shape, self.psf_size = a.shape, a.psf_size
+
+    def psf_at(self, y, x):
+        return self.w * self.a.psf_at(y, x) + (1 - self.w) * self.b.psf_at(y, x)
 
 
 class Cached:
@@ -89,10 +103,15 @@ def stack_rows(args) -> list[dict]:
     cached = [Cached(t) for t in truths]
     r = int(np.median([t.psf_radius for t in truths]))
     t0 = time.perf_counter()
-    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    sub = estimate_subspace(images, psf_radius=r)  # default: held-out choice on
     t_family = time.perf_counter() - t0
     t0 = time.perf_counter()
-    alone = [estimate_operator(im, psf_radius=r, holdout=None) for im in images]
+    for k in range(args.k):
+        sub.operator(k)
+    t_operators = time.perf_counter() - t0
+    paper = estimate_subspace(images, psf_radius=r, holdout=None)  # the family alone
+    t0 = time.perf_counter()
+    alone = [estimate_operator(im, psf_radius=r) for im in images]
     t_alone = time.perf_counter() - t0
     # the family's own step 5 maps (before the a_j), recomputed as _learn does
     used = [image_patches(im, float(r), index=i) for i, im in enumerate(images)]
@@ -107,20 +126,31 @@ def stack_rows(args) -> list[dict]:
     flat = sub.basis.reshape(sub.n_psf, -1)
     space = sub.space.reshape(sub.n_space, -1)
     rows = []
+    nan = np.full((args.grid, args.grid), np.nan)
     for k in range(args.k):
-        true = np.array([cached[k].psf_at(y, x, size) for y, x in nodes])
-        coef = np.linalg.lstsq(flat.T, true.reshape(len(nodes), -1).T, rcond=None)[0].T
-        on_a = ((coef.T @ space.T) @ space).T
-        own_k = own[k] @ change
         errs = {
             "alone": grid_errors(alone[k], cached[k], n=args.grid),
             "family": grid_errors(sub.operator(k), cached[k], n=args.grid),
-            "basis": grid_errors(_operator(sub, coef, cone=False), cached[k], n=args.grid),
-            "basis_cone": grid_errors(_operator(sub, coef), cached[k], n=args.grid),
-            "space": grid_errors(_operator(sub, on_a), cached[k], n=args.grid),
-            "own_maps": grid_errors(_operator(sub, own_k), cached[k], n=args.grid),
+            "paper": grid_errors(paper.operator(k), cached[k], n=args.grid),
+            "mix": grid_errors(Mixed(paper.operator(k), alone[k]), cached[k], n=args.grid),
         }
+        if args.no_oracle:
+            errs.update({key: nan for key in ("basis", "basis_cone", "space", "own_maps")})
+        else:
+            true = np.array([cached[k].psf_at(y, x, size) for y, x in nodes])
+            coef = np.linalg.lstsq(flat.T, true.reshape(len(nodes), -1).T, rcond=None)[0].T
+            on_a = ((coef.T @ space.T) @ space).T
+            own_k = own[k] @ change
+            errs.update({
+                "basis": grid_errors(_operator(sub, coef, cone=False), cached[k],
+                                     n=args.grid),
+                "basis_cone": grid_errors(_operator(sub, coef), cached[k], n=args.grid),
+                "space": grid_errors(_operator(sub, on_a), cached[k], n=args.grid),
+                "own_maps": grid_errors(_operator(sub, own_k), cached[k], n=args.grid),
+            })
+        choice = (sub.metadata.get("operator_choice") or [{}] * args.k)[k]
         row = {"gen": args.generator, "k": k, "focus": conds[k].focus,
+               "w": float(choice.get("family_weight", 1.0)),
                "beads": int(used[k].n_beads),
                "inliers": int(pooled.basis.inliers[pooled.owner == k].sum()),
                "I": sub.n_psf, "J": sub.n_space,
@@ -129,14 +159,16 @@ def stack_rows(args) -> list[dict]:
         rows.append(row)
         print(row, flush=True)
     rows.append({"gen": args.generator, "k": -1, "focus": float("nan"),
+                 "w": float(np.mean([r_["w"] for r_ in rows])),
                  "beads": int(np.mean([r_["beads"] for r_ in rows])),
                  "inliers": int(np.mean([r_["inliers"] for r_ in rows])), "I": sub.n_psf,
                  "J": sub.n_space,
                  **{key: float(np.mean([r_[key] for r_ in rows]))
-                    for key in ("alone", "family", "basis", "basis_cone", "space",
-                                "own_maps", "ratio")}})
+                    for key in ("alone", "family", "paper", "basis", "basis_cone", "space",
+                                "own_maps", "mix", "ratio")}})
     print(f"time: family {t_family:.1f} s, {args.k} single estimates {t_alone:.1f} s "
-          f"({t_family / t_alone:.2f}x)")
+          f"({t_family / t_alone:.2f}x); then building the family's {args.k} operators "
+          f"{t_operators:.1f} s")
     return rows
 
 
@@ -151,14 +183,18 @@ def main():
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--grid", type=int, default=8)
     ap.add_argument("--spread", choices=("wide", "default"), default="wide")
+    ap.add_argument("--no-oracle", action="store_true",
+                    help="only alone, family, paper and mix (the oracle columns take the "
+                         "truth's PSF at every grid node: slow with pyotf)")
     args = ap.parse_args()
     _ = Optics  # the default optics: NA 1.3, 600 nm, 65 nm pixels
     rows = stack_rows(args)
-    print(table(rows, [("gen", "s"), ("k", "d"), ("focus", ".3f"), ("beads", "d"),
+    print(table(rows, [("gen", "s"), ("k", "d"), ("focus", ".3f"), ("w", ".2f"),
+                       ("beads", "d"),
                        ("inliers", "d"), ("I", "d"), ("J", "d"), ("alone", ".4f"),
-                       ("family", ".4f"),
+                       ("family", ".4f"), ("paper", ".4f"),
                        ("basis", ".4f"), ("basis_cone", ".4f"), ("space", ".4f"),
-                       ("own_maps", ".4f"), ("ratio", ".2f")]))
+                       ("own_maps", ".4f"), ("mix", ".4f"), ("ratio", ".2f")]))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,8 @@
 """Blind deblurring (core/restore, issue 12; paper, Appendix D): identifying an operator
 of a family from a few beads, and the sparse + smooth deconvolution."""
 
+import warnings
+
 import numpy as np
 import pytest
 from scipy import ndimage as ndi
@@ -10,7 +12,11 @@ from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.restore.deconvolve import SmoothGrid, deblur, iter_deblur
 from napari_psfspace.core.restore.fista import BlockFista
-from napari_psfspace.core.restore.identify import identify_operator, solve_identification
+from napari_psfspace.core.restore.identify import (
+    IdentificationWarning,
+    identify_operator,
+    solve_identification,
+)
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
 from napari_psfspace.core.subspace import estimate_subspace
@@ -228,22 +234,55 @@ def family():
 def test_five_beads_identify_the_operator_of_a_new_image(family):
     sub, r, new, truths = family
     rng = np.random.default_rng(0)
-    ratios = []
+    ratios, paper_ratios = [], []
     for image, truth in zip(new, truths, strict=True):
         alone = np.mean(grid_errors(estimate_operator(image, psf_radius=r), truth, n=4))
         inner = truth.positions[(truth.positions.min(axis=1) > 2 * r)
                                 & (truth.positions.max(axis=1) < 384 - 2 * r)]
         five = inner[rng.choice(len(inner), 5, replace=False)]
         five = five + rng.normal(0, 0.5, five.shape)  # clicked, not centred
-        op = identify_operator(image, sub, beads=five)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            op = identify_operator(image, sub, beads=five)
         info = op.metadata["identification"]
         assert info["n_beads"] >= 4 and len(info["weights"]) == sub.n_images
-        assert np.all(np.asarray(info["weights"]) >= 0)
+        # the warning is issued exactly when the metadata holds one
+        assert (info["warning"] is not None) == any(
+            issubclass(w.category, IdentificationWarning) for w in caught)
+        assert 0 < info["psf_spread"] < 1 and info["n_folds"] == info["n_beads"]
         ratios.append(np.mean(grid_errors(op, truth, n=4)) / alone)
-    # issue 12: at most 1.5x the error of estimate_operator on all the beads;
-    # measured 1.14, 1.42, 0.84 (noisy beads; with bright beads 1.93, 1.08, 1.33: there
-    # one image alone is already good, bench/bench_identify.py)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", IdentificationWarning)
+            paper = identify_operator(image, sub, beads=five, prior=False)
+        assert np.all(np.asarray(paper.metadata["identification"]["weights"]) >= 0)
+        paper_ratios.append(np.mean(grid_errors(paper, truth, n=4)) / alone)
+    # issue 12: at most 1.5x the error of estimate_operator on all the beads; the
+    # paper's cone measured 1.10, 1.49, 0.74 here (noisy beads); issue 24: the family as
+    # a prior (weights free in sign as far as the beads' noise allows, Gamma corrected
+    # towards the beads) is no worse: measured 1.08, 1.50, 0.73
     assert np.mean(ratios) <= 1.5, ratios
+    assert np.mean(ratios) <= np.mean(paper_ratios) * 1.02, (ratios, paper_ratios)
+
+
+def test_identification_warns_when_the_family_cannot_explain_the_beads(family):
+    """Bright beads of an image 0.4 waves out of focus, twice the range the family
+    learnt: the identified operator misses them, and says so."""
+    from napari_psfspace.core.simulation.stacks import Condition
+
+    sub, r, _, _ = family
+    far = [Condition(0.4, 0.0, 0.0, 0.0)]
+    image, truths, _ = simulate_stack(1, (384, 384), 10, seed=5, conditions=far,
+                                      amplitude=(2e4, 3e4))
+    inner = truths[0].positions[(truths[0].positions.min(axis=1) > 2 * r)
+                                & (truths[0].positions.max(axis=1) < 384 - 2 * r)][:5]
+    with pytest.warns(IdentificationWarning, match="does not explain the clicked beads"):
+        op = identify_operator(image[0], sub, beads=inner)
+    info = op.metadata["identification"]
+    assert info["model_error"] > 0.1 and "0.1" in info["warning"]
+    # within the range, from every bead: no warning, and a small spread
+    near = identify_operator(family[2][0], sub)
+    assert near.metadata["identification"]["warning"] is None
+    assert near.metadata["identification"]["psf_spread"] < info["psf_spread"]
 
 
 def test_identification_refuses_what_it_cannot_do(family):

@@ -12,6 +12,7 @@ import dataclasses
 import json
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -251,6 +252,7 @@ def _cmd_deblur(args) -> int:
     from .core.model.operator import load_operator
     from .core.model.operator_file import archive_format
     from .core.restore import identify_operator, iter_deblur
+    from .core.restore.identify import IdentificationWarning
     from .core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
     from .core.subspace.subspace_file import load_subspace
     from .io import read_image, read_points_csv, write_tiff
@@ -263,12 +265,20 @@ def _cmd_deblur(args) -> int:
                              "with psfspace learn); a single model goes with --model")
         sub = load_subspace(args.subspace)
         beads = read_points_csv(args.beads) if args.beads else None
-        op = identify_operator(image, sub, beads=beads)
+        with warnings.catch_warnings():  # said below, once
+            warnings.simplefilter("ignore", IdentificationWarning)
+            op = identify_operator(image, sub, beads=beads)
         ident = op.metadata["identification"]
+        spread = ident.get("psf_spread")
         print(f"operator identified from {ident['n_beads']} beads "
               f"({'given' if beads is not None else 'detected'}; the family's J = "
               f"{sub.n_space}{'' if ident['enough_beads'] else ': fewer beads than J'}) "
-              f"in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+              f"in {time.perf_counter() - t0:.1f} s; error on them beyond the noise "
+              f"{ident['model_error']:.3f}"
+              + ("" if spread is None else f", PSF spread when beads are left out "
+                                           f"{spread:.3f}"), file=sys.stderr)
+        if ident.get("warning"):
+            print(f"WARNING: {ident['warning']}", file=sys.stderr)
     else:
         if args.beads:
             raise ValueError("--beads identifies an operator of a --subspace; with --model "

@@ -10,6 +10,7 @@ layers with the image's scale.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -29,6 +30,7 @@ from napari.utils.notifications import show_error
 
 from ..core.model.estimate import Progress
 from ..core.restore import identify_operator, iter_deblur
+from ..core.restore.identify import IdentificationWarning
 from ._layers import OPERATOR_KEY, SUBSPACE_KEY, image_plane, show_layers
 from ._worker import CoreTask, layer_choices
 
@@ -47,10 +49,15 @@ def _identify_and_deblur(plane, model, beads, **kwargs):
     op, note = model, "the model as it is"
     if isinstance(model, OperatorSubspace):
         yield Progress("identify", 0.0, "identifying the operator from the beads")
-        op = identify_operator(plane, model, beads=beads)
+        with warnings.catch_warnings():  # shown in the note instead
+            warnings.simplefilter("ignore", IdentificationWarning)
+            op = identify_operator(plane, model, beads=beads)
         info = op.metadata["identification"]
         note = (f"identified from {info['n_beads']} beads"
-                + ("" if info["enough_beads"] else f" (fewer than J = {info['n_space']})"))
+                + ("" if info["enough_beads"] else f" (fewer than J = {info['n_space']})")
+                + ("" if info.get("psf_spread") is None
+                   else f"; PSF spread {info['psf_spread']:.2f}")
+                + (f". WARNING: {info['warning']}" if info.get("warning") else ""))
     res = yield from iter_deblur(plane, op, **kwargs)
     return res, op, note
 

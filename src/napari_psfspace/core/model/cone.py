@@ -149,10 +149,14 @@ def reduce_cone(
     unit = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300)
     mean = unit.mean(axis=0)
     gens = [mean / max(np.linalg.norm(mean), 1e-300)]
+    # a vector within the tolerance stays within it as the cone grows: only the others'
+    # angles are recomputed at each step
+    open_ = np.arange(len(unit))
     while len(gens) < max_generators:
-        ang = Cone(np.array(gens)).angle(unit)
-        worst = int(np.argmax(ang))
-        if ang[worst] <= angle_tol:
+        ang = Cone(np.array(gens)).angle(unit[open_])
+        far = ang > angle_tol
+        if not far.any():
             break
-        gens.append(unit[worst])
+        gens.append(unit[open_[int(np.argmax(ang))]])
+        open_ = open_[far]
     return Cone(np.array(gens))

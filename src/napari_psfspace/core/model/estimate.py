@@ -24,14 +24,14 @@ from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance
 from ..common.validate import as_image, check_positive, check_psf_radius
 from .cone import Cone
-from .denoise import band_limit, refit_basis
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .field import fit_field
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .motion import detect_motion
 from .motion import remove_motion as divide_motion
 from .operator import ProductConvolution
-from .pca import PsfBasis, learn_basis, min_beads_for
+from .patch_fit import fit_patches
+from .pca import PsfBasis, min_beads_for
 
 
 @dataclass(frozen=True)
@@ -233,26 +233,10 @@ def iter_estimate(
         yield Progress("held-out", 0.7, few.reason)
     else:
         def fit(sub: Patches, *, final: bool = False):
-            learn, weights, refit = sub.psf, None, None
-            if denoise:
-                sd = sub.noise / sub.flux  # per-pixel noise of the sum-1 patches
-                weights = 1.0 / (sub.psf[:, support] ** 2).sum(axis=1)
-                learn, info = band_limit(sub.psf, sd, window)
-                denoised.update(info)
-            b = learn_basis(learn, n_psf, support=support, positions=sub.centers,
-                            z_threshold=z_threshold, weights=weights)
-            if denoise:
-                inl = b.inliers
-
-                def refit(a):
-                    h, info = refit_basis(sub.psf[inl], a, sd[inl], window,
-                                          weights=weights[inl], prior=b.basis)
-                    denoised.update(info)
-                    return h
-            filt = point_source(sub.psf[b.inliers]) if final else None
-            o, c, sp = fit_field(b, sub, shape, smoothing=smoothing, grid_step=grid_step,
-                                 basis_filter=filt, refit=refit)
-            return b, o, c, sp
+            return fit_patches(sub, shape, n_psf=n_psf, smoothing=smoothing,
+                               grid_step=grid_step, z_threshold=z_threshold,
+                               denoise=denoise, basis_filter=point_source if final else None,
+                               record=denoised)
 
         need = min_beads_for(fixed_n or 1)
         if holdout:

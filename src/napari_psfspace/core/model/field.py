@@ -16,6 +16,7 @@ from ..beads.patches import Patches
 from .cone import Cone, reduce_cone
 from .operator import ProductConvolution
 from .pca import PsfBasis
+from .psf_field import _interp_weights
 from .tps import ThinPlateSpline
 from .voronoi import voronoi_areas
 
@@ -87,6 +88,7 @@ def assemble_operator(
     metadata: dict | None = None,
     basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
     cone: Cone | None = None,
+    at: np.ndarray | None = None,
 ) -> tuple[ProductConvolution, Cone]:
     """The operator of a basis and a coefficient field, kept inside the cone.
 
@@ -103,6 +105,10 @@ def assemble_operator(
     cone : Cone, optional
         The cone to keep the field in; default :func:`reduce_cone` of ``beta`` (at most
         20 generators: one image's PSFs).
+    at : ndarray of shape (n, 2), optional
+        Only the PSFs at these positions (row, column) will be asked for: only the
+        nodes around them are kept in the cone (the projection is the costly step), and
+        the operator is right only there. For judging a model on a few beads.
 
     Returns
     -------
@@ -112,7 +118,14 @@ def assemble_operator(
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     coarse = np.asarray(field(nodes), dtype=np.float64).reshape(len(nodes), -1)  # (G, I)
     cone = reduce_cone(beta) if cone is None else cone
-    coarse = cone.project(coarse)
+    if at is None:
+        coarse = cone.project(coarse)
+    else:
+        pts = np.asarray(at, dtype=np.float64).reshape(-1, 2)
+        j0, j1, _ = _interp_weights(gy, pts[:, 0])
+        k0, k1, _ = _interp_weights(gx, pts[:, 1])
+        near = np.unique(np.concatenate([j * len(gx) + k for j in (j0, j1) for k in (k0, k1)]))
+        coarse[near] = cone.project(coarse[near])
     psfs = basis if basis_filter is None else basis_filter(basis)
     sums = psfs.sum(axis=(1, 2))  # (I,)
     total = coarse @ sums

@@ -109,13 +109,22 @@ def heldout_residuals(operator, patches) -> HeldoutResiduals:
             f"The model's PSF size {operator.psf_size} differs from the patch size {size}: "
             "extract the held-out patches with the model's PSF radius."
         )
+    models = np.array([operator.psf_at(y, x) for y, x in patches.centers]).reshape(
+        len(patches), size, size)
+    return residuals_of(models, patches)
+
+
+def residuals_of(models: np.ndarray, patches) -> HeldoutResiduals:
+    """Residual of model PSFs (K, P, P), one per bead, on the beads' patches (as
+    :func:`heldout_residuals`, given the PSFs instead of the operator)."""
+    size = patches.size
     win = bump_window(size, patches.r, patches.r_ext)
     signal = (patches.raw - patches.background) * win
     res = np.empty(len(patches))
     floor = np.empty(len(patches))
     win_norm = float(np.linalg.norm(win))
-    for k, (y, x) in enumerate(patches.centers):
-        model = operator.psf_at(y, x)
+    for k in range(len(patches)):
+        model = models[k]
         p = signal[k]
         c = float(np.vdot(model, p) / max(np.vdot(model, model), 1e-300))
         pn = max(float(np.linalg.norm(p)), 1e-300)

@@ -12,7 +12,12 @@ Steps, on top of the single-image pipeline:
 8. ``Gamma_k[i, j] = <alpha_ik, a_j>`` (``refine=True`` refits each ``Gamma_k`` to its own
    beads' coefficients through the ``a_j`` instead: measured no better, 0.92 against 0.88
    of one image's error on dense stacks, so off by default);
-and the cone of the observed PSFs that every operator's PSFs are kept in (2.5).
+and the cone of the observed PSFs that every operator's PSFs are kept in (2.5): the union
+of every image's own reduced cone (:func:`family_cone`);
+9. (with a held-out split, the default) the family as a prior rather than a hard
+constraint: each image with enough beads gets the blend of the family's operator and its
+own single-image estimate that best explains beads of its own neither saw
+(:mod:`.choice`), so that no image's operator is worse on them than its own estimate.
 
 ``I`` defaults to the Gavish-Donoho rule (``2.858 sigma_med`` for a square matrix,
 :func:`~napari_psfspace.core.model.pca.rank_by_threshold`) on the raw patches whitened by
@@ -30,14 +35,15 @@ import numpy as np
 
 from ..beads.patches import Patches
 from ..beads.window import bump_window, radial_distance
-from ..model.cone import reduce_cone
+from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.estimate import Progress, run_with_progress
 from ..model.field import _coarse_grid
-from ..model.heldout import heldout_residuals, split_holdout
+from ..model.heldout import split_holdout
 from ..model.pca import learn_basis, rank_by_threshold
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
+from .choice import Choice, choose, own_estimate
 from .patches import ImagePatches, image_patches
 from .result import OperatorSubspace, space_at
 from .sizes import white_rank
@@ -90,6 +96,31 @@ def _image_map(centers: np.ndarray, coef: np.ndarray, nodes: np.ndarray,
     return np.asarray(spline(nodes), dtype=np.float64).reshape(len(nodes), -1)
 
 
+def family_cone(coefficients: np.ndarray, owner: np.ndarray) -> Cone:
+    """The union of each image's reduced cone of its beads' coefficients.
+
+    One image's PSFs take about 20 generators (the paper's reduced cone); the family
+    holds the PSFs of every condition. Reduced to 20 for all images together, the cone
+    of a wide focus series left out much of each image's PSFs (1.47x one image's error,
+    ``bench_family_oracle.py``); the union keeps every image's own cone, so that no
+    image's operator is held tighter than its own estimate would be.
+
+    Parameters
+    ----------
+    coefficients : ndarray of shape (M, I)
+        The beads' coefficients, all images.
+    owner : ndarray of shape (M,)
+        The image of each bead.
+
+    Returns
+    -------
+    Cone
+        At most ``20 K`` generators.
+    """
+    gens = [reduce_cone(coefficients[owner == k]).generators for k in np.unique(owner)]
+    return Cone(np.concatenate(gens))
+
+
 def _refit_gamma(gamma: np.ndarray, coef: np.ndarray, at: np.ndarray) -> np.ndarray:
     """``argmin ||coef - at Gamma^T||^2 + ridge ||Gamma - gamma||^2`` (I, J)."""
     n = at.T @ at  # (J, J)
@@ -125,7 +156,7 @@ def _pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
         weights = 1.0 / (psf[:, support] ** 2).sum(axis=1)
         learn, _ = band_limit(psf, sd, window)
     basis = learn_basis(learn, int(n_psf) if n_psf is not None else "rule", support=support,
-                        weights=weights)
+                        weights=weights, svd="gram")
     return _Pooled(psf, owner, sd, weights, window, support, basis)
 
 
@@ -187,7 +218,7 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
         at = np.concatenate([c for _, c in bead_coef])  # (n_inliers, I), image order
         images, _ = refit_basis(psf[inl], at, sd[inl], window, weights=weights[inl],
                                 prior=basis.basis)
-    cone = reduce_cone(basis.coefficients)
+    cone = family_cone(basis.coefficients, pooled.owner[basis.inliers])
     meta = {
         "n_psf": int(n_i), "n_psf_rule": int(basis.n_psf_rule),
         "n_space": int(n_j), "n_space_rule": int(rank_by_threshold(s, stacked.shape)[0]),
@@ -262,6 +293,7 @@ def iter_estimate_subspace(
     if n_space is None:
         sizes_meta["space_size_by"] = "rule"
     heldout = None
+    choices: list[Choice] = []
     if holdout:
         # the error of each image's operator on beads of its own (about a fifth, spread
         # over the field) that the family never saw
@@ -274,16 +306,39 @@ def iter_estimate_subspace(
                 held[i] = f.patches.subset(mask)
                 f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
             train.append(f)
-        trained = _learn(train, shape, **options)
-        heldout = [heldout_residuals(trained.operator(i), held[i]).summary()
-                   if i in held else {"n_beads": 0} for i in range(len(used))]
-        yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged")
-    sub = _learn(used, shape, **options)
+        # the family without the held-out beads and each image's own estimate from the
+        # same beads, side by side (dask tasks: threads, or the cluster's workers)
+        judged = [i for i in range(len(used)) if i in held]
+        tasks = [dask.delayed(_learn)(train, shape, **options)] + [
+            dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
+                                       denoise=denoise) for i in judged]
+        trained, *owns = _compute(tasks, client)
+        yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
+                                        f"held-out beads of {len(held)} images")
+        own_train = dict(zip(judged, owns, strict=True))
+        choices = [choose(trained, i, own_train.get(i), held.get(i)) for i in range(len(used))]
+        heldout = [c.kept.summary() if c.kept is not None else {"n_beads": 0}
+                   for c in choices]
+        n_own = sum(c.weight < 1.0 for c in choices)
+        yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged; "
+                                        f"{n_own} blend in their own estimate")
+    blended = [i for i, c in enumerate(choices) if c.weight < 1.0]
+    tasks = [dask.delayed(_learn)(used, shape, **options)] + [
+        dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
+                                   denoise=denoise) for i in blended]
+    sub, *owns = _compute(tasks, client)
+    weights = np.ones(len(used))
+    for i, own in zip(blended, owns, strict=True):
+        if own is not None:
+            sub.own[i] = own
+            weights[i] = choices[i].weight
+    sub.family_weights = weights
     sub.metadata.update(sizes_meta)
     sub.metadata.update({
         "images": [f.index for f in used], "skipped": {str(k): v for k, v in skipped.items()},
         "beads_per_image": [int(f.n_beads) for f in used], "psf_radius": float(psf_radius),
-        "heldout": heldout, "seconds": round(time.perf_counter() - t0, 3)})
+        "heldout": heldout, "operator_choice": [c.to_dict() for c in choices] or None,
+        "seconds": round(time.perf_counter() - t0, 3)})
     yield Progress("subspace", 1.0, f"I = {sub.n_psf}, J = {sub.n_space} from {len(used)} "
                                     "images")
     return sub
@@ -316,7 +371,11 @@ def estimate_subspace(
     progress : callable, optional
         Called with each :class:`~napari_psfspace.core.model.estimate.Progress`.
     **kwargs
-        ``threshold``, ``grid_step``, ``refine``, ``chunk`` of
+        ``threshold``, ``grid_step``, ``refine``, ``denoise``, ``chunk``, and
+        ``holdout`` (the fraction of each image's beads held out, default 0.2: they
+        measure each image's operator and choose its blend with the image's own
+        estimate, :mod:`~napari_psfspace.core.subspace.choice`; None: the paper's model,
+        the family's operators alone, and no held-out figures) of
         :func:`iter_estimate_subspace`.
 
     Returns

@@ -17,6 +17,7 @@ from ..model.cone import Cone, project_onto_cone
 from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
 from ..model.psf_field import _interp_weights
+from .choice import blend
 
 
 def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
@@ -67,7 +68,15 @@ class OperatorSubspace:
         The grid's largest spacing asked for, pixels (it gives back ``grid``).
     metadata : dict
         JSON-ready record (sizes, their choice, per-image bead counts and held-out
-        errors, timings).
+        errors, the operator kept for each image and why, timings).
+    own : dict of int to ProductConvolution
+        Single-image estimates of the images whose held-out beads asked for them
+        (:mod:`.choice`).
+    family_weights : ndarray of shape (K,), optional
+        The family's weight ``w_k`` in each image's operator: :meth:`operator` gives
+        image ``k`` the PSFs ``w_k h_family + (1 - w_k) h_own`` (1, or None for all: the
+        family's operator alone, the paper's model). The ``Gamma_k`` place every image
+        in the family whatever its weight (cone, condition coordinates, identification).
     """
 
     basis: np.ndarray
@@ -78,6 +87,8 @@ class OperatorSubspace:
     cone: Cone
     grid_step: float = 32.0
     metadata: dict = field(default_factory=dict)
+    own: dict = field(default_factory=dict)
+    family_weights: np.ndarray | None = None
     _operators: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
@@ -110,19 +121,51 @@ class OperatorSubspace:
         g = self.project(gamma) if project else np.asarray(gamma, dtype=np.float64)
         coarse = self.maps(g).reshape(self.n_psf, -1).T  # (G, I), nodes row-major
         op, _ = assemble_operator(self.basis, self.cone.generators, lambda nodes: coarse,
-                                  self.shape, grid_step=self.grid_step, metadata=metadata)
+                                  self.shape, grid_step=self.grid_step, metadata=metadata,
+                                  cone=self.cone)
         return op
 
+    def psfs_at(self, k: int, points: np.ndarray) -> np.ndarray:
+        """The PSFs of image ``k``'s family operator at a few positions (n, 2), shape
+        (n, P, P): as ``operator_from(gammas[k], project=False).psf_at``, keeping only
+        the nodes around them in the cone (for judging the family on held-out beads
+        without building the operator)."""
+        return self.psfs_of(self.gammas[int(k)], points)
+
+    def psfs_of(self, gamma: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """The PSFs of the operator of ``Gamma`` (I, J) (unprojected) at a few positions
+        (n, 2), shape (n, P, P), building only the nodes around them."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        coarse = self.maps(gamma).reshape(self.n_psf, -1).T
+        op, _ = assemble_operator(self.basis, self.cone.generators, lambda nodes: coarse,
+                                  self.shape, grid_step=self.grid_step, cone=self.cone, at=pts)
+        return np.array([op.psf_at(y, x) for y, x in pts]).reshape(
+            len(pts), *self.basis.shape[1:])
+
     def operator(self, k: int) -> ProductConvolution:
-        """The operator of image ``k`` of the stack learnt from (built once and kept: make
-        a new subspace rather than editing ``gammas`` in place)."""
+        """The operator of image ``k`` of the stack learnt from: the family's, blended
+        with the image's own estimate by its weight (:attr:`family_weights`).
+        Built once and kept: make a new subspace rather than editing ``gammas`` in place.
+        """
         k = int(k)
         if not 0 <= k < self.n_images:
             raise ValueError(f"`k` must be an image index in [0, {self.n_images}), got {k}")
+        w = self.family_weight(k)
+        if w == 0.0:
+            return self.own[k]
         if k not in self._operators:  # built once: psf_at(k, ...) in a loop stays cheap
-            self._operators[k] = self.operator_from(self.gammas[k], project=False,
-                                                    metadata={"subspace_image": k})
+            meta = {"subspace_image": k}
+            op = self.operator_from(self.gammas[k], project=False, metadata=meta)
+            if w < 1.0:
+                op = blend(op, self.own[k], w, metadata={**meta, "family_weight": w})
+            self._operators[k] = op
         return self._operators[k]
+
+    def family_weight(self, k: int) -> float:
+        """The family's weight in image ``k``'s operator (1: the family's alone)."""
+        if self.family_weights is None or int(k) not in self.own:
+            return 1.0
+        return float(self.family_weights[int(k)])
 
     def project(self, gamma: np.ndarray) -> np.ndarray:
         """Euclidean projection of ``Gamma`` (I, J) onto the cone of the ``Gamma_k``."""

@@ -10,13 +10,15 @@ import os
 import numpy as np
 
 from ..model.cone import Cone
+from ..model.operator import ProductConvolution
 from ..model.operator_file import _software_string, read_archive, write_archive
 from .result import OperatorSubspace
 
 #: Value of the ``"format"`` field of the JSON header of a saved subspace.
 FORMAT_NAME = "napari-psfspace/operator-subspace"
-#: Major version of the subspace file format written here.
-FORMAT_VERSION = 1
+#: Major version of the subspace file format written here (2: images may keep their own
+#: operator, ``own_*`` entries; a version 1 file reads as one with none).
+FORMAT_VERSION = 2
 
 _ARRAYS = ("basis", "space", "grid_y", "grid_x", "shape", "gammas", "cone")
 
@@ -30,8 +32,53 @@ def save_subspace(subspace: OperatorSubspace, path: str | os.PathLike[str]) -> N
     arrays = {"basis": subspace.basis, "space": subspace.space,
               "grid_y": subspace.grid[0], "grid_x": subspace.grid[1],
               "shape": np.asarray(subspace.shape, dtype=np.int64),
-              "gammas": subspace.gammas, "cone": subspace.cone.generators}
+              "gammas": subspace.gammas, "cone": subspace.cone.generators,
+              "own_images": np.asarray(sorted(subspace.own), dtype=np.int64),
+              "family_weights": (np.ones(subspace.n_images) if subspace.family_weights is None
+                                 else np.asarray(subspace.family_weights, np.float64))}
+    for k in sorted(subspace.own):
+        op = subspace.own[k]
+        if op.grid is None:
+            raise ValueError(f"image {k}'s own operator must have coarse maps (a grid)")
+        arrays.update({f"own_{k}_basis": op.basis, f"own_{k}_coefficients": op.coefficients,
+                       f"own_{k}_grid_y": op.grid[0], f"own_{k}_grid_x": op.grid[1]})
+        header.setdefault("own_metadata", {})[str(k)] = op.metadata
     write_archive(path, arrays, header)
+
+
+def _own_operators(path: str, header: dict, shape: tuple[int, int],
+                  n_images: int) -> tuple[dict, np.ndarray | None]:
+    """The images' own operators and the family's weights of a version 2 file (none in
+    a version 1 file)."""
+    if header.get("version", 1) < 2:
+        return {}, None
+    index, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
+                            entries=("own_images", "family_weights", "header"),
+                            kind="subspace")
+    ks = [int(k) for k in np.atleast_1d(index["own_images"])]
+    weights = np.asarray(index["family_weights"], dtype=np.float64)
+    bad = [k for k in ks if not 0 <= k < n_images]
+    if (bad or weights.shape != (n_images,) or not np.all(np.isfinite(weights))
+            or weights.min(initial=1.0) < 0 or weights.max(initial=0.0) > 1):
+        raise ValueError(f"{path!r}: inconsistent subspace file: own operators for images "
+                         f"{ks} and family weights {weights.tolist()} for {n_images} images "
+                         "(expected indices in [0, K) and K weights in [0, 1])")
+    names = tuple(f"own_{k}_{part}" for k in ks
+                  for part in ("basis", "coefficients", "grid_y", "grid_x"))
+    arr, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
+                          entries=(*names, "header"), kind="subspace")
+    meta = header.get("own_metadata", {})
+    own = {}
+    for k in ks:
+        try:
+            own[k] = ProductConvolution(
+                arr[f"own_{k}_basis"], arr[f"own_{k}_coefficients"], shape=shape,
+                grid=(arr[f"own_{k}_grid_y"], arr[f"own_{k}_grid_x"]),
+                metadata=meta.get(str(k), {}))
+        except ValueError as exc:
+            raise ValueError(f"{path!r}: inconsistent subspace file: image {k}'s own "
+                             f"operator: {exc}") from exc
+    return own, weights
 
 
 def load_subspace(path: str | os.PathLike[str]) -> OperatorSubspace:
@@ -59,9 +106,12 @@ def load_subspace(path: str | os.PathLike[str]) -> OperatorSubspace:
                          f"{space.shape}, gammas {gammas.shape}, grid "
                          f"({arr['grid_y'].size}, {arr['grid_x'].size}), cone "
                          f"{arr['cone'].shape}")
+    shape = (int(arr["shape"][0]), int(arr["shape"][1]))
+    own, weights = _own_operators(path, header, shape, gammas.shape[0])
     return OperatorSubspace(basis.astype(np.float64), space.astype(np.float64),
                             (arr["grid_y"].astype(np.float64), arr["grid_x"].astype(np.float64)),
-                            (int(arr["shape"][0]), int(arr["shape"][1])),
-                            gammas.astype(np.float64), Cone(arr["cone"].astype(np.float64)),
+                            shape, gammas.astype(np.float64),
+                            Cone(arr["cone"].astype(np.float64)),
                             grid_step=float(header.get("grid_step", 32.0)),
-                            metadata=header.get("metadata", {}))
+                            metadata=header.get("metadata", {}), own=own,
+                            family_weights=weights)

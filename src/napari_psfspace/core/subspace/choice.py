@@ -1,0 +1,187 @@
+"""Each image's operator: the family's, its own estimate, or a blend, by held-out beads.
+
+The family pools the beads of every image; with few or faint beads an image gains from
+it, with many bright beads it may not (a shared basis and cone are a constraint its own
+estimate does not have). The family acts as a prior: each image with enough beads gets
+the blend ``w H_family + (1 - w) H_own`` of the family's operator and its own estimate
+(PSFs ``w h_family + (1 - w) h_own``, still of sum 1) whose weight ``w`` in
+:data:`WEIGHTS` best explains beads of its own that neither model saw (the held-out
+split of :func:`~napari_psfspace.core.subspace.estimate.iter_estimate_subspace`). ``w =
+0`` is the single-image estimate itself, so the family is never kept where the image's
+held-out beads say its own estimate is better; ``w = 1`` is the paper's hard constraint.
+Two estimates with partly independent errors do better blended than either alone (on
+the wide focus series of ``bench_family_oracle.py``, their mean beats both on most
+images).
+
+Images with at most :data:`MIN_BEADS_OWN` training beads keep the family's operator:
+their own estimate rests on a handful of beads and their held-out set on one or two,
+too few to judge by; this is where the family is meant to help.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..beads.patches import Patches
+from ..model.estimate import faint_beads
+from ..model.heldout import HeldoutResiduals, residuals_of
+from ..model.operator import ProductConvolution
+from ..model.patch_fit import fit_patches
+
+#: Fewest training beads for an image's own estimate to be a candidate (above the
+#: few-beads models' range, so that the own estimate is the thin-plate field).
+MIN_BEADS_OWN = 12
+#: Fewest held-out beads to judge by.
+MIN_HELDOUT = 3
+#: The family's weights tried: 0 is the image's own estimate, 1 the family's operator.
+WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def own_patches(patches: Patches) -> Patches:
+    """The patches the single-image estimate would use: the faint detections left out."""
+    faint, _ = faint_beads(patches.flux)
+    return patches.subset(~faint) if faint.any() else patches
+
+
+def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
+                 denoise: bool = True) -> ProductConvolution | None:
+    """The image's own operator from its patches, as ``estimate_operator`` fits it; None
+    where it has too few beads (:data:`MIN_BEADS_OWN`)."""
+    mine = own_patches(patches)
+    if len(mine) < MIN_BEADS_OWN:
+        return None
+    try:
+        return fit_patches(mine, shape, grid_step=grid_step, denoise=denoise)[1]
+    except (ValueError, np.linalg.LinAlgError):  # no own estimate: the family stays
+        return None
+
+
+def blend(family_operator: ProductConvolution, own_operator: ProductConvolution,
+          weight: float, *, metadata: dict | None = None) -> ProductConvolution:
+    """The operator whose PSFs are ``weight h_family + (1 - weight) h_own``.
+
+    Both operators' maps lie on one coarse grid (the same ``grid_step`` and image
+    shape); the blend's basis is both bases, its maps both maps, scaled.
+
+    Returns
+    -------
+    ProductConvolution
+        With ``I_family + I_own`` basis PSFs (only the own operator for ``weight = 0``,
+        only the family's for 1).
+    """
+    w = float(weight)
+    if not 0.0 <= w <= 1.0:
+        raise ValueError(f"`weight` must lie in [0, 1], got {weight!r}")
+    if w == 0.0:
+        return own_operator
+    if w == 1.0:
+        return family_operator
+    gf, go = family_operator.grid, own_operator.grid
+    if (family_operator.shape != own_operator.shape or gf is None or go is None
+            or any(a.shape != b.shape or not np.allclose(a, b) for a, b in zip(gf, go,
+                                                                                 strict=True))):
+        raise ValueError("the two operators must share the image shape and coarse grid "
+                         f"to be blended, got {family_operator.shape}, {own_operator.shape}")
+    if family_operator.psf_size != own_operator.psf_size:
+        raise ValueError(f"the two operators' PSF sizes differ: {family_operator.psf_size} "
+                         f"and {own_operator.psf_size}")
+    basis = np.concatenate([family_operator.basis, own_operator.basis])
+    maps = np.concatenate([w * family_operator.coefficients,
+                           (1.0 - w) * own_operator.coefficients])
+    return ProductConvolution(basis, maps, shape=family_operator.shape, grid=gf,
+                              metadata=metadata)
+
+
+@dataclass
+class Choice:
+    """The held-out judgement of one image's operators.
+
+    Attributes
+    ----------
+    weight : float
+        The family's weight kept (1: the family's operator, 0: the image's own).
+    family, own : HeldoutResiduals or None
+        The residuals of the two operators on the image's held-out beads (None: not
+        judged).
+    kept : HeldoutResiduals or None
+        Those of the blend kept.
+    reason : str
+    by_weight : dict of float to float
+        The mean held-out residual at each weight tried.
+    """
+
+    weight: float
+    family: HeldoutResiduals | None
+    own: HeldoutResiduals | None
+    kept: HeldoutResiduals | None
+    reason: str
+    by_weight: dict
+
+    @property
+    def model(self) -> str:
+        """"family", "own" or "blend"."""
+        return {1.0: "family", 0.0: "own"}.get(self.weight, "blend")
+
+    def to_dict(self) -> dict:
+        """JSON-ready record."""
+        out: dict = {"model": self.model, "family_weight": self.weight,
+                     "reason": self.reason}
+        for name, res in (("family", self.family), ("own", self.own), ("kept", self.kept)):
+            if res is not None and len(res.residual):
+                out[f"heldout_{name}"] = float(np.mean(res.residual))
+        if self.family is not None:
+            out["n_heldout"] = int(len(self.family.residual))
+        if self.by_weight:
+            out["heldout_by_weight"] = {f"{w:g}": v for w, v in self.by_weight.items()}
+        return out
+
+
+def choose(family, k: int, own_operator: ProductConvolution | None,
+           held: Patches | None) -> Choice:
+    """The family's weight that best explains the image's held-out beads.
+
+    Parameters
+    ----------
+    family : OperatorSubspace
+        The family learnt without the held-out beads.
+    k : int
+        The image's index in ``family``.
+    own_operator : ProductConvolution or None
+        The image's own estimate from the same training beads (None: none possible).
+    held : Patches or None
+        The image's held-out beads.
+
+    Returns
+    -------
+    Choice
+    """
+    if held is None or len(held) == 0:
+        return Choice(1.0, None, None, None, "no held-out beads: the family's operator", {})
+    fam_psf = family.psfs_at(k, held.centers)
+    fam = residuals_of(fam_psf, held)
+    if own_operator is None:
+        return Choice(1.0, fam, None, fam, f"fewer than {MIN_BEADS_OWN} training beads: "
+                                           "the family's operator", {})
+    own_psf = np.array([own_operator.psf_at(y, x) for y, x in held.centers])
+    own = residuals_of(own_psf, held)
+    if len(held) < MIN_HELDOUT:
+        return Choice(1.0, fam, own, fam, f"{len(held)} held-out beads, fewer than "
+                                          f"{MIN_HELDOUT} to judge by: the family's operator",
+                      {})
+    res = {w: residuals_of(w * fam_psf + (1 - w) * own_psf, held) for w in WEIGHTS}
+    by_weight = {w: float(np.mean(r.residual)) for w, r in res.items()}
+    best = min(WEIGHTS, key=lambda w: (by_weight[w], -w))  # ties: the family's side
+    # leave the image's own estimate only for a gain its held-out beads show beyond
+    # their scatter: the paired differences' mean below minus one standard error
+    diff = res[best].residual - res[0.0].residual
+    se = float(np.std(diff, ddof=1)) / np.sqrt(len(diff))
+    if best > 0.0 and not float(np.mean(diff)) < -se:
+        reason = (f"the image's own estimate: no family weight explains its held-out beads "
+                  f"better beyond their scatter (best {best:g}: {by_weight[best]:.4f} "
+                  f"against {by_weight[0.0]:.4f}, standard error {se:.4f})")
+        return Choice(0.0, fam, own, own, reason, by_weight)
+    reason = (f"family weight {best:g}: held-out residual {by_weight[best]:.4f} (the "
+              f"family's alone {by_weight[1.0]:.4f}, the image's own {by_weight[0.0]:.4f})")
+    return Choice(best, fam, own, res[best], reason, by_weight)

@@ -1,0 +1,108 @@
+"""The family is never worse than one image's own estimate (issue 24, point 2).
+
+Each image with enough beads is judged on held-out beads of its own: it keeps the
+family's operator only where that explains them at least as well as its own estimate
+(core/subspace/choice.py). The metric is bench_accuracy's aligned PSF error on a 4 x 4
+grid, against each image's truth.
+"""
+
+import json
+
+import numpy as np
+import pytest
+
+from napari_psfspace.core.model.cone import reduce_cone
+from napari_psfspace.core.model.estimate import estimate_operator
+from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
+from napari_psfspace.core.subspace import OperatorSubspace, estimate_subspace
+from napari_psfspace.core.subspace.estimate import family_cone
+
+#: Conditions over about +-1 depth of field at NA 1.3, tilts, spherical drift
+#: (bench_family_oracle.py's WIDE).
+WIDE = {"focus": 0.2, "tilt": 0.06, "spherical": 0.03}
+
+
+def _errors(ops, truths):
+    return np.array([float(np.mean(grid_errors(op, t, n=4))) for op, t in zip(ops, truths,
+                                                                               strict=True)])
+
+
+@pytest.fixture(scope="module")
+def wide():
+    """6 images of 512 x 512, about 40 bright beads each, wide conditions."""
+    conds = random_conditions(6, [3, 1], WIDE)
+    images, truths, _ = simulate_stack(6, (512, 512), 40, seed=3, conditions=conds)
+    r = int(np.median([t.psf_radius for t in truths]))
+    alone = [estimate_operator(im, psf_radius=r) for im in images]
+    return images, truths, r, alone
+
+
+def test_an_image_the_family_explains_worse_keeps_its_own_estimate(wide, tmp_path):
+    """A family forced to one PSF shape cannot hold a wide focus series: every image's
+    held-out beads say so, and each keeps exactly what estimate_operator gives it."""
+    images, truths, r, alone = wide
+    sub = estimate_subspace(images, psf_radius=r, n_psf=1, n_space=1)
+    choice = sub.metadata["operator_choice"]
+    assert [c["model"] for c in choice] == ["own"] * len(images), choice
+    assert all(c["heldout_own"] < c["heldout_family"] for c in choice)
+    for k, op in enumerate(alone):
+        np.testing.assert_allclose(sub.operator(k).psf_at(200.0, 300.0), op.psf_at(200.0, 300.0),
+                                   atol=1e-12)
+    # the reported held-out error is the kept operator's
+    assert sub.metadata["heldout"][0]["residual_mean"] == pytest.approx(
+        choice[0]["heldout_own"])
+    # the file keeps them, without pickle
+    path = tmp_path / "family.npz"
+    sub.save(path)
+    back = OperatorSubspace.load(path)
+    assert sorted(back.own) == list(range(len(images)))
+    for k in (0, 5):
+        np.testing.assert_array_equal(back.operator(k).psf_at(100.0, 50.0),
+                                      sub.operator(k).psf_at(100.0, 50.0))
+    np.testing.assert_array_equal(back.gammas, sub.gammas)
+
+
+def test_a_version_1_file_reads_as_a_family_without_own_operators(wide, tmp_path):
+    images, _, r, _ = wide
+    sub = estimate_subspace(images[:3], psf_radius=r, holdout=None)
+    assert sub.own == {} and sub.metadata["operator_choice"] is None
+    path = tmp_path / "v2.npz"
+    sub.save(path)
+    with np.load(path, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files if not k.startswith("own_")}
+    header = json.loads(arrays.pop("header").tobytes().decode("utf-8"))
+    header["version"] = 1
+    old = tmp_path / "v1.npz"
+    np.savez(old, **arrays, header=np.frombuffer(json.dumps(header).encode(), np.uint8))
+    back = OperatorSubspace.load(old)
+    assert back.own == {}
+    np.testing.assert_array_equal(back.operator(1).psf_at(9.0, 9.0),
+                                  sub.operator(1).psf_at(9.0, 9.0))
+
+
+def test_a_wide_focus_series_is_never_worse_in_the_family(wide):
+    """Bright dense images over a wide focus range: the family with the paper's 20
+    cone generators was 1.17-1.82x one image's error (bench_family_oracle.py). Now every
+    image is within the own estimate's error (the family kept where its held-out beads
+    say it is at least as good) and the mean is no worse."""
+    images, truths, r, alone = wide
+    sub = estimate_subspace(images, psf_radius=r)
+    ratio = _errors([sub.operator(k) for k in range(len(images))], truths) \
+        / _errors(alone, truths)
+    # an image kept on the family's side of a held-out judgement may lose by what 8
+    # held-out beads cannot see: at most 5 % here (measured: see bench/RESULTS.md)
+    assert ratio.max() <= 1.05, ratio
+    assert ratio.mean() <= 1.0, ratio
+
+
+def test_the_family_cone_holds_every_image_own_cone():
+    rng = np.random.default_rng(0)
+    coef = np.concatenate([rng.normal(0, 1, (30, 4)) + [5 * k, 1, 0, 0] for k in range(3)])
+    owner = np.repeat(np.arange(3), 30)
+    cone = family_cone(coef, owner)
+    for k in range(3):
+        own = reduce_cone(coef[owner == k]).generators
+        # every generator of an image's own cone is inside the family's cone
+        np.testing.assert_allclose(cone.project(own), own, atol=1e-9)
+    assert len(cone.generators) <= 20 * 3
