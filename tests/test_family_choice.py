@@ -90,10 +90,12 @@ def test_a_wide_focus_series_is_never_worse_in_the_family(wide):
     sub = estimate_subspace(images, psf_radius=r)
     ratio = _errors([sub.operator(k) for k in range(len(images))], truths) \
         / _errors(alone, truths)
-    # an image kept on the family's side of a held-out judgement may lose by what 8
-    # held-out beads cannot see: at most 5 % here (measured: see bench/RESULTS.md)
-    assert ratio.max() <= 1.05, ratio
-    assert ratio.mean() <= 1.0, ratio
+    # measured 0.93, 0.73, 0.99, 1.00, 0.60, 0.87 (mean 0.85; the family alone: 0.94,
+    # 0.74, 0.99, 1.41, 0.60, 0.87). A blend is kept only where 8 held-out beads show
+    # it better beyond their scatter: it could still lose by what they cannot see, so
+    # the bound is the issue's, not a guarantee (bench/RESULTS.md: 3 seeds, 2 sizes)
+    assert ratio.max() <= 1.0 + 1e-6, ratio
+    assert ratio.mean() <= 0.9, ratio
 
 
 def test_the_family_cone_holds_every_image_own_cone():
@@ -106,3 +108,33 @@ def test_the_family_cone_holds_every_image_own_cone():
         # every generator of an image's own cone is inside the family's cone
         np.testing.assert_allclose(cone.project(own), own, atol=1e-9)
     assert len(cone.generators) <= 20 * 3
+
+
+@pytest.mark.parametrize("name,first,last,radius", [
+    ("astigmatic_beads/psfextractor_astigmatism_zyx_uint8.tif", 27, 39, 10.0),
+    ("sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif", 28, 34, None),
+])
+def test_measured_slices_are_never_worse_in_the_family(shared_data, name, first, last,
+                                                       radius):
+    """Issue 24: each slice's family operator explains its held-out beads at least as
+    well as its own estimate on the same beads (by construction: its own estimate is
+    the weight-0 candidate, and it stays unless a blend does better beyond the beads'
+    scatter). The slice's own estimate inside the family is estimate_operator's:
+    the same beads, split and model (measured: equal to 4 digits on every slice)."""
+    from napari_psfspace.io import read_image
+
+    path = shared_data / name
+    slices = [read_image(path, index=z)[0] for z in range(first, last)]
+    r = radius if radius is not None else 0.5 / read_image(path, index=first)[1].pixel_size
+    sub = estimate_subspace(slices, psf_radius=r)
+    choice = sub.metadata["operator_choice"]
+    for k, z in enumerate(sub.metadata["images"]):
+        alone = estimate_operator(slices[z], psf_radius=r).metadata["heldout"]
+        own = choice[k]["heldout_by_weight"]["0"]
+        # the family's own candidate is the slice's estimate, judged on its beads
+        assert own == pytest.approx(alone["residual_mean"], rel=1e-9), (first + z, own,
+                                                                          alone)
+        kept = sub.metadata["heldout"][k]["residual_mean"]
+        assert kept <= alone["residual_mean"] * (1 + 1e-12), (first + z, kept, alone)
+    # not a tie everywhere: the family helps on some slices
+    assert any(c["family_weight"] > 0 for c in choice)

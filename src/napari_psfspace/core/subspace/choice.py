@@ -13,9 +13,10 @@ Two estimates with partly independent errors do better blended than either alone
 the wide focus series of ``bench_family_oracle.py``, their mean beats both on most
 images).
 
-Images with at most :data:`MIN_BEADS_OWN` training beads keep the family's operator:
-their own estimate rests on a handful of beads and their held-out set on one or two,
-too few to judge by; this is where the family is meant to help.
+An image keeps the family's operator where fewer than :data:`MIN_HELDOUT` of its beads
+are held out or fewer than :data:`MIN_BEADS_OWN` train its own estimate (too few to
+judge by; this is where the family is meant to help), and unless a blend explains its
+held-out beads better than its own estimate beyond their scatter.
 """
 
 from __future__ import annotations
@@ -25,34 +26,40 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..beads.patches import Patches
-from ..model.estimate import faint_beads
+from ..beads.window import radial_distance
+from ..model.fewbeads import FEW_BEADS, fit_few_beads
 from ..model.heldout import HeldoutResiduals, residuals_of
 from ..model.operator import ProductConvolution
 from ..model.patch_fit import fit_patches
 
-#: Fewest training beads for an image's own estimate to be a candidate (above the
-#: few-beads models' range, so that the own estimate is the thin-plate field).
-MIN_BEADS_OWN = 12
+#: Fewest training beads for an image's own estimate to be a candidate (below, one
+#: PSF for the field at most, and too few beads left to judge it by).
+MIN_BEADS_OWN = 3
 #: Fewest held-out beads to judge by.
 MIN_HELDOUT = 3
 #: The family's weights tried: 0 is the image's own estimate, 1 the family's operator.
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 
 
-def own_patches(patches: Patches) -> Patches:
-    """The patches the single-image estimate would use: the faint detections left out."""
-    faint, _ = faint_beads(patches.flux)
-    return patches.subset(~faint) if faint.any() else patches
-
-
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
-                 denoise: bool = True) -> ProductConvolution | None:
-    """The image's own operator from its patches, as ``estimate_operator`` fits it; None
-    where it has too few beads (:data:`MIN_BEADS_OWN`)."""
-    mine = own_patches(patches)
+                 denoise: bool = True, n_image: int | None = None
+                 ) -> ProductConvolution | None:
+    """The image's own operator from its patches, as ``estimate_operator`` fits it (the
+    few-beads models for an image of up to
+    :data:`~napari_psfspace.core.model.fewbeads.FEW_BEADS` beads, the thin-plate field
+    above); None where it has too few beads (:data:`MIN_BEADS_OWN`).
+
+    ``n_image``: the image's usable beads when ``patches`` are its training beads only
+    (``estimate_operator`` chooses the model by the image's count, then fits it to the
+    training beads to judge it on the others); default ``len(patches)``.
+    """
+    mine = patches  # (image_patches left out the faint detections, as estimate does)
     if len(mine) < MIN_BEADS_OWN:
         return None
     try:
+        if (len(mine) if n_image is None else int(n_image)) <= FEW_BEADS:
+            support = radial_distance(mine.size) < mine.r_ext
+            return fit_few_beads(mine, shape, support=support, grid_step=grid_step).operator
         return fit_patches(mine, shape, grid_step=grid_step, denoise=denoise)[1]
     except (ValueError, np.linalg.LinAlgError):  # no own estimate: the family stays
         return None
@@ -79,17 +86,22 @@ def blend(family_operator: ProductConvolution, own_operator: ProductConvolution,
     if w == 1.0:
         return family_operator
     gf, go = family_operator.grid, own_operator.grid
-    if (family_operator.shape != own_operator.shape or gf is None or go is None
-            or any(a.shape != b.shape or not np.allclose(a, b) for a, b in zip(gf, go,
-                                                                                 strict=True))):
-        raise ValueError("the two operators must share the image shape and coarse grid "
-                         f"to be blended, got {family_operator.shape}, {own_operator.shape}")
+    if family_operator.shape != own_operator.shape or gf is None:
+        raise ValueError("the two operators must share the image shape, and the family's "
+                         f"maps a coarse grid, got {family_operator.shape}, "
+                         f"{own_operator.shape}")
     if family_operator.psf_size != own_operator.psf_size:
         raise ValueError(f"the two operators' PSF sizes differ: {family_operator.psf_size} "
                          f"and {own_operator.psf_size}")
+    same = go is not None and all(a.shape == b.shape and np.allclose(a, b)
+                                  for a, b in zip(gf, go, strict=True))
+    if same:
+        own_maps = own_operator.coefficients
+    else:  # (a few-beads model on its own grid) its maps at the family's nodes
+        own_maps = np.stack([[own_operator.coefficients_at(y, x) for x in gf[1]]
+                             for y in gf[0]]).transpose(2, 0, 1)
     basis = np.concatenate([family_operator.basis, own_operator.basis])
-    maps = np.concatenate([w * family_operator.coefficients,
-                           (1.0 - w) * own_operator.coefficients])
+    maps = np.concatenate([w * family_operator.coefficients, (1.0 - w) * own_maps])
     return ProductConvolution(basis, maps, shape=family_operator.shape, grid=gf,
                               metadata=metadata)
 

@@ -311,7 +311,8 @@ def iter_estimate_subspace(
         judged = [i for i in range(len(used)) if i in held]
         tasks = [dask.delayed(_learn)(train, shape, **options)] + [
             dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
-                                       denoise=denoise) for i in judged]
+                                       denoise=denoise, n_image=used[i].n_beads)
+            for i in judged]
         trained, *owns = _compute(tasks, client)
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
                                         f"held-out beads of {len(held)} images")

@@ -17,6 +17,7 @@ from ..beads.centering import refine_centers
 from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches, extract_patches
 from ..common.validate import as_image
+from ..model.estimate import faint_beads
 
 
 @dataclass
@@ -114,6 +115,9 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     if len(kept) == 0:
         return ImagePatches(int(index), img.shape, None, beads.summary())
     patches = extract_patches(img, beads.positions[kept], r)
-    usable = patches.flux > 0
+    # as estimate_operator: a detection too faint to shape the PSF is left out, so that
+    # an image's beads (and its held-out split) are those of its own estimate
+    faint, _ = faint_beads(patches.flux)
+    usable = (patches.flux > 0) & ~faint
     patches = patches.subset(usable) if usable.any() else None
     return ImagePatches(int(index), img.shape, patches, beads.summary())
