@@ -57,6 +57,9 @@ from .fista import BlockFista
 SMOOTH_WEIGHT = 0.05
 #: Iterations at most of the amplitudes' refit (``debias``).
 DEBIAS_MAX_ITER = 100
+#: ``c`` of the blocks' majorisation ``||H(u1 + U w)||^2 <= (1 + c) ||H u1||^2 +
+#: (1 + 1/c) ||H U w||^2`` (any c > 0 is valid; 1 halves both blocks' steps).
+BLOCK_SPLIT = 1.0
 #: Margin on the power-iteration estimate of ``||H||^2``.
 NORM_MARGIN = 1.2
 
@@ -261,7 +264,8 @@ def iter_deblur(
     yield Progress("setup", 0.0, "estimating ||H||")
     h2 = NORM_MARGIN * operator_norm2(operator, workers=workers)
     pen = g2 / grid.step ** 2  # gamma2 ||Lap u2||^2 = pen ||L w||^2
-    lips = [2.0 * h2, 2.0 * h2 * grid.norm2() + 2.0 * pen * 64.0]
+    c = BLOCK_SPLIT  # ||H(a + b)||^2 <= (1 + c) ||H a||^2 + (1 + 1/c) ||H b||^2
+    lips = [(1.0 + c) * h2, (1.0 + 1.0 / c) * h2 * grid.norm2() + 2.0 * pen * 64.0]
 
     def gradient(x):
         u1, w = x
