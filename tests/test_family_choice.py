@@ -81,6 +81,30 @@ def test_a_version_1_file_reads_as_a_family_without_own_operators(wide, tmp_path
                                   sub.operator(1).psf_at(9.0, 9.0))
 
 
+def test_a_damaged_version_2_file_names_what_is_wrong(wide, tmp_path):
+    images, _, r, _ = wide
+    sub = estimate_subspace(images[:3], psf_radius=r, n_psf=1, n_space=1)
+    assert sub.own  # the family forced to one PSF: the images keep their own estimates
+    path = tmp_path / "family.npz"
+    sub.save(path)
+    with np.load(path, allow_pickle=False) as f:
+        arrays = {k: f[k] for k in f.files}
+    k = int(arrays["own_images"][0])
+    for name, bad, message in (
+            ("family_weights", np.array([0.5, 2.0]), "family weights"),
+            (f"own_{k}_basis", None, "missing entries"),
+            (f"own_{k}_coefficients", np.zeros((2, 3, 3)), f"image {k}'s own operator")):
+        damaged = dict(arrays)
+        if bad is None:
+            del damaged[name]
+        else:
+            damaged[name] = bad
+        out = tmp_path / f"damaged_{name}.npz"
+        np.savez(out, **damaged)
+        with pytest.raises(ValueError, match=message):
+            OperatorSubspace.load(out)
+
+
 def test_a_wide_focus_series_is_never_worse_in_the_family(wide):
     """Bright dense images over a wide focus range: the family with the paper's 20
     cone generators was 1.17-1.82x one image's error (bench_family_oracle.py). Now every

@@ -88,6 +88,19 @@ class HeldoutResiduals:
         }
 
 
+def beyond_noise(residual: float, floor: float) -> float:
+    """A model's relative error beyond the noise: ``sqrt(residual^2 - floor^2)``, 0 where
+    the residual is within the noise."""
+    return float(np.sqrt(max(float(residual) ** 2 - float(floor) ** 2, 0.0)))
+
+
+def median_beyond_noise(residual: np.ndarray, floor: np.ndarray) -> float:
+    """:func:`beyond_noise` of beads' residuals and floors (n,), through their squares'
+    medians: ``sqrt(median residual^2 - median floor^2)``."""
+    r2, f2 = float(np.median(np.square(residual))), float(np.median(np.square(floor)))
+    return float(np.sqrt(max(r2 - f2, 0.0)))
+
+
 def heldout_residuals(operator, patches) -> HeldoutResiduals:
     """Residual of ``operator`` on held-out bead patches.
 

@@ -49,6 +49,7 @@ from scipy import ndimage as ndi
 from ..common.validate import as_image
 from ..diagnosis.noise import background_variance
 from ..model.estimate import Progress, run_with_progress
+from ..model.heldout import beyond_noise
 from ..model.operator import ProductConvolution
 from ..model.psf_field import _interp_matrix
 from .fista import BlockFista
@@ -180,8 +181,7 @@ def model_error_of(op: ProductConvolution) -> float:
         return float(ident["model_error"])
     held = meta.get("heldout") or {}
     if held.get("residual_mean") is not None and held.get("noise_floor_mean") is not None:
-        return float(np.sqrt(max(held["residual_mean"] ** 2 - held["noise_floor_mean"] ** 2,
-                                 0.0)))
+        return beyond_noise(held["residual_mean"], held["noise_floor_mean"])
     return 0.0
 
 

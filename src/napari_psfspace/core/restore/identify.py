@@ -42,7 +42,12 @@ import numpy as np
 from scipy.optimize import nnls
 
 from ..common.validate import as_image
-from ..model.heldout import heldout_residuals, residuals_of
+from ..model.heldout import (
+    beyond_noise,
+    heldout_residuals,
+    median_beyond_noise,
+    residuals_of,
+)
 from ..model.operator import ProductConvolution
 from ..subspace.patches import image_patches
 from ..subspace.result import OperatorSubspace, space_at
@@ -161,8 +166,8 @@ def family_model_error(subspace: OperatorSubspace) -> float | None:
             if h.get("n_beads") and h.get("residual_mean") is not None]
     if not held:
         return None
-    return float(np.median([np.sqrt(max(h["residual_mean"] ** 2
-                                        - h["noise_floor_mean"] ** 2, 0.0)) for h in held]))
+    return float(np.median([beyond_noise(h["residual_mean"], h["noise_floor_mean"])
+                            for h in held]))
 
 
 def warn_bound(subspace: OperatorSubspace) -> float:
@@ -265,10 +270,9 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
     dev = psfs - psfs.mean(axis=0)
     var = (n_f - 1) / n_f * (dev ** 2).sum(axis=(0, 2, 3))  # jackknife, per position
     spread = np.sqrt(var) / np.linalg.norm(psfs.mean(axis=0), axis=(1, 2))
-    excess = float(np.median(res ** 2) - np.median(floor ** 2))
     return {"cv_residual_median": float(np.median(res)),
             "cv_noise_floor_median": float(np.median(floor)),
-            "cv_model_error": float(np.sqrt(max(excess, 0.0))),
+            "cv_model_error": median_beyond_noise(res, floor),
             "psf_spread": float(spread.mean()), "n_folds": int(n_f)}
 
 
@@ -359,21 +363,18 @@ def identify_operator(
                          "0): is this image from the same microscope and PSF radius?")
     op = subspace.operator_from(gamma, project=False)
     fit = heldout_residuals(op, patches)  # on the beads it was identified from
-    excess = float(np.median(fit.residual ** 2) - np.median(fit.noise_floor ** 2))
     sure = resample(patches, c, at, subspace, prior=prior, sd=sd,
                     amplitude_range=amplitude_range, max_iter=max_iter)
-    model_error = float(np.sqrt(max(excess, 0.0)))
+    model_error = median_beyond_noise(fit.residual, fit.noise_floor)
     warning = None
     bound = warn_bound(subspace)
     if model_error > bound:
         warning = (f"the family does not explain the clicked beads: its operator misses "
                    f"them by {model_error:.2f} of their PSF beyond their noise (bound "
                    f"{bound:.2g}, from the family's error on its own held-out beads); it "
-                   f"may be far from "
-                   f"this image's (a condition "
-                   "the family did not learn, another microscope, or beads that are not "
-                   "single points): click more beads, or learn a family that covers this "
-                   "condition")
+                   "may be far from this image's (a condition the family did not learn, "
+                   "another microscope, or beads that are not single points): click more "
+                   "beads, or learn a family that covers this condition")
     meta = {"identification": {
         "model_error": model_error,
         "residual_median": float(np.median(fit.residual)),
