@@ -162,3 +162,22 @@ def test_measured_slices_are_never_worse_in_the_family(shared_data, name, first,
         assert kept <= alone["residual_mean"] * (1 + 1e-12), (first + z, kept, alone)
     # not a tie everywhere: the family helps on some slices
     assert any(c["family_weight"] > 0 for c in choice)
+
+
+def test_too_few_beads_left_for_the_held_out_family_keeps_the_family():
+    """Faint stacks leave few usable beads: the family learnt without the held-out ones
+    may have too few for its basis. Then no image is judged (each keeps the family, the
+    paper's model) instead of the learning failing; with too few beads for any family,
+    the error names the count per image."""
+    images, truths, _ = simulate_stack(2, (384, 384), 6, seed=0)
+    r = int(np.median([t.psf_radius for t in truths]))
+    sub = estimate_subspace(images, psf_radius=r, n_psf=3, holdout=0.5)
+    assert sum(sub.metadata["beads_per_image"]) >= 8  # enough for the family itself
+    assert sub.n_psf == 3
+    assert [c["model"] for c in sub.metadata["operator_choice"]] == ["family"] * 2
+    assert sub.family_weights.tolist() == [1.0, 1.0]
+    sparse, _, _ = simulate_stack(2, (256, 256), 2, seed=0)
+    with pytest.raises(ValueError, match=r"at least 5 usable beads over all images, got \d"):
+        estimate_subspace(sparse, psf_radius=r)
+    with pytest.raises(ValueError, match=r"`n_psf` = 9 needs at least 20 usable beads"):
+        estimate_subspace(images, psf_radius=r, n_psf=9)

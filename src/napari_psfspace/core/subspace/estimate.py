@@ -40,7 +40,7 @@ from ..model.denoise import band_limit, refit_basis
 from ..model.estimate import Progress, run_with_progress
 from ..model.field import _coarse_grid
 from ..model.heldout import split_holdout
-from ..model.pca import learn_basis, rank_by_threshold
+from ..model.pca import learn_basis, min_beads_for, rank_by_threshold
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .choice import Choice, choose, own_estimate
@@ -279,6 +279,17 @@ def iter_estimate_subspace(
         raise ValueError(f"at least 2 images with usable beads are needed, got {len(used)} "
                          f"of {len(found)} (no usable bead in images {sorted(skipped)})")
 
+    n_total = sum(f.n_beads for f in used)
+    if n_total < min_beads_for(1):
+        raise ValueError(
+            f"a family needs at least {min_beads_for(1)} usable beads over all images, got "
+            f"{n_total} (beads per image with any: "
+            f"{ {f.index: int(f.n_beads) for f in used} }): use brighter or more bead images")
+    if n_psf is not None and n_total < min_beads_for(int(n_psf)):
+        raise ValueError(
+            f"`n_psf` = {n_psf} needs at least {min_beads_for(int(n_psf))} usable beads over "
+            f"all images, got {n_total}: lower `n_psf` or use more beads")
+
     # I and J (unless both are set): cross-validated on every image's beads
     # I: the rank rule on the patches whitened by their noise; J: the rule on the maps
     sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
@@ -309,11 +320,15 @@ def iter_estimate_subspace(
         # the family without the held-out beads and each image's own estimate from the
         # same beads, side by side (dask tasks: threads, or the cluster's workers)
         judged = [i for i in range(len(used)) if i in held]
+        if sum(f.n_beads for f in train) < min_beads_for(int(n_psf)):
+            # too few beads left to learn the family without the held-out ones: no
+            # judgement; every image keeps the family (the paper's model)
+            held, judged = {}, []
         tasks = [dask.delayed(_learn)(train, shape, **options)] + [
             dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
                                        denoise=denoise, n_image=used[i].n_beads)
             for i in judged]
-        trained, *owns = _compute(tasks, client)
+        trained, *owns = _compute(tasks, client) if held else (None,)
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
                                         f"held-out beads of {len(held)} images")
         own_train = dict(zip(judged, owns, strict=True))
