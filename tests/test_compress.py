@@ -107,14 +107,3 @@ def test_deblur_compresses_to_a_fraction_of_the_operators_own_error():
     with pytest.raises(ValueError, match="`compression`"):
         deblur(image, op, compression=-1.0)
 
-
-def test_default_tolerance_is_stricter_for_a_clipped_core_only():
-    from napari_psfspace.core.restore.deconvolve import SATURATED_TOL, TOL, default_tol
-    shape = (20, 20)
-    assert default_tol(None, shape) == TOL
-    one = (np.array([5]), np.array([5]))  # one pixel at the top: not a bead's core
-    assert default_tol(one, shape) == TOL
-    apart = (np.array([5, 12]), np.array([5, 12]))
-    assert default_tol(apart, shape) == TOL
-    core = (np.array([5, 6]), np.array([5, 6]))  # diagonal neighbours: 8-connected
-    assert default_tol(core, shape) == SATURATED_TOL
