@@ -1,0 +1,139 @@
+"""Coordinate descent on the sparse part's support: the tail of the deconvolution.
+
+FISTA (:mod:`.fista`) finds the support of the point sources quickly and then spends
+most of its iterations concentrating each source's cluster: neighbouring pixels seen
+through the blur are nearly the same column of ``H``, the slow direction of any
+gradient method (on the measured SP8 slice 35, iterations 109-299 shrink the support
+from 7,020 to 3,924 pixels and the beads' median FWHM from 1.96 to 1.30 px, while the
+objective moves by 0.8 %). Coordinate descent treats one pixel at a time exactly, so
+correlated columns cost it nothing; restricted to the support it is cheap (one column
+is the PSF at the pixel: ``P^2`` multiply-adds per update, about 0.05 s per sweep over
+6,000 pixels against 0.13 s for one FISTA iteration's FFTs at 1024 x 1024).
+
+With the background ``u2`` fixed, each update minimises the objective of
+:func:`~.deconvolve.deblur` over one pixel ``j`` of the support exactly (saturated pixels
+enter through the gradient of their one-sided term, with the full column's curvature as
+a majoriser: a descent step): ``u_j <- max(0, u_j + (<h_j, e> - gamma_j) / ||h_j||^2)``,
+``e`` the residual, which is updated in place.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+
+import numpy as np
+
+from ..model.estimate import Progress
+from ..model.operator import ProductConvolution
+
+
+def polish_support(
+    image: np.ndarray,
+    operator: ProductConvolution,
+    sparse: np.ndarray,
+    smooth: np.ndarray,
+    weights: np.ndarray,
+    *,
+    censored: tuple[np.ndarray, np.ndarray] | None = None,
+    tol: float = 1e-4,
+    max_sweeps: int = 300,
+    window: int = 10,
+) -> Generator[Progress, None, tuple[np.ndarray, dict]]:
+    """Coordinate descent on the pixels where ``sparse > 0``, the background fixed.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W), float32
+        The data ``y``.
+    operator : ProductConvolution
+        ``H``.
+    sparse, smooth : ndarray of shape (H, W)
+        ``u1`` (its support is where the updates happen) and ``u2`` (fixed).
+    weights : ndarray of shape (H, W)
+        ``gamma1`` per pixel.
+    censored : tuple of index arrays, optional
+        Saturated pixels: lower bounds on ``H u``.
+    tol : float
+        Stop when the objective falls by less than ``tol`` (relatively) over ``window``
+        sweeps (the rule FISTA's iterations stop by).
+    max_sweeps : int
+        Sweeps at most.
+
+    Yields
+    ------
+    Progress
+        Every 10 sweeps (stop the generator there to cancel).
+
+    Returns
+    -------
+    (sparse, info)
+        ``u1`` after the sweeps (float32) and ``{"sweeps", "converged", "objective_fall",
+        "support_before", "support_after"}``.
+    """
+    h, w = image.shape
+    p = operator.psf_size
+    c = p // 2
+    flat = np.flatnonzero(sparse > 0)
+    ys, xs = np.divmod(flat, w)
+    u = sparse.ravel()[flat].astype(np.float64)
+    gam = weights.ravel()[flat].astype(np.float64)
+    info = {"sweeps": 0, "converged": True, "objective_fall": 0.0,
+            "support_before": int(flat.size), "support_after": int(flat.size)}
+    if flat.size == 0:
+        return sparse.astype(np.float32), info
+    # the columns: the PSF at each pixel (unnormalised, as H applies it), cut to the image
+    alpha = operator.coefficients_at(ys.astype(float), xs.astype(float))  # (n, I)
+    cols = np.tensordot(alpha, operator.basis, axes=(-1, 0)).astype(np.float32)
+    inside = np.zeros((h + 2 * c, w + 2 * c), np.float32)
+    inside[c:c + h, c:c + w] = 1.0
+    for j in range(flat.size):
+        cols[j] *= inside[ys[j]:ys[j] + p, xs[j]:xs[j] + p]
+    norm2 = np.einsum("jab,jab->j", cols, cols).astype(np.float64)
+    residual = np.zeros_like(inside)
+    residual[c:c + h, c:c + w] = image - operator.apply(
+        (sparse + smooth).astype(np.float32))
+    lower = None
+    if censored is not None:
+        lower = np.zeros(inside.shape, bool)
+        lower[censored[0] + c, censored[1] + c] = True
+    data = 0.5 * float(np.vdot(_effective(residual, lower), _effective(residual, lower)))
+    value = data + float(np.vdot(gam, u))
+    history = [value]
+    for sweep in range(int(max_sweeps)):
+        change = 0.0
+        for j in range(flat.size):
+            y0, x0 = ys[j], xs[j]
+            win = residual[y0:y0 + p, x0:x0 + p]
+            col = cols[j]
+            e = win if lower is None else _effective(win, lower[y0:y0 + p, x0:x0 + p])
+            g = float(np.vdot(col, e))
+            new = max(0.0, u[j] + (g - gam[j]) / norm2[j]) if norm2[j] > 0 else 0.0
+            d = new - u[j]
+            if d != 0.0:
+                win -= np.float32(d) * col
+                # exact for the quadratic term; a bound where pixels are censored
+                change += -g * d + 0.5 * norm2[j] * d * d + gam[j] * d
+                u[j] = new
+        history.append(history[-1] + change)
+        info["sweeps"] = sweep + 1
+        if (sweep + 1) % 10 == 0:
+            yield Progress("polish", (sweep + 1) / max_sweeps,
+                           f"polish sweep {sweep + 1}: {int((u > 0).sum())} points")
+        if len(history) > window and (history[-1 - window] - history[-1]
+                                      <= tol * abs(history[-1])):
+            break
+    else:
+        info["converged"] = False
+    out = np.zeros(h * w, np.float32)
+    out[flat] = u
+    info["objective_fall"] = float(history[0] - history[-1])
+    info["support_after"] = int((u > 0).sum())
+    return out.reshape(h, w), info
+
+
+def _effective(residual: np.ndarray, lower: np.ndarray | None) -> np.ndarray:
+    """The residual where the data term is two-sided, its positive part where the pixel
+    is only a lower bound (saturated)."""
+    if lower is None:
+        return residual
+    return np.where(lower, np.maximum(residual, 0), residual)
