@@ -13,6 +13,12 @@ or less: one step size for both parts makes the background converge hundreds of 
 slower than the beads. On the coarse grid both blocks are well scaled (see
 :mod:`.fista`: one step per block).
 
+**The tail by coordinate descent.** FISTA finds the support of ``u1`` in about a hundred
+iterations and then spends most of its time concentrating each source's cluster
+(neighbouring pixels are nearly the same column of ``H``); by default it stops at
+``POLISH_AFTER`` and :mod:`.polish` finishes on the support, one pixel at a time
+(``polish``).
+
 Defaults follow the image's noise (its background's standard deviation ``sigma``,
 :func:`~napari_psfspace.core.diagnosis.noise.background_variance`) and the operator's own
 error:
