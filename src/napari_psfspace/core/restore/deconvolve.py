@@ -73,8 +73,11 @@ DEBIAS_MAX_ITER = 100
 #: the same to the third decimal (bench/RESULTS.md).
 BLOCK_SPLIT = 0.25
 #: With ``polish``, FISTA runs to this tolerance (its support found), then coordinate
-#: descent on the support to ``tol`` (:mod:`.polish`).
-POLISH_AFTER = 1e-3
+#: descent on the support to ``tol`` (:mod:`.polish`). 1e-3 and 3e-3 give the same
+#: measured figures (3e-3: 0.5-0.65 times the iterations on bench_deblur_tol.py's
+#: scenes); what FISTA leaves off the support, the optimality check after the sweeps
+#: sends back to it.
+POLISH_AFTER = 3e-3
 #: Sweeps at most of the coordinate descent.
 POLISH_MAX_SWEEPS = 300
 #: Largest support polished (pixels; a sweep is a Python loop over them, about 8 us
@@ -537,9 +540,10 @@ def deblur(
         off it then wants in. Gradient steps spend most of their iterations
         concentrating each source's cluster (neighbouring pixels are nearly the same
         column of ``H``); one pixel at a time is exact there: on the measured SP8 slice
-        35, 109 iterations and a few seconds of sweeps reach a lower objective than
-        FISTA's 299 iterations. Off: FISTA to ``tol``. Supports of more than
-        ``POLISH_MAX_SUPPORT`` pixels are not polished.
+        35, 77 iterations and 122 sweeps (about 4 s) reach a lower objective than
+        FISTA's 299 iterations, with sharper beads (``bench/RESULTS.md``). Off: FISTA
+        to ``tol``. Supports of more than ``POLISH_MAX_SUPPORT`` pixels are not
+        polished.
     workers : int, optional
         FFT threads.
     progress : callable, optional

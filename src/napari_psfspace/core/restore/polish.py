@@ -7,8 +7,10 @@ gradient method (on the measured SP8 slice 35, iterations 109-299 shrink the sup
 from 7,020 to 3,924 pixels and the beads' median FWHM from 1.96 to 1.30 px, while the
 objective moves by 0.8 %). Coordinate descent treats one pixel at a time exactly, so
 correlated columns cost it nothing; restricted to the support it is cheap (one column
-is the PSF at the pixel: ``P^2`` multiply-adds per update, about 0.05 s per sweep over
-6,000 pixels against 0.13 s for one FISTA iteration's FFTs at 1024 x 1024).
+is the PSF at the pixel: ``P^2`` multiply-adds per update, about 12 us each in this
+Python loop; pixels held at zero are skipped until a full sweep checks them again, so
+a sweep costs 0.02-0.08 s on SP8 slice 35's 7,000-pixel support, against 0.13-0.2 s for
+one FISTA iteration's FFTs at 1024 x 1024).
 
 With the background ``u2`` fixed, each update minimises the objective of
 :func:`~.deconvolve.deblur` over one pixel ``j`` of the support exactly (saturated pixels
@@ -19,6 +21,7 @@ a majoriser: a descent step): ``u_j <- max(0, u_j + (<h_j, e> - gamma_j) / ||h_j
 
 from __future__ import annotations
 
+import time
 from collections.abc import Generator
 
 import numpy as np
@@ -68,8 +71,9 @@ def polish_support(
     -------
     (sparse, info)
         ``u1`` after the sweeps (float32) and ``{"sweeps", "converged", "objective_fall",
-        "support_before", "support_after"}``.
+        "support_before", "support_after", "seconds"}``.
     """
+    t0 = time.perf_counter()
     h, w = image.shape
     p = operator.psf_size
     c = p // 2
@@ -99,9 +103,12 @@ def polish_support(
     data = 0.5 * float(np.vdot(_effective(residual, lower), _effective(residual, lower)))
     value = data + float(np.vdot(gam, u))
     history = [value]
+    everyone = np.arange(flat.size)
+    active, alive = everyone, np.ones(flat.size, bool)
     for sweep in range(int(max_sweeps)):
+        full = active.size == flat.size
         change = 0.0
-        for j in range(flat.size):
+        for j in active.tolist():
             y0, x0 = ys[j], xs[j]
             win = residual[y0:y0 + p, x0:x0 + p]
             col = cols[j]
@@ -114,6 +121,9 @@ def polish_support(
                 # exact for the quadratic term; a bound where pixels are censored
                 change += -g * d + 0.5 * norm2[j] * d * d + gam[j] * d
                 u[j] = new
+            # at zero and held there (its correlation below its weight): skipped by
+            # the next sweeps until a full sweep checks it again
+            alive[j] = new > 0.0 or g >= gam[j]
         history.append(history[-1] + change)
         info["sweeps"] = sweep + 1
         if (sweep + 1) % 10 == 0:
@@ -121,13 +131,17 @@ def polish_support(
                            f"polish sweep {sweep + 1}: {int((u > 0).sum())} points")
         if len(history) > window and (history[-1 - window] - history[-1]
                                       <= tol * abs(history[-1])):
-            break
-    else:
-        info["converged"] = False
+            if full:
+                break
+            active = everyone  # converged on the pixels still moving: check them all
+            alive[:] = True
+        else:
+            active = active[alive[active]]
     out = np.zeros(h * w, np.float32)
     out[flat] = u
     info["objective_fall"] = float(history[0] - history[-1])
     info["support_after"] = int((u > 0).sum())
+    info["seconds"] = round(time.perf_counter() - t0, 3)
     return out.reshape(h, w), info
 
 
