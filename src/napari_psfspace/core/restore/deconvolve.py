@@ -80,7 +80,7 @@ BLOCK_SPLIT = 0.25
 POLISH_AFTER = 3e-3
 #: Sweeps at most of the coordinate descent.
 POLISH_MAX_SWEEPS = 300
-#: Largest support polished (pixels; a sweep is a Python loop over them, about 8 us
+#: Largest support polished (pixels; a sweep is a Python loop over them, about 12 us
 #: each); beyond it FISTA runs on to ``tol``.
 POLISH_MAX_SUPPORT = 60000
 #: A pixel off the support whose correlation with the residual exceeds its weight by
@@ -111,13 +111,18 @@ class Deblurred:
         The objective at each iteration's extrapolated point (the sparse + smooth
         problem; the refit of the amplitudes is not in it).
     iterations : int
+        FISTA's iterations (with ``polish``: before and after the sweeps, which are
+        counted apart in ``parameters``).
     converged : bool
         The objective fell by less than ``tol`` (relatively) over the last 10 iterations
-        before ``max_iter``.
+        (or sweeps of the polish) before ``max_iter`` (or the polish's sweeps ran out).
     parameters : dict
         ``sparse_weight`` (the median of its map), ``model_error``, ``smooth_weight``,
         ``grid_step``, ``noise_sd``, ``lipschitz``, ``tol``, ``max_iter``, ``seconds``,
-        ``restarts``, ``debias``; after a refit of the amplitudes also
+        ``restarts``, ``debias``, ``compression`` and ``kernels`` (the operator's
+        kernels before and after compressing it), ``polish_sweeps`` and, after a polish,
+        ``polish`` (its sweeps, supports before and after, pixels that wanted in,
+        seconds); after a refit of the amplitudes also
         ``debias_iterations``, ``debias_converged`` and ``amplitude_gain`` (the sparse
         part's total after the refit over before).
     """
