@@ -103,40 +103,50 @@ def polish_support(
     data = 0.5 * float(np.vdot(_effective(residual, lower), _effective(residual, lower)))
     value = data + float(np.vdot(gam, u))
     history = [value]
-    everyone = np.arange(flat.size)
-    active, alive = everyone, np.ones(flat.size, bool)
+    # Python scalars and per-pixel views: the loop below is where the time goes
+    n = int(flat.size)
+    wins = [residual[y0:y0 + p, x0:x0 + p] for y0, x0 in zip(ys.tolist(), xs.tolist(),
+                                                              strict=True)]
+    bounds = [None] * n
+    if lower is not None:
+        for k, (y0, x0) in enumerate(zip(ys.tolist(), xs.tolist(), strict=True)):
+            box = lower[y0:y0 + p, x0:x0 + p]
+            bounds[k] = box if box.any() else None
+    col_list = list(cols)
+    gam_l, n2_l, u_l = gam.tolist(), norm2.tolist(), u.tolist()
+    everyone = list(range(n))
+    active, alive = everyone, [True] * n
     for sweep in range(int(max_sweeps)):
-        full = active.size == flat.size
+        full = len(active) == n
         change = 0.0
-        for j in active.tolist():
-            y0, x0 = ys[j], xs[j]
-            win = residual[y0:y0 + p, x0:x0 + p]
-            col = cols[j]
-            e = win if lower is None else _effective(win, lower[y0:y0 + p, x0:x0 + p])
-            g = float(np.vdot(col, e))
-            new = max(0.0, u[j] + (g - gam[j]) / norm2[j]) if norm2[j] > 0 else 0.0
-            d = new - u[j]
+        for j in active:
+            win, col, gj, n2, uj = wins[j], col_list[j], gam_l[j], n2_l[j], u_l[j]
+            box = bounds[j]
+            g = float(np.vdot(col, win if box is None else _effective(win, box)))
+            new = max(0.0, uj + (g - gj) / n2) if n2 > 0 else 0.0
+            d = new - uj
             if d != 0.0:
                 win -= np.float32(d) * col
                 # exact for the quadratic term; a bound where pixels are censored
-                change += -g * d + 0.5 * norm2[j] * d * d + gam[j] * d
-                u[j] = new
+                change += -g * d + 0.5 * n2 * d * d + gj * d
+                u_l[j] = new
             # at zero and held there (its correlation below its weight): skipped by
             # the next sweeps until a full sweep checks it again
-            alive[j] = new > 0.0 or g >= gam[j]
+            alive[j] = new > 0.0 or g >= gj
         history.append(history[-1] + change)
         info["sweeps"] = sweep + 1
         if (sweep + 1) % 10 == 0:
             yield Progress("polish", (sweep + 1) / max_sweeps,
-                           f"polish sweep {sweep + 1}: {int((u > 0).sum())} points")
+                           f"polish sweep {sweep + 1}: {sum(v > 0 for v in u_l)} points")
         if len(history) > window and (history[-1 - window] - history[-1]
                                       <= tol * abs(history[-1])):
             if full:
                 break
             active = everyone  # converged on the pixels still moving: check them all
-            alive[:] = True
+            alive = [True] * n
         else:
-            active = active[alive[active]]
+            active = [j for j in active if alive[j]]
+    u = np.asarray(u_l)
     out = np.zeros(h * w, np.float32)
     out[flat] = u
     info["objective_fall"] = float(history[0] - history[-1])
