@@ -56,3 +56,21 @@ def test_deblur_with_the_polish_is_no_worse_and_takes_fewer_iterations():
     # both stop by the same relative rule (1e-4 over 10 steps): the polished one at most
     # that far above
     assert a <= b * (1 + 1e-4)
+
+
+def test_the_progress_of_a_polished_deblur_never_goes_back():
+    from napari_psfspace.core.restore.deconvolve import iter_deblur
+    image, op, truth, pts, bg = _point_scene(seed=2)
+    gen = iter_deblur(image, op)
+    fractions, stages = [], set()
+    while True:
+        try:
+            p = next(gen)
+        except StopIteration as done:
+            res = done.value
+            break
+        fractions.append(p.fraction)
+        stages.add(p.stage)
+    assert res.parameters["polish_sweeps"] > 0 and "polish" in stages
+    assert all(b >= a for a, b in zip(fractions, fractions[1:], strict=False)), fractions
+    assert fractions[-1] == 1.0

@@ -361,9 +361,15 @@ def iter_deblur(
         entering = 0
         if 0 < n_support <= POLISH_MAX_SUPPORT:
             u2 = grid.synthesis(w)
-            u1, polish_info = yield from polish_support(
-                y, operator, u1, u2, gmap, censored=censored, tol=tol,
-                max_sweeps=POLISH_MAX_SWEEPS)
+            sweeps = polish_support(y, operator, u1, u2, gmap, censored=censored,
+                                    tol=tol, max_sweeps=POLISH_MAX_SWEEPS)
+            while True:  # the bar stays where FISTA left it while the sweeps run
+                try:
+                    step = next(sweeps)
+                except StopIteration as end:
+                    u1, polish_info = end.value
+                    break
+                yield Progress(step.stage, iterations / int(max_iter), step.message)
             # optimality off the support (FISTA stopped early: a pixel may still want
             # in): -gradient <= gamma1 wherever u1 = 0
             g, _ = operator.data_gradient(u1 + u2, y, censored=censored, workers=workers)
@@ -373,7 +379,7 @@ def iter_deblur(
         if n_support > POLISH_MAX_SUPPORT or entering:  # FISTA on from here, to tol
             solver.setup([u1, w])
             converged = yield from _iterate(solver, max(1, int(max_iter) - iterations), tol,
-                                            "deblur")
+                                            "deblur", done=iterations, total=max_iter)
             iterations += solver.iterations
             objective += solver.objective
             u1, w = solver.finalize()
@@ -448,10 +454,12 @@ def _refit_amplitudes(u1: np.ndarray, w: np.ndarray, gradient: Callable,
     return new, w
 
 
-def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str
-             ) -> Generator[Progress, None, bool]:
+def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str, *,
+             done: int = 0, total: int | None = None) -> Generator[Progress, None, bool]:
     """Run ``solver``, yielding progress every 5 iterations; returns whether it
-    converged."""
+    converged. ``done``: iterations already run by an earlier stage, out of ``total``
+    (default ``max_iter``), so that the fraction reported never goes back."""
+    total = int(max_iter) if total is None else int(total)
     run = solver.run(max_iter, tol)
     while True:
         try:
@@ -461,7 +469,7 @@ def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str
         if it == 1 or it % 5 == 0:
             obj = solver.objective
             fall = (obj[-11] - obj[-1]) / abs(obj[-1]) if len(obj) > 10 else float("nan")
-            yield Progress(stage, it / max_iter,
+            yield Progress(stage, min((done + it) / total, 1.0),
                            f"{stage} iteration {it}: objective fell {fall:.1e} over 10 "
                            f"iterations (stops below {tol:g}); iterate change {change:.1e}")
 
