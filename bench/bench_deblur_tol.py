@@ -34,7 +34,7 @@ import numpy as np
 
 from _common import table
 from bench_deblur import LOW, detect, scene
-from bench_deblur_measured import fwhm
+from bench_deblur_measured import corr, fwhm
 from napari_psfspace._sample_data import simulated_beads
 from napari_psfspace.core.beads.detect import detect_beads
 from napari_psfspace.core.model.estimate import estimate_operator
@@ -48,10 +48,6 @@ MEASURED = {
     "sp8": ("sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif", None, 6),
     "astig": ("astigmatic_beads/psfextractor_astigmatism_zyx_uint8.tif", 10.0, 6),
 }
-
-
-def corr(a: np.ndarray, b: np.ndarray) -> float:
-    return float(np.corrcoef(a.astype(float).ravel(), b.astype(float).ravel())[0, 1])
 
 
 def simulated(seeds):

@@ -376,7 +376,7 @@ def iter_deblur(
             entering = int(np.count_nonzero((u1 == 0) & (-g > gmap * (1.0 + KKT_SLACK))))
             polish_info["entering"] = entering
             converged = bool(polish_info["converged"])
-        if n_support > POLISH_MAX_SUPPORT or entering:  # FISTA on from here, to tol
+        if polish_info is None or entering:  # no polish, or pixels want in: FISTA to tol
             solver.setup([u1, w])
             converged = yield from _iterate(solver, max(1, int(max_iter) - iterations), tol,
                                             "deblur", done=iterations, total=max_iter)

@@ -100,7 +100,8 @@ def polish_support(
     if censored is not None:
         lower = np.zeros(inside.shape, bool)
         lower[censored[0] + c, censored[1] + c] = True
-    data = 0.5 * float(np.vdot(_effective(residual, lower), _effective(residual, lower)))
+    e0 = _effective(residual, lower)
+    data = 0.5 * float(np.vdot(e0, e0))
     value = data + float(np.vdot(gam, u))
     history = [value]
     # Python scalars and per-pixel views: the loop below is where the time goes
