@@ -20,13 +20,13 @@ from napari.utils.notifications import show_info
 
 from ..core.model.estimate import iter_estimate
 from ..core.model.operator import ProductConvolution
-from ..io import default_model_path
 from ..report import model_lines
 from ._layers import (
     PSF_GRID,
     beads_from_points,
     beads_layer,
     ensure_bead_features,
+    for_a_new_fit,
     heldout_layer,
     operator_layers,
     psf_layer,
@@ -78,6 +78,9 @@ class LearnOperatorWidget(FollowsBeads, Container):
             "Tick to divide it out of the model: a calibration of the optics alone, for "
             "when the sample was still.")
         self.save_path = FileEdit(mode="w", filter="*.npz", label="save model to")
+        self.save_path.tooltip = ("Optional: a file to save the model to when it is learnt "
+                                  "(empty: nothing is written; File > Save Selected Layers "
+                                  "saves it later).")
         self.learn = PushButton(text="Learn operator")
         self.task = CoreTask(self.learn)
         self.result = Label(value="")
@@ -107,8 +110,6 @@ class LearnOperatorWidget(FollowsBeads, Container):
         if img is None:
             return
         self._calibrate(img, pts)
-        src = getattr(getattr(img, "source", None), "path", None)
-        self.save_path.value = default_model_path(src, img.name)
         h, w = img.data.shape[-2:]
         self.psf_y.value, self.psf_x.value = (h - 1) / 2, (w - 1) / 2
 
@@ -123,6 +124,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
         if pts is not None:
             ensure_bead_features(pts)
             beads, ids = beads_from_points(pts, frame)
+            beads = for_a_new_fit(beads)
         mode = N_PSF_MODES[self.n_psf_mode.value]
         n_psf = int(self.n_psf.value) if mode == "fixed" else mode
         smoothing = None if self.auto_smoothing.value else float(self.smoothing.value)

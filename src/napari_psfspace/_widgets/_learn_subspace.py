@@ -72,6 +72,8 @@ class LearnSubspaceWidget(Container):
                                 "kept out of a first fit and judged against it (takes "
                                 "about twice as long).")
         self.save_path = FileEdit(mode="w", filter="*.npz", label="save family to")
+        self.save_path.tooltip = ("Optional: a file to save the family to when it is "
+                                  "learnt (empty: nothing is written).")
         self.learn = PushButton(text="Learn subspace")
         self.task = CoreTask(self.learn)
         self.result = Label(value="")

@@ -185,6 +185,9 @@ class RadiusEdit(Container):
         self.value_edit.tooltip = (
             "Upper bound of the PSF radius: beyond it the PSF is lost in the noise "
             "(about 3x the FWHM). Beads closer than twice this to each other are not used.")
+        # micrometres to 4 decimals (0.1 nm): with Qt's default 2, 14 px of 65 nm showed
+        # as 0.91 um and came back as 14.0 px only by luck, 11 px as 10.92
+        self.value_edit.native.setDecimals(4)
         self.hint = Label(value="")
         super().__init__(widgets=[self.value_edit, self.hint], labels=True)
         self.value_edit.changed.connect(self._update_hint)

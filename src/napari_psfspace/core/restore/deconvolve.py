@@ -196,16 +196,17 @@ class SmoothGrid:
         return float(ey * ex)
 
 
-def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
-                   seed: int = 0, workers: int | None = None) -> float:
-    """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
-    below): at most ``n_iter`` iterations, stopping once an iteration raises the value
-    by less than ``rtol`` (relatively)."""
+def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
+                        seed: int = 0, workers: int | None = None
+                        ) -> Generator[tuple[int, float], None, float]:
+    """Generator form of :func:`operator_norm2`: yields ``(iteration, value)`` after each
+    iteration (a point to cancel at: one application of ``H^T H`` apart), returns the
+    value."""
     rng = np.random.default_rng(seed)
     x = rng.random(op.shape).astype(np.float32)
     x /= np.linalg.norm(x)
     value = 0.0
-    for _ in range(int(n_iter)):
+    for it in range(int(n_iter)):
         y = op.adjoint(op.apply(x, workers=workers), workers=workers)
         new = float(np.linalg.norm(y))
         if new == 0:
@@ -213,9 +214,23 @@ def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e
         x = (y / new).astype(np.float32)
         done = abs(new - value) <= rtol * new
         value = new
+        yield it + 1, value
         if done:
             break
     return value
+
+
+def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
+                   seed: int = 0, workers: int | None = None) -> float:
+    """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
+    below): at most ``n_iter`` iterations, stopping once an iteration raises the value
+    by less than ``rtol`` (relatively)."""
+    gen = iter_operator_norm2(op, n_iter=n_iter, rtol=rtol, seed=seed, workers=workers)
+    while True:
+        try:
+            next(gen)
+        except StopIteration as done:
+            return float(done.value)
 
 
 def model_error_of(op: ProductConvolution) -> float:
@@ -321,7 +336,15 @@ def iter_deblur(
             raise ValueError(f"`smooth_weight` must be >= 0, got {smooth_weight!r}")
         g2 = float(smooth_weight)
     yield Progress("setup", 0.0, "estimating ||H||")
-    h2 = NORM_MARGIN * operator_norm2(operator, workers=workers)
+    norm = iter_operator_norm2(operator, workers=workers)
+    while True:  # one application of H^T H between yields: cancellable
+        try:
+            it, value = next(norm)
+        except StopIteration as done:
+            h2 = NORM_MARGIN * float(done.value)
+            break
+        yield Progress("setup", 0.0, f"estimating ||H||: power iteration {it}, "
+                                     f"||H||^2 >= {value:.4g}")
     pen = g2 / grid.step ** 2  # gamma2 ||Lap u2||^2 = pen ||L w||^2
     c = BLOCK_SPLIT  # ||H(a + b)||^2 <= (1 + c) ||H a||^2 + (1 + 1/c) ||H b||^2
     lips = [(1.0 + c) * h2, (1.0 + 1.0 / c) * h2 * grid.norm2() + 2.0 * pen * 64.0]
@@ -469,7 +492,7 @@ def _refit_amplitudes(u1: np.ndarray, w: np.ndarray, gradient: Callable,
 
 def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str, *,
              done: int = 0, total: int | None = None) -> Generator[Progress, None, bool]:
-    """Run ``solver``, yielding progress every 5 iterations; returns whether it
+    """Run ``solver``, yielding progress after every iteration; returns whether it
     converged. ``done``: iterations already run by an earlier stage, out of ``total``
     (default ``max_iter``), so that the fraction reported never goes back."""
     total = int(max_iter) if total is None else int(total)
@@ -479,12 +502,16 @@ def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str, *,
             it, change = next(run)
         except StopIteration as done:
             return bool(done.value)
-        if it == 1 or it % 5 == 0:
-            obj = solver.objective
-            fall = (obj[-11] - obj[-1]) / abs(obj[-1]) if len(obj) > 10 else float("nan")
-            yield Progress(stage, min((done + it) / total, 1.0),
-                           f"{stage} iteration {it}: objective fell {fall:.1e} over 10 "
-                           f"iterations (stops below {tol:g}); iterate change {change:.1e}")
+        # every iteration: a point to cancel at (an iteration is at most about a second
+        # at 2048 x 2048), and a line that says where the run stands
+        obj = solver.objective
+        if len(obj) > 10:
+            text = (f"objective fell {(obj[-11] - obj[-1]) / abs(obj[-1]):.1e} over 10 "
+                    f"iterations (stops below {tol:g})")
+        else:
+            text = "the stopping rule is judged over 10 iterations, from iteration 11"
+        yield Progress(stage, min((done + it) / total, 1.0),
+                       f"{stage} iteration {it}: {text}; iterate change {change:.1e}")
 
 
 def deblur(

@@ -39,6 +39,7 @@ MIN_BEADS_OWN = 3
 MIN_HELDOUT = 3
 #: The family's weights tried: 0 is the image's own estimate, 1 the family's operator.
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
+PREFER_EVEN = True
 
 
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
@@ -185,6 +186,14 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
     res = {w: residuals_of(w * fam_psf + (1 - w) * own_psf, held) for w in WEIGHTS}
     by_weight = {w: float(np.mean(r.residual)) for w, r in res.items()}
     best = min(WEIGHTS, key=lambda w: (by_weight[w], -w))  # ties: the family's side
+    if PREFER_EVEN:
+        # the weights the held-out beads cannot tell from the best (within one standard
+        # error of the paired differences): the one nearest the even blend
+        def close(w):
+            d = res[w].residual - res[best].residual
+            return w == best or float(np.mean(d)) <= float(np.std(d, ddof=1)) / np.sqrt(
+                len(d))
+        best = min((w for w in WEIGHTS if close(w)), key=lambda w: (abs(w - 0.5), -w))
     # leave the image's own estimate only for a gain its held-out beads show beyond
     # their scatter: the paired differences' mean below minus one standard error
     diff = res[best].residual - res[0.0].residual

@@ -1,0 +1,143 @@
+"""The "PSF space" panel, opened as a user opens it: through the Plugins menu's door
+(``viewer.window.add_plugin_dock_widget``, which hands widgets a public-only proxy of the
+viewer), in a 1280 x 800 window."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from conftest import wait_task
+
+PLUGIN = "napari-psfspace"
+
+
+def _files(*folders):
+    return {p for f in folders for p in f.rglob("*")}
+
+
+@pytest.fixture
+def laptop(make_napari_viewer, bead_image, tmp_path, monkeypatch):
+    """(viewer, dock, panel, working directory): a shown viewer at 1280 x 800 holding the bead image, the panel docked through the
+    Plugins menu's door, the working directory an empty folder."""
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    v = make_napari_viewer(show=True)
+    v.window._qt_window.resize(1280, 800)  # not kept: a fixture holding the main window
+    dock, panel = v.window.add_plugin_dock_widget(PLUGIN, "PSF space")
+    image, truth = bead_image
+    px = truth.optics.pixel_size
+    v.add_image(image, name="beads image", scale=(px, px),
+                metadata={"psf_radius": truth.psf_radius, "pixel_size_um": px})
+    return v, dock, panel, cwd
+
+
+def _canvas_size(v) -> tuple[int, int]:
+    canvas = v.window._qt_viewer.canvas.native
+    return canvas.width(), canvas.height()
+
+
+def _settle(qtbot):
+    qtbot.wait(50)
+
+
+def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(laptop, qtbot):
+    v, dock, panel, _ = laptop
+    window = v.window._qt_window
+    assert type(panel._viewer).__name__ == "PublicOnlyProxy"  # the user's door
+    titles = [panel.tabs.tabText(i) for i in range(panel.tabs.count())]
+    assert titles == ["Beads", "Review", "Model", "Diagnose", "Family", "Deblur"]
+    for i in range(panel.tabs.count()):
+        if not panel.tabs.isTabEnabled(i):
+            continue
+        panel.tabs.setCurrentIndex(i)
+        _settle(qtbot)
+        # the window did not grow past the screen, and the canvas keeps most of it
+        assert window.width() <= 1280 and window.height() <= 800, titles[i]
+        size = _canvas_size(v)
+        assert size[0] >= 400 and size[1] >= 500, (titles[i], size)
+        # the whole dock lies inside the window: every control is on screen (a step
+        # taller than the dock scrolls inside its tab)
+        top_left = dock.mapTo(window, dock.rect().topLeft())
+        assert top_left.x() >= 0 and top_left.y() >= 0
+        assert top_left.x() + dock.width() <= window.width()
+        assert top_left.y() + dock.height() <= window.height()
+        # tab titles whole, not elided
+        bar = panel.tabs.tabBar()
+        text_width = bar.fontMetrics().horizontalAdvance(titles[i])
+        assert bar.tabRect(i).width() >= text_width, titles[i]
+
+
+def test_steps_are_enabled_by_their_inputs_and_reruns_update_layers_in_place(laptop,
+                                                                             qtbot):
+    v, dock, panel, cwd = laptop
+    assert panel.enabled_steps() == ["Beads", "Model", "Diagnose", "Family"]
+    pick = panel.steps["Beads"]
+    names = None
+    for _ in range(3):  # the same layers however often the step runs
+        pick.detect.clicked()
+        wait_task(qtbot, pick.task)
+        now = [layer.name for layer in v.layers]
+        assert names is None or now == names
+        names = now
+    assert names == ["beads image", "beads"]
+    assert "Review" in panel.enabled_steps() and "Deblur" not in panel.enabled_steps()
+    learn = panel.steps["Model"]
+    n_beads = len(v.layers["beads"].data)
+    statuses = None
+    names = None
+    for _ in range(3):
+        learn.learn.clicked()
+        wait_task(qtbot, learn.task, timeout=60_000)
+        now = [layer.name for layer in v.layers]
+        assert names is None or now == names
+        names = now
+        # the user's beads are the same beads on every run
+        assert len(v.layers["beads"].data) == n_beads
+        got = list(v.layers["beads"].features["status"])
+        assert statuses is None or got == statuses
+        statuses = got
+    assert learn.operator is not None
+    assert "Deblur" in panel.enabled_steps()
+    assert not any(n.endswith("]") for n in names), names  # no "name [1]" copies
+    # nothing written: the user asked for no file
+    assert _files(cwd) == set()
+
+
+def test_the_radius_set_in_beads_is_every_later_steps_radius(laptop):
+    v, dock, panel, _ = laptop
+    beads = panel.steps["Beads"].radius
+    beads.set_calibration(beads.pixel_size, 11.0)
+    for title in ("Review", "Model", "Diagnose", "Family"):
+        assert np.isclose(panel.steps[title].radius.pixels, 11.0, atol=0.01), title
+
+
+def test_learning_writes_no_file_unless_asked(make_napari_viewer, bead_image, tmp_path,
+                                              monkeypatch, qtbot):
+    """A model learnt from an image read from a folder: nothing appears in that folder,
+    nor in the working directory, unless the user names a file."""
+    from napari_psfspace.io import write_tiff
+
+    data = tmp_path / "data"
+    data.mkdir()
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    image, truth = bead_image
+    path = data / "beads.tif"
+    write_tiff(path, image.astype(np.float32), pixel_size=truth.optics.pixel_size)
+    v = make_napari_viewer()
+    v.open(str(path), plugin=PLUGIN)
+    before = _files(data, cwd)
+    _, learn = v.window.add_plugin_dock_widget(PLUGIN, "3. Learn operator")
+    learn.learn.clicked()
+    wait_task(qtbot, learn.task, timeout=60_000)
+    assert learn.operator is not None
+    assert _files(data, cwd) == before
+    target = tmp_path / "chosen" / "model.npz"
+    target.parent.mkdir()
+    learn.save_path.value = target
+    learn.learn.clicked()
+    wait_task(qtbot, learn.task, timeout=60_000)
+    assert target.exists() and _files(data, cwd) == before
