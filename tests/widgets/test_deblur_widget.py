@@ -28,7 +28,7 @@ def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
     w = DeblurWidget(v)
     w.image.value = v.layers["sample"]
     w.source.value = SOURCES[1]
-    assert w.in_viewer.value is sub
+    assert w.model() is sub
     w.points.value = v.layers["my beads"]
     w.max_iter.value = 60
     w.refit.value = True  # the points' flux refitted after the deblurring

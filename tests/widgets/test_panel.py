@@ -4,6 +4,8 @@ viewer), in a 1280 x 800 window."""
 
 from __future__ import annotations
 
+import time
+
 import numpy as np
 import pytest
 
@@ -18,8 +20,9 @@ def _files(*folders):
 
 @pytest.fixture
 def laptop(make_napari_viewer, bead_image, tmp_path, monkeypatch):
-    """(viewer, dock, panel, working directory): a shown viewer at 1280 x 800 holding the bead image, the panel docked through the
-    Plugins menu's door, the working directory an empty folder."""
+    """(viewer, dock, panel, working directory): a shown viewer at 1280 x 800 holding
+    the bead image, the panel docked through the Plugins menu's door, the working
+    directory an empty folder."""
     cwd = tmp_path / "cwd"
     cwd.mkdir()
     monkeypatch.chdir(cwd)
@@ -101,6 +104,22 @@ def test_steps_are_enabled_by_their_inputs_and_reruns_update_layers_in_place(lap
     assert learn.operator is not None
     assert "Deblur" in panel.enabled_steps()
     assert not any(n.endswith("]") for n in names), names  # no "name [1]" copies
+    # the model just learnt is Deblur's operator, not a file to look for
+    deblur = panel.steps["Deblur"]
+    assert deblur.source.value == "from the viewer"
+    assert deblur.model() is learn.operator
+    # Cancel is honoured within a second, in the norm estimate or the iterations alike
+    for marker in ("||H||", "deblur iteration"):  # (a fast norm may be past already)
+        deblur.run_button.clicked()
+        qtbot.waitUntil(lambda: "iteration" in deblur.task.status.value, timeout=30_000)
+        if marker == "deblur iteration":
+            qtbot.waitUntil(lambda: "deblur iteration" in deblur.task.status.value,
+                            timeout=30_000)
+        t0 = time.perf_counter()
+        deblur.task.cancel.clicked()
+        wait_task(qtbot, deblur.task, timeout=5_000)
+        assert time.perf_counter() - t0 < 1.0, marker
+    assert "deblurred: sparse part" not in v.layers  # a cancelled run adds nothing
     # nothing written: the user asked for no file
     assert _files(cwd) == set()
 

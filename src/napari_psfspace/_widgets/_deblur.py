@@ -63,15 +63,25 @@ def _identify_and_deblur(plane, model, beads, **kwargs):
 
 
 def _viewer_models(viewer) -> list:
-    """(name, object) of the operators and families the plugin's layers hold."""
+    """(label, layer name) of the layers holding an operator or a family: the model is
+    looked up by name when the deblur starts, so a step re-run in place (the same
+    layer, a new model) is the one used."""
     out = []
     for layer in viewer.layers:
         meta = getattr(layer, "metadata", None) or {}
         if SUBSPACE_KEY in meta:
-            out.append((f"family: {layer.name}", meta[SUBSPACE_KEY]))
+            out.append((f"family: {layer.name}", layer.name))
         elif OPERATOR_KEY in meta:
-            out.append((f"model: {layer.name}", meta[OPERATOR_KEY]))
+            out.append((f"model: {layer.name}", layer.name))
     return out
+
+
+def _model_of(viewer, name: str):
+    """The operator or family held by the layer ``name`` (None if it holds none now)."""
+    if name not in viewer.layers:
+        return None
+    meta = viewer.layers[name].metadata or {}
+    return meta.get(SUBSPACE_KEY, meta.get(OPERATOR_KEY))
 
 
 class DeblurWidget(Container):
@@ -108,7 +118,7 @@ class DeblurWidget(Container):
         self.source.changed.connect(self._on_source)
         self.auto.changed.connect(self._on_auto)
         self.run_button.changed.connect(self.run)
-        viewer.layers.events.inserted.connect(lambda *_: self.reset_choices())
+        viewer.layers.events.inserted.connect(self._on_layers)
         viewer.layers.events.removed.connect(lambda *_: self.reset_choices())
         self.last = None  # the last Deblurred
         self.operator = None  # and the operator it used (identified or given)
@@ -125,14 +135,24 @@ class DeblurWidget(Container):
         self.path.visible = file
         self.in_viewer.visible = not file
 
+    def _on_layers(self, *_) -> None:
+        """New layers: refresh the choices; a model or family just learnt in the viewer
+        becomes the operator, unless the user chose a file."""
+        self.reset_choices()
+        models = self._models()
+        if models and str(self.path.value) in ("", "."):
+            self.source.value = SOURCES[1]
+            self.in_viewer.value = models[-1][1]
+
     def _on_auto(self, *_) -> None:
         for w in (self.sparse_weight, self.smooth_weight):
             w.visible = not self.auto.value
 
-    def _model(self):
+    def model(self):
         """The chosen operator or family; raises ValueError naming the field."""
         if self.source.value == SOURCES[1]:
-            model = self.in_viewer.value
+            name = self.in_viewer.value
+            model = None if name is None else _model_of(self._viewer, name)
             if model is None:
                 raise ValueError("in the viewer: no model or family yet (learn one with "
                                  "Learn operator or Learn subspace, or open a file)")
@@ -154,7 +174,7 @@ class DeblurWidget(Container):
             if layer is None:
                 raise ValueError("image: open an image first")
             plane, frame = image_plane(layer, self._viewer.dims.point)
-            model = self._model()
+            model = self.model()
             beads = None
             pts = self.points.value
             if pts is not None and len(pts.data):
