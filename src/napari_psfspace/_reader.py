@@ -46,9 +46,9 @@ def get_model_reader(path) -> Callable | None:
 
 
 def read_model(path) -> list[tuple]:
-    """Layer-data tuples of a model: PSF-grid mosaic, basis stack, coefficient maps.
+    """Layer-data tuples of a model: PSF-grid mosaic, basis and coefficient-map mosaics.
 
-    The maps get the model's pixel size (``metadata["pixel_size_um"]``) as scale when
+    The layers get the model's pixel size (``metadata["pixel_size_um"]``) as scale when
     it is known; the PSF-grid layer carries the operator, so saving that layer as
     ``.npz`` writes the model back.
     """

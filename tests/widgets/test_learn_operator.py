@@ -40,10 +40,16 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
     image = viewer.layers["beads image"]
     assert op.shape == image.data.shape
     assert np.isclose(op.metadata["pixel_size_um"], image.scale[-1])
-    assert viewer.layers[BASIS].data.shape == op.basis.shape
-    maps = viewer.layers[MAPS]
-    assert maps.data.shape == (op.n_psf, *image.data.shape)
-    assert np.allclose(maps.scale[1:], image.scale)
+    # the basis and the maps as 2-D mosaics beside the image: no axis shared with it
+    basis, maps = viewer.layers[BASIS], viewer.layers[MAPS]
+    assert basis.data.ndim == 2 and maps.data.ndim == 2 and viewer.dims.ndim == 2
+    cols = int(np.ceil(np.sqrt(op.n_psf)))
+    p = op.psf_size
+    assert basis.data.shape[1] == cols * (p + 2) - 2
+    first = op.basis[0] / np.abs(op.basis[0]).max()
+    assert np.allclose(basis.data[:p, :p], first, atol=1e-6)
+    for a, b in ((basis, maps), (maps, viewer.layers[PSF_GRID]), (basis, image)):
+        assert not _overlap(a, b), (a.name, b.name)
     # the rejected bead was not used; the Points layer got the final statuses
     used = np.asarray(op.metadata["bead_positions"])
     row = np.flatnonzero(pts.features["id"] == rejected_id)[0]
@@ -154,3 +160,9 @@ def test_stack_uses_the_detection_slice_and_radius(make_napari_viewer, qtbot, be
     op = load_operator(tmp_path / "m.npz")
     assert op.metadata["n_beads_used"] >= 15
     assert op.metadata["psf_radius"] == pytest.approx(truth.psf_radius)
+
+
+def _overlap(a, b) -> bool:
+    """Whether two layers' world extents overlap."""
+    (a0, a1), (b0, b1) = (np.asarray(layer.extent.world)[:, -2:] for layer in (a, b))
+    return bool(np.all(a0 < b1) and np.all(b0 < a1))

@@ -50,8 +50,11 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     assert grid.data.shape[0] == 5 and grid.metadata[SUBSPACE_KEY] is sub
     # the z slider shows each slice with its own PSF grid (the family starts at slice 1)
     assert grid.translate[0] == 1.0 and grid.scale[0] == 1.0
-    assert v.layers[SUB_BASIS].data.shape == sub.basis.shape
-    assert v.layers[SUB_SPACE].data.shape == sub.space.shape
+    # h_i and a_j as 2-D mosaics (the slider is the stack's alone)
+    assert v.layers[SUB_BASIS].data.ndim == 2 and v.layers[SUB_SPACE].data.ndim == 2
+    p = sub.basis.shape[-1]
+    first = sub.basis[0] / np.abs(sub.basis[0]).max()
+    assert np.allclose(v.layers[SUB_BASIS].data[:p, :p], first, atol=1e-6)
     pts = v.layers[SUB_CONDITIONS]
     assert pts.data.shape == (5, 2) and list(pts.features["image"]) == list(range(5))
     assert list(pts.features["label"]) == sub.metadata["labels"]

@@ -66,6 +66,10 @@ def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(lapto
         assert top_left.x() >= 0 and top_left.y() >= 0
         assert top_left.x() + dock.width() <= window.width()
         assert top_left.y() + dock.height() <= window.height()
+        # nothing cut on the right: the step is no wider than the room its tab has
+        scroll = panel.tabs.currentWidget()
+        assert scroll.widget().minimumSizeHint().width() <= scroll.viewport().width(), (
+            titles[i])
         # tab titles whole, not elided
         bar = panel.tabs.tabBar()
         text_width = bar.fontMetrics().horizontalAdvance(titles[i])

@@ -21,7 +21,6 @@ from magicgui.widgets import (
     Container,
     FileEdit,
     FloatSpinBox,
-    Label,
     PushButton,
     SpinBox,
 )
@@ -32,7 +31,7 @@ from ..core.model.estimate import Progress
 from ..core.restore import identify_operator, iter_deblur
 from ..core.restore.identify import IdentificationWarning
 from ._layers import OPERATOR_KEY, SUBSPACE_KEY, image_plane, show_layers
-from ._worker import CoreTask, layer_choices
+from ._worker import CoreTask, layer_choices, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -108,8 +107,7 @@ class DeblurWidget(Container):
                               "points rise too)")
         self.run_button = PushButton(text="Deblur")
         self.task = CoreTask(self.run_button)
-        self.result = Label(value="")
-        self.result.native.setWordWrap(True)
+        self.result = result_text()
         super().__init__(widgets=[
             self.image, self.source, self.path, self.in_viewer, self.points, self.auto,
             self.sparse_weight, self.smooth_weight, self.max_iter, self.refit,

@@ -11,7 +11,6 @@ from magicgui.widgets import (
     Container,
     FileEdit,
     FloatSpinBox,
-    Label,
     PushButton,
     Table,
 )
@@ -28,7 +27,14 @@ from ..report import (
     write_report,
 )
 from ._layers import Frame, LayerTuple, _beside, show_layers
-from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
+from ._worker import (
+    CoreTask,
+    FollowsBeads,
+    RadiusEdit,
+    bead_layer_choices,
+    layer_choices,
+    result_text,
+)
 
 if TYPE_CHECKING:
     import napari
@@ -115,7 +121,7 @@ class DiagnoseWidget(FollowsBeads, Container):
         self.report_dir.tooltip = "Folder for report.md, report.json and figures (optional)."
         self.diagnose = PushButton(text="Diagnose")
         self.task = CoreTask(self.diagnose)
-        self.result = Label(value="")
+        self.result = result_text()
         self.table = Table(value={"data": [], "index": [], "columns": list(STEP_COLUMNS)},
                            label="steps")
         self.table.read_only = True
@@ -129,7 +135,6 @@ class DiagnoseWidget(FollowsBeads, Container):
             self.offset, self.read_noise, self.remove_motion, self.report_dir,
             self.diagnose, self.task,
             self.result, self.table])
-        self.result.native.setWordWrap(True)
         self.diagnosis = None
         self.camera.changed.connect(self._on_camera)
         self.diagnose.changed.connect(self.run)

@@ -5,10 +5,13 @@ module imports neither napari nor Qt (the model reader uses it too). Layers are 
 duck-typed (``layer.data``, ``layer.scale``, ``layer.features``).
 
 Layout of the result layers in world coordinates (the image's units), so that nothing
-hides anything else::
+hides anything else and nothing shares the data's axes (every result is 2-D, a labelled
+mosaic, except the family's PSF grids, one per image of a stack, which follow the
+stack's own slider)::
 
-    [ image | coefficient maps (on the image) ]  [ PSF grid mosaic ]  [ PSF basis ]
-    [ patch gallery                            ]  [ PSF at (y, x)   ]
+    row 0  [ image (+ diagnosis maps) ] [ PSF grid          ] [ PSF basis h_i ]
+    row 1  [ patch gallery (Review)   ] [ coefficient maps  ] [ PSF at (y, x) ]
+    row 2  [ family's spatial basis   ] [ family's PSF grid ] [ family's h_i  ] [ conditions ]
 """
 
 from __future__ import annotations
@@ -62,6 +65,7 @@ STATUS_MEANING = {
 #: Names of the layers the plugin creates.
 BEADS = "beads"
 GALLERY = "bead patches"
+CURRENT = "patch on display"
 PSF_GRID = "PSF grid"
 BASIS = "PSF basis h_i"
 MAPS = "coefficient maps alpha_i"
@@ -348,22 +352,39 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
             "about": f"PSF at {grid}x{grid} field positions, each scaled to its maximum, "
                      "gamma 0.5. Save this layer as .npz to save the model."}
     basis = np.asarray(op.basis, np.float32)
-    s_basis = 0.45 * frame.height / basis.shape[-1]
+    b_tiles, b_scale, b_cols = _flat_mosaic(basis, 0.9 * frame.height, gap=2)
+    by, bx = _beside(frame, 2.0)
     maps = op.coefficient_maps()
+    step = int(np.ceil(np.sqrt(maps.shape[0])))  # smooth maps: every step-th pixel
+    m_tiles, m_scale, m_cols = _flat_mosaic(maps[:, ::step, ::step], frame.height, gap=4)
+    my, mx = _beside(frame, 1.0, 1.0)
     return [
-        (maps, {"name": MAPS, "scale": (1.0, *frame.scale),
-                "translate": (0.0, *frame.translate),
-                "colormap": "viridis", "opacity": 0.8, "visible": False,
-                "metadata": {"about": "alpha_i: weight of h_i at each pixel"}}, "image"),
+        (m_tiles, {"name": MAPS, "scale": (m_scale, m_scale), "translate": (my, mx),
+                   "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
+                   "metadata": {"about": f"alpha_i: weight of h_i over the image, each "
+                                         f"scaled to its largest magnitude, i = 0.. left "
+                                         f"to right, {m_cols} a row"}},
+         "image"),
         (tiles.astype(np.float32), {"name": PSF_GRID, "scale": (s_mosaic, s_mosaic),
                                     "translate": (y0, x0), "colormap": "magma",
                                     "metadata": meta}, "image"),
-        (basis, {"name": BASIS, "scale": (1.0, s_basis, s_basis),
-                 "translate": (0.0, y0, x0 + tiles.shape[1] * s_mosaic + 0.04 * frame.width),
-                 "colormap": "twilight_shifted",
-                 "contrast_limits": _symmetric(basis),
-                 "metadata": {"about": "orthonormal PSF basis h_i (slider: i)"}}, "image"),
+        (b_tiles, {"name": BASIS, "scale": (b_scale, b_scale), "translate": (by, bx),
+                   "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
+                   "metadata": {"about": f"orthonormal PSF basis h_i, each scaled to its "
+                                         f"largest magnitude, i = 0.. left to right, "
+                                         f"{b_cols} a row"}}, "image"),
     ]
+
+
+def _flat_mosaic(stack: np.ndarray, extent: float, *, gap: int
+                 ) -> tuple[np.ndarray, float, int]:
+    """``(tiles, scale, columns)``: a stack (K, P, Q) as one 2-D image (near-square grid,
+    each tile scaled to its largest magnitude), and the world scale per pixel that makes
+    it ``extent`` tall."""
+    stack = np.asarray(stack, np.float64)
+    tiles = mosaic(stack, gap=gap, normalize="each", fill=0.0).astype(np.float32)
+    cols = int(np.ceil(np.sqrt(stack.shape[0])))
+    return tiles, float(extent) / tiles.shape[0], cols
 
 
 def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
@@ -398,17 +419,17 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     tiles = np.zeros((max(images) + 1, *one[0].shape))  # a skipped image: an empty slice
     tiles[images] = one
     s_mosaic = frame.height / tiles.shape[1]
-    y0, x0 = _beside(frame, 1.0)
+    y0, x0 = _beside(frame, 1.0, 2.0)
     basis = np.asarray(sub.basis, np.float32)
-    s_basis = 0.45 * frame.height / basis.shape[-1]
-    gy, gx = sub.grid
-    dy = float(gy[1] - gy[0]) if len(gy) > 1 else float(frame.shape[0])
-    dx = float(gx[1] - gx[0]) if len(gx) > 1 else float(frame.shape[1])
+    b_tiles, b_scale, b_cols = _flat_mosaic(basis, 0.9 * frame.height, gap=2)
+    by, bx = _beside(frame, 2.0, 2.0)
     space = np.asarray(sub.space, np.float32)
+    s_tiles, s_scale, s_cols = _flat_mosaic(space, frame.height, gap=1)
+    sy, sx = _beside(frame, 0.0, 2.0)
     box = 0.45 * frame.height
     c = np.asarray(coords, float)[:, :2]
     span = float(np.abs(c).max()) or 1.0
-    cy, cx = _beside(frame, 2.0)
+    cy, cx = _beside(frame, 3.0, 2.0)
     points = np.stack([cy + box / 2 - c[:, 1] / span * box / 2,
                        cx + box / 2 + c[:, 0] / span * box / 2], axis=1)
     held = sub.metadata.get("heldout") or []
@@ -420,13 +441,12 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     short = [lab.rsplit("[", 1)[-1].rstrip("]") if lab.endswith("]") else lab
              for lab in labels]
     return [
-        (space, {"name": SUB_SPACE, "scale": (1.0, dy * frame.scale[0], dx * frame.scale[1]),
-                 "translate": (0.0, frame.translate[0] + gy[0] * frame.scale[0],
-                               frame.translate[1] + gx[0] * frame.scale[1]),
-                 "colormap": "twilight_shifted", "contrast_limits": _symmetric(space),
-                 "opacity": 0.8, "visible": False,
-                 "metadata": {"about": "a_j: spatial basis on the coarse grid (slider: j)"}},
-         "image"),
+        (s_tiles, {"name": SUB_SPACE, "scale": (s_scale, s_scale), "translate": (sy, sx),
+                   "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
+                   "metadata": {"about": f"a_j: the family's spatial basis over the field "
+                                         f"(coarse grid), each scaled to its largest "
+                                         f"magnitude, j = 0.. left to right, {s_cols} a "
+                                         f"row"}}, "image"),
         (tiles.astype(np.float32), {
             "name": SUB_GRID, "scale": (float(stack_axis[1]), s_mosaic, s_mosaic),
             "translate": (float(stack_axis[0]), y0, x0),
@@ -436,11 +456,11 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
                          "about": "PSF of each image's operator at field positions, each "
                                   "scaled to its maximum, gamma 0.5 (slider: image)"}},
          "image"),
-        (basis, {"name": SUB_BASIS, "scale": (1.0, s_basis, s_basis),
-                 "translate": (0.0, y0 + 1.04 * frame.height, x0), "colormap": "twilight_shifted",
-                 "contrast_limits": _symmetric(basis),
-                 "metadata": {"about": "orthonormal PSF basis h_i of the family (slider: i)"}},
-         "image"),
+        (b_tiles, {"name": SUB_BASIS, "scale": (b_scale, b_scale), "translate": (by, bx),
+                   "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
+                   "metadata": {"about": f"orthonormal PSF basis h_i of the family, each "
+                                         f"scaled to its largest magnitude, i = 0.. left "
+                                         f"to right, {b_cols} a row"}}, "image"),
         (points, {"name": SUB_CONDITIONS, "size": 0.03 * frame.height,
                   "features": {"image": np.asarray(images, int), "label": list(labels),
                                "short": short,
@@ -452,11 +472,6 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
                                "coordinates": c.tolist()}},
          "points"),
     ]
-
-
-def _symmetric(a: np.ndarray) -> tuple[float, float]:
-    m = float(np.abs(a).max()) or 1.0
-    return (-m, m)
 
 
 def heldout_layer(heldout, frame: Frame) -> LayerTuple:
@@ -473,7 +488,7 @@ def heldout_layer(heldout, frame: Frame) -> LayerTuple:
 
 def psf_layer(psf: np.ndarray, y: float, x: float, frame: Frame) -> LayerTuple:
     """The PSF at pixel (y, x) as an image layer (saved as TIFF by the plugin's writer)."""
-    y0, x0 = _beside(frame, 1.0, 1.0)
+    y0, x0 = _beside(frame, 2.0, 1.0)
     s = 0.45 * frame.height / psf.shape[-1]
     return (np.asarray(psf, np.float32),
             {"name": PSF_AT, "scale": (s, s), "translate": (y0, x0), "colormap": "magma",
@@ -482,13 +497,46 @@ def psf_layer(psf: np.ndarray, y: float, x: float, frame: Frame) -> LayerTuple:
 
 
 def gallery_layer(stack: np.ndarray, frame: Frame, *, view: str) -> LayerTuple:
-    """The patches (K, P, P) as a stack below the image (slider: bead)."""
+    """The patches (K, P, P) as one 2-D mosaic below the image (near-square grid, bead
+    ``k`` at row ``k // columns``, column ``k % columns``; :func:`gallery_cell`), each
+    patch scaled to its largest magnitude: no axis shared with the data."""
     y0, x0 = _beside(frame, 0.0, 1.0)
-    s = 0.45 * frame.height / stack.shape[-1]
-    return (np.asarray(stack, np.float32),
-            {"name": GALLERY, "scale": (1.0, s, s), "translate": (0.0, y0, x0),
-             "colormap": "gray",
-             "metadata": {"view": view}}, "image")
+    tiles, scale, cols = _flat_mosaic(stack, frame.height, gap=GALLERY_GAP)
+    return (tiles, {"name": GALLERY, "scale": (scale, scale), "translate": (y0, x0),
+                    "colormap": "gray",
+                    "metadata": {"view": view, "columns": cols, "patch": stack.shape[-1],
+                                 "about": f"bead patches ({view}), bead 1.. left to right, "
+                                          f"{cols} a row"}}, "image")
+
+
+#: Pixels between the gallery's patches.
+GALLERY_GAP = 2
+
+
+def gallery_cell(layer, k: int) -> np.ndarray:
+    """The world corners ``[[y0, x0], [y1, x1]]`` of patch ``k`` in the gallery layer."""
+    meta = layer.metadata
+    cols, p = int(meta["columns"]), int(meta["patch"])
+    step = p + GALLERY_GAP
+    r, c = divmod(int(k), cols)
+    scale, origin = np.asarray(layer.scale, float), np.asarray(layer.translate, float)
+    lo = origin + scale * np.array([r * step, c * step], float) - scale / 2
+    return np.stack([lo, lo + scale * p])
+
+
+def gallery_index(layer, world: np.ndarray) -> int | None:
+    """The patch of the gallery under a world position, or None between patches."""
+    meta = layer.metadata
+    cols, p = int(meta["columns"]), int(meta["patch"])
+    step = p + GALLERY_GAP
+    pix = (np.asarray(world, float)[-2:] - np.asarray(layer.translate, float)) / np.asarray(
+        layer.scale, float) + 0.5
+    if np.any(pix < 0):
+        return None
+    r, c = (int(v) for v in pix // step)
+    if c >= cols or np.any(pix % step >= p):
+        return None
+    return r * cols + c
 
 
 def show_layers(viewer, tuples: list[LayerTuple]) -> list:

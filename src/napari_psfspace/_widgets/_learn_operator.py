@@ -11,7 +11,6 @@ from magicgui.widgets import (
     Container,
     FileEdit,
     FloatSpinBox,
-    Label,
     PushButton,
     SpinBox,
 )
@@ -33,7 +32,14 @@ from ._layers import (
     set_statuses,
     show_layers,
 )
-from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
+from ._worker import (
+    CoreTask,
+    FollowsBeads,
+    RadiusEdit,
+    bead_layer_choices,
+    layer_choices,
+    result_text,
+)
 
 if TYPE_CHECKING:
     import napari
@@ -83,7 +89,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
                                   "saves it later).")
         self.learn = PushButton(text="Learn operator")
         self.task = CoreTask(self.learn)
-        self.result = Label(value="")
+        self.result = result_text()
         self.psf_y = FloatSpinBox(label="PSF at row", min=0.0, max=1e9, step=1.0)
         self.psf_x = FloatSpinBox(label="PSF at column", min=0.0, max=1e9, step=1.0)
         self.show_psf = PushButton(text="Show PSF at this position", enabled=False)
@@ -92,7 +98,6 @@ class LearnOperatorWidget(FollowsBeads, Container):
             self.n_psf, self.auto_smoothing, self.smoothing, self.remove_motion,
             self.save_path, self.learn,
             self.task, self.result, self.psf_y, self.psf_x, self.show_psf])
-        self.result.native.setWordWrap(True)
         self.operator: ProductConvolution | None = None
         self._frame = None
         self.n_psf_mode.changed.connect(

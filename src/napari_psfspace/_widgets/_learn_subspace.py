@@ -20,7 +20,6 @@ from magicgui.widgets import (
     ComboBox,
     Container,
     FileEdit,
-    Label,
     PushButton,
     Select,
     SpinBox,
@@ -31,7 +30,7 @@ from napari.utils.notifications import show_error, show_info
 from ..core.model.estimate import Progress
 from ..core.subspace import OperatorSubspace, iter_estimate_subspace
 from ._layers import SUB_GRID, Frame, show_layers, subspace_layers
-from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of
+from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -76,8 +75,7 @@ class LearnSubspaceWidget(Container):
                                   "learnt (empty: nothing is written).")
         self.learn = PushButton(text="Learn subspace")
         self.task = CoreTask(self.learn)
-        self.result = Label(value="")
-        self.result.native.setWordWrap(True)
+        self.result = result_text()
         super().__init__(widgets=[
             self.source, self.stack, self.first, self.last, self.layers, self.folder,
             self.radius, self.n_psf, self.n_space, self.holdout, self.save_path,

@@ -79,7 +79,7 @@ class PickBeadsWidget(Container):
         self._viewer = viewer
         self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
         self.radius = RadiusEdit()
-        self.suggest = PushButton(text="Suggest radius from the image")
+        self.suggest = PushButton(text="Suggest radius")
         self.suggest.tooltip = ("Measure the enclosed energy of bright spots across the "
                                 "field and propose a radius that bounds the widest PSFs.")
         self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
@@ -100,6 +100,12 @@ class PickBeadsWidget(Container):
         super().__init__(widgets=[self.image, self.radius, self.suggest, self.threshold,
                                   self.bead_diameter, self.detect, self.task, self.legend,
                                   self.help])
+        from qtpy.QtWidgets import QSizePolicy
+
+        for label in (self.legend, self.help):  # the dock's width, not the text's
+            label.native.setWordWrap(True)
+            label.native.setSizePolicy(QSizePolicy.Policy.Ignored,
+                                       QSizePolicy.Policy.MinimumExpanding)
         self.image.changed.connect(self._on_image)
         self.detect.changed.connect(self.run)
         self.suggest.changed.connect(self.run_suggest)

@@ -5,31 +5,44 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, Label, PushButton, SpinBox
+from magicgui.widgets import ComboBox, Container, PushButton, SpinBox
 from napari.layers import Image
 
 from ..core.model.review import VIEWS, PatchReview, iter_patch_review
 from ._layers import (
+    CURRENT,
     GALLERY,
     REJECTED,
     STATUS_MEANING,
     beads_from_points,
     ensure_bead_features,
+    gallery_cell,
+    gallery_index,
     gallery_layer,
     set_statuses,
     show_layers,
 )
-from ._worker import CoreTask, FollowsBeads, RadiusEdit, bead_layer_choices, layer_choices
+from ._worker import (
+    CoreTask,
+    FollowsBeads,
+    RadiusEdit,
+    bead_layer_choices,
+    layer_choices,
+    result_text,
+)
 
 if TYPE_CHECKING:
     import napari
 
 
 class ReviewPatchesWidget(FollowsBeads, Container):
-    """A gallery of bead patches (a stack: the slider picks the bead) with their flags.
+    """A gallery of bead patches (a 2-D mosaic below the image) with their flags.
 
+    The *patch* field, or a click on a patch of the gallery, picks the bead on display
+    (outlined in the gallery, selected in the beads layer, described in the widget).
     Accept / Reject set the bead's status in the Points layer, which the operator
-    learning reads. Views: raw, background removed, windowed.
+    learning reads. Views: raw, background removed, windowed. The gallery shares no
+    axis with the data: a z-stack's slider stays where the user left it.
     """
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
@@ -41,7 +54,7 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         self.task = CoreTask(self.extract)
         self.view = ComboBox(label="view", choices=list(VIEWS), value="background removed")
         self.patch = SpinBox(label="patch", min=0, max=0, enabled=False)
-        self.info = Label(value="")
+        self.info = result_text(3)
         self.accept = PushButton(text="Accept bead", enabled=False)
         self.reject = PushButton(text="Reject bead", enabled=False)
         super().__init__(widgets=[
@@ -58,7 +71,6 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         self.reject.changed.connect(lambda: self.set_status(REJECTED))
         self.points.changed.connect(self._on_points)
         self.image.changed.connect(self._on_points)
-        viewer.dims.events.current_step.connect(self._on_step)
         viewer.layers.events.inserted.connect(self._on_layers)
         viewer.layers.events.removed.connect(self._on_layers)
         self._on_layers()
@@ -96,7 +108,8 @@ class ReviewPatchesWidget(FollowsBeads, Container):
             self.patch.max = len(review) - 1
             self._viewer.reset_view()
             self.patch.enabled = self.accept.enabled = self.reject.enabled = True
-            self.task.status.value = f"{len(review)} patches; the slider or 'patch' picks one."
+            self.task.status.value = (f"{len(review)} patches below the image; click one, "
+                                      f"or set 'patch'.")
             self._go_to()
 
         self.task.run(gen, on_result)
@@ -105,7 +118,17 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         if self.review is None:
             return
         stack = self.review.views[self.view.value]
-        show_layers(self._viewer, [gallery_layer(stack, self._frame, view=self.view.value)])
+        layer = show_layers(self._viewer, [gallery_layer(stack, self._frame,
+                                                         view=self.view.value)])[0]
+        if self._on_click not in layer.mouse_drag_callbacks:
+            layer.mouse_drag_callbacks.append(self._on_click)
+        self._outline()
+
+    def _on_click(self, layer, event) -> None:
+        """A click on a patch of the gallery puts that bead on display."""
+        k = gallery_index(layer, event.position)
+        if k is not None and 0 <= k < len(self.review or ()):
+            self.patch.value = k
 
     def current(self) -> int:
         """Index of the patch on display."""
@@ -114,17 +137,21 @@ class ReviewPatchesWidget(FollowsBeads, Container):
     def _go_to(self, *_) -> None:
         if self.review is None:
             return
-        k = self.current()
-        if int(round(self._viewer.dims.point[0])) != k and self._viewer.dims.ndim >= 3:
-            self._viewer.dims.set_point(0, k)
-        self._describe(k)
+        self._outline()
+        self._describe(self.current())
 
-    def _on_step(self, *_) -> None:
+    def _outline(self) -> None:
+        """A rectangle around the patch on display in the gallery."""
         if self.review is None or GALLERY not in self._viewer.layers:
             return
-        k = int(np.clip(round(self._viewer.dims.point[0]), 0, len(self.review) - 1))
-        if k != self.current():
-            self.patch.value = k
+        corners = gallery_cell(self._viewer.layers[GALLERY], self.current())
+        rect = np.array([corners[0], [corners[0][0], corners[1][1]], corners[1],
+                         [corners[1][0], corners[0][1]]])
+        show_layers(self._viewer, [(rect[None], {
+            "name": CURRENT, "shape_type": "rectangle", "edge_color": "#ffe135",
+            "face_color": "transparent", "edge_width": 2.0 * float(
+                self._viewer.layers[GALLERY].scale[-1]),
+            "metadata": {"about": "the patch on display in Review"}}, "shapes")])
 
     def _status_of(self, bead_id: int) -> str:
         pts = self.points.value
@@ -138,23 +165,15 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         status = self._status_of(bead_id)
         flags = self.review.flags(k)
         z = self.review.zscore[k]
-        text = (f"bead {bead_id} ({k + 1}/{len(self.review)}): "
-                f"{STATUS_MEANING.get(status, status)}"
-                + ("" if np.isnan(z) else f", z = {z:.1f}")
-                + ("\nflags: " + ", ".join(flags) if flags else "\nno flags"))
-        self.info.value = text
-        overlay = self._text_overlay()
-        overlay.text, overlay.position, overlay.visible = text, "top_left", True
+        # in the widget, not on the canvas: it would stay there through every later step
+        self.info.value = (f"bead {bead_id} ({k + 1}/{len(self.review)}): "
+                           f"{STATUS_MEANING.get(status, status)}"
+                           + ("" if np.isnan(z) else f"; shape z-score {z:.1f}")
+                           + ("\nflags: " + ", ".join(flags) if flags else "\nno flags"))
         pts = self.points.value
         if pts is not None:
             rows = np.flatnonzero(np.asarray(pts.features["id"]) == bead_id)
             pts.selected_data = set(rows.tolist())
-
-    def _text_overlay(self):
-        canvas = getattr(self._viewer, "canvas", None)  # napari >= 0.9
-        if canvas is not None and "text" in getattr(canvas, "overlays", {}):
-            return canvas.overlays["text"]
-        return self._viewer.text_overlay
 
     def set_status(self, status: str) -> None:
         """Accept ("kept") or reject the bead on display, in the Points layer."""

@@ -54,6 +54,12 @@ class CoreTask(Container):
         self.cancel = PushButton(text="Cancel", visible=False)
         self.status = Label(value="")
         self.status.native.setWordWrap(True)
+        # the whole width of the step (a wrapped label kept its text's natural width,
+        # 116 px, and showed half of its second line)
+        from qtpy.QtWidgets import QSizePolicy
+
+        self.status.native.setSizePolicy(QSizePolicy.Policy.Expanding,
+                                         QSizePolicy.Policy.MinimumExpanding)
         super().__init__(widgets=[self.progress, self.cancel, self.status], labels=False)
         self.cancel.changed.connect(self.request_cancel)
         self.worker: GeneratorWorker | None = None
@@ -167,6 +173,20 @@ def prefer_beads(combo) -> None:
     options = [v for v in combo.choices if v is not None and "status" in v.features]
     if options:
         combo.value = options[-1]
+
+
+def result_text(lines: int = 8):
+    """A read-only text box for a step's result: wraps, scrolls past ``lines`` lines,
+    and can be selected and copied. A wrapped ``Label`` in a form layout was clipped to
+    half a line (and wider than the dock) once the text grew."""
+    from magicgui.widgets import TextEdit
+
+    box = TextEdit(value="")
+    box.native.setReadOnly(True)
+    height = box.native.fontMetrics().lineSpacing() * lines + 12
+    box.native.setMaximumHeight(height)
+    box.native.setMinimumHeight(min(height, 4 * box.native.fontMetrics().lineSpacing() + 12))
+    return box
 
 
 class RadiusEdit(Container):

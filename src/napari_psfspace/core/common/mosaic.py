@@ -42,7 +42,8 @@ def mosaic(tiles: np.ndarray, *, gap: int = 1, normalize: str = "each", fill: fl
         raise ValueError(f"`normalize` must be 'each', 'global' or 'none', got {normalize!r}.")
     r, c, p, q = t.shape
     if normalize == "each":
-        peak = np.nanmax(np.abs(t), axis=(2, 3), keepdims=True)
+        # (empty cells of a flat stack are NaN: their peak is 0, without a warning)
+        peak = np.max(np.where(np.isnan(t), 0.0, np.abs(t)), axis=(2, 3), keepdims=True)
         t = t / np.where(peak > 0, peak, 1.0)
     elif normalize == "global":
         peak = np.nanmax(np.abs(t))

@@ -1,0 +1,85 @@
+"""A scripted walk through the "PSF space" panel on the sample, as a user takes it.
+
+    xvfb-run -a -s "-screen 0 1280x800x24" python bench/bench_panel_walk.py [--out docs/images]
+
+Opens napari at 1280 x 800 (a real window: screenshots of hidden viewers come out black),
+docks the panel through the Plugins menu's door (``add_plugin_dock_widget``, which hands
+it a public-only proxy of the viewer), opens the sample and clicks through the steps:
+Beads (detect), Review (extract the patches), Model (learn), Diagnose, Deblur (the model
+just learnt). Each step's seconds and the canvas left to the image are printed as a
+table; a screenshot of the window after each step goes to ``--out`` (``panel_<step>.png``).
+The Family step needs several images and is not part of this walk.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import napari
+from qtpy.QtWidgets import QApplication
+
+from _common import table
+from napari_psfspace._sample_data import simulated_beads
+
+OUT = Path(__file__).resolve().parents[1] / "docs" / "images"
+
+
+def wait(task, timeout: float = 300.0) -> None:
+    """Process Qt events until the step's job is done."""
+    app = QApplication.instance()
+    t0 = time.perf_counter()
+    while task.running and time.perf_counter() - t0 < timeout:
+        app.processEvents()
+        time.sleep(0.01)
+    app.processEvents()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT)
+    args = ap.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    viewer = napari.Viewer(show=True, title="napari-psfspace")
+    window = viewer.window._qt_window
+    window.resize(1280, 800)
+    app = QApplication.instance()
+    _, panel = viewer.window.add_plugin_dock_widget("napari-psfspace", "PSF space")
+    image, kwargs, _ = simulated_beads()[0]
+    viewer.add_image(image, **kwargs)
+    app.processEvents()
+    steps = [
+        ("Beads", lambda w: w.detect.clicked()),
+        ("Review", lambda w: w.extract.clicked()),
+        ("Model", lambda w: w.learn.clicked()),
+        ("Diagnose", lambda w: w.diagnose.clicked()),
+        ("Deblur", lambda w: w.run_button.clicked()),
+    ]
+    rows = []
+    total = 0.0
+    for title, click in steps:
+        widget = panel.steps[title]
+        panel.tabs.setCurrentIndex(list(panel.steps).index(title))
+        app.processEvents()
+        t0 = time.perf_counter()
+        click(widget)
+        wait(widget.task)
+        seconds = time.perf_counter() - t0
+        total += seconds
+        canvas = viewer.window._qt_viewer.canvas.native
+        path = args.out / f"panel_{title.lower()}.png"
+        window.grab().save(str(path))
+        rows.append({"step": title, "seconds": seconds,
+                     "canvas": f"{canvas.width()}x{canvas.height()}",
+                     "window": f"{window.width()}x{window.height()}",
+                     "status": widget.task.status.value[:60].replace("\n", " ")})
+        print(rows[-1], flush=True)
+    rows.append({"step": "all", "seconds": total, "canvas": "", "window": "", "status": ""})
+    print(table(rows, [("step", "s"), ("seconds", ".1f"), ("canvas", "s"), ("window", "s"),
+                       ("status", "s")]))
+    viewer.close()
+
+
+if __name__ == "__main__":
+    main()
