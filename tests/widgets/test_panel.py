@@ -164,3 +164,59 @@ def test_learning_writes_no_file_unless_asked(make_napari_viewer, bead_image, tm
     learn.learn.clicked()
     wait_task(qtbot, learn.task, timeout=60_000)
     assert target.exists() and _files(data, cwd) == before
+
+
+def _click_and_wait(qtbot, widget, button, timeout=120_000):
+    button.clicked()
+    wait_task(qtbot, widget.task, timeout=timeout)
+
+
+def test_every_step_three_times_the_same_layers_cancel_within_a_second(laptop, qtbot):
+    """The walk a user takes, each step run three times: the same layer names after each
+    run, the user's rejection honoured by Diagnose, Cancel honoured within 1 s at every
+    step, and no file anywhere (none was asked for)."""
+    v, dock, panel, cwd = laptop
+    image = v.layers["beads image"]
+    v.add_image(np.asarray(image.data) * 1.1, name="beads image 2", scale=image.scale,
+                metadata=dict(image.metadata))
+    steps = panel.steps
+    steps["Beads"].image.value = image
+    buttons = {"Beads": "detect", "Review": "extract", "Model": "learn",
+               "Diagnose": "diagnose", "Family": "learn", "Deblur": "run_button"}
+    family = steps["Family"]
+    family.source.value = "image layers"
+    family.layers.value = [image, v.layers["beads image 2"]]
+    steps["Deblur"].max_iter.value = 40  # the layers, not the convergence, are tested
+    for title, attr in buttons.items():
+        widget = steps[title]
+        if hasattr(widget, "image"):
+            widget.image.value = image
+        if title == "Diagnose":  # a bead rejected by hand stays out of the diagnosis
+            pts = v.layers["beads"]
+            kept = np.flatnonzero(np.asarray(pts.features["status"]) == "kept")
+            from napari_psfspace._widgets._layers import set_statuses
+            rejected_id = int(pts.features["id"].iloc[kept[0]])
+            set_statuses(pts, [rejected_id], ["rejected"])
+        names = None
+        for _ in range(3):
+            _click_and_wait(qtbot, widget, getattr(widget, attr))
+            assert "failed" not in widget.task.status.value, (title, widget.task.status.value)
+            now = [layer.name for layer in v.layers]
+            assert names is None or now == names, (title, names, now)
+            names = now
+        if title == "Diagnose":
+            d = widget.diagnosis
+            row = np.flatnonzero(np.hypot(*(d.context.beads.positions
+                                            - pts.data[kept[0]]).T) < 1.0)
+            assert len(row) == 1 and d.context.beads.status[row[0]] == "rejected"
+        # Cancel: honoured at the step's next yield, within a second
+        getattr(widget, attr).clicked()
+        qtbot.waitUntil(lambda w=widget: w.task.status.value != "starting...",
+                        timeout=30_000)
+        t0 = time.perf_counter()
+        if widget.task.running:
+            widget.task.cancel.clicked()
+        wait_task(qtbot, widget.task, timeout=5_000)
+        assert time.perf_counter() - t0 < 1.0, title
+        assert [layer.name for layer in v.layers] == names, title
+    assert _files(cwd) == set()

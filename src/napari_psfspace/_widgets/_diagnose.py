@@ -26,7 +26,17 @@ from ..report import (
     summary_text,
     write_report,
 )
-from ._layers import Frame, LayerTuple, _beside, show_layers
+from ._layers import (
+    HOT_PIXELS,
+    Frame,
+    LayerTuple,
+    _beside,
+    beads_from_points,
+    ensure_bead_features,
+    for_a_new_fit,
+    hot_pixels_from_layer,
+    show_layers,
+)
 from ._worker import (
     CoreTask,
     FollowsBeads,
@@ -165,10 +175,17 @@ class DiagnoseWidget(FollowsBeads, Container):
         folder = (Path(self.report_dir.value)
                   if str(self.report_dir.value) not in ("", ".") else None)
         name = img.name
+        beads = None
+        if pts is not None:  # the user's beads, with the rejections made by hand
+            ensure_bead_features(pts)
+            beads = for_a_new_fit(beads_from_points(pts, frame)[0])
+            if HOT_PIXELS in self._viewer.layers:  # Beads' masked pixels, masked again
+                beads.hot_pixels = hot_pixels_from_layer(self._viewer.layers[HOT_PIXELS])
         gen = iter_diagnose(plane, psf_radius=self.radius.pixels,
                             threshold=float(self.threshold.value),
                             bead_diameter=self._bead_diameter_px(),
-                            remove_motion=bool(self.remove_motion.value), **camera)
+                            remove_motion=bool(self.remove_motion.value), beads=beads,
+                            **camera)
 
         def on_result(diag) -> None:
             self.diagnosis = diag

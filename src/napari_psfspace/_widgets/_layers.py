@@ -213,6 +213,12 @@ def hot_pixels_layer(pixels: np.ndarray, frame: Frame) -> LayerTuple:
     return np.asarray(pixels, dtype=float).reshape(-1, 2), kwargs, "points"
 
 
+def hot_pixels_from_layer(layer) -> np.ndarray:
+    """The pixels (S, 2) int64 of a :func:`hot_pixels_layer` (row, column)."""
+    data = np.asarray(layer.data, float).reshape(-1, np.shape(layer.data)[-1])[:, -2:]
+    return np.rint(data).astype(np.int64)
+
+
 def _categorical(status):
     import pandas as pd
 

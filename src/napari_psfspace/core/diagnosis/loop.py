@@ -188,9 +188,17 @@ class Diagnosis:
         }
 
 
-def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0) -> Beads:
-    """Detected beads with sub-pixel centres and their status (kept, border, ...)."""
-    beads = detect_beads(image, psf_radius, threshold=threshold)
+def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0,
+                  beads: Beads | None = None) -> Beads:
+    """Detected beads (or a copy of ``beads``: the user's table, whose statuses, such as
+    the beads rejected by hand, are kept) with sub-pixel centres and their status (kept,
+    border, ...)."""
+    if beads is None:
+        beads = detect_beads(image, psf_radius, threshold=threshold)
+    else:
+        beads = Beads(np.array(beads.positions, float), np.array(beads.response, float),
+                      np.array(beads.status), np.array(beads.amplitude, float),
+                      None if beads.hot_pixels is None else np.array(beads.hot_pixels))
     img = beads.clean_image(as_image(image))
     kept = beads.kept
     beads.positions[kept] = refine_centers(img, beads.positions[kept],
@@ -227,8 +235,12 @@ def iter_diagnose(
     smoothing: float | None = None,
     bead_diameter: float = 0.0,
     remove_motion: bool = False,
+    beads: Beads | None = None,
 ) -> Generator[Progress, None, Diagnosis]:
-    """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis."""
+    """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis.
+
+    ``beads``: the user's bead table (e.g. edited in napari: beads rejected by hand keep
+    that status and are not used); None detects them at ``threshold``."""
     raw = np.asarray(image)
     img = as_image(raw, dtype=np.float64)
     r = check_psf_radius(psf_radius, img.shape)
@@ -239,7 +251,7 @@ def iter_diagnose(
         raise ValueError(f"Unknown effect(s) {unknown}; known: {sorted(REGISTRY)}.")
     candidates: list[Effect] = [REGISTRY[n]() for n in names]
 
-    beads = prepare_beads(raw, r, threshold=threshold)
+    beads = prepare_beads(raw, r, threshold=threshold, beads=beads)
     n_kept = int(np.count_nonzero(beads.kept))
     if n_kept < 2 * folds:  # few beads: each is judged by a model of all the others
         require_kept(beads, MIN_BEADS, reason="to judge each bead by a model learnt "
