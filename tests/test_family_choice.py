@@ -181,3 +181,39 @@ def test_too_few_beads_left_for_the_held_out_family_keeps_the_family():
         estimate_subspace(sparse, psf_radius=r)
     with pytest.raises(ValueError, match=r"`n_psf` = 9 needs at least 20 usable beads"):
         estimate_subspace(images, psf_radius=r, n_psf=9)
+
+
+def _curve(means, sd, n=20):
+    """Per-bead residuals at each weight (deterministic): a common bead term (the beads
+    differ far more from each other than the weights do, as held-out residuals do), the
+    weight's mean, and a scatter of +-``sd`` whose sign alternates over the beads and
+    flips from one weight to the next (paired differences of neighbouring weights
+    scatter by 2 sd, of weights two apart not at all)."""
+    from napari_psfspace.core.subspace.choice import WEIGHTS
+    base = np.linspace(0.1, 0.3, n)
+    signs = (-1.0) ** np.arange(n)
+    return {w: base + m + sd * signs * (-1.0) ** round(4 * w)
+            for w, m in zip(WEIGHTS, means, strict=True)}
+
+
+def test_a_flat_held_out_curve_keeps_the_even_blend():
+    from napari_psfspace.core.subspace.choice import pick_weight
+    # minimum at 0.75 by less than the paired scatter: the even blend is kept
+    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0005, 0.0, 0.0008], sd=0.005))
+    assert (w, beaten) == (0.5, True)
+
+
+def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
+    from napari_psfspace.core.subspace.choice import pick_weight
+    # the family alone better beyond the scatter: the family
+    w, beaten = pick_weight(_curve([0.05, 0.04, 0.03, 0.015, 0.0], sd=0.002))
+    assert (w, beaten) == (1.0, True)
+    # the own estimate clearly best: 0
+    w, beaten = pick_weight(_curve([0.0, 0.01, 0.02, 0.03, 0.05], sd=0.002))
+    assert w == 0.0
+    # the even blend ahead of the own estimate by less than the scatter of their paired
+    # differences (here from the beads' common term, made unequal): 0 is kept
+    res = _curve([0.002, 0.001, 0.0, 0.001, 0.002], sd=0.0)
+    res[0.5] = res[0.5] + 0.01 * (-1.0) ** np.arange(20)
+    w, beaten = pick_weight(res)
+    assert w == 0.5 and not beaten
