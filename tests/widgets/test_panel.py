@@ -206,6 +206,8 @@ def test_every_step_three_times_the_same_layers_cancel_within_a_second(laptop, q
             names = now
         if title == "Diagnose":
             d = widget.diagnosis
+            # the model Diagnose refined is Deblur's operator now
+            assert steps["Deblur"].model() is d.operator
             row = np.flatnonzero(np.hypot(*(d.context.beads.positions
                                             - pts.data[kept[0]]).T) < 1.0)
             assert len(row) == 1 and d.context.beads.status[row[0]] == "rejected"

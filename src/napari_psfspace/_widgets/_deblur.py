@@ -71,7 +71,7 @@ def _viewer_models(viewer) -> list:
         if SUBSPACE_KEY in meta:
             out.append((f"family: {layer.name}", layer.name))
         elif OPERATOR_KEY in meta:
-            out.append((f"model: {layer.name}", layer.name))
+            out.append((meta.get("model_label", f"model: {layer.name}"), layer.name))
     return out
 
 

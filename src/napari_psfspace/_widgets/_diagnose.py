@@ -28,6 +28,7 @@ from ..report import (
 )
 from ._layers import (
     HOT_PIXELS,
+    OPERATOR_KEY,
     Frame,
     LayerTuple,
     _beside,
@@ -79,10 +80,14 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
                  "noise floor), painted as a disk at its place; NaN: no bead")
     out: list[LayerTuple] = []
     for col, (name, key) in enumerate(((MAP_BEFORE, "map_before"), (MAP_AFTER, "map_after"))):
+        meta = {"about": about_map, "cell_size_px": cell}
+        if key == "map_after":  # the model the diagnosis refined: Deblur offers it
+            meta[OPERATOR_KEY] = diagnosis.operator
+            meta["model_label"] = "diagnosed model (Diagnose's final model)"
         out.append((fig[key].astype("float32"),
                     {"name": name, "scale": scale, "translate": _beside(frame, col, -1.0),
                      "colormap": "viridis", "contrast_limits": (0.0, fig["map_limit"]),
-                     "metadata": {"about": about_map, "cell_size_px": cell}}, "image"))
+                     "metadata": meta}, "image"))
     lim = fig["mean_limit"]
     size = 0.45 * frame.height
     y0, x0 = _beside(frame, 2.0, -1.0)

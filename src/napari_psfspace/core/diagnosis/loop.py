@@ -266,11 +266,22 @@ def iter_diagnose(
                   bead_diameter=bead_diameter)
     yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
 
-    def evaluate(c: Context):
-        cf = run_with_progress(iter_crossfit(c.image, c.beads, c.noise, psf_radius=r,
-                                             folds=folds, estimate_kwargs=c.estimate_kwargs,
-                                             fit_kwargs={**c.fit_kwargs,
-                                                         "pixel_mask": c.pixel_mask}))
+    def forward(gen, stage: str, fraction: float):
+        """Run a sub-generator, passing its messages on at ``fraction`` (each of its
+        yields is a point to cancel at); return its value."""
+        while True:
+            try:
+                p = next(gen)
+            except StopIteration as done:
+                return done.value
+            yield Progress(stage, fraction, p.message)
+
+    def evaluate(c: Context, stage: str, fraction: float):
+        cf = yield from forward(iter_crossfit(c.image, c.beads, c.noise, psf_radius=r,
+                                              folds=folds, estimate_kwargs=c.estimate_kwargs,
+                                              fit_kwargs={**c.fit_kwargs,
+                                                          "pixel_mask": c.pixel_mask}),
+                                stage, fraction)
         an = analyse(cf.residuals, c.image, c.noise, psf_radius=r,
                      all_positions=c.beads.positions)
         for name in ("secondary_peaks", "elongated_beads"):
@@ -280,7 +291,7 @@ def iter_diagnose(
                     np.asarray(sp.detail["beads"], int)].tolist()
         return cf, an
 
-    cf, an = evaluate(ctx)
+    cf, an = yield from evaluate(ctx, "baseline", 0.1)
     ctx = ctx.with_effect("_model", cf.model_meta) if cf.model_meta else ctx
     first_cf, first_an = cf, an
     # every figure of the diagnosis is a mean over the plain model's informative beads
@@ -315,7 +326,8 @@ def iter_diagnose(
         try:
             params = eff.fit(ctx, an)
             new_ctx = eff.apply(ctx, params)
-            new_cf, new_an = evaluate(new_ctx)
+            new_cf, new_an = yield from evaluate(new_ctx, "effect",
+                                                 min(0.9, 0.2 + 0.1 * k))
         except ValueError as exc:  # e.g. too few beads left to learn from: not kept
             s0 = paired_errors(cf, cf, ctx.noise, reference, informative=informative)
             steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
@@ -369,10 +381,10 @@ def iter_diagnose(
 
     # the final operator: a point source's PSFs when the beads' size is known (the
     # nominal one, which the bead-size effect then takes for the median bead's)
-    est = run_with_progress(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
-                                          holdout=None, bead_diameter=bead_diameter,
-                                          remove_motion=remove_motion,
-                                          **ctx.estimate_kwargs))
+    est = yield from forward(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
+                                           holdout=None, bead_diameter=bead_diameter,
+                                           remove_motion=remove_motion,
+                                           **ctx.estimate_kwargs), "final", 0.95)
     added = [s.effect for s in steps if s.effect and s.accepted]
     total = paired_errors(first_cf, cf, ctx.noise, reference, informative=informative)
 
