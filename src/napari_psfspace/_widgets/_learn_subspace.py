@@ -11,6 +11,7 @@ and the conditions as points.
 from __future__ import annotations
 
 import functools
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -172,8 +173,11 @@ class LearnSubspaceWidget(Container):
         path = Path(self.save_path.value) if str(self.save_path.value) not in ("", ".") else None
         n_psf = int(self.n_psf.value) or None
         n_space = int(self.n_space.value) or None
+        # images read a core's worth at a time: the bar moves (and Cancel is honoured)
+        # after each few images, not after the first 8
         gen = _learn_and_show(loaders, grid=6, psf_radius=self.radius.pixels, n_psf=n_psf,
-                              n_space=n_space, holdout=0.2 if self.holdout.value else None)
+                              n_space=n_space, holdout=0.2 if self.holdout.value else None,
+                              chunk=max(1, os.cpu_count() or 1))
 
         def on_result(got) -> None:
             sub, ys, xs, psfs, coords = got
