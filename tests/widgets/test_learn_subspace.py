@@ -55,6 +55,12 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     p = sub.basis.shape[-1]
     first = sub.basis[0] / np.abs(sub.basis[0]).max()
     assert np.allclose(v.layers[SUB_BASIS].data[:p, :p], first, atol=1e-6)
+    # each in its own slot: no two of the family's results on each other
+    shown = [v.layers[n] for n in (SUB_SPACE, SUB_GRID, SUB_BASIS, SUB_CONDITIONS)]
+    for i, a in enumerate(shown):
+        for b in shown[i + 1:]:
+            (a0, a1), (b0, b1) = (np.asarray(x.extent.world)[:, -2:] for x in (a, b))
+            assert not (np.all(a0 < b1) and np.all(b0 < a1)), (a.name, b.name)
     pts = v.layers[SUB_CONDITIONS]
     assert pts.data.shape == (5, 2) and list(pts.features["image"]) == list(range(5))
     assert list(pts.features["label"]) == sub.metadata["labels"]

@@ -358,11 +358,11 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
             "about": f"PSF at {grid}x{grid} field positions, each scaled to its maximum, "
                      "gamma 0.5. Save this layer as .npz to save the model."}
     basis = np.asarray(op.basis, np.float32)
-    b_tiles, b_scale, b_cols = _flat_mosaic(basis, 0.9 * frame.height, gap=2)
+    b_tiles, b_scale, b_cols = _flat_mosaic(basis, frame, 0.9, gap=2)
     by, bx = _beside(frame, 2.0)
     maps = op.coefficient_maps()
     step = int(np.ceil(np.sqrt(maps.shape[0])))  # smooth maps: every step-th pixel
-    m_tiles, m_scale, m_cols = _flat_mosaic(maps[:, ::step, ::step], frame.height, gap=4)
+    m_tiles, m_scale, m_cols = _flat_mosaic(maps[:, ::step, ::step], frame, 1.0, gap=4)
     my, mx = _beside(frame, 1.0, 1.0)
     return [
         (m_tiles, {"name": MAPS, "scale": (m_scale, m_scale), "translate": (my, mx),
@@ -382,15 +382,17 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
     ]
 
 
-def _flat_mosaic(stack: np.ndarray, extent: float, *, gap: int
+def _flat_mosaic(stack: np.ndarray, frame: Frame, fill: float, *, gap: int
                  ) -> tuple[np.ndarray, float, int]:
     """``(tiles, scale, columns)``: a stack (K, P, Q) as one 2-D image (near-square grid,
-    each tile scaled to its largest magnitude), and the world scale per pixel that makes
-    it ``extent`` tall."""
+    each tile scaled to its largest magnitude), and the world scale per pixel that fits
+    it in ``fill`` of one slot of the layout (the image's size): it never reaches into
+    the next slot."""
     stack = np.asarray(stack, np.float64)
     tiles = mosaic(stack, gap=gap, normalize="each", fill=0.0).astype(np.float32)
     cols = int(np.ceil(np.sqrt(stack.shape[0])))
-    return tiles, float(extent) / tiles.shape[0], cols
+    scale = fill * min(frame.height / tiles.shape[0], frame.width / tiles.shape[1])
+    return tiles, float(scale), cols
 
 
 def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
@@ -427,10 +429,10 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     s_mosaic = frame.height / tiles.shape[1]
     y0, x0 = _beside(frame, 1.0, 2.0)
     basis = np.asarray(sub.basis, np.float32)
-    b_tiles, b_scale, b_cols = _flat_mosaic(basis, 0.9 * frame.height, gap=2)
+    b_tiles, b_scale, b_cols = _flat_mosaic(basis, frame, 0.9, gap=2)
     by, bx = _beside(frame, 2.0, 2.0)
     space = np.asarray(sub.space, np.float32)
-    s_tiles, s_scale, s_cols = _flat_mosaic(space, frame.height, gap=1)
+    s_tiles, s_scale, s_cols = _flat_mosaic(space, frame, 1.0, gap=1)
     sy, sx = _beside(frame, 0.0, 2.0)
     box = 0.45 * frame.height
     c = np.asarray(coords, float)[:, :2]
@@ -507,7 +509,7 @@ def gallery_layer(stack: np.ndarray, frame: Frame, *, view: str) -> LayerTuple:
     ``k`` at row ``k // columns``, column ``k % columns``; :func:`gallery_cell`), each
     patch scaled to its largest magnitude: no axis shared with the data."""
     y0, x0 = _beside(frame, 0.0, 1.0)
-    tiles, scale, cols = _flat_mosaic(stack, frame.height, gap=GALLERY_GAP)
+    tiles, scale, cols = _flat_mosaic(stack, frame, 1.0, gap=GALLERY_GAP)
     return (tiles, {"name": GALLERY, "scale": (scale, scale), "translate": (y0, x0),
                     "colormap": "gray",
                     "metadata": {"view": view, "columns": cols, "patch": stack.shape[-1],
