@@ -60,7 +60,9 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
     # motion blur is looked for on every model (a still sample: nothing found)
     assert op.metadata["motion"]["detected"] is False and not w.remove_motion.value
 
-    w.psf_y.value, w.psf_x.value = 50.0, 300.0
+    # in micrometres, as the radius (the image has a 0.065 um pixel)
+    assert "µm" in w.psf_unit.value and "µm" in w.radius.value_edit.label
+    w.psf_y.value, w.psf_x.value = 3.25, 19.5  # 50 and 300 px
     w.show_psf.clicked()
     # at most rounded once to float32 for the layer
     u32 = np.finfo(np.float32).eps / 2

@@ -11,6 +11,7 @@ from magicgui.widgets import (
     Container,
     FileEdit,
     FloatSpinBox,
+    Label,
     PushButton,
     SpinBox,
 )
@@ -90,14 +91,15 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.learn = PushButton(text="Learn operator")
         self.task = CoreTask(self.learn)
         self.result = result_text()
-        self.psf_y = FloatSpinBox(label="PSF at row", min=0.0, max=1e9, step=1.0)
-        self.psf_x = FloatSpinBox(label="PSF at column", min=0.0, max=1e9, step=1.0)
+        self.psf_y = FloatSpinBox(label="PSF at y", min=0.0, max=1e4, step=0.1)
+        self.psf_x = FloatSpinBox(label="PSF at x", min=0.0, max=1e4, step=0.1)
+        self.psf_unit = Label(value="position in pixels, as the radius")
         self.show_psf = PushButton(text="Show PSF at this position", enabled=False)
         super().__init__(widgets=[
             self.image, self.points, self.radius, self.threshold, self.n_psf_mode,
             self.n_psf, self.auto_smoothing, self.smoothing, self.remove_motion,
             self.save_path, self.learn,
-            self.task, self.result, self.psf_y, self.psf_x, self.show_psf])
+            self.task, self.result, self.psf_unit, self.psf_y, self.psf_x, self.show_psf])
         self.operator: ProductConvolution | None = None
         self._frame = None
         self.n_psf_mode.changed.connect(
@@ -116,7 +118,15 @@ class LearnOperatorWidget(FollowsBeads, Container):
             return
         self._calibrate(img, pts)
         h, w = img.data.shape[-2:]
-        self.psf_y.value, self.psf_x.value = (h - 1) / 2, (w - 1) / 2
+        # the position in the radius's unit: um when the image has a pixel size
+        px = self.radius.pixel_size
+        self._psf_unit = px or 1.0
+        self.psf_unit.value = (f"position in µm ({px:g} µm/px), as the radius" if px
+                               else "position in pixels, as the radius")
+        self.psf_y.max = round((h - 1) * self._psf_unit, 2)
+        self.psf_x.max = round((w - 1) * self._psf_unit, 2)
+        self.psf_y.value = round((h - 1) / 2 * self._psf_unit, 2)
+        self.psf_x.value = round((w - 1) / 2 * self._psf_unit, 2)
 
     def run(self, *_) -> None:
         """Learn the operator in a worker thread; show and save it when done."""
@@ -175,10 +185,12 @@ class LearnOperatorWidget(FollowsBeads, Container):
         return text
 
     def psf_here(self, *_) -> None:
-        """Show the PSF at (row, column) as a layer (File > Save Layer... writes a TIFF)."""
+        """Show the PSF at (y, x) as a layer (File > Save Layer... writes a TIFF); the
+        position is in micrometres when the image has a pixel size, as the radius is."""
         if self.operator is None:
             return
-        y, x = float(self.psf_y.value), float(self.psf_x.value)
+        unit = getattr(self, "_psf_unit", 1.0)  # um per px, or 1 (px)
+        y, x = float(self.psf_y.value) / unit, float(self.psf_x.value) / unit
         try:
             psf = self.operator.psf_at(y, x)
         except ValueError as exc:
