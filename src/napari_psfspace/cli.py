@@ -95,6 +95,7 @@ def _bead_diameter_px(args, info) -> float:
 
 
 def _cmd_estimate(args) -> int:
+    from .core.diagnosis.loop import iter_heldout_error
     from .core.model.estimate import iter_estimate, run_with_progress
     from .report import model_lines
 
@@ -107,19 +108,27 @@ def _cmd_estimate(args) -> int:
                         bead_diameter=_bead_diameter_px(args, info),
                         remove_motion=args.remove_motion)
     est = run_with_progress(gen, None if args.quiet else _progress_printer())
+    # the one accuracy figure (core/diagnosis/metric.py), by the code Diagnose uses
+    try:
+        held = run_with_progress(
+            iter_heldout_error(image, psf_radius=r, threshold=args.threshold,
+                               n_psf=n_psf if isinstance(n_psf, int) else None,
+                               smoothing=args.smoothing,
+                               bead_diameter=_bead_diameter_px(args, info)),
+            None if args.quiet else _progress_printer())
+    except ValueError as exc:  # e.g. too few beads to judge each by the others
+        held = str(exc)
     op = est.operator
-    if info.pixel_size:
-        op = type(op)(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
-                      metadata={**op.metadata, "pixel_size_um": info.pixel_size,
-                                "source": str(args.image), "slice": args.slice})
+    op = type(op)(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+                  metadata={**op.metadata, "heldout_error": (
+                      held if isinstance(held, str) else held.to_dict()),
+                            **({"pixel_size_um": info.pixel_size, "source": str(args.image),
+                                "slice": args.slice} if info.pixel_size else {})})
     op.save(args.output)
     meta = op.metadata
     print(f"wrote {args.output}: basis of {op.n_psf} PSFs of {op.psf_size} px from "
           f"{meta['n_beads_used']} beads; {est.beads.summary()}")
-    h = meta.get("heldout")
-    if h and h.get("n_beads"):
-        print(f"held-out beads: {h['n_beads']}, relative residual mean {h['residual_mean']:.4f} "
-              f"(median {h['residual_median']:.4f}), noise floor {h['noise_floor_mean']:.4f}")
+    print(f"held-out error not measured: {held}" if isinstance(held, str) else held.line())
     for line in model_lines(meta, markdown=False):
         print(line)
     return 0

@@ -32,6 +32,7 @@ import numpy as np
 from . import __version__
 from .core.common.atomic import atomic_write
 from .core.common.mosaic import mosaic
+from .core.diagnosis import metric
 from .core.diagnosis.residuals import BeadResiduals
 
 #: ``format`` and ``version`` of report.json (docs/report-format.md).
@@ -267,7 +268,8 @@ def summary_text(diagnosis) -> str:
     assumed = ("" if kind in ("camera", "photon transfer") else
                f"\nnoise model assumed ({kind}: photon transfer was not possible): the floor "
                "and chi2/dof are only indicative")
-    return (f"{v.headline}\n{hot}added: {added}\n"
+    plain = "" if d.heldout is None else f"plain model: {d.heldout.line()}\n"
+    return (f"{v.headline}\n{hot}{plain}added: {added}\n"
             f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} on "
             f"{d.n_beads} beads (noise floor {_num(d.noise_floor)}); chi2/dof "
             f"{_num(d.chi2_before, '.3g')} -> {_num(d.chi2_after, '.3g')}{assumed}")
@@ -505,10 +507,8 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "| ![worst residual patches, plain model](residual_patches_before.png) "
               "| ![worst residual patches, final model](residual_patches_after.png) |", "",
               "## Terms", "",
-              "- *held-out error*: each bead's relative residual energy, |data - model|² "
-              "over |bead signal|², with a model estimated without that bead, over the "
-              "beads.",
-              "- *noise floor*: the same for a perfect model (noise alone).",
+              f"- *{metric.NAME}*: {metric.DEFINITION} ({metric.UNIT}).",
+              f"- *noise floor*: {metric.FLOOR_DEFINITION}.",
               "- *chi2/dof*: chi-square per degree of freedom under the noise model (1 for a "
               "model that explains everything but the noise).",
               "- *evidence*: strongest z / threshold of the tests that point at the effect "

@@ -56,7 +56,7 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
     assert pts.features["status"].iloc[row] == "rejected"
     assert np.min(np.hypot(*(used - pts.data[row]).T)) > 1.0
     assert op.metadata["n_beads_used"] <= int((pts.features["status"] == "kept").sum())
-    assert "held-out residual" in w.result.value and str(path) in w.result.value
+    assert "held-out error" in w.result.value and str(path) in w.result.value
     # motion blur is looked for on every model (a still sample: nothing found)
     assert op.metadata["motion"]["detected"] is False and not w.remove_motion.value
 

@@ -27,16 +27,12 @@ from ..report import (
     write_report,
 )
 from ._layers import (
-    HOT_PIXELS,
     OPERATOR_KEY,
     Frame,
     LayerTuple,
     _beside,
-    beads_from_points,
-    ensure_bead_features,
-    for_a_new_fit,
-    hot_pixels_from_layer,
     show_layers,
+    user_beads,
 )
 from ._worker import (
     CoreTask,
@@ -181,11 +177,8 @@ class DiagnoseWidget(FollowsBeads, Container):
                   if str(self.report_dir.value) not in ("", ".") else None)
         name = img.name
         beads = None
-        if pts is not None:  # the user's beads, with the rejections made by hand
-            ensure_bead_features(pts)
-            beads = for_a_new_fit(beads_from_points(pts, frame)[0])
-            if HOT_PIXELS in self._viewer.layers:  # Beads' masked pixels, masked again
-                beads.hot_pixels = hot_pixels_from_layer(self._viewer.layers[HOT_PIXELS])
+        if pts is not None:  # the user's beads (rejections by hand, masked pixels)
+            beads = user_beads(self._viewer, pts, frame)[0]
         gen = iter_diagnose(plane, psf_radius=self.radius.pixels,
                             threshold=float(self.threshold.value),
                             bead_diameter=self._bead_diameter_px(),

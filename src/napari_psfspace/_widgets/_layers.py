@@ -292,6 +292,19 @@ def for_a_new_fit(beads: Beads) -> Beads:
     return Beads(beads.positions, beads.response, status, beads.amplitude, beads.hot_pixels)
 
 
+def user_beads(viewer, layer, frame: Frame) -> tuple[Beads, np.ndarray]:
+    """``(beads, ids)``: the user's beads of a Points layer for a new fit
+    (:func:`for_a_new_fit`), with the pixels Beads masked (its "hot pixels" layer): what
+    the Model and Diagnose steps both learn from, so that they judge the same beads."""
+    ensure_bead_features(layer)
+    beads, ids = beads_from_points(layer, frame)
+    beads = for_a_new_fit(beads)
+    hot = find_layer(viewer, HOT_PIXELS, "points")
+    if hot is not None:
+        beads.hot_pixels = hot_pixels_from_layer(hot)
+    return beads, ids
+
+
 def ensure_bead_features(layer) -> None:
     """Give a Points layer made by hand the bead features (id, amplitude, status)."""
     feats = layer.features
@@ -547,19 +560,41 @@ def gallery_index(layer, world: np.ndarray) -> int | None:
     return r * cols + c
 
 
+#: Metadata key marking a layer the plugin made, with the name it asked for: found again
+#: on a re-run even when napari renamed it ("beads [1]" beside a user's image "beads").
+MADE_AS = "psfspace_layer"
+
+
+def _kind(layer) -> str:
+    # ``__class__``, not ``type()``: through napari's Plugins menu the viewer is a
+    # ``PublicOnlyProxy``, whose layers' ``type()`` is the proxy's
+    return layer.__class__.__name__.lower()
+
+
+def find_layer(viewer, name: str, kind: str | None = None):
+    """The plugin's layer made as ``name`` (see :data:`MADE_AS`), else the layer of that
+    name (of ``kind`` when given), else None."""
+    for layer in viewer.layers:
+        if (layer.metadata or {}).get(MADE_AS) == name and kind in (None, _kind(layer)):
+            return layer
+    if name in viewer.layers and kind in (None, _kind(viewer.layers[name])):
+        return viewer.layers[name]
+    return None
+
+
 def show_layers(viewer, tuples: list[LayerTuple]) -> list:
-    """Add the layers to the viewer, or update those of the same name in place."""
+    """Add the layers to the viewer, or update in place those the plugin made under the
+    same name (whatever napari renamed them to)."""
     out = []
     for data, kwargs, kind in tuples:
         name = kwargs["name"]
-        # ``__class__``, not ``type()``: through napari's Plugins menu the viewer is a
-        # ``PublicOnlyProxy``, whose layers' ``type()`` is the proxy's
-        if name in viewer.layers and viewer.layers[name].__class__.__name__.lower() == kind:
-            layer = viewer.layers[name]
+        kwargs = {**kwargs, "metadata": {**(kwargs.get("metadata") or {}), MADE_AS: name}}
+        layer = find_layer(viewer, name, kind)
+        if layer is not None:
             if np.ndim(layer.data) != np.ndim(data) and kind == "image":
                 viewer.layers.remove(layer)
             else:
-                _update(layer, data, kwargs)
+                _update(layer, data, {k: v for k, v in kwargs.items() if k != "name"})
                 out.append(layer)
                 continue
         out.append(getattr(viewer, f"add_{kind}")(data, **kwargs))

@@ -18,20 +18,21 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_info
 
+from ..core.diagnosis.loop import iter_heldout_error
+from ..core.diagnosis.metric import line as heldout_line
 from ..core.model.estimate import iter_estimate
 from ..core.model.operator import ProductConvolution
 from ..report import model_lines
 from ._layers import (
     PSF_GRID,
-    beads_from_points,
     beads_layer,
-    ensure_bead_features,
-    for_a_new_fit,
+    find_layer,
     heldout_layer,
     operator_layers,
     psf_layer,
     set_statuses,
     show_layers,
+    user_beads,
 )
 from ._worker import (
     CoreTask,
@@ -49,10 +50,22 @@ N_PSF_MODES = {"auto (held-out beads)": None, "auto (rank rule)": "rule", "fixed
 
 
 def _learn(plane, frame, source: str, **kwargs):
-    """iter_estimate, then stamp the image's pixel size and name on the model."""
+    """iter_estimate, then the held-out error (the one accuracy figure, by the code
+    Diagnose uses: the same number for the same beads), then stamp the image's pixel
+    size and name on the model."""
     est = yield from iter_estimate(plane, **kwargs)
+    n_psf = kwargs.get("n_psf")
+    try:
+        held = yield from iter_heldout_error(
+            plane, psf_radius=kwargs["psf_radius"], threshold=kwargs["threshold"],
+            n_psf=n_psf if isinstance(n_psf, int) else None,
+            smoothing=kwargs.get("smoothing"), bead_diameter=kwargs.get("bead_diameter", 0.0),
+            beads=kwargs.get("beads"))
+    except ValueError as exc:  # e.g. too few beads to judge each by the others
+        held = str(exc)
     op = est.operator
-    meta = {**op.metadata, "pixel_size_um": frame.pixel_size, "image": source}
+    meta = {**op.metadata, "pixel_size_um": frame.pixel_size, "image": source,
+            "heldout_error": held if isinstance(held, str) else held.to_dict()}
     est.operator = ProductConvolution(op.basis, op.coefficients, shape=op.shape,
                                       grid=op.grid, metadata=meta)
     return est
@@ -137,9 +150,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
         plane, frame = got
         beads, ids = None, None
         if pts is not None:
-            ensure_bead_features(pts)
-            beads, ids = beads_from_points(pts, frame)
-            beads = for_a_new_fit(beads)
+            beads, ids = user_beads(self._viewer, pts, frame)
         mode = N_PSF_MODES[self.n_psf_mode.value]
         n_psf = int(self.n_psf.value) if mode == "fixed" else mode
         smoothing = None if self.auto_smoothing.value else float(self.smoothing.value)
@@ -160,7 +171,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
             if est.heldout is not None and len(est.heldout.residual):
                 tuples.append(heldout_layer(est.heldout, frame))
             show_layers(self._viewer, tuples)
-            self._viewer.layers.selection.active = self._viewer.layers[PSF_GRID]
+            self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
             self._viewer.reset_view()
             self.show_psf.enabled = True
             self.result.value = self._describe(est)
@@ -176,10 +187,11 @@ class LearnOperatorWidget(FollowsBeads, Container):
         meta = est.operator.metadata
         text = (f"basis of I = {meta['n_psf']} PSFs from {meta['n_beads_used']} beads\n"
                 f"{est.beads.summary()}")
-        h = meta.get("heldout") or {}
-        if h.get("n_beads"):
-            text += (f"\nheld-out residual {h['residual_mean']:.3f} on {h['n_beads']} beads "
-                     f"(noise floor {h['noise_floor_mean']:.3f})")
+        h = meta.get("heldout_error")
+        if isinstance(h, dict):
+            text += "\n" + heldout_line(h["error"], h["noise_floor"], h["n_beads"])
+        elif h:
+            text += f"\nheld-out error not measured: {h}"
         for line in model_lines(meta, markdown=False):
             text += f"\n{line}"
         return text

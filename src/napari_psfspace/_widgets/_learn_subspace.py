@@ -30,7 +30,7 @@ from napari.utils.notifications import show_error, show_info
 
 from ..core.model.estimate import Progress
 from ..core.subspace import OperatorSubspace, iter_estimate_subspace
-from ._layers import SUB_GRID, Frame, show_layers, subspace_layers
+from ._layers import SUB_GRID, Frame, find_layer, show_layers, subspace_layers
 from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of, result_text
 
 if TYPE_CHECKING:
@@ -185,7 +185,7 @@ class LearnSubspaceWidget(Container):
             self.subspace = sub
             show_layers(self._viewer, subspace_layers(sub, ys, xs, psfs, coords, frame,
                                                       stack_axis=axis))
-            self._viewer.layers.selection.active = self._viewer.layers[SUB_GRID]
+            self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)
             self._viewer.reset_view()
             self.result.value = self._describe(sub)
             if path is not None:

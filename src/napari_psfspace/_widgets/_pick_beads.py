@@ -17,6 +17,7 @@ from ._layers import (
     STATUS_COLORS,
     STATUS_MEANING,
     beads_layer,
+    find_layer,
     fix_ids,
     hot_pixels_layer,
     image_plane,
@@ -179,7 +180,8 @@ class PickBeadsWidget(Container):
                                   "bead_diameter_px": diameter_px}
             tuples = [(data, kwargs, kind)]
             hot = np.zeros((0, 2)) if beads.hot_pixels is None else beads.hot_pixels
-            if len(hot) or HOT_PIXELS in self._viewer.layers:  # never leave a stale one
+            stale = find_layer(self._viewer, HOT_PIXELS, "points") is not None
+            if len(hot) or stale:  # never leave a stale one
                 tuples.insert(0, hot_pixels_layer(hot, frame))
             points = show_layers(self._viewer, tuples)[-1]
             watch_points(points)

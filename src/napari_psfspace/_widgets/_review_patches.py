@@ -16,6 +16,7 @@ from ._layers import (
     STATUS_MEANING,
     beads_from_points,
     ensure_bead_features,
+    find_layer,
     gallery_cell,
     gallery_index,
     gallery_layer,
@@ -142,15 +143,16 @@ class ReviewPatchesWidget(FollowsBeads, Container):
 
     def _outline(self) -> None:
         """A rectangle around the patch on display in the gallery."""
-        if self.review is None or GALLERY not in self._viewer.layers:
+        gallery = find_layer(self._viewer, GALLERY, "image")
+        if self.review is None or gallery is None:
             return
-        corners = gallery_cell(self._viewer.layers[GALLERY], self.current())
+        corners = gallery_cell(gallery, self.current())
         rect = np.array([corners[0], [corners[0][0], corners[1][1]], corners[1],
                          [corners[1][0], corners[0][1]]])
         show_layers(self._viewer, [(rect[None], {
             "name": CURRENT, "shape_type": "rectangle", "edge_color": "#ffe135",
             "face_color": "transparent", "edge_width": 2.0 * float(
-                self._viewer.layers[GALLERY].scale[-1]),
+                gallery.scale[-1]),
             "metadata": {"about": "the patch on display in Review"}}, "shapes")])
 
     def _status_of(self, bead_id: int) -> str:

@@ -214,8 +214,10 @@ class RadiusEdit(Container):
 
     @property
     def pixels(self) -> float:
+        """The radius in pixels (to 1e-6 px: 0.91 um / 0.065 um is 14.000000000000002,
+        whose ceiling, a patch's half-width, would be 15)."""
         v = float(self.value_edit.value)
-        return v / self._pixel_size if self._pixel_size else v
+        return round(v / self._pixel_size, 6) if self._pixel_size else v
 
     @property
     def pixel_size(self) -> float | None:

@@ -51,6 +51,7 @@ from .analysis import Analysis, analyse, bead_flux
 from .comparison import _compare, paired_errors
 from .crossfit import CrossFit, iter_crossfit
 from .effects import REGISTRY, Context, Effect
+from .metric import HeldoutError
 from .noise import NoiseModel, noise_model
 from .photometry import (
     fit_throughput,
@@ -134,6 +135,10 @@ class Diagnosis:
         How the noise model was obtained.
     masked_pixels : ndarray of shape (S, 2) or None
         The hot pixels found at detection (see :attr:`hot_pixels`).
+    heldout : HeldoutError or None
+        The plain model's held-out error on all its informative beads
+        (:mod:`~napari_psfspace.core.diagnosis.metric`): the figure every report gives
+        for the model before the diagnosis (:func:`iter_heldout_error` computes the same).
     """
 
     steps: list[Step]
@@ -152,6 +157,7 @@ class Diagnosis:
     options: dict = field(default_factory=dict)
     masked_pixels: np.ndarray | None = None
     n_beads: int = 0
+    heldout: HeldoutError | None = None
 
     @property
     def added(self) -> list[str]:
@@ -179,6 +185,7 @@ class Diagnosis:
             "error_before": self.error_before, "error_after": self.error_after,
             "chi2_dof_before": self.chi2_before, "chi2_dof_after": self.chi2_after,
             "noise_floor": self.noise_floor, "n_beads": self.n_beads,
+            "heldout_error": None if self.heldout is None else self.heldout.to_dict(),
             "verdict": self.verdict.to_dict(), "added": self.added, "options": self.options,
             "noise_model": {**self.context.noise.to_dict(), "source": self.noise_source},
             "hot_pixels": hot_pixel_record(self.hot_pixels),
@@ -236,11 +243,14 @@ def iter_diagnose(
     bead_diameter: float = 0.0,
     remove_motion: bool = False,
     beads: Beads | None = None,
+    _baseline_only: bool = False,
 ) -> Generator[Progress, None, Diagnosis]:
     """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis.
 
     ``beads``: the user's bead table (e.g. edited in napari: beads rejected by hand keep
-    that status and are not used); None detects them at ``threshold``."""
+    that status and are not used); None detects them at ``threshold``.
+    ``_baseline_only``: stop at the plain model's held-out error and return it
+    (:func:`iter_heldout_error`: the one code path for that figure)."""
     raw = np.asarray(image)
     img = as_image(raw, dtype=np.float64)
     r = check_psf_radius(psf_radius, img.shape)
@@ -302,9 +312,11 @@ def iter_diagnose(
     steps = [Step(None, 0.0, [t.name for t in an.significant()], base["error_before"],
                   base["error_before"], base["chi2_before"], base["chi2_before"], 0.0, 1.0,
                   True, {"n_beads": base["n_beads"]})]
-    yield Progress("baseline", 0.2, f"held-out error {base['error_before']:.4g} on "
-                   f"{base['n_beads']} beads (noise floor {base['noise_floor']:.4g}), "
-                   f"chi2/dof {base['chi2_before']:.3g}")
+    held = HeldoutError(base["error_before"], base["noise_floor"], base["chi2_before"],
+                        base["n_beads"], noise_source)
+    yield Progress("baseline", 0.2, f"{held.line()}; chi2/dof {held.chi2_dof:.3g}")
+    if _baseline_only:
+        return held
     tried: set[str] = set()
     for k in range(max_steps):
         ranked = sorted(((e.evidence(an), e) for e in candidates
@@ -424,7 +436,31 @@ def iter_diagnose(
     return Diagnosis(steps, total["error_before"], total["error_after"],
                      total["chi2_before"], total["chi2_after"], total["noise_floor"], op, ctx,
                      first_an, an, first_cf, cf, noise_source, options, beads.hot_pixels,
-                     n_beads=total["n_beads"])
+                     n_beads=total["n_beads"], heldout=held)
+
+
+def iter_heldout_error(image, *, psf_radius: float, **kwargs
+                       ) -> Generator[Progress, None, HeldoutError]:
+    """The held-out error of the plain model on an image's beads
+    (:mod:`~napari_psfspace.core.diagnosis.metric`): the diagnosis's baseline, by the
+    same code, so that the Model step, ``psfspace estimate``, Diagnose and the report
+    give one number for one image and beads.
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+    psf_radius : float
+        Pixels.
+    **kwargs
+        ``threshold``, ``gain``, ``offset``, ``read_noise``, ``folds``, ``n_psf``,
+        ``smoothing``, ``bead_diameter``, ``beads`` of :func:`iter_diagnose`.
+
+    Returns
+    -------
+    HeldoutError
+    """
+    return (yield from iter_diagnose(image, psf_radius=psf_radius, effects=[],
+                                     max_steps=0, _baseline_only=True, **kwargs))
 
 
 def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] | None = None,
