@@ -70,7 +70,7 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     assert np.allclose(psfs[0, 0, 0], sub.psf_at(3, ys[0], xs[0]))
     # the family is a good model of slice 3 (the truth of image 3 of the stack)
     assert np.mean(grid_errors(sub.operator(2), truths[3], n=3)) < 0.15  # measured 0.064
-    assert "held-out residual" in w.result.value and str(path) in w.result.value
+    assert "held-out beads" in w.result.value and str(path) in w.result.value
     loaded = OperatorSubspace.load(path)
     assert np.allclose(loaded.gammas, sub.gammas)
 

@@ -209,6 +209,9 @@ class LearnSubspaceWidget(Container):
         if held:
             res = np.array([h["residual_mean"] for h in held])
             floor = np.array([h["noise_floor_mean"] for h in held])
-            text += (f"\nheld-out residual {res.mean():.3f} (images {res.min():.3f}-"
-                     f"{res.max():.3f}; noise floor {floor.mean():.3f})")
+            # the held-out split that chose each image's blend (relative l2 per bead), not
+            # the held-out error of one image (Model and Diagnose give that)
+            text += (f"\nblend chosen on held-out beads: their relative residual "
+                     f"{res.mean():.3f} (images {res.min():.3f}-{res.max():.3f}; noise "
+                     f"{floor.mean():.3f})")
         return text
