@@ -34,6 +34,14 @@ def _node_field(n=4):
                               metadata={"identification": {"model_error": 0.2}})
 
 
+def _points_image(op, seed):
+    """30 points of 800 photons seen through ``op`` on a background of 50, Poisson."""
+    rng = np.random.default_rng(seed)
+    truth = np.zeros(SHAPE, np.float32)
+    truth[rng.integers(10, 86, 30), rng.integers(10, 102, 30)] = 800
+    return rng.poisson(op.apply(truth) + 50).astype(np.float32)
+
+
 def _qr_svd_bound(rows, cols):
     """Householder QR and the SVD are backward stable: within ``gamma(c m n)`` of the
     matrix's norm (Higham, Thm 19.4), c a small constant (10 here)."""
@@ -95,10 +103,7 @@ def test_bad_rtol_is_named():
 
 def test_deblur_compresses_to_a_fraction_of_the_operators_own_error():
     op = _node_field()
-    rng = np.random.default_rng(2)
-    truth = np.zeros(SHAPE, np.float32)
-    truth[rng.integers(10, 86, 30), rng.integers(10, 102, 30)] = 800
-    image = rng.poisson(op.apply(truth) + 50).astype(np.float32)
+    image = _points_image(op, seed=2)
     res = deblur(image, op, max_iter=30)
     assert res.parameters["compression"] == pytest.approx(COMPRESSION * 0.2)
     assert res.parameters["kernels"][0] == 16 > res.parameters["kernels"][1]
@@ -108,7 +113,6 @@ def test_deblur_compresses_to_a_fraction_of_the_operators_own_error():
         deblur(image, op, compression=-1.0)
 
 
-
 def test_a_coarser_search_operator_does_not_change_where_the_deblur_ends(monkeypatch):
     """FISTA's search for the support runs on fewer kernels (``SEARCH_COMPRESSION``);
     the sweeps, the optimality check and the FISTA after them on the exact operator, so
@@ -116,10 +120,7 @@ def test_a_coarser_search_operator_does_not_change_where_the_deblur_ends(monkeyp
     of a run searching with the exact operator too."""
     import napari_psfspace.core.restore.deconvolve as dec
     op = _node_field()
-    rng = np.random.default_rng(3)
-    truth = np.zeros(SHAPE, np.float32)
-    truth[rng.integers(10, 86, 30), rng.integers(10, 102, 30)] = 800
-    image = rng.poisson(op.apply(truth) + 50).astype(np.float32)
+    image = _points_image(op, seed=3)
     coarse = deblur(image, op, compression=0)
     monkeypatch.setattr(dec, "SEARCH_COMPRESSION", 0.0)
     exact = deblur(image, op, compression=0)

@@ -58,19 +58,21 @@ def test_deblur_with_the_polish_is_no_worse_and_takes_fewer_iterations():
     assert a <= b * (1 + 1e-4)
 
 
+def _progress_and_result(gen):
+    """Every Progress a generator yields, and what it returns."""
+    records = []
+    while True:
+        try:
+            records.append(next(gen))
+        except StopIteration as done:
+            return records, done.value
+
+
 def test_the_progress_of_a_polished_deblur_never_goes_back():
     from napari_psfspace.core.restore.deconvolve import iter_deblur
     image, op, truth, pts, bg = _point_scene(seed=2)
-    gen = iter_deblur(image, op)
-    fractions, stages = [], set()
-    while True:
-        try:
-            p = next(gen)
-        except StopIteration as done:
-            res = done.value
-            break
-        fractions.append(p.fraction)
-        stages.add(p.stage)
+    records, res = _progress_and_result(iter_deblur(image, op))
+    fractions, stages = [p.fraction for p in records], {p.stage for p in records}
     assert res.parameters["polish_sweeps"] > 0 and "polish" in stages
     assert all(b >= a for a, b in zip(fractions, fractions[1:], strict=False)), fractions
     assert fractions[-1] == 1.0
@@ -92,17 +94,10 @@ def test_deblur_can_be_cancelled_between_any_two_applications_of_the_operator():
     after each sweep, so no stretch between yields costs more than one iteration."""
     from napari_psfspace.core.restore.deconvolve import iter_deblur
     image, op, truth, pts, bg = _point_scene(seed=2)
-    gen = iter_deblur(image, op)
-    setup, fista, messages = 0, 0, []
-    while True:
-        try:
-            p = next(gen)
-        except StopIteration as done:
-            res = done.value
-            break
-        messages.append(p.message)
-        setup += "power iteration" in p.message
-        fista += p.stage == "deblur" and "iteration" in p.message
+    records, res = _progress_and_result(iter_deblur(image, op))
+    messages = [p.message for p in records]
+    setup = sum("power iteration" in m for m in messages)
+    fista = sum(p.stage == "deblur" and "iteration" in p.message for p in records)
     assert setup >= 2
     assert fista >= res.iterations
     assert not any("nan" in m for m in messages)  # was "objective fell nan" at first
