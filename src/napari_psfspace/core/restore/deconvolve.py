@@ -225,12 +225,8 @@ def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e
     """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
     below): at most ``n_iter`` iterations, stopping once an iteration raises the value
     by less than ``rtol`` (relatively)."""
-    gen = iter_operator_norm2(op, n_iter=n_iter, rtol=rtol, seed=seed, workers=workers)
-    while True:
-        try:
-            next(gen)
-        except StopIteration as done:
-            return float(done.value)
+    return float(run_with_progress(iter_operator_norm2(op, n_iter=n_iter, rtol=rtol,
+                                                       seed=seed, workers=workers)))
 
 
 def model_error_of(op: ProductConvolution) -> float:
