@@ -67,7 +67,9 @@ def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(lapto
         assert top_left.x() + dock.width() <= window.width()
         assert top_left.y() + dock.height() <= window.height()
         # nothing cut on the right: the step is no wider than the room its tab has
-        scroll = panel.tabs.currentWidget()
+        from qtpy.QtWidgets import QScrollArea
+
+        scroll = panel.tabs.currentWidget().findChild(QScrollArea)
         assert scroll.widget().minimumSizeHint().width() <= scroll.viewport().width(), (
             titles[i])
         # tab titles whole, not elided
@@ -191,3 +193,31 @@ def test_every_step_three_times_the_same_layers_cancel_within_a_second(laptop, q
         assert time.perf_counter() - t0 < 1.0, title
         assert [layer.name for layer in v.layers] == names, title
     assert _files(cwd) == set()
+    _check_groups(v, panel, list(buttons))
+
+
+def _check_groups(v, panel, titles):
+    """Each step's layers are one group: titled, colour bars on the maps, and removed
+    together by the step's button, the other steps' layers and the data left alone."""
+    from napari_psfspace._widgets._diagnose import MAP_AFTER, MAP_BEFORE
+    from napari_psfspace._widgets._layers import MAPS, STEP_KEY, step_layers
+
+    groups = {t: {layer.name for layer in step_layers(v, t)} for t in titles}
+    assert all(groups.values()), groups
+    made = set().union(*groups.values())
+    assert {layer.name for layer in v.layers} - made == {"beads image", "beads image 2"}
+    for t in ("Model", "Diagnose", "Family"):
+        assert any(n.startswith("titles: ") for n in groups[t]), (t, groups[t])
+        texts = [n for n in groups[t] if n.startswith("titles: ")]
+        assert len(v.layers[texts[0]].features["title"]) >= 3
+    # the residual maps' one colour scale has its bar (the mosaics are relative, -1..1)
+    assert v.layers[MAP_AFTER].colorbar.visible
+    assert not v.layers[MAP_BEFORE].colorbar.visible and not v.layers[MAPS].colorbar.visible
+    for t in reversed(titles):
+        before = {layer.name for layer in v.layers}
+        assert panel.clear_buttons[t].isEnabled(), t
+        panel.clear_buttons[t].click()
+        assert before - {layer.name for layer in v.layers} == groups[t], t
+        assert not panel.clear_buttons[t].isEnabled(), t
+        assert not any((layer.metadata or {}).get(STEP_KEY) == t for layer in v.layers)
+    assert {layer.name for layer in v.layers} == {"beads image", "beads image 2"}

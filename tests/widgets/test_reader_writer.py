@@ -28,7 +28,8 @@ def test_model_reader_gives_grid_basis_and_scaled_maps(model):
     reader = get_model_reader(str(path))
     assert reader is not None
     layers = {kw["name"].split(" [")[0]: (d, kw, t) for d, kw, t in reader(str(path))}
-    assert set(layers) == {"PSF grid", "PSF basis h_i", "coefficient maps alpha_i"}
+    assert set(layers) == {"PSF grid", "PSF basis h_i", "coefficient maps alpha_i",
+                           "titles: model"}
     maps, kw, kind = layers["coefficient maps alpha_i"]
     # a 2-D mosaic of the I maps, fitting the image's size in its units (um)
     assert kind == "image" and maps.ndim == 2

@@ -198,7 +198,8 @@ class DeblurWidget(Container):
                 (res.smooth, {"name": SMOOTH, "colormap": "gray", "visible": False,
                               **common}, "image"),
                 (res.sparse, {"name": SPARSE, "colormap": "magma",
-                              "blending": "additive", **common}, "image")])
+                              "blending": "additive", **common}, "image")],
+                        step="Deblur", replace=True)
             p = res.parameters
             self.result.value = (
                 f"{note}; {res.iterations} iterations "

@@ -27,11 +27,13 @@ from ..report import (
     write_report,
 )
 from ._layers import (
+    COLORBAR,
     OPERATOR_KEY,
     Frame,
     LayerTuple,
     _beside,
     show_layers,
+    titles_layer,
     user_beads,
 )
 from ._worker import (
@@ -51,6 +53,7 @@ MAP_BEFORE = "residual map (plain model)"
 MAP_AFTER = "residual map (final model)"
 MEAN_BEFORE = "mean residual (plain model)"
 MEAN_AFTER = "mean residual (final model)"
+TITLES = "titles: diagnosis"
 
 
 def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
@@ -72,8 +75,9 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
     fig = figure_arrays(diagnosis)
     cell = fig["cell_size"]
     scale = (cell * frame.scale[0], cell * frame.scale[1])
-    about_map = ("held-out excess error of each bead (relative residual energy minus its "
-                 "noise floor), painted as a disk at its place; NaN: no bead")
+    about_map = ("held-out excess error of each bead, in fraction of its energy (its "
+                 "relative residual energy minus its noise floor), painted as a disk at its "
+                 "place; NaN: no bead")
     out: list[LayerTuple] = []
     for col, (name, key) in enumerate(((MAP_BEFORE, "map_before"), (MAP_AFTER, "map_after"))):
         meta = {"about": about_map, "cell_size_px": cell}
@@ -83,6 +87,7 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
         out.append((fig[key].astype("float32"),
                     {"name": name, "scale": scale, "translate": _beside(frame, col, -1.0),
                      "colormap": "viridis", "contrast_limits": (0.0, fig["map_limit"]),
+                     COLORBAR: key == "map_after",  # one scale for both maps
                      "metadata": meta}, "image"))
     lim = fig["mean_limit"]
     size = 0.45 * frame.height
@@ -97,6 +102,13 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
                      "colormap": "gray", "contrast_limits": (-lim, lim),
                      "metadata": {"about": "mean normalised residual patch over the beads "
                                            "(noise sd)"}}, "image"))
+    titles = []
+    for col, which in enumerate(("plain", "final")):
+        y, x = _beside(frame, col, -1.0)
+        titles.append((y, x, f"excess error, {which} model"))
+    for row, which in enumerate(("plain", "final")):
+        titles.append((y0 + row * 0.55 * frame.height, x0, f"mean residual, {which}"))
+    out.append(titles_layer(TITLES, titles, frame))
     return out
 
 
@@ -195,7 +207,8 @@ class DiagnoseWidget(FollowsBeads, Container):
             self.result.value = "\n".join([summary_text(diag),
                                            *model_lines(diag.operator.metadata,
                                                         markdown=False)])
-            show_layers(self._viewer, diagnosis_layers(diag, frame))
+            show_layers(self._viewer, diagnosis_layers(diag, frame), step="Diagnose",
+                        replace=True)
             self._viewer.reset_view()
             if folder is not None:
                 path = write_report(diag, folder, image_name=name,

@@ -75,6 +75,8 @@ SUB_GRID = "subspace PSF grid"
 SUB_BASIS = "subspace PSF basis h_i"
 SUB_SPACE = "subspace spatial basis a_j"
 SUB_CONDITIONS = "subspace conditions"
+MODEL_TITLES = "titles: model"
+FAMILY_TITLES = "titles: family"
 #: Key of the subspace layer metadata that holds the OperatorSubspace.
 SUBSPACE_KEY = "psfspace_subspace"
 HOT_PIXELS = "hot pixels"
@@ -377,6 +379,12 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
     step = int(np.ceil(np.sqrt(maps.shape[0])))  # smooth maps: every step-th pixel
     m_tiles, m_scale, m_cols = _flat_mosaic(maps[:, ::step, ::step], frame, 1.0, gap=4)
     my, mx = _beside(frame, 1.0, 1.0)
+    psf_um = _length(op.psf_size, frame)
+    titles = titles_layer(MODEL_TITLES, [
+        (y0, x0, f"PSF grid {grid} x {grid} (tile {psf_um})"),
+        (by, bx, f"basis h_0..h_{basis.shape[0] - 1}"),
+        (my, mx, f"maps alpha_i ({_length(frame.shape[1], frame, 0)} field)"),
+    ], frame)
     return [
         (m_tiles, {"name": MAPS, "scale": (m_scale, m_scale), "translate": (my, mx),
                    "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
@@ -392,7 +400,15 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
                    "metadata": {"about": f"orthonormal PSF basis h_i, each scaled to its "
                                          f"largest magnitude, i = 0.. left to right, "
                                          f"{b_cols} a row"}}, "image"),
+        titles,
     ]
+
+
+def _length(pixels: float, frame: Frame, digits: int = 2) -> str:
+    """``pixels`` as a length: in µm when the frame is calibrated, else in px."""
+    if frame.pixel_size:
+        return f"{pixels * frame.pixel_size:.{digits}f} µm"
+    return f"{pixels:g} px"
 
 
 def _flat_mosaic(stack: np.ndarray, frame: Frame, fill: float, *, gap: int
@@ -461,7 +477,14 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     # on the canvas, a stack slice's number ("stack[12]" -> "12") or the layer's name
     short = [lab.rsplit("[", 1)[-1].rstrip("]") if lab.endswith("]") else lab
              for lab in labels]
+    titles = titles_layer(FAMILY_TITLES, [
+        (sy, sx, f"family a_0..a_{space.shape[0] - 1}"),
+        (y0, x0, f"PSF grid {len(ys)} x {len(xs)} per image"),
+        (by, bx, f"family h_0..h_{basis.shape[0] - 1}"),
+        (cy, cx, "conditions (Gamma_k)"),
+    ], frame)
     return [
+        titles,
         (s_tiles, {"name": SUB_SPACE, "scale": (s_scale, s_scale), "translate": (sy, sx),
                    "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
                    "metadata": {"about": f"a_j: the family's spatial basis over the field "
@@ -582,23 +605,79 @@ def find_layer(viewer, name: str, kind: str | None = None):
     return None
 
 
-def show_layers(viewer, tuples: list[LayerTuple]) -> list:
+#: Metadata key of the step that made a layer: a step's layers are one group, replaced
+#: together on a re-run and removed together (:func:`remove_step`).
+STEP_KEY = "psfspace_step"
+#: Key of a layer-data tuple's kwargs (not napari's): show the layer's colour bar.
+COLORBAR = "colorbar"
+
+
+def step_layers(viewer, step: str) -> list:
+    """The layers the plugin made for ``step`` (its group)."""
+    return [layer for layer in viewer.layers if (layer.metadata or {}).get(STEP_KEY) == step]
+
+
+def remove_step(viewer, step: str) -> int:
+    """Remove the layers of one step's group, its titles included; how many went."""
+    gone = step_layers(viewer, step)
+    for layer in gone:
+        viewer.layers.remove(layer)
+    return len(gone)
+
+
+def show_layers(viewer, tuples: list[LayerTuple], *, step: str | None = None,
+                replace: bool = False) -> list:
     """Add the layers to the viewer, or update in place those the plugin made under the
-    same name (whatever napari renamed them to)."""
+    same name (whatever napari renamed them to).
+
+    ``step`` tags the layers as that step's group; with ``replace``, the group's layers
+    this call does not make again are removed (a re-run leaves the same layer set, never
+    a stale title or map of the run before). A tuple whose kwargs hold
+    ``colorbar=True`` (:data:`COLORBAR`) gets its colour bar shown."""
     out = []
+    names = set()
     for data, kwargs, kind in tuples:
         name = kwargs["name"]
-        kwargs = {**kwargs, "metadata": {**(kwargs.get("metadata") or {}), MADE_AS: name}}
+        names.add(name)
+        bar = bool(kwargs.get(COLORBAR, False))
+        meta = {**(kwargs.get("metadata") or {}), MADE_AS: name}
+        if step is not None:
+            meta[STEP_KEY] = step
+        kwargs = {k: v for k, v in kwargs.items() if k != COLORBAR} | {"metadata": meta}
         layer = find_layer(viewer, name, kind)
         if layer is not None:
             if np.ndim(layer.data) != np.ndim(data) and kind == "image":
                 viewer.layers.remove(layer)
+                layer = None
             else:
                 _update(layer, data, {k: v for k, v in kwargs.items() if k != "name"})
-                out.append(layer)
-                continue
-        out.append(getattr(viewer, f"add_{kind}")(data, **kwargs))
+        if layer is None:
+            layer = getattr(viewer, f"add_{kind}")(data, **kwargs)
+        if bar and hasattr(layer, "colorbar"):
+            layer.colorbar.visible = True
+        out.append(layer)
+    if step is not None and replace:
+        for layer in step_layers(viewer, step):
+            if (layer.metadata or {}).get(MADE_AS) not in names:
+                viewer.layers.remove(layer)
     return out
+
+
+def titles_layer(name: str, entries: list[tuple[float, float, str]], frame: Frame
+                 ) -> LayerTuple:
+    """A points layer whose texts title the result slots: ``entries`` of (world row,
+    world column, text), each text written just above that position. Titles are short
+    (the canvas shows three slots side by side); each layer's ``metadata["about"]`` says
+    the rest."""
+    pos = np.array([[y, x] for y, x, _ in entries], float).reshape(-1, 2)
+    lift = 0.012 * max(frame.height, frame.width)
+    return (pos - [lift, 0.0],
+            {"name": name, "features": {"title": [t for _, _, t in entries]},
+             "text": {"string": "{title}", "size": 10, "color": "white",
+                      "anchor": "lower_left"},
+             "size": 0.001 * max(frame.height, frame.width), "face_color": "transparent",
+             "border_width": 0, "metadata": {"about": "titles of the result mosaics"}},
+            "points")
 
 
 def _update(layer, data, kwargs: dict) -> None:

@@ -164,13 +164,13 @@ class LearnOperatorWidget(FollowsBeads, Container):
         def on_result(est) -> None:
             self.operator, self._frame = est.operator, frame
             if pts is None:
-                show_layers(self._viewer, [beads_layer(est.beads, frame, r)])
+                show_layers(self._viewer, [beads_layer(est.beads, frame, r)], step="Beads")
             else:
                 set_statuses(pts, ids, est.beads.status)
             tuples = operator_layers(est.operator, frame)
             if est.heldout is not None and len(est.heldout.residual):
                 tuples.append(heldout_layer(est.heldout, frame))
-            show_layers(self._viewer, tuples)
+            show_layers(self._viewer, tuples, step="Model", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
             self._viewer.reset_view()
             self.show_psf.enabled = True
@@ -210,4 +210,4 @@ class LearnOperatorWidget(FollowsBeads, Container):
 
             show_error(str(exc))
             return
-        show_layers(self._viewer, [psf_layer(psf, y, x, self._frame)])
+        show_layers(self._viewer, [psf_layer(psf, y, x, self._frame)], step="Model")

@@ -184,7 +184,8 @@ class LearnSubspaceWidget(Container):
             sub.metadata["labels"] = [labels[i] for i in sub.metadata.get("images", [])]
             self.subspace = sub
             show_layers(self._viewer, subspace_layers(sub, ys, xs, psfs, coords, frame,
-                                                      stack_axis=axis))
+                                                      stack_axis=axis),
+                        step="Family", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)
             self._viewer.reset_view()
             self.result.value = self._describe(sub)

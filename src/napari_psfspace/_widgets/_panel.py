@@ -16,11 +16,11 @@ from typing import TYPE_CHECKING
 
 from napari.layers import Image, Points
 from qtpy.QtCore import Qt
-from qtpy.QtWidgets import QScrollArea, QTabWidget, QVBoxLayout, QWidget
+from qtpy.QtWidgets import QPushButton, QScrollArea, QTabWidget, QVBoxLayout, QWidget
 
 from ._deblur import DeblurWidget
 from ._diagnose import DiagnoseWidget
-from ._layers import BEADS, OPERATOR_KEY, SUBSPACE_KEY
+from ._layers import BEADS, OPERATOR_KEY, SUBSPACE_KEY, remove_step, step_layers
 from ._learn_operator import LearnOperatorWidget
 from ._learn_subspace import LearnSubspaceWidget
 from ._pick_beads import PickBeadsWidget
@@ -94,6 +94,7 @@ class PsfSpacePanel(QWidget):
         self.tabs.setUsesScrollButtons(True)
         self.tabs.setDocumentMode(True)
         self.steps: dict = {}
+        self.clear_buttons: dict = {}
         for title, cls, _ in STEPS:
             widget = cls(viewer)
             self.steps[title] = widget
@@ -101,7 +102,17 @@ class PsfSpacePanel(QWidget):
             scroll.setWidgetResizable(True)
             scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
             scroll.setWidget(widget.native)
-            self.tabs.addTab(scroll, title)
+            page = QWidget()
+            box = QVBoxLayout(page)
+            box.setContentsMargins(0, 0, 0, 0)
+            box.addWidget(scroll)
+            clear = QPushButton(f"Remove the {title} step's layers")
+            clear.setToolTip("Remove every layer this step made (results, titles, "
+                             "colour bars); the data and the other steps' layers stay.")
+            clear.clicked.connect(lambda _=False, t=title: self.clear_step(t))
+            box.addWidget(clear)
+            self.clear_buttons[title] = clear
+            self.tabs.addTab(page, title)
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
         layout.addWidget(self.tabs)
@@ -132,6 +143,10 @@ class PsfSpacePanel(QWidget):
             if edit is not None and edit is not source:
                 edit.set_calibration(edit.pixel_size, source.pixels)
 
+    def clear_step(self, title: str) -> int:
+        """Remove the layers the step ``title`` made (one group); how many went."""
+        return remove_step(self._viewer, title)
+
     def enabled_steps(self) -> list[str]:
         """The titles of the tabs enabled now."""
         return [self.tabs.tabText(i) for i in range(self.tabs.count())
@@ -143,6 +158,7 @@ class PsfSpacePanel(QWidget):
             ok = _has(self._viewer, NEEDS[title])
             self.tabs.setTabEnabled(i, ok)
             self.tabs.setTabToolTip(i, "" if ok else f"{title} needs {need}.")
+            self.clear_buttons[title].setEnabled(bool(step_layers(self._viewer, title)))
         if not self.tabs.isTabEnabled(self.tabs.currentIndex()):
             for i in range(self.tabs.count()):
                 if self.tabs.isTabEnabled(i):

@@ -183,7 +183,7 @@ class PickBeadsWidget(Container):
             stale = find_layer(self._viewer, HOT_PIXELS, "points") is not None
             if len(hot) or stale:  # never leave a stale one
                 tuples.insert(0, hot_pixels_layer(hot, frame))
-            points = show_layers(self._viewer, tuples)[-1]
+            points = show_layers(self._viewer, tuples, step="Beads", replace=True)[-1]
             watch_points(points)
             self._viewer.layers.selection.active = points
             self.task.status.value = beads.summary()

@@ -120,7 +120,8 @@ class ReviewPatchesWidget(FollowsBeads, Container):
             return
         stack = self.review.views[self.view.value]
         layer = show_layers(self._viewer, [gallery_layer(stack, self._frame,
-                                                         view=self.view.value)])[0]
+                                                         view=self.view.value)],
+                            step="Review")[0]
         if self._on_click not in layer.mouse_drag_callbacks:
             layer.mouse_drag_callbacks.append(self._on_click)
         self._outline()
@@ -153,7 +154,8 @@ class ReviewPatchesWidget(FollowsBeads, Container):
             "name": CURRENT, "shape_type": "rectangle", "edge_color": "#ffe135",
             "face_color": "transparent", "edge_width": 2.0 * float(
                 gallery.scale[-1]),
-            "metadata": {"about": "the patch on display in Review"}}, "shapes")])
+            "metadata": {"about": "the patch on display in Review"}}, "shapes")],
+                    step="Review")
 
     def _status_of(self, bead_id: int) -> str:
         pts = self.points.value

@@ -63,7 +63,8 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
     proj = arr.max(axis=0)
     if float(proj.max()) == float(proj.min()):
         raise PsfSpaceError("`stack` is constant: there is no focus to measure.")
-    r = float(psf_radius) if psf_radius else suggest_psf_radius(proj)
+    # the spots' visible radius: the focus is measured on isolated beads' cores
+    r = float(psf_radius) if psf_radius else suggest_psf_radius(proj, wings=1.0)
     beads = detect_beads(proj, r)
     z, h, w = arr.shape
     outer = int(np.ceil(2 * r))

@@ -55,6 +55,17 @@ SCALE_FACTORS = (0.71, 1.0, 1.41, 2.0, 2.83, 4.0)
 #: that a slight error of the background does not add up to a halo.
 SEARCH_SCALES = 12.0
 MIN_SEARCH = 24
+#: :func:`suggest_psf_radius`: the model's radius over the spots' visible radius. One
+#: bead shows its PSF down to its own noise; the model learns from all the beads at once
+#: and still sees the wings below it (rings, the slow tail of an Airy pattern), so a
+#: model cut at the visible radius is worse than a wider one. The factor comes from a
+#: sweep of the radius on simulated scenes of two optics codes (aberration-free to
+#: strong, bright and faint, the error against the true PSF) and on the measured stacks
+#: (the held-out error): ``bench/bench_radius_sweep.py``.
+WINGS = 1.5
+#: A wider radius is suggested only while it keeps this fraction of the beads kept at
+#: the visible radius (beads must be isolated at the radius: a dense field loses them).
+KEEP_FRACTION = 0.5
 
 
 def detection_image(image: np.ndarray, *, integer: bool, noise_sd: float
@@ -422,8 +433,8 @@ def _spot_radius(win: np.ndarray, own: np.ndarray, energy: float) -> int | None:
 
 
 def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
-                       max_radius: float | None = None) -> float:
-    """Suggest the PSF radius ``r`` (pixels) from the spots an image shows.
+                       max_radius: float | None = None, wings: float = WINGS) -> float:
+    """Suggest the PSF radius ``r`` (pixels) for a model learnt from an image's spots.
 
     The spots are found at their own scale ``sigma`` (:func:`spot_scale`), so that a ring
     out of focus is one spot at its centre, not several on its edge. For the strongest few
@@ -434,7 +445,14 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
     :data:`SEARCH_SCALES` scales of it; a spot's radius is where the energy reaches
     ``energy`` of the total within the signal's extent (the profile above 3 noise sd of a
     ring median). The radius must bound the widest PSFs of the field, so the 75th
-    percentile over the spots (robust to a few aggregates), plus one pixel, is returned.
+    percentile over the spots (robust to a few aggregates), plus one pixel, is the
+    spots' *visible radius*.
+
+    The model is learnt from all the beads at once and still sees the wings below one
+    bead's noise, so the suggestion is ``wings`` times the visible radius
+    (:data:`WINGS`), or, where that wider radius would keep fewer than
+    :data:`KEEP_FRACTION` of the beads isolated at the visible radius, halfway to it,
+    else the visible radius itself.
 
     Parameters
     ----------
@@ -445,6 +463,9 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
         Enclosed-energy fraction that defines a spot's radius.
     max_radius : float, optional
         Largest radius considered; default ``min(M, N) / 8``.
+    wings : float
+        The suggestion over the visible radius (1: the visible radius, e.g. to detect
+        beads rather than to model them).
 
     Returns
     -------
@@ -495,8 +516,33 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
     if not radii:
         raise NoBeadsError("Could not measure the width of any bright spot: give "
                            "`psf_radius` yourself.")
-    return float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
+    visible = float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
+    if not wings > 1.0:
+        return visible
+    return _wider_radius(image, visible, float(wings), rmax)
 
 
-__all__ = ["LOW_COUNT_SD", "SpotScale", "characteristic_scale", "detection_image",
-           "spot_scale", "suggest_psf_radius"]
+def _wider_radius(image, visible: float, wings: float, rmax: int) -> float:
+    """``wings x visible`` (or halfway to it) where it keeps :data:`KEEP_FRACTION` of
+    the beads kept at ``visible``, else ``visible``."""
+    from ..common.errors import PsfSpaceError
+    from .detect import detect_beads
+
+    def kept(r: float) -> int:
+        try:
+            return int(np.count_nonzero(detect_beads(image, r).kept))
+        except PsfSpaceError:
+            return 0
+
+    base = kept(visible)
+    for factor in (wings, (1.0 + wings) / 2):
+        r = float(min(np.ceil(factor * visible), rmax))
+        if r <= visible:
+            break
+        if base and kept(r) >= KEEP_FRACTION * base:
+            return r
+    return visible
+
+
+__all__ = ["KEEP_FRACTION", "LOW_COUNT_SD", "WINGS", "SpotScale", "characteristic_scale",
+           "detection_image", "spot_scale", "suggest_psf_radius"]
