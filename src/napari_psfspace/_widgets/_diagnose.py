@@ -105,9 +105,9 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
     titles = []
     for col, which in enumerate(("plain", "final")):
         y, x = _beside(frame, col, -1.0)
-        titles.append((y, x, f"excess error, {which} model"))
+        titles.append((y, x, f"excess error\n{which} model"))
     for row, which in enumerate(("plain", "final")):
-        titles.append((y0 + row * 0.55 * frame.height, x0, f"mean residual, {which}"))
+        titles.append((y0 + row * 0.55 * frame.height, x0, f"mean residual\n{which} model"))
     out.append(titles_layer(TITLES, titles, frame))
     return out
 

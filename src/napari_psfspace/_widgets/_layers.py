@@ -381,9 +381,9 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
     my, mx = _beside(frame, 1.0, 1.0)
     psf_um = _length(op.psf_size, frame)
     titles = titles_layer(MODEL_TITLES, [
-        (y0, x0, f"PSF grid {grid} x {grid} (tile {psf_um})"),
+        (y0, x0, f"PSF grid {grid} x {grid}\ntiles {psf_um}"),
         (by, bx, f"basis h_0..h_{basis.shape[0] - 1}"),
-        (my, mx, f"maps alpha_i ({_length(frame.shape[1], frame, 0)} field)"),
+        (my, mx, f"maps alpha_i\nfield {_length(frame.shape[1], frame, 0)}"),
     ], frame)
     return [
         (m_tiles, {"name": MAPS, "scale": (m_scale, m_scale), "translate": (my, mx),
@@ -673,7 +673,7 @@ def titles_layer(name: str, entries: list[tuple[float, float, str]], frame: Fram
     lift = 0.012 * max(frame.height, frame.width)
     return (pos - [lift, 0.0],
             {"name": name, "features": {"title": [t for _, _, t in entries]},
-             "text": {"string": "{title}", "size": 10, "color": "white",
+             "text": {"string": "{title}", "size": 8, "color": "white",
                       "anchor": "lower_left"},
              "size": 0.001 * max(frame.height, frame.width), "face_color": "transparent",
              "border_width": 0, "metadata": {"about": "titles of the result mosaics"}},
