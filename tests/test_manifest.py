@@ -23,6 +23,13 @@ def test_manifest_validates_with_imports():
     assert pm.contributions.sample_data
 
 
+def test_every_command_is_declared_once():
+    yaml = pytest.importorskip("yaml")
+    manifest = yaml.safe_load((ROOT / "napari.yaml").read_text())
+    ids = [c["id"] for c in manifest["contributions"]["commands"]]
+    assert len(ids) == len(set(ids)), sorted(i for i in ids if ids.count(i) > 1)
+
+
 def test_sample_data_is_a_bead_field_with_truth():
     from napari_psfspace._sample_data import simulated_beads
 
