@@ -6,9 +6,9 @@ Opens napari at 1280 x 800 (a real window: screenshots of hidden viewers come ou
 docks the panel through the Plugins menu's door (``add_plugin_dock_widget``, which hands
 it a public-only proxy of the viewer), opens the sample and clicks through the steps:
 Beads (detect), Review (extract the patches), Model (learn), Diagnose, Deblur (the model
-just learnt). Each step's seconds and the canvas left to the image are printed as a
-table; a screenshot of the window after each step goes to ``--out`` (``panel_<step>.png``).
-The Family step needs several images and is not part of this walk.
+Diagnose refined), then Family on the second sample, the focus series (every slice).
+Each step's seconds and the canvas left to the image are printed as a table; a
+screenshot of the window after each step goes to ``--out`` (``panel_<step>.png``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ import napari
 from qtpy.QtWidgets import QApplication
 
 from _common import table
-from napari_psfspace._sample_data import simulated_beads
+from napari_psfspace._sample_data import simulated_beads, simulated_focus_series
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "images"
 
@@ -34,6 +34,16 @@ def wait(task, timeout: float = 300.0) -> None:
         app.processEvents()
         time.sleep(0.01)
     app.processEvents()
+
+
+def _family(widget) -> None:
+    """The Family step on the focus-series sample (File > Open Sample), every slice."""
+    viewer = widget._viewer
+    stack, kwargs, _ = simulated_focus_series()[0]
+    layer = viewer.add_image(stack, **kwargs)
+    widget.source.value = "slices of a stack layer"
+    widget.stack.value = layer
+    widget.learn.clicked()
 
 
 def main() -> None:
@@ -55,6 +65,7 @@ def main() -> None:
         ("Model", lambda w: w.learn.clicked()),
         ("Diagnose", lambda w: w.diagnose.clicked()),
         ("Deblur", lambda w: w.run_button.clicked()),
+        ("Family", _family),
     ]
     rows = []
     total = 0.0

@@ -20,6 +20,14 @@ def test_effect_free_image_adds_nothing():
     assert d.error_after == d.error_before
     assert d.steps[0].effect is None
     assert_figures_chain(d)
+    # the refined operator carries its measured error, as the Model step's does: a
+    # deblur with it weighs and compresses as with the plain model (it took it for exact)
+    from napari_psfspace import estimate_operator
+    from napari_psfspace.core.restore.deconvolve import model_error_of
+
+    plain = estimate_operator(image, psf_radius=truth.psf_radius)
+    assert model_error_of(d.operator) == pytest.approx(model_error_of(plain), rel=0.05)
+    assert model_error_of(d.operator) > 0
 
 
 def test_hot_pixels_are_masked_before_the_loop():

@@ -41,3 +41,12 @@ def test_sample_data_is_a_bead_field_with_truth():
     assert img_kw["metadata"]["psf_radius"] > 3
     mod = importlib.import_module("napari_psfspace._sample_data")
     assert callable(mod.simulated_beads)
+
+
+def test_the_focus_series_sample_is_a_calibrated_stack():
+    from napari_psfspace._sample_data import SERIES_Z_UM, simulated_focus_series
+
+    ((stack, kwargs, kind),) = simulated_focus_series()
+    assert kind == "image" and stack.shape == (len(SERIES_Z_UM), 512, 512)
+    assert kwargs["scale"][0] == pytest.approx(SERIES_Z_UM[1] - SERIES_Z_UM[0])
+    assert kwargs["metadata"]["psf_radius"] > 3 and kwargs["metadata"]["pixel_size_um"] > 0

@@ -213,6 +213,16 @@ def _check_groups(v, panel, titles):
     # the residual maps' one colour scale has its bar (the mosaics are relative, -1..1)
     assert v.layers[MAP_AFTER].colorbar.visible
     assert not v.layers[MAP_BEFORE].colorbar.visible and not v.layers[MAPS].colorbar.visible
+    # results never land on each other nor on the data (the deblurred image lies on it
+    # by design; points mark places on the mosaics and the image)
+    boxes = [(layer.name, np.asarray(layer.extent.world)[:, -2:]) for layer in v.layers
+             if layer.__class__.__name__ == "Image"
+             and (layer.metadata or {}).get(STEP_KEY) != "Deblur"
+             and layer.name != "beads image 2"]  # a copy of the data, on the data
+    for i, (a, box_a) in enumerate(boxes):
+        for b, box_b in boxes[i + 1:]:
+            overlap = np.minimum(box_a[1], box_b[1]) - np.maximum(box_a[0], box_b[0])
+            assert np.any(overlap <= 0), (a, b)
     for t in reversed(titles):
         before = {layer.name for layer in v.layers}
         assert panel.clear_buttons[t].isEnabled(), t

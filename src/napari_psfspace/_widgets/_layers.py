@@ -478,13 +478,12 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     short = [lab.rsplit("[", 1)[-1].rstrip("]") if lab.endswith("]") else lab
              for lab in labels]
     titles = titles_layer(FAMILY_TITLES, [
-        (sy, sx, f"family a_0..a_{space.shape[0] - 1}"),
-        (y0, x0, f"PSF grid {len(ys)} x {len(xs)} per image"),
-        (by, bx, f"family h_0..h_{basis.shape[0] - 1}"),
-        (cy, cx, "conditions (Gamma_k)"),
+        (sy, sx, f"family\na_0..a_{space.shape[0] - 1}"),
+        (y0, x0, f"PSF grid {len(ys)} x {len(xs)}\nper image"),
+        (by, bx, f"family\nh_0..h_{basis.shape[0] - 1}"),
+        (cy, cx, "conditions\n(Gamma_k)"),
     ], frame)
     return [
-        titles,
         (s_tiles, {"name": SUB_SPACE, "scale": (s_scale, s_scale), "translate": (sy, sx),
                    "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
                    "metadata": {"about": f"a_j: the family's spatial basis over the field "
@@ -515,6 +514,7 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
                                         "the Gamma_k (label: the image)",
                                "coordinates": c.tolist()}},
          "points"),
+        titles,  # last: drawn over the mosaics
     ]
 
 
@@ -661,6 +661,23 @@ def show_layers(viewer, tuples: list[LayerTuple], *, step: str | None = None,
             if (layer.metadata or {}).get(MADE_AS) not in names:
                 viewer.layers.remove(layer)
     return out
+
+
+def below_others(viewer, frame: Frame, row: float, step: str) -> Frame:
+    """``frame`` moved down so that its result row ``row`` starts below every layer of
+    the viewer outside ``step``'s group: results laid out from another image's frame
+    (a family learnt from a stack beside a model learnt from one image) never land on
+    the other results."""
+    bottom = -np.inf
+    for layer in viewer.layers:
+        if (layer.metadata or {}).get(STEP_KEY) == step:
+            continue
+        bottom = max(bottom, float(np.asarray(layer.extent.world)[1][-2]))
+    top = _beside(frame, 0.0, row)[0]
+    gap = 0.04 * max(frame.height, frame.width)
+    shift = max(0.0, bottom + gap - top) if np.isfinite(bottom) else 0.0
+    return Frame(frame.shape, frame.scale, (frame.translate[0] + shift, frame.translate[1]),
+                 frame.index)
 
 
 def titles_layer(name: str, entries: list[tuple[float, float, str]], frame: Frame

@@ -30,7 +30,14 @@ from napari.utils.notifications import show_error, show_info
 
 from ..core.model.estimate import Progress
 from ..core.subspace import OperatorSubspace, iter_estimate_subspace
-from ._layers import SUB_GRID, Frame, find_layer, show_layers, subspace_layers
+from ._layers import (
+    SUB_GRID,
+    Frame,
+    below_others,
+    find_layer,
+    show_layers,
+    subspace_layers,
+)
 from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of, result_text
 
 if TYPE_CHECKING:
@@ -183,7 +190,8 @@ class LearnSubspaceWidget(Container):
             sub, ys, xs, psfs, coords = got
             sub.metadata["labels"] = [labels[i] for i in sub.metadata.get("images", [])]
             self.subspace = sub
-            show_layers(self._viewer, subspace_layers(sub, ys, xs, psfs, coords, frame,
+            place = below_others(self._viewer, frame, 2.0, "Family")
+            show_layers(self._viewer, subspace_layers(sub, ys, xs, psfs, coords, place,
                                                       stack_axis=axis),
                         step="Family", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)

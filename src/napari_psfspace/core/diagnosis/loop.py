@@ -392,9 +392,11 @@ def iter_diagnose(
                        f"beads ({drop}), {'kept' if ok else 'rejected'}")
 
     # the final operator: a point source's PSFs when the beads' size is known (the
-    # nominal one, which the bead-size effect then takes for the median bead's)
+    # nominal one, which the bead-size effect then takes for the median bead's); its
+    # held-out split, as the Model step's, measures its error for the deblur's weights
+    # and compression (without it a deblur took the model for exact)
     est = yield from forward(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
-                                           holdout=None, bead_diameter=bead_diameter,
+                                           holdout=0.2, bead_diameter=bead_diameter,
                                            remove_motion=remove_motion,
                                            **ctx.estimate_kwargs), "final", 0.95)
     added = [s.effect for s in steps if s.effect and s.accepted]
