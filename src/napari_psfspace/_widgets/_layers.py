@@ -341,8 +341,13 @@ def set_statuses(layer, ids, status) -> None:
 
 
 # ------------------------------------------------------------------ results
+def _gap(frame: Frame) -> float:
+    """World distance between two slots of the layout."""
+    return 0.04 * max(frame.height, frame.width)
+
+
 def _beside(frame: Frame, column: float, row: float = 0.0) -> tuple[float, float]:
-    gap = 0.04 * max(frame.height, frame.width)
+    gap = _gap(frame)
     return (frame.translate[0] + row * (frame.height + gap),
             frame.translate[1] + column * (frame.width + gap))
 
@@ -674,8 +679,7 @@ def below_others(viewer, frame: Frame, row: float, step: str) -> Frame:
             continue
         bottom = max(bottom, float(np.asarray(layer.extent.world)[1][-2]))
     top = _beside(frame, 0.0, row)[0]
-    gap = 0.04 * max(frame.height, frame.width)
-    shift = max(0.0, bottom + gap - top) if np.isfinite(bottom) else 0.0
+    shift = max(0.0, bottom + _gap(frame) - top) if np.isfinite(bottom) else 0.0
     return Frame(frame.shape, frame.scale, (frame.translate[0] + shift, frame.translate[1]),
                  frame.index)
 
@@ -683,7 +687,8 @@ def below_others(viewer, frame: Frame, row: float, step: str) -> Frame:
 def titles_layer(name: str, entries: list[tuple[float, float, str]], frame: Frame
                  ) -> LayerTuple:
     """A points layer whose texts title the result slots: ``entries`` of (world row,
-    world column, text), each text written just above that position. Titles are short
+    world column, text), each text anchored at that position, the slot's top-left
+    corner (napari draws it just inside the slot). Titles are short
     (the canvas shows three slots side by side); each layer's ``metadata["about"]`` says
     the rest."""
     pos = np.array([[y, x] for y, x, _ in entries], float).reshape(-1, 2)
