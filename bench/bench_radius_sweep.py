@@ -19,8 +19,12 @@ on two kinds of sets:
   sweep's largest radius (the largest that keeps enough of them isolated), in 5 folds;
   each radius learns from the beads a user gets at that radius, less the fold's, and the
   fold's beads are fitted (amplitude and background) within the largest radius, the model
-  being zero beyond its own patch. ``error`` is the mean relative residual energy of
-  those beads, ``floor`` what noise alone leaves.
+  being zero beyond its own patch. ``error`` is the mean over those beads of the
+  residual energy over one signal energy per bead, the same for every radius (the median
+  over the radii of each model's fitted ``||A m||^2``); ``floor`` what noise alone
+  leaves, on the same scale; ``own_error`` the one metric's figure, each model's residual
+  over its own fitted signal, which a wider, flatter PSF makes larger where the residual
+  is only noise (so it cannot rank radii there).
 
 A set passes when the suggestion's error is within 1.2x of the sweep's best. On measured
 slices the summary also gives the ratio's 5-95 % range over bootstrap resamples of the
@@ -156,18 +160,29 @@ def sweep(image, name: str) -> list[dict]:
     # under 10 % of the signal, is for its own windows: in the widest one few pass it)
     judged = np.logical_and.reduce([(x.amplitude > 0) & np.isfinite(x.rel_energy)
                                     for x in res.values()])
+    # one signal energy per bead for every radius (the median over the radii of each
+    # model's own ||A m||^2): a model's own figure divides by its own fitted signal, which
+    # a wider, flatter PSF makes smaller; where noise fills the window (the residual
+    # is the noise, whatever the radius) that denominator alone would rank the radii
+    resid = {r: (((x.data - x.model) * x.fit_mask) ** 2).sum(axis=(1, 2))
+             for r, x in res.items()}
+    noise_ss = {r: (x.variance * x.fit_mask).sum(axis=(1, 2)) for r, x in res.items()}
+    common = np.median([resid[r] / np.maximum(res[r].rel_energy, 1e-300) for r in res],
+                       axis=0)
+    per_bead = {r: resid[r][judged] / common[judged] for r in res}
     rows = []
     for r in radii:
         row = {"set": name, "radius": r, "visible": visible, "suggested": suggested,
                "beads": int(judged.sum()), "trained": trained.get(r)}
         if r in res:
-            row["error"] = float(np.mean(res[r].rel_energy[judged]))
-            row["floor"] = float(np.mean(res[r].floor[judged]))
+            row["error"] = float(np.mean(per_bead[r]))
+            row["floor"] = float(np.mean(noise_ss[r][judged] / common[judged]))
+            row["own_error"] = float(np.mean(res[r].rel_energy[judged]))
         else:
             row["note"] = f"stopped: {stopped.get(r, '?')}"
         rows.append(row)
     _ratios(rows)
-    _interval(rows, {r: res[r].rel_energy[judged] for r in res})
+    _interval(rows, per_bead)
     rows[0]["seconds"] = time.perf_counter() - t0
     return rows
 
@@ -276,7 +291,7 @@ def measured(keys: list[str], step: int):
 
 
 COLUMNS = [("radius", "g"), ("mark", "s"), ("trained", "d"), ("error", ".4g"),
-           ("floor", ".4g"), ("ratio", ".3f"), ("note", "s")]
+           ("floor", ".4g"), ("own_error", ".4g"), ("ratio", ".3f"), ("note", "s")]
 
 
 def main() -> None:
