@@ -18,7 +18,8 @@ import time
 import numpy as np
 
 from _common import add_generator_argument, optics_type, table
-from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.simulation import Optics, simulate_beads
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 

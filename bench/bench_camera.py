@@ -28,8 +28,9 @@ import numpy as np
 
 from _common import add_generator_argument, optics_type, table
 from napari_psfspace.core.beads.detect import detect_beads
+from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.noise import noise_model
-from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
 from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT as LOW_COUNT
 from napari_psfspace.core.simulation.family import isolated, match, random_scene

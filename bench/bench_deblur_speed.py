@@ -24,9 +24,9 @@ from _common import table
 from napari_psfspace.core.common.threads import by_rows
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.model.operator_fft import (
-    _conj_multiply,
-    _multiply_accumulate,
-    _multiply_into,
+    conj_multiply,
+    multiply_accumulate,
+    multiply_into,
 )
 from napari_psfspace.core.restore.deconvolve import iter_deblur
 
@@ -86,11 +86,11 @@ def main():
 
     def products():
         for i in range(args.n_psf):
-            by_rows(_multiply_into, (maps[i], u, pad[:h, :w]), args.workers)
-            by_rows(_multiply_accumulate, (acc, prod, kern[i]),
+            by_rows(multiply_into, (maps[i], u, pad[:h, :w]), args.workers)
+            by_rows(multiply_accumulate, (acc, prod, kern[i]),
                     args.workers)
-            by_rows(_conj_multiply, (kern[i], vhat, prod), args.workers)
-            by_rows(_multiply_accumulate, (out, pad[:h, :w],
+            by_rows(conj_multiply, (kern[i], vhat, prod), args.workers)
+            by_rows(multiply_accumulate, (out, pad[:h, :w],
                                            maps[i]), args.workers)
 
     gen = iter_deblur(image, op, max_iter=10 ** 6, tol=1e-30, workers=args.workers)

@@ -29,10 +29,11 @@ import numpy as np
 import tifffile
 
 from _common import table
-from napari_psfspace.core.beads.detect import suggest_psf_radius
+from napari_psfspace.core.beads.scale import suggest_psf_radius
 from napari_psfspace.core.common.errors import PsfSpaceError
+from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.loop import diagnose
-from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 OUT = Path(__file__).resolve().parent / "out"

@@ -47,7 +47,7 @@ from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.optics import Optics
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
 from napari_psfspace.core.subspace import estimate_subspace
-from napari_psfspace.core.subspace.estimate import _maps, _nodes, _pool
+from napari_psfspace.core.subspace.estimate import coefficient_maps, grid_nodes, pool
 from napari_psfspace.core.subspace.patches import image_patches
 
 #: Wide conditions: defocus through about +-1 depth of field at NA 1.3 (600 nm, oil:
@@ -115,9 +115,9 @@ def stack_rows(args) -> list[dict]:
     t_alone = time.perf_counter() - t0
     # the family's own step 5 maps (before the a_j), recomputed as _learn does
     used = [image_patches(im, float(r), index=i) for i, im in enumerate(images)]
-    pooled = _pool(used, sub.n_psf, True)
-    (gy, gx), nodes = _nodes(sub.shape, sub.grid_step)
-    own, _ = _maps(used, pooled, nodes, sub.shape)
+    pooled = pool(used, sub.n_psf, True)
+    (gy, gx), nodes = grid_nodes(sub.shape, sub.grid_step)
+    own, _ = coefficient_maps(used, pooled, nodes, sub.shape)
     # own maps are on the pooled PCA basis before its refit: express them on sub.basis
     b0 = pooled.basis.basis.reshape(sub.n_psf, -1)
     b1 = sub.basis.reshape(sub.n_psf, -1)

@@ -39,8 +39,9 @@ import numpy as np
 
 from _common import table
 from napari_psfspace.core.beads.window import radial_distance
+from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.model.denoise import band_limit, refit_basis
-from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.model.field import fit_field
 from napari_psfspace.core.model.pca import PsfBasis, learn_basis
 from napari_psfspace.core.simulation import simulate_beads

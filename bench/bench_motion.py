@@ -33,7 +33,8 @@ import numpy as np
 
 from _common import table
 from napari_psfspace.core.beads.window import bump_window
-from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.model.motion import detect_motion
 from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
 from napari_psfspace.core.simulation.family import random_scene

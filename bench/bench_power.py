@@ -46,9 +46,10 @@ import numpy as np
 
 from _common import table
 from bench_motion import motion_of, visible
-from napari_psfspace.core.diagnosis.analysis import THRESHOLDS, _radial_trend
+from napari_psfspace.core.diagnosis.analysis import THRESHOLDS
 from napari_psfspace.core.diagnosis.effects import REGISTRY
 from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.diagnosis.statistics import radial_trend
 from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
 
@@ -89,7 +90,7 @@ CASES = {
 
 def _truth_trend_z(truth, shape) -> float:
     """The vignetting test's statistic on the true amplitudes."""
-    return _radial_trend(truth.positions, truth.amplitudes, shape,
+    return radial_trend(truth.positions, truth.amplitudes, shape,
                          THRESHOLDS["amplitude_field"])["z"]
 
 

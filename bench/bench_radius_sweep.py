@@ -46,13 +46,15 @@ import numpy as np
 import tifffile
 
 from _common import optics_type, table
-from napari_psfspace.core.beads.detect import HELDOUT, KEPT, suggest_psf_radius
+from napari_psfspace.core.beads.detect import HELDOUT, KEPT
+from napari_psfspace.core.beads.scale import suggest_psf_radius
 from napari_psfspace.core.beads.spikes import spike_mask
 from napari_psfspace.core.common.errors import PsfSpaceError
+from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.crossfit import assign_folds
-from napari_psfspace.core.diagnosis.loop import _noise_model, prepare_beads
+from napari_psfspace.core.diagnosis.loop import noise_model_with_source, prepare_beads
 from napari_psfspace.core.diagnosis.residuals import BeadResiduals, fit_beads
-from napari_psfspace.core.model.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.simulation import simulate_beads
 from napari_psfspace.core.simulation.metrics import grid_positions, psf_error
 from napari_psfspace.core.simulation.optics import RENDER_RADIUS_FACTOR
@@ -117,7 +119,7 @@ def sweep(image, name: str) -> list[dict]:
                  "note": f"{len(kept)} beads isolated at {big:g} px: too few to cross-fit"}]
     img = beads.clean_image(np.asarray(raw, np.float64))
     hot = spike_mask(img.shape, beads.hot_pixels)
-    noise, _ = _noise_model(raw, None, None, None, mask=hot)
+    noise, _ = noise_model_with_source(raw, None, None, None, mask=hot)
     fold_of = assign_folds(beads.positions[kept], img.shape, FOLDS)
     models, trained, stopped = {}, {}, {}
     for r in radii:

@@ -47,13 +47,13 @@ def make_cache(cache: Path, k: int) -> tuple[list[str], float]:
     """Simulate the stack's images that are not yet in ``cache``; their paths and a PSF
     radius (the median of the truths')."""
     from napari_psfspace.core.simulation import simulate_beads
-    from napari_psfspace.core.simulation.aberrations import _PRESETS, FieldAberrations
+    from napari_psfspace.core.simulation.aberrations import PRESETS, FieldAberrations
     from napari_psfspace.core.simulation.stacks import random_conditions
     from napari_psfspace.io import write_tiff
 
     cache.mkdir(parents=True, exist_ok=True)
     conds = random_conditions(k, [0, 1])
-    base = FieldAberrations(_PRESETS["moderate"])
+    base = FieldAberrations(PRESETS["moderate"])
     radius_file = cache / "psf_radius.json"
     radii = json.loads(radius_file.read_text()) if radius_file.exists() else {}
     paths = []

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.background import fit_background, monomials
-from napari_psfspace.core.window import bump_window
+from napari_psfspace.core.beads.background import fit_background, monomials
+from napari_psfspace.core.beads.window import bump_window
 
 P, R = 25, 9.0
 

@@ -1,6 +1,6 @@
 """Real camera data: low counts, 8-bit images, hot pixels, known bead size, few beads.
 
-Scenes come from the seeded family of :mod:`napari_psfspace.core.scenes`: the optics,
+Scenes come from the seeded family of :mod:`napari_psfspace.core.simulation.family`: the optics,
 camera and slide are drawn per seed, so nothing here holds for one setting only.
 """
 
@@ -8,13 +8,14 @@ import numpy as np
 import pytest
 
 import napari_psfspace as ps
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.fewbeads import FEW_BEADS
-from napari_psfspace.core.metrics import evaluate_against_truth, grid_errors
-from napari_psfspace.core.noise import noise_model
-from napari_psfspace.core.scenes import LOW_COUNT_8BIT, isolated, match, random_scene
-from napari_psfspace.core.simulate import FieldAberrations, Optics
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.diagnosis.noise import noise_model
+from napari_psfspace.core.model.estimate import iter_estimate
+from napari_psfspace.core.model.fewbeads import FEW_BEADS
+from napari_psfspace.core.simulation import FieldAberrations, Optics
+from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT, isolated, match, random_scene
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth, grid_errors
 
 LOW_COUNT = LOW_COUNT_8BIT
 

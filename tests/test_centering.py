@@ -2,7 +2,7 @@
 
 import numpy as np
 
-from napari_psfspace.core.centering import gather_windows, refine_centers
+from napari_psfspace.core.beads.centering import gather_windows, refine_centers
 from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # PSF standard deviation, pixels

@@ -7,7 +7,7 @@ import pytest
 import tifffile
 
 from napari_psfspace.cli import main
-from napari_psfspace.core.operator import load_operator
+from napari_psfspace.core.model.operator import load_operator
 from tolerances import product_convolution_errors, sum_error
 
 

@@ -6,7 +6,12 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from napari_psfspace.core.cone import Cone, nonnegative_weights, project_onto_cone, reduce_cone
+from napari_psfspace.core.model.cone import (
+    Cone,
+    nonnegative_weights,
+    project_onto_cone,
+    reduce_cone,
+)
 
 
 def _brute_projection(a, g):

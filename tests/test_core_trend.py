@@ -2,9 +2,9 @@
 
 import numpy as np
 
-from napari_psfspace.core.analysis import core_residuals, core_trend, local_contrast
-from napari_psfspace.core.residuals import BeadResiduals
-from napari_psfspace.core.window import radial_distance
+from napari_psfspace.core.beads.window import radial_distance
+from napari_psfspace.core.diagnosis.bead_tests import core_residuals, core_trend, local_contrast
+from napari_psfspace.core.diagnosis.residuals import BeadResiduals
 
 
 def _gauss(p, sigma):

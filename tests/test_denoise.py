@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 
 import napari_psfspace as ps
-from napari_psfspace.core.denoise import band_limit, refit_basis
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.metrics import evaluate_against_truth
-from napari_psfspace.core.window import bump_window
+from napari_psfspace.core.beads.window import bump_window
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.model.denoise import band_limit, refit_basis
+from napari_psfspace.core.model.estimate import iter_estimate
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 
 
 def _gaussians(k, p=25, seed=0):

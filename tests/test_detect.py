@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.detect import (
+from napari_psfspace.core.beads.detect import (
     BORDER,
     KEPT,
     NEIGHBOUR,
@@ -144,8 +144,8 @@ def test_suggested_radius_is_usable(preset, seed):
     field's widest wings are below the noise, so it is smaller there), and its model far
     better than the best shift-invariant PSF."""
     from napari_psfspace import estimate_operator, simulate_beads
-    from napari_psfspace.core.detect import suggest_psf_radius
-    from napari_psfspace.core.metrics import evaluate_against_truth
+    from napari_psfspace.core.beads.scale import suggest_psf_radius
+    from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 
     image, truth = simulate_beads((768, 768), 90, aberrations=preset, seed=seed)
     r = suggest_psf_radius(image)
@@ -184,7 +184,7 @@ def test_the_suggested_radius_keeps_the_wings_the_beads_share():
 
 
 def test_suggest_radius_on_noise_raises():
-    from napari_psfspace.core.detect import suggest_psf_radius
+    from napari_psfspace.core.beads.scale import suggest_psf_radius
 
     noise = np.random.default_rng(0).normal(100, 5, (300, 300))
     with pytest.raises(NoBeadsError, match="psf_radius"):

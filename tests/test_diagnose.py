@@ -8,8 +8,8 @@ import pytest
 
 from diagnosis_checks import assert_figures_chain
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.effects import REGISTRY, Effect
+from napari_psfspace.core.diagnosis.effects import REGISTRY, Effect
+from napari_psfspace.core.diagnosis.loop import diagnose
 
 
 def test_effect_free_image_adds_nothing():
@@ -99,7 +99,7 @@ def test_fixed_pattern_offsets_are_found_and_subtracted():
 
 
 def test_an_effect_that_cannot_be_applied_is_rejected_not_fatal():
-    from napari_psfspace.core.effects import REGISTRY as reg
+    from napari_psfspace.core.diagnosis.effects import REGISTRY as reg
 
     class Broken(Effect):
         name = "_test_broken"
@@ -133,9 +133,9 @@ def test_assumed_noise_model_chi_square_does_not_decide(monkeypatch):
     (the excess chi-square drops by 30 %, p = 0, the error does not move): the effect is
     not kept under the fallback, and is kept when the camera's values are given."""
     from napari_psfspace.core.diagnosis import loop
-    from napari_psfspace.core.effects import REGISTRY
-    from napari_psfspace.core.effects.nonlinearity import Nonlinearity, _dark_level
-    from napari_psfspace.core.scenes import random_scene
+    from napari_psfspace.core.diagnosis.effects import REGISTRY
+    from napari_psfspace.core.diagnosis.effects.nonlinearity import Nonlinearity, _dark_level
+    from napari_psfspace.core.simulation.family import random_scene
 
     class Forced(Nonlinearity):
         name = "_test_nonlinearity"

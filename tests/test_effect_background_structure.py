@@ -7,11 +7,11 @@ import pytest
 from scipy import ndimage as ndi
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.analysis import THRESHOLDS
-from napari_psfspace.core.detect import KEPT, NEIGHBOUR, STRUCTURE, Beads, flag_unusable
-from napari_psfspace.core.diagnose import _noise_model, diagnose, prepare_beads
-from napari_psfspace.core.effects import REGISTRY
-from napari_psfspace.core.effects.background_structure import structure_detections
+from napari_psfspace.core.beads.detect import KEPT, NEIGHBOUR, STRUCTURE, Beads, flag_unusable
+from napari_psfspace.core.diagnosis.analysis import THRESHOLDS
+from napari_psfspace.core.diagnosis.effects import REGISTRY
+from napari_psfspace.core.diagnosis.effects.background_structure import structure_detections
+from napari_psfspace.core.diagnosis.loop import diagnose, noise_model_with_source, prepare_beads
 
 
 def _distance_to_truth(positions, truth) -> np.ndarray:
@@ -103,7 +103,7 @@ def test_blobs_are_told_from_beads_with_a_small_psf():
                                   effects={"background_structure": 60.0})
     r = truth.psf_radius
     beads = prepare_beads(image, r)
-    noise, _ = _noise_model(image, None, None, None)
+    noise, _ = noise_model_with_source(image, None, None, None)
     flagged = structure_detections(image.astype(np.float64), beads, r, noise)
     far = _distance_to_truth(beads.positions, truth) > 2.0
     assert not (flagged & ~far).any()

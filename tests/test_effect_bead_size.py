@@ -7,10 +7,10 @@ import pytest
 from scipy.spatial import cKDTree
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.effects.bead_size import SizeFilter
-from napari_psfspace.core.simulate import sphere_transfer as simulator_transfer
-from napari_psfspace.core.sphere import change_size, sphere_transfer
+from napari_psfspace.core.beads.sphere import change_size, sphere_transfer
+from napari_psfspace.core.diagnosis.effects.bead_size import SizeFilter
+from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.simulation import sphere_transfer as simulator_transfer
 
 
 def test_sphere_transfer_matches_the_simulator_in_pixels():

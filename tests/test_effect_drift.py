@@ -9,7 +9,7 @@ longer along the drift by its variance (d^2 / 12 for a uniform motion of length 
 import numpy as np
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
+from napari_psfspace.core.diagnosis.loop import diagnose
 
 
 def _axis_variances(psf):

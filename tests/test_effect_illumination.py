@@ -3,8 +3,8 @@
 import numpy as np
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.photometry import throughput_at
+from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.diagnosis.photometry import throughput_at
 
 
 def test_illumination_is_added_and_lowers_the_photometric_error():

@@ -4,7 +4,7 @@ smoothed too much (e.g. chosen by the user), found and enlarged."""
 import pytest
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
+from napari_psfspace.core.diagnosis.loop import diagnose
 
 
 @pytest.fixture(scope="module")

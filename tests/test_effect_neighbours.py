@@ -5,16 +5,16 @@ be fitted jointly instead of the bead being set aside."""
 import numpy as np
 import pytest
 
-from napari_psfspace.core.effects.neighbours import locate_companion
-from napari_psfspace.core.residuals import BeadResiduals, _fourier_shift
-from napari_psfspace.core.simulate import Optics, simulate_psf
+from napari_psfspace.core.diagnosis.effects.neighbours import locate_companion
+from napari_psfspace.core.diagnosis.residuals import BeadResiduals, fourier_shift
+from napari_psfspace.core.simulation import Optics, simulate_psf
 
 
 def _bead(offset, ratio, seed, photons=2e4, background=50.0):
     """A bead at the patch centre with a companion at ``offset`` (px), Poisson noise."""
     h = simulate_psf(optics=Optics(pixel_size=0.1), size=31)
     h /= h.sum()
-    comp = _fourier_shift(h[None], np.array([offset], float))[0]
+    comp = fourier_shift(h[None], np.array([offset], float))[0]
     mean = photons * (h + ratio * comp) + background
     rng = np.random.default_rng(seed)
     data = rng.poisson(np.clip(mean, 0, None)).astype(float)

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
-from napari_psfspace.core.effects.nonlinearity import Response, linearise
+from napari_psfspace.core.diagnosis.effects.nonlinearity import Response, linearise
+from napari_psfspace.core.diagnosis.loop import diagnose
 
 
 def test_response_round_trip_and_slope():

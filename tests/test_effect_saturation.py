@@ -3,7 +3,7 @@
 import numpy as np
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
+from napari_psfspace.core.diagnosis.loop import diagnose
 
 
 def test_saturation_is_found_and_lowers_the_error_to_the_unsaturated_level():

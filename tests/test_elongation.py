@@ -2,8 +2,8 @@
 
 import numpy as np
 
-from napari_psfspace.core.analysis import _elongated_beads, bead_elongation
-from napari_psfspace.core.residuals import BeadResiduals
+from napari_psfspace.core.diagnosis.bead_tests import bead_elongation, elongated_beads
+from napari_psfspace.core.diagnosis.residuals import BeadResiduals
 
 
 def _gauss(p, sigma, dy=0.0, dx=0.0, stretch=(0.0, 0.0)):
@@ -54,8 +54,8 @@ def test_stretch_of_a_known_gaussian():
 def test_companions_found_and_nothing_on_single_beads():
     for seed in range(3):
         res, _ = _residuals(0.0, seed=seed)
-        assert _elongated_beads(res)["count"] <= 1
+        assert elongated_beads(res)["count"] <= 1
     res, owners = _residuals(0.1, seed=0)
-    found = set(_elongated_beads(res)["beads"])
+    found = set(elongated_beads(res)["beads"])
     assert len(found & set(owners.tolist())) >= 0.8 * len(owners)
     assert len(found - set(owners.tolist())) <= 2

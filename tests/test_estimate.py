@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 
 import napari_psfspace as ps
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.metrics import evaluate_against_truth, psf_error
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth, psf_error
 
 
 @pytest.fixture(scope="module")

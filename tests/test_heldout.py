@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.heldout import HeldoutResiduals, heldout_residuals, split_holdout
-from napari_psfspace.core.operator import ProductConvolution
-from napari_psfspace.core.patches import extract_patches, patch_size
+from napari_psfspace.core.beads.patches import extract_patches, patch_size
+from napari_psfspace.core.model.heldout import HeldoutResiduals, heldout_residuals, split_holdout
+from napari_psfspace.core.model.operator import ProductConvolution
 from synthetic import integrated_gaussian
 
 SHAPE = (256, 256)

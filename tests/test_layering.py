@@ -149,19 +149,3 @@ def test_the_import_check_sees_a_violation():
         assert sorted(s for _, s in _imported_stages(fake)) == ["diagnosis", "model"]
     finally:
         fake.unlink()
-
-
-def test_old_flat_paths_import_the_same_modules():
-    """Flat module paths of earlier versions still import, as the stage modules."""
-    import importlib
-
-    import napari_psfspace.core as core
-
-    for old, new in core.MOVED.items():
-        a = importlib.import_module(f"napari_psfspace.core.{old}")
-        b = importlib.import_module(f"napari_psfspace.core.{new}")
-        assert a is b, old
-    from napari_psfspace.core.diagnosis.effects.nonlinearity import Nonlinearity
-    from napari_psfspace.core.effects.nonlinearity import Nonlinearity as Old
-
-    assert Old is Nonlinearity  # one class, registered once

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from diagnosis_checks import assert_figures_chain
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.io import best_focus_index, read_image
 
 
@@ -63,7 +64,7 @@ def test_sp8_diagnosis_traces_the_residual(sp8):
     """The loop on measured beads: the held-out residual is traced to companions merged
     with beads and to beads of different sizes (the brightest fifth are wider), and each
     lowers the held-out error (docs/measured/sp8_confocal_beads)."""
-    from napari_psfspace.core.diagnose import diagnose
+    from napari_psfspace.core.diagnosis.loop import diagnose
 
     z, image, info = sp8
     d = diagnose(image, psf_radius=0.5 / info.pixel_size)
@@ -101,7 +102,7 @@ def test_noise_model_is_plausible_or_names_its_fallback(shared_data, name):
     """On every measured set the noise model is photon transfer with a physically
     plausible gain that passed its checks, or a fallback that says which and why (the
     issue saw a gain of 4.6e-22 ADU/e- and a chi-square of 1.4e6 on an 8-bit stack)."""
-    from napari_psfspace.core.noise import GAIN_BOUNDS, noise_model
+    from napari_psfspace.core.diagnosis.noise import GAIN_BOUNDS, noise_model
 
     image, _, _ = _read(shared_data, name)
     m = noise_model(image)
@@ -118,7 +119,7 @@ def test_noise_model_is_plausible_or_names_its_fallback(shared_data, name):
 def test_single_and_few_bead_stacks_give_a_shift_invariant_psf(shared_data, name):
     """1-4 beads (data: pycudadecon MIT, pyotf Apache-2.0, BioImageAnalysisNotebooks
     CC-BY-4.0): one PSF for the whole field, said plainly."""
-    from napari_psfspace.core.detect import suggest_psf_radius
+    from napari_psfspace.core.beads.scale import suggest_psf_radius
 
     image, info, _ = _read(shared_data, name)
     est = run_with_progress(iter_estimate(image, psf_radius=suggest_psf_radius(image)))
@@ -134,8 +135,8 @@ def test_single_and_few_bead_stacks_give_a_shift_invariant_psf(shared_data, name
 
 
 def test_four_beads_are_too_few_to_diagnose(shared_data):
-    from napari_psfspace.core.detect import NoBeadsError
-    from napari_psfspace.core.diagnose import diagnose
+    from napari_psfspace.core.beads.detect import NoBeadsError
+    from napari_psfspace.core.diagnosis.loop import diagnose
 
     image, _, _ = _read(shared_data, "four beads")
     with pytest.raises(NoBeadsError, match="4 kept, need at least 5"):
@@ -145,7 +146,7 @@ def test_four_beads_are_too_few_to_diagnose(shared_data):
 def test_astigmatic_8_bit_diagnosis_numbers_agree(shared_data):
     """The 8-bit astigmatic stack (PSF-Extractor, CC-BY-4.0): a sane noise model and a
     report whose steps chain (each starts where the last kept one ended)."""
-    from napari_psfspace.core.diagnose import diagnose
+    from napari_psfspace.core.diagnosis.loop import diagnose
 
     image, info, _ = _read(shared_data, "astigmatic")
     d = diagnose(image, psf_radius=10)
@@ -191,9 +192,9 @@ def test_every_slice_estimates_or_stops_with_a_message(shared_data):
     numpy's "zero-size array" (a 3 px radius leaves no ring for the secondary-peak test)."""
     import tifffile
 
+    from napari_psfspace.core.beads.scale import suggest_psf_radius
     from napari_psfspace.core.common.errors import PsfSpaceError
-    from napari_psfspace.core.detect import suggest_psf_radius
-    from napari_psfspace.core.diagnose import diagnose
+    from napari_psfspace.core.diagnosis.loop import diagnose
 
     outcomes = {"model": 0, "stopped": 0}
     for path in sorted(shared_data.glob("*/*.tif")):

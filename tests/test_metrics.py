@@ -3,15 +3,15 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.metrics import (
+from napari_psfspace.core.model.operator import ProductConvolution
+from napari_psfspace.core.simulation import Optics, simulate_psf
+from napari_psfspace.core.simulation.metrics import (
     best_shift,
     grid_errors,
     psf_error,
     rescaled_error,
     shift_invariant_errors,
 )
-from napari_psfspace.core.operator import ProductConvolution
-from napari_psfspace.core.simulate import Optics, simulate_psf
 
 SIZE = 21
 

@@ -9,12 +9,13 @@ import numpy as np
 import pytest
 
 import napari_psfspace as ps
-from napari_psfspace.core.estimate import iter_estimate, run_with_progress
-from napari_psfspace.core.metrics import evaluate_against_truth
-from napari_psfspace.core.motion import detect_motion, motion_transfer
-from napari_psfspace.core.scenes import random_scene
-from napari_psfspace.core.simulate import Optics
-from napari_psfspace.core.window import bump_window
+from napari_psfspace.core.beads.window import bump_window
+from napari_psfspace.core.common.progress import run_with_progress
+from napari_psfspace.core.model.estimate import iter_estimate
+from napari_psfspace.core.model.motion import detect_motion, motion_transfer
+from napari_psfspace.core.simulation import Optics
+from napari_psfspace.core.simulation.family import random_scene
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 from napari_psfspace.report import model_lines
 
 OPTICS = Optics(pixel_size=0.1)  # NA 1.3, 600 nm: cutoff 0.43 cycles/px
@@ -173,7 +174,7 @@ def test_the_line_focus_of_an_astigmatic_lens_is_reported_with_the_alternative()
     # a line focus (0.15 waves rms of astigmatism with as much defocus) is, in geometric
     # optics, a uniform segment: one image cannot tell it from a smear (29 of 52 such
     # scenes read as a line, bench/RESULTS.md). The record must say so, not claim motion.
-    from napari_psfspace.core.simulate import FieldAberrations
+    from napari_psfspace.core.simulation import FieldAberrations
 
     ab = FieldAberrations({5: (0.15, 0, 0, 0, 0, 0), 4: (0.15, 0, 0, 0, 0, 0)})
     image, truth = ps.simulate_beads((640, 640), 70, aberrations=ab, optics=OPTICS, seed=30)

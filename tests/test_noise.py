@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.noise import NoiseModel, estimate_noise
+from napari_psfspace.core.diagnosis.noise import NoiseModel, estimate_noise
 
 
 @pytest.mark.parametrize(("gain", "offset", "read_noise", "background"), [

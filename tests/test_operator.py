@@ -1,4 +1,4 @@
-"""Tests for napari_psfspace.core.operator (product-convolution operator)."""
+"""Tests for napari_psfspace.core.model.operator (product-convolution operator)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,9 @@ import numpy as np
 import pytest
 from scipy.signal import fftconvolve
 
-from napari_psfspace.core import _atomic
-from napari_psfspace.core.operator import (
-    FORMAT_NAME,
-    FORMAT_VERSION,
-    ProductConvolution,
-    load_operator,
-)
+from napari_psfspace.core.common import atomic as _atomic
+from napari_psfspace.core.model.operator import ProductConvolution, load_operator
+from napari_psfspace.core.model.operator_file import FORMAT_NAME, FORMAT_VERSION
 from tolerances import U64, abs_dot, gamma, product_convolution_errors
 
 SEED = 20240611

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.patches import Patches, extract_patches, patch_size
-from napari_psfspace.core.window import bump_window
+from napari_psfspace.core.beads.patches import Patches, extract_patches, patch_size
+from napari_psfspace.core.beads.window import bump_window
 from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # PSF standard deviation, pixels

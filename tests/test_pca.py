@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.linalg import subspace_angles
 
-from napari_psfspace.core.pca import (
+from napari_psfspace.core.model.pca import (
     PsfBasis,
     learn_basis,
     min_beads_for,

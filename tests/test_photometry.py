@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.photometry import (
+from napari_psfspace.core.diagnosis.photometry import (
     crossfit_log_residuals,
     fit_throughput,
     throughput_at,

@@ -10,7 +10,7 @@ import pytest
 
 from diagnosis_checks import assert_figures_chain
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnose import diagnose
+from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.report import (
     FIGURES,
     colorize,
@@ -202,7 +202,7 @@ def test_to_jsonable():
 def test_an_assumed_noise_model_qualifies_the_floor(tmp_path):
     """An 8-bit export whose background noise is below the integers' rounding: the noise
     model is a named fallback, and the report says its floor is only indicative."""
-    from napari_psfspace.core.scenes import LOW_COUNT_8BIT, random_scene
+    from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT, random_scene
     from napari_psfspace.report import summary_text
 
     image, truth, _ = random_scene(14, **{**LOW_COUNT_8BIT, "gain": 0.02})

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from napari_psfspace import ProductConvolution, simulate_beads, simulate_psf
-from napari_psfspace.core.noise import NoiseModel, estimate_noise
-from napari_psfspace.core.residuals import fit_beads
+from napari_psfspace.core.diagnosis.noise import NoiseModel, estimate_noise
+from napari_psfspace.core.diagnosis.residuals import fit_beads
 
 
 @pytest.fixture(scope="module")

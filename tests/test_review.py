@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.detect import Beads, detect_beads
-from napari_psfspace.core.review import VIEWS, iter_patch_review, patch_review
-from napari_psfspace.core.simulate import simulate_beads
+from napari_psfspace.core.beads.detect import Beads, detect_beads
+from napari_psfspace.core.model.review import VIEWS, iter_patch_review, patch_review
+from napari_psfspace.core.simulation import simulate_beads
 
 
 @pytest.fixture(scope="module")

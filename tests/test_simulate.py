@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.simulate import (
+from napari_psfspace.core.simulation import (
     FieldAberrations,
     Optics,
     SimulationTruth,

@@ -11,7 +11,7 @@ import pytest
 from scipy import ndimage, signal
 from scipy.optimize import OptimizeWarning, curve_fit
 
-from napari_psfspace.core.simulate import (
+from napari_psfspace.core.simulation import (
     EFFECTS,
     FieldAberrations,
     Optics,
@@ -254,7 +254,7 @@ def test_close_companions_by_distance_in_pixels():
 
 
 def test_scene_defocus_gradient_spans_the_field():
-    from napari_psfspace.core.scenes import random_scene
+    from napari_psfspace.core.simulation.family import random_scene
 
     shape = (256, 256)
     _, plain, _ = random_scene(3, shape=shape)

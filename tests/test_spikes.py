@@ -4,14 +4,14 @@ import numpy as np
 import pytest
 
 import napari_psfspace as ps
-from napari_psfspace.core.simulate import Optics, simulate_psf
-from napari_psfspace.core.spikes import (
+from napari_psfspace.core.beads.spikes import (
     MIN_THIRD_RATIO,
     find_spikes,
     inpaint_pixels,
     is_integer_valued,
     pixel_noise_sd,
 )
+from napari_psfspace.core.simulation import Optics, simulate_psf
 
 
 @pytest.mark.parametrize(("sampling", "least"), [(1.0, 0.54), (2.0, 0.13), (2.2, 0.10)])

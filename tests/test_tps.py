@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.tps import ThinPlateSpline
+from napari_psfspace.core.model.tps import ThinPlateSpline
 
 M = 60
 NOISE = 0.05

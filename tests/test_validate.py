@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core._validate import as_image, check_positive, check_psf_radius
+from napari_psfspace.core.common.validate import as_image, check_positive, check_psf_radius
 
 
 def test_3d_stack_suggests_a_slice():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.voronoi import voronoi_areas
+from napari_psfspace.core.model.voronoi import voronoi_areas
 
 
 def test_areas_sum_to_field():

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.window import bump, bump_window, radial_distance
+from napari_psfspace.core.beads.window import bump, bump_window, radial_distance
 
 R, R_EXT = 5.0, 6.0
 

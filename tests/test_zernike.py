@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from napari_psfspace.core.zernike import noll_to_nm, zernike
+from napari_psfspace.core.simulation.zernike import noll_to_nm, zernike
 
 NOLL_FIRST_11 = [
     (0, 0),

@@ -1,7 +1,9 @@
 """napari-psfspace: learn space-varying PSF operators from images of micro-beads.
 
 The public API is headless (numpy / scipy / scikit-image); the napari widgets sit on
-top of it. Typical use::
+top of it. Every long computation ``NAME`` has a generator twin ``iter_NAME`` that
+yields :class:`Progress` records and returns the same result (for a GUI that shows
+progress and can stop). Typical use::
 
     import napari_psfspace as ps
 
@@ -11,27 +13,38 @@ top of it. Typical use::
     blurred = op.apply(image.astype("float32"))
     op.save("model.npz")
     op = ps.load_operator("model.npz")
+
+One operator (:func:`estimate_operator`), its diagnosis (:func:`diagnose`), a family
+of operators from many images (:func:`estimate_subspace`, :func:`load_subspace`), the
+operator of the family that explains a few beads (:func:`identify_operator`) and the
+deblurring with it (:func:`deblur`).
 """
 
 __version__ = "0.1.0"
 
-from .core.beads.detect import Beads, NoBeadsError, detect_beads, suggest_psf_radius
+from .core.beads.detect import Beads, NoBeadsError, detect_beads
 from .core.beads.focus import best_focus_index
 from .core.beads.patches import Patches, extract_patches
-from .core.beads.scale import spot_scale
+from .core.beads.scale import spot_scale, suggest_psf_radius
 from .core.common.errors import PsfSpaceError
-from .core.diagnosis.loop import Diagnosis, diagnose
-from .core.model.estimate import Estimation, Progress, estimate_operator, iter_estimate
+from .core.common.progress import Progress, run_with_progress
+from .core.diagnosis.loop import Diagnosis, diagnose, iter_diagnose, iter_heldout_error
+from .core.model.estimate import Estimation, estimate_operator, iter_estimate
 from .core.model.operator import ProductConvolution, load_operator
+from .core.restore import Deblurred, deblur, identify_operator, iter_deblur
 from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
 from .core.simulation.metrics import psf_error
+from .core.subspace import OperatorSubspace, estimate_subspace, iter_estimate_subspace
+from .core.subspace.subspace_file import load_subspace
 
 __all__ = [
     "Beads",
+    "Deblurred",
     "Diagnosis",
     "Estimation",
     "FieldAberrations",
     "NoBeadsError",
+    "OperatorSubspace",
     "Optics",
     "Patches",
     "ProductConvolution",
@@ -40,13 +53,22 @@ __all__ = [
     "SimulationTruth",
     "__version__",
     "best_focus_index",
+    "deblur",
     "detect_beads",
     "diagnose",
     "estimate_operator",
+    "estimate_subspace",
     "extract_patches",
+    "identify_operator",
+    "iter_deblur",
+    "iter_diagnose",
     "iter_estimate",
+    "iter_estimate_subspace",
+    "iter_heldout_error",
     "load_operator",
+    "load_subspace",
     "psf_error",
+    "run_with_progress",
     "simulate_beads",
     "simulate_psf",
     "spot_scale",

@@ -11,7 +11,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from .core.model.operator import FORMAT_NAME, load_operator
+from .core.model.operator import load_operator
+from .core.model.operator_file import FORMAT_NAME
 
 
 def _single_path(path) -> str | None:

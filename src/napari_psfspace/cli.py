@@ -73,7 +73,7 @@ def _image_and_radius(args):
         info = dataclasses.replace(info, pixel_size=args.pixel_size_nm / 1000.0)
     r = _psf_radius_px(args, info)
     if r is None:
-        from .core.beads.detect import suggest_psf_radius
+        from .core.beads.scale import suggest_psf_radius
 
         r = suggest_psf_radius(image)
         print(f"no --psf-radius given: using {r:g} px, measured from the image "
@@ -95,8 +95,9 @@ def _bead_diameter_px(args, info) -> float:
 
 
 def _cmd_estimate(args) -> int:
+    from .core.common.progress import run_with_progress
     from .core.diagnosis.loop import iter_heldout_error
-    from .core.model.estimate import iter_estimate, run_with_progress
+    from .core.model.estimate import iter_estimate
     from .report import model_lines
 
     image, info, r = _image_and_radius(args)
@@ -135,8 +136,8 @@ def _cmd_estimate(args) -> int:
 
 
 def _cmd_diagnose(args) -> int:
+    from .core.common.progress import run_with_progress
     from .core.diagnosis.loop import iter_diagnose
-    from .core.model.estimate import run_with_progress
     from .report import model_lines, summary_text, write_report
 
     if args.read_noise is not None and args.gain is None:
@@ -168,8 +169,8 @@ def _cmd_diagnose(args) -> int:
 
 
 def _cmd_learn(args) -> int:
-    from .core.beads.detect import suggest_psf_radius
-    from .core.model.estimate import run_with_progress
+    from .core.beads.scale import suggest_psf_radius
+    from .core.common.progress import run_with_progress
     from .core.subspace import iter_estimate_subspace
     from .io import read_image, read_slice, stack_loaders
 
@@ -257,7 +258,7 @@ def _cmd_psf(args) -> int:
 
 
 def _cmd_deblur(args) -> int:
-    from .core.model.estimate import run_with_progress
+    from .core.common.progress import run_with_progress
     from .core.model.operator import load_operator
     from .core.model.operator_file import archive_format
     from .core.restore import identify_operator, iter_deblur

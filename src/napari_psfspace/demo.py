@@ -27,9 +27,10 @@ import numpy as np
 
 from .core.common.atomic import atomic_write
 from .core.common.mosaic import mosaic
+from .core.common.progress import Progress, run_with_progress
 from .core.diagnosis.loop import iter_heldout_error
 from .core.diagnosis.metric import line as heldout_line
-from .core.model.estimate import Progress, iter_estimate, run_with_progress
+from .core.model.estimate import iter_estimate
 from .core.simulation import simulate_beads
 from .core.simulation.metrics import evaluate_against_truth, grid_positions
 from .io import write_png, write_tiff

@@ -27,7 +27,7 @@ if not os.environ.get("DISPLAY") and shutil.which("Xvfb") is None:
 @pytest.fixture(scope="session")
 def bead_image():
     """A small simulated bead field (384 x 384, 25 beads) with its truth."""
-    from napari_psfspace.core.simulate import simulate_beads
+    from napari_psfspace.core.simulation import simulate_beads
 
     image, truth = simulate_beads((384, 384), 25, seed=3)
     return image, truth

@@ -17,7 +17,7 @@ from napari_psfspace._widgets._diagnose import (
 
 @pytest.fixture(scope="module")
 def hot_image():
-    from napari_psfspace.core.simulate import simulate_beads
+    from napari_psfspace.core.simulation import simulate_beads
 
     return simulate_beads((384, 384), 30, seed=1, effects={"hot_pixels": 30})
 
@@ -100,7 +100,7 @@ def test_cancel_adds_nothing_and_widget_stays_usable(hot_viewer, qtbot, tmp_path
 
 def test_too_few_beads_is_a_notification(make_napari_viewer, qtbot, monkeypatch):
     import napari_psfspace._widgets._worker as worker_mod
-    from napari_psfspace.core.simulate import simulate_beads
+    from napari_psfspace.core.simulation import simulate_beads
 
     shown = []
     monkeypatch.setattr(worker_mod, "show_error", shown.append)

@@ -110,7 +110,7 @@ def test_bead_diameter_without_pixel_size_is_refused(make_napari_viewer, qtbot, 
 
 def test_hot_pixels_are_shown_beside_the_beads(make_napari_viewer, qtbot):
     from napari_psfspace._widgets._layers import HOT_PIXELS
-    from napari_psfspace.core.simulate import simulate_beads
+    from napari_psfspace.core.simulation import simulate_beads
 
     image, truth = simulate_beads((384, 384), 25, seed=3, effects={"hot_pixels": 20})
     v = make_napari_viewer()

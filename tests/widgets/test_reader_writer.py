@@ -14,7 +14,7 @@ from napari_psfspace.io import read_image, write_tiff
 def model(bead_image, tmp_path_factory):
     image, truth = bead_image
     op = estimate_operator(image, psf_radius=truth.psf_radius, holdout=None)
-    from napari_psfspace.core.operator import ProductConvolution
+    from napari_psfspace.core.model.operator import ProductConvolution
 
     op = ProductConvolution(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
                             metadata={**op.metadata, "pixel_size_um": 0.065})

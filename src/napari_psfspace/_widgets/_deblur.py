@@ -27,7 +27,7 @@ from magicgui.widgets import (
 from napari.layers import Image, Points
 from napari.utils.notifications import show_error
 
-from ..core.model.estimate import Progress
+from ..core.common.progress import Progress
 from ..core.restore import identify_operator, iter_deblur
 from ..core.restore.identify import IdentificationWarning
 from ._layers import OPERATOR_KEY, SUBSPACE_KEY, image_plane, show_layers

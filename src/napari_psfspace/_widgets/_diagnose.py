@@ -31,7 +31,7 @@ from ._layers import (
     OPERATOR_KEY,
     Frame,
     LayerTuple,
-    _beside,
+    beside,
     show_layers,
     titles_layer,
     user_beads,
@@ -85,13 +85,13 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
             meta[OPERATOR_KEY] = diagnosis.operator
             meta["model_label"] = "diagnosed model (Diagnose's final model)"
         out.append((fig[key].astype("float32"),
-                    {"name": name, "scale": scale, "translate": _beside(frame, col, -1.0),
+                    {"name": name, "scale": scale, "translate": beside(frame, col, -1.0),
                      "colormap": "viridis", "contrast_limits": (0.0, fig["map_limit"]),
                      COLORBAR: key == "map_after",  # one scale for both maps
                      "metadata": meta}, "image"))
     lim = fig["mean_limit"]
     size = 0.45 * frame.height
-    y0, x0 = _beside(frame, 2.0, -1.0)
+    y0, x0 = beside(frame, 2.0, -1.0)
     for row, (name, key) in enumerate(((MEAN_BEFORE, "mean_before"),
                                        (MEAN_AFTER, "mean_after"))):
         patch = fig[key]
@@ -104,7 +104,7 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
                                            "(noise sd)"}}, "image"))
     titles = []
     for col, which in enumerate(("plain", "final")):
-        y, x = _beside(frame, col, -1.0)
+        y, x = beside(frame, col, -1.0)
         titles.append((y, x, f"excess error\n{which} model"))
     for row, which in enumerate(("plain", "final")):
         titles.append((y0 + row * 0.55 * frame.height, x0, f"mean residual\n{which} model"))

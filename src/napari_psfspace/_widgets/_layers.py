@@ -346,7 +346,7 @@ def _gap(frame: Frame) -> float:
     return 0.04 * max(frame.height, frame.width)
 
 
-def _beside(frame: Frame, column: float, row: float = 0.0) -> tuple[float, float]:
+def beside(frame: Frame, column: float, row: float = 0.0) -> tuple[float, float]:
     gap = _gap(frame)
     return (frame.translate[0] + row * (frame.height + gap),
             frame.translate[1] + column * (frame.width + gap))
@@ -372,18 +372,18 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
     ys, xs, psfs = op.psf_grid(grid, grid)
     tiles = mosaic(psfs, gap=1, normalize="each", gamma=0.5)
     s_mosaic = frame.height / tiles.shape[0]
-    y0, x0 = _beside(frame, 1.0)
+    y0, x0 = beside(frame, 1.0)
     meta = {OPERATOR_KEY: op, "pixel_size_um": frame.pixel_size,
             "psf_grid_rows": ys.tolist(), "psf_grid_columns": xs.tolist(),
             "about": f"PSF at {grid}x{grid} field positions, each scaled to its maximum, "
                      "gamma 0.5. Save this layer as .npz to save the model."}
     basis = np.asarray(op.basis, np.float32)
     b_tiles, b_scale, b_cols = _flat_mosaic(basis, frame, 0.9, gap=2)
-    by, bx = _beside(frame, 2.0)
+    by, bx = beside(frame, 2.0)
     maps = op.coefficient_maps()
     step = int(np.ceil(np.sqrt(maps.shape[0])))  # smooth maps: every step-th pixel
     m_tiles, m_scale, m_cols = _flat_mosaic(maps[:, ::step, ::step], frame, 1.0, gap=4)
-    my, mx = _beside(frame, 1.0, 1.0)
+    my, mx = beside(frame, 1.0, 1.0)
     psf_um = _length(op.psf_size, frame)
     titles = titles_layer(MODEL_TITLES, [
         (y0, x0, f"PSF grid {grid} x {grid}\ntiles {psf_um}"),
@@ -461,17 +461,17 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     tiles = np.zeros((max(images) + 1, *one[0].shape))  # a skipped image: an empty slice
     tiles[images] = one
     s_mosaic = frame.height / tiles.shape[1]
-    y0, x0 = _beside(frame, 1.0, 2.0)
+    y0, x0 = beside(frame, 1.0, 2.0)
     basis = np.asarray(sub.basis, np.float32)
     b_tiles, b_scale, b_cols = _flat_mosaic(basis, frame, 0.9, gap=2)
-    by, bx = _beside(frame, 2.0, 2.0)
+    by, bx = beside(frame, 2.0, 2.0)
     space = np.asarray(sub.space, np.float32)
     s_tiles, s_scale, s_cols = _flat_mosaic(space, frame, 1.0, gap=1)
-    sy, sx = _beside(frame, 0.0, 2.0)
+    sy, sx = beside(frame, 0.0, 2.0)
     box = 0.45 * frame.height
     c = np.asarray(coords, float)[:, :2]
     span = float(np.abs(c).max()) or 1.0
-    cy, cx = _beside(frame, 3.0, 2.0)
+    cy, cx = beside(frame, 3.0, 2.0)
     points = np.stack([cy + box / 2 - c[:, 1] / span * box / 2,
                        cx + box / 2 + c[:, 0] / span * box / 2], axis=1)
     held = sub.metadata.get("heldout") or []
@@ -537,7 +537,7 @@ def heldout_layer(heldout, frame: Frame) -> LayerTuple:
 
 def psf_layer(psf: np.ndarray, y: float, x: float, frame: Frame) -> LayerTuple:
     """The PSF at pixel (y, x) as an image layer (saved as TIFF by the plugin's writer)."""
-    y0, x0 = _beside(frame, 2.0, 1.0)
+    y0, x0 = beside(frame, 2.0, 1.0)
     s = 0.45 * frame.height / psf.shape[-1]
     return (np.asarray(psf, np.float32),
             {"name": PSF_AT, "scale": (s, s), "translate": (y0, x0), "colormap": "magma",
@@ -549,7 +549,7 @@ def gallery_layer(stack: np.ndarray, frame: Frame, *, view: str) -> LayerTuple:
     """The patches (K, P, P) as one 2-D mosaic below the image (near-square grid, bead
     ``k`` at row ``k // columns``, column ``k % columns``; :func:`gallery_cell`), each
     patch scaled to its largest magnitude: no axis shared with the data."""
-    y0, x0 = _beside(frame, 0.0, 1.0)
+    y0, x0 = beside(frame, 0.0, 1.0)
     tiles, scale, cols = _flat_mosaic(stack, frame, 1.0, gap=GALLERY_GAP)
     return (tiles, {"name": GALLERY, "scale": (scale, scale), "translate": (y0, x0),
                     "colormap": "gray",
@@ -678,7 +678,7 @@ def below_others(viewer, frame: Frame, row: float, step: str) -> Frame:
         if (layer.metadata or {}).get(STEP_KEY) == step:
             continue
         bottom = max(bottom, float(np.asarray(layer.extent.world)[1][-2]))
-    top = _beside(frame, 0.0, row)[0]
+    top = beside(frame, 0.0, row)[0]
     shift = max(0.0, bottom + _gap(frame) - top) if np.isfinite(bottom) else 0.0
     return Frame(frame.shape, frame.scale, (frame.translate[0] + shift, frame.translate[1]),
                  frame.index)

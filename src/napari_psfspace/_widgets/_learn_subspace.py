@@ -28,7 +28,7 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_error, show_info
 
-from ..core.model.estimate import Progress
+from ..core.common.progress import Progress
 from ..core.subspace import OperatorSubspace, iter_estimate_subspace
 from ._layers import (
     SUB_GRID,

@@ -9,8 +9,9 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
 from napari.layers import Image
 
-from ..core.beads.detect import detect_beads, suggest_psf_radius
-from ..core.model.estimate import Progress
+from ..core.beads.detect import detect_beads
+from ..core.beads.scale import suggest_psf_radius
+from ..core.common.progress import Progress
 from ._layers import (
     BEADS,
     HOT_PIXELS,

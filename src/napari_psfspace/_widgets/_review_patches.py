@@ -8,11 +8,11 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, PushButton, SpinBox
 from napari.layers import Image
 
+from ..core.beads.detect import REJECTED
 from ..core.model.review import VIEWS, PatchReview, iter_patch_review
 from ._layers import (
     CURRENT,
     GALLERY,
-    REJECTED,
     STATUS_MEANING,
     beads_from_points,
     ensure_bead_features,

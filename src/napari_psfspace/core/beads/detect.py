@@ -15,6 +15,7 @@ from scipy import ndimage as ndi
 from ..common.errors import PsfSpaceError
 from ..common.threads import filter_by_rows
 from ..common.validate import as_image, check_positive, check_psf_radius
+from .scale import block_mean, characteristic_scale, detection_image, spot_scale
 from .spikes import (
     find_spikes,
     inpaint_pixels,
@@ -431,7 +432,7 @@ def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: 
     img = np.asarray(image, np.float32)
     s = max(0.5, (r / 4.0 if sigma is None else float(sigma)) / 2.0)
     b = max(1, int(r // 2))
-    small = _block_mean(img, b)
+    small = block_mean(img, b)
     p = np.rint(np.asarray(peaks, np.float64)).astype(int)
     iy = np.clip(p[:, 0] // b, 0, small.shape[0] - 1)
     ix = np.clip(p[:, 1] // b, 0, small.shape[1] - 1)
@@ -635,7 +636,3 @@ def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
             "denser bead slide."
         )
 
-
-# the spots' own scale; the radius suggested from it (re-exported here, where it lived)
-from .scale import _block_mean, characteristic_scale, detection_image, spot_scale  # noqa: E402
-from .scale import suggest_psf_radius as suggest_psf_radius  # noqa: E402

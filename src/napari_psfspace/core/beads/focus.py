@@ -57,7 +57,8 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
     PsfSpaceError
         No bead is found on the maximum projection (then there is no focus to measure).
     """
-    from .detect import detect_beads, suggest_psf_radius
+    from .detect import detect_beads
+    from .scale import suggest_psf_radius
 
     arr = _stack(stack)
     proj = arr.max(axis=0)

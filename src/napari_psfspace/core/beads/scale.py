@@ -184,7 +184,7 @@ def characteristic_scale(image: np.ndarray, peaks: np.ndarray, sigma0: float, *,
             y0, y1, x0, x1 = max(0, y - half), min(h, y + half + b), max(0, x - half), \
                 min(w, x + half + b)
             win = np.asarray(image[y0:y1, x0:x1], np.float64)
-            win = _block_mean(win, b)
+            win = block_mean(win, b)
             if min(win.shape) < 3:
                 continue
             edge = np.concatenate([win[0], win[-1], win[1:-1, 0], win[1:-1, -1]])
@@ -235,7 +235,7 @@ class SpotScale:
     all_spots: np.ndarray
 
 
-def _block_mean(img: np.ndarray, b: int) -> np.ndarray:
+def block_mean(img: np.ndarray, b: int) -> np.ndarray:
     if b == 1:
         return img
     h, w = (img.shape[0] // b) * b, (img.shape[1] // b) * b
@@ -289,7 +289,7 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
         if s > smax:
             break
         b = max(1, int(s / 1.4))
-        x = _block_mean(det, b)
+        x = block_mean(det, b)
         if min(x.shape) < 8:
             break
         sb = s / b
@@ -297,7 +297,7 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
         med, mad = _normalised(resp, floor * log_kernel_norm(sb) / b)
         norm = (resp - med) / mad
         if stabilised:  # significance on the stabilised image, the scale on the image
-            resp = -(sb**2) * ndi.gaussian_laplace(_block_mean(img, b).astype(np.float32), sb,
+            resp = -(sb**2) * ndi.gaussian_laplace(block_mean(img, b).astype(np.float32), sb,
                                                    mode="reflect")
             med = float(np.median(resp[::4, ::4]))
         size = 2 * int(np.ceil(sb)) + 1

@@ -92,3 +92,56 @@ def check_psf_radius(psf_radius, shape: tuple[int, int]) -> float:
             f"expected 2 * psf_radius + 1 <= {min(shape)}."
         )
     return r
+
+
+def check_int(value, name: str, *, minimum: int | None = None,
+              maximum: int | None = None) -> int:
+    """Return ``int(value)`` after checking it is a whole number within the bounds.
+
+    ``2.0`` passes as 2; ``2.5``, ``"3"``, ``True`` and NaN are refused with an error that
+    names ``name``.
+    """
+    ok = isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
+    if not ok and isinstance(value, (float, np.floating)) and np.isfinite(value) \
+            and float(value).is_integer():
+        ok = True
+    if not ok:
+        raise ValueError(f"`{name}` must be a whole number, got {value!r}.")
+    v = int(value)
+    if (minimum is not None and v < minimum) or (maximum is not None and v > maximum):
+        lo = "-inf" if minimum is None else minimum
+        hi = "inf" if maximum is None else maximum
+        raise ValueError(f"`{name}` must be in [{lo}, {hi}], got {value!r}.")
+    return v
+
+
+def check_grid_step(grid_step, shape: tuple[int, ...], name: str = "grid_step") -> float:
+    """Check a coarse grid's spacing (pixels): finite, at least 2, at most the image's
+    larger side (a larger step leaves one node: no field)."""
+    step = check_positive(grid_step, name)
+    if step < 2 or step > max(shape):
+        raise ValueError(f"`{name}` must be between 2 and the image's larger side "
+                         f"({max(shape)} px), got {grid_step!r}.")
+    return step
+
+
+def check_saturation(saturation, name: str = "saturation") -> float | None:
+    """None, or a finite level (image units)."""
+    if saturation is None:
+        return None
+    try:
+        v = float(saturation)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number or None, got {saturation!r}.") from None
+    if not np.isfinite(v):
+        raise ValueError(f"`{name}` must be finite (or None: the dtype's maximum for "
+                         f"integer images), got {saturation!r}.")
+    return v
+
+
+def check_instance(value, cls: type, name: str, hint: str = "") -> None:
+    """Raise a TypeError naming ``name`` when ``value`` is not a ``cls``."""
+    if not isinstance(value, cls):
+        article = "an" if cls.__name__[0] in "AEIOU" else "a"
+        raise TypeError(f"`{name}` must be {article} {cls.__name__}, got "
+                        f"{type(value).__name__}.{(' ' + hint) if hint else ''}")

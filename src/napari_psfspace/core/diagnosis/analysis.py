@@ -44,7 +44,7 @@ Tests (name: what it looks at)
 * ``secondary_peaks``: beads whose smoothed normalised residual has a peak of more than
   6 noise sd outside the core (a companion bead the detector merged with it).
 * ``elongated_beads``: beads stretched along one axis far more than their neighbours
-  (:func:`_elongated_beads`: a companion 1-3 px away, inside the core, merged with it).
+  (:func:`elongated_beads`: a companion 1-3 px away, inside the core, merged with it).
 """
 
 from __future__ import annotations
@@ -55,32 +55,25 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ..beads.window import radial_distance
-
-# The per-bead, background and statistical helpers below lived in this module until
-# issue 10 split them out; those imported "as" themselves are re-exported from here.
 from .background_tests import (
-    _line_pattern,
-    _pixel_outliers,
-    _smooth_background,
-    _window_structure,
     bead_free_mask,
+    line_pattern,
+    pixel_outliers,
+    smooth_background,
+    window_structure,
 )
-from .background_tests import outlier_pixels as outlier_pixels
 from .bead_tests import (
-    _elongated_beads,
-    _secondary_peaks,
     bead_covariates,
     bead_flux,
     bead_width,
     core_residuals,
     core_trend,
+    elongated_beads,
+    secondary_peaks,
 )
-from .bead_tests import bead_elongation as bead_elongation
-from .bead_tests import local_contrast as local_contrast
 from .noise import NoiseModel
 from .residuals import BeadResiduals
-from .statistics import FALLBACK_SCALE_ERROR as FALLBACK_SCALE_ERROR
-from .statistics import _chi2_to_z, _radial_trend, _spearman_z, noise_scale_error
+from .statistics import chi2_to_z, noise_scale_error, radial_trend, spearman_z
 
 #: Default thresholds (z units), calibrated on effect-free simulations.
 THRESHOLDS: dict[str, float] = {
@@ -207,7 +200,7 @@ def analyse(
     excess = res.rel_energy - res.floor
     cov = bead_covariates(res, img.shape, all_positions)
     for name in TREND_VARIABLES:
-        rho, z = _spearman_z(cov[name], excess)
+        rho, z = spearman_z(cov[name], excess)
         tests[f"trend_{name}"] = TestResult(f"trend_{name}", z, th["trend"], {"rho": rho},
                                             two_sided=True)
 
@@ -223,7 +216,7 @@ def analyse(
     width = bead_width(res)
     flux = bead_flux(img, res.positions, psf_radius)
     ok = (flux > 0) & (res.amplitude > 0)
-    rho, z = _spearman_z(flux[ok], width[ok])
+    rho, z = spearman_z(flux[ok], width[ok])
     tests["bead_width"] = TestResult("bead_width", z, th["bead_width"],
                                      {"rho": rho, "n_beads": int(ok.sum())})
 
@@ -232,7 +225,7 @@ def analyse(
     if k >= 5:
         mean = flat.mean(axis=0)
         chi2 = float(np.sum(mean**2 * k))
-        tests["mean_residual"] = TestResult("mean_residual", _chi2_to_z(chi2, flat.shape[1]),
+        tests["mean_residual"] = TestResult("mean_residual", chi2_to_z(chi2, flat.shape[1]),
                                             th["mean_residual"], {"chi2": chi2,
                                                                   "n_pixels": int(flat.shape[1])})
         s = np.linalg.svd(flat - mean, compute_uv=False)
@@ -244,7 +237,7 @@ def analyse(
                                                 th["coherent_residual"],
                                                 {"s1_over_edge": float(s[0] / edge)})
 
-    out = _pixel_outliers(img, noise)
+    out = pixel_outliers(img, noise)
     tests["pixel_outliers"] = TestResult("pixel_outliers", float(out["count"]),
                                          th["pixel_outliers"], out)
 
@@ -253,14 +246,14 @@ def analyse(
         free = bead_free_mask(img.shape, ref, psf_radius)
     else:
         free = ~np.asarray(bead_mask, bool)
-    level = _smooth_background(img, free, sigma=max(8.0, 2 * psf_radius))
+    level = smooth_background(img, free, sigma=max(8.0, 2 * psf_radius))
     resid = img - level
     # each against the noise's sampling error and the noise model's own uncertainty
     scale_error = noise_scale_error(noise)
     for axis, name in ((1, "row_pattern"), (0, "column_pattern")):
-        d = _line_pattern(resid, level, free, noise, axis, scale_error)
+        d = line_pattern(resid, level, free, noise, axis, scale_error)
         tests[name] = TestResult(name, d.pop("z"), th[name], d)
-    d = _window_structure(resid, level, free, noise, p, scale_error=scale_error)
+    d = window_structure(resid, level, free, noise, p, scale_error=scale_error)
     tests["background_structure"] = TestResult("background_structure", d.pop("z"),
                                                th["background_structure"], d)
 
@@ -275,9 +268,9 @@ def analyse(
             # grows towards the edge biases the amplitudes alone (still scenes of the
             # family: z 2.8 and 3.2 from the amplitudes, 2.1 and 1.6 from the fluxes,
             # 1.6 from the true amplitudes). The test's z is the smaller of the two
-            d_amp = _radial_trend(res.positions[ok], res.amplitude[ok], img.shape,
+            d_amp = radial_trend(res.positions[ok], res.amplitude[ok], img.shape,
                                   th["amplitude_field"])
-            d_flux = _radial_trend(res.positions[ok], flux[ok], img.shape,
+            d_flux = radial_trend(res.positions[ok], flux[ok], img.shape,
                                    th["amplitude_field"])
             z = min(d_amp["z"], d_flux["z"])
             tests["amplitude_field"] = TestResult(
@@ -287,10 +280,10 @@ def analyse(
                  "min_corner_loss": d_amp["min_corner_loss"],
                  "coefficients": d_amp["coefficients"]})
     # row / column patterns and background structure use the bead-free background
-    d = _secondary_peaks(res, psf_radius)
+    d = secondary_peaks(res, psf_radius)
     tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),
                                           th["secondary_peaks"], d)
-    d = _elongated_beads(res)
+    d = elongated_beads(res)
     tests["elongated_beads"] = TestResult("elongated_beads", float(d["count"]),
                                           th["elongated_beads"], d)
     top = float(img.max())

@@ -14,7 +14,7 @@ from scipy import stats
 from ..beads.background import monomials
 from ..beads.spikes import find_spikes, pixel_noise_sd
 from .noise import NoiseModel
-from .statistics import LINE_CLIP, _excess_z, _trim_factor
+from .statistics import LINE_CLIP, excess_z, trim_factor
 
 
 def outlier_pixels(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> np.ndarray:
@@ -26,7 +26,7 @@ def outlier_pixels(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> np.nda
     return find_spikes(img, noise_sd=max(sd, pixel_noise_sd(img)), k=k)
 
 
-def _pixel_outliers(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> dict:
+def pixel_outliers(img: np.ndarray, noise: NoiseModel, k: float = 8.0) -> dict:
     found = outlier_pixels(img, noise, k)
     return {"count": int(len(found)), "positions": found[:200].tolist()}
 
@@ -41,14 +41,14 @@ def bead_free_mask(shape, positions, psf_radius: float) -> np.ndarray:
     return ~ndi.binary_dilation(mask, iterations=int(np.ceil(1.5 * psf_radius)))
 
 
-def _smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.ndarray:
+def smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.ndarray:
     """Normalised (masked) Gaussian smoothing of the bead-free pixels."""
     num = ndi.gaussian_filter(np.where(free, img, 0.0), sigma, mode="nearest")
     den = ndi.gaussian_filter(free.astype(np.float64), sigma, mode="nearest")
     return num / np.maximum(den, 1e-6)
 
 
-def _line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
+def line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
                   axis: int, scale_error: float = 0.0) -> dict:
     """Excess variance of the clipped means of bead-free, detrended pixels along rows
     (axis=1) or columns (axis=0), line to line, as a z against the noise (with the
@@ -90,11 +90,11 @@ def _line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise:
     var_line = clipped * noise.variance(lev[ok]) / count[ok]
     n = int(ok.sum())
     ratio = float(np.mean(dev**2 / (var_line * (1 + 1 / 8))))
-    return {"z": _excess_z(ratio, np.sqrt(2.0 / n), scale_error), "n_lines": n,
+    return {"z": excess_z(ratio, np.sqrt(2.0 / n), scale_error), "n_lines": n,
             "chi2_dof": ratio, "rms_adu": float(np.sqrt(np.mean(dev**2)))}
 
 
-def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
+def window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
                       noise: NoiseModel, size: int, *, min_free: float = 0.25,
                       trim: float = 0.1, scale_error: float = 0.0) -> dict:
     """Order-2 polynomials fitted to the bead-free pixels of windows of a patch's size.
@@ -149,7 +149,7 @@ def _window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
     kept = np.sort(ratios)[cut:n - cut]
     # the trimmed mean of the windows' chi2/dof against 1: its sampling error (each
     # window's sqrt(2 / dof), trimmed) combined with the noise model's own relative error
-    se = float(np.sqrt(_trim_factor(trim) * 2.0 / np.mean(dofs) / n))
+    se = float(np.sqrt(trim_factor(trim) * 2.0 / np.mean(dofs) / n))
     mean = float(np.mean(kept))
-    return {"z": _excess_z(mean, se, scale_error), "windows": n,
+    return {"z": excess_z(mean, se, scale_error), "windows": n,
             "chi2_dof": mean, "median_chi2_dof": float(np.median(ratios))}

@@ -13,10 +13,10 @@ from scipy import stats
 from ..beads.patches import extract_patches
 from ..beads.window import radial_distance
 from .residuals import BeadResiduals
-from .statistics import _spearman_z
+from .statistics import spearman_z
 
 #: A bead counts as stretched (a merged companion) beyond this many sd of its
-#: elongation against its neighbours' (:func:`_elongated_beads`).
+#: elongation against its neighbours' (:func:`elongated_beads`).
 ELONGATION_Z = 6.0
 #: ... and stretched by more than this fraction of the PSF's variance along one axis
 #: (still beads of the scene family reach 0.28 from the model's own error).
@@ -120,11 +120,11 @@ def core_trend(amplitude: np.ndarray, core_rel: np.ndarray, positions: np.ndarra
     neighbours (:func:`local_contrast` of both): a nonlinear response or saturation
     makes a bead's core flatter than its neighbours' the brighter it is than them."""
     amp = np.where(amplitude > 0, amplitude, np.nan)
-    return _spearman_z(local_contrast(np.log(amp), positions),
+    return spearman_z(local_contrast(np.log(amp), positions),
                        local_contrast(core_rel, positions))
 
 
-def _secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,
+def secondary_peaks(res: BeadResiduals, psf_radius: float, k: float = 6.0,
                      relative: float = 0.15) -> dict:
     """Beads with a companion: a peak of the smoothed residual outside the core that
     stands ``k`` noise sd out *and* exceeds ``relative`` of the bead's own peak (a model
@@ -231,7 +231,7 @@ def _psf_variance(res: BeadResiduals) -> np.ndarray:
     return (sig * r2).sum(axis=(1, 2)) / np.maximum(total, 1e-300) / 2.0
 
 
-def _elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
+def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
     """Beads stretched far more than their neighbours (a merged companion 1-3 px away).
 
     Each bead's elongation (:func:`bead_elongation`) minus its nearest neighbours'

@@ -26,7 +26,7 @@ def _compare_photometry(before: CrossFit, after: CrossFit, shape: tuple[int, int
                         throughput: tuple[int, int], flux: np.ndarray | None,
                         n_boot: int, seed: int) -> dict:
     """The held-out photometric error of two cross-fits of different throughputs (see
-    :func:`_compare`), on every bead whose brightness both measure."""
+    :func:`compare`), on every bead whose brightness both measure."""
     r0, r1 = before.residuals, after.residuals
     # photometry judges every bead whose brightness is measured, not only those whose
     # shape informs the PSF (a faint field on a bright background: 1 of 148 beads)
@@ -115,7 +115,7 @@ def paired_errors(before: CrossFit, after: CrossFit, noise: NoiseModel,
             "noise_floor": float(r1.floor[i1].mean()), "n_beads": int(len(common))}
 
 
-def _compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 1000,
+def compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 1000,
              seed: int = 0, *, shape: tuple[int, int] | None = None,
              throughput: tuple[int, int] = (0, 0), flux: np.ndarray | None = None,
              reference: np.ndarray | None = None, informative: bool = True) -> dict:

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..beads.detect import COMPANION, HELDOUT, KEPT, Beads
-from ..model.estimate import Progress, iter_estimate, run_with_progress
-from ..model.heldout import _morton_order
+from ..common.progress import Progress, run_with_progress
+from ..model.estimate import iter_estimate
+from ..model.heldout import morton_order
 from .noise import NoiseModel
 from .residuals import BeadResiduals, fit_beads
 
@@ -52,7 +53,7 @@ class CrossFit:
 def assign_folds(positions, shape, k: int = 5) -> np.ndarray:
     """Fold (0 .. k-1) of each position: every k-th along a Z-order curve."""
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-    order = _morton_order(pos, shape)
+    order = morton_order(pos, shape)
     fold = np.empty(len(pos), dtype=int)
     fold[order] = np.arange(len(pos)) % k
     return fold

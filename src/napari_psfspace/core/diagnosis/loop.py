@@ -38,17 +38,13 @@ import numpy as np
 from ..beads.centering import refine_centers
 from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept
 from ..beads.spikes import spike_mask
+from ..common.progress import Progress, run_with_progress
 from ..common.validate import as_image, check_psf_radius
-from ..model.estimate import (
-    Progress,
-    check_bead_diameter,
-    hot_pixel_record,
-    iter_estimate,
-    run_with_progress,
-)
+from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
-from .analysis import Analysis, analyse, bead_flux
-from .comparison import _compare, paired_errors
+from .analysis import Analysis, analyse
+from .bead_tests import bead_flux
+from .comparison import compare, paired_errors
 from .crossfit import CrossFit, iter_crossfit
 from .effects import REGISTRY, Context, Effect
 from .metric import HeldoutError
@@ -216,7 +212,7 @@ def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.
     return beads
 
 
-def _noise_model(image, gain, offset, read_noise, mask=None) -> tuple[NoiseModel, str]:
+def noise_model_with_source(image, gain, offset, read_noise, mask=None) -> tuple[NoiseModel, str]:
     noise = noise_model(image, mask=mask, gain=gain, offset=offset, read_noise=read_noise)
     source = {"camera": "camera values given", "photon transfer": "photon transfer on the image"
               }.get(noise.kind, f"{noise.kind} (fallback: {noise.note})")
@@ -269,7 +265,7 @@ def iter_diagnose(
         folds = n_kept
     hot = spike_mask(img.shape, beads.hot_pixels)
     img = beads.clean_image(img)
-    noise, noise_source = _noise_model(raw, gain, offset, read_noise, mask=hot)
+    noise, noise_source = noise_model_with_source(raw, gain, offset, read_noise, mask=hot)
     model = {k: v for k, v in (("n_psf", n_psf), ("smoothing", smoothing)) if v is not None}
     ctx = Context(image=img, pixel_mask=hot, beads=beads, noise=noise,
                   psf_radius=r, noise_from_image=gain is None, estimate_kwargs=model,
@@ -353,7 +349,7 @@ def iter_diagnose(
         throughput = (ctx.throughput_degree, new_ctx.throughput_degree)
         flux = (bead_flux(new_ctx.image, new_cf.residuals.positions, r)
                 if throughput[0] != throughput[1] else None)
-        cmp = _compare(cf, new_cf, new_ctx.noise, shape=img.shape, throughput=throughput,
+        cmp = compare(cf, new_cf, new_ctx.noise, shape=img.shape, throughput=throughput,
                        flux=flux, reference=reference, informative=informative)
         # one held-out metric must drop (by min_improvement, p <= max_p / 2) and none
         # may get worse by as much

@@ -152,7 +152,7 @@ def _variance(noise: NoiseModel, mean: np.ndarray, response) -> np.ndarray:
     return noise.variance(response.forward(mean)) / np.maximum(response.slope(mean), 1e-6) ** 2
 
 
-def _fourier_shift(patches: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+def fourier_shift(patches: np.ndarray, shifts: np.ndarray) -> np.ndarray:
     """Translate each (P, P) patch by (dy, dx) pixels, zero-padded to avoid wrap-around."""
     k, p, _ = patches.shape
     pad = p // 2 + 2
@@ -173,7 +173,7 @@ def _companion_models(operator, positions, base, size: int) -> list[np.ndarray]:
         psf = operator.psf_at(float(np.clip(cy, 0, operator.shape[0] - 1)),
                               float(np.clip(cx, 0, operator.shape[1] - 1)))
         shift = np.array([[cy - base[0], cx - base[1]]], dtype=np.float64)
-        out.append(_fourier_shift(psf[None], shift)[0])
+        out.append(fourier_shift(psf[None], shift)[0])
     return out
 
 
@@ -241,7 +241,7 @@ def fit_beads(
     base = np.round(pos)
     psfs = np.array([operator.psf_at(y, x) for y, x in pos]) if len(pos) else np.zeros(
         (0, p, p))
-    models = _fourier_shift(psfs, pos - base)
+    models = fourier_shift(psfs, pos - base)
     if model_filter is not None and len(pos):
         models = model_filter(models, pos)
     data = gather_windows(img, base, half)

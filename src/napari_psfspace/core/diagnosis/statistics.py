@@ -12,7 +12,7 @@ from .noise import NoiseModel
 from .photometry import radial_design, radial_to_monomials
 
 
-def _spearman_z(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+def spearman_z(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """Spearman rho and its Fisher z (approximately N(0, 1) under independence)."""
     ok = np.isfinite(x) & np.isfinite(y)
     n = int(ok.sum())
@@ -23,7 +23,7 @@ def _spearman_z(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     return rho, float(np.arctanh(rho) * np.sqrt((n - 3) / 1.06))
 
 
-def _chi2_to_z(chi2: float, dof: float) -> float:
+def chi2_to_z(chi2: float, dof: float) -> float:
     """Wilson-Hilferty normal approximation of a chi-square statistic."""
     if dof <= 0:
         return 0.0
@@ -61,7 +61,7 @@ def noise_scale_error(noise: NoiseModel) -> float:
 LINE_CLIP = 3.0
 
 
-def _trim_factor(trim: float) -> float:
+def trim_factor(trim: float) -> float:
     """Asymptotic variance of the ``trim``-trimmed mean of n N(0, 1) values, times n:
     ``(1 - 2a - 2c phi(c) + 2a c^2) / (1 - 2a)^2``, ``c`` the ``(1 - a)`` quantile."""
     if trim <= 0:
@@ -70,13 +70,13 @@ def _trim_factor(trim: float) -> float:
     return (1 - 2 * trim - 2 * c * stats.norm.pdf(c) + 2 * trim * c * c) / (1 - 2 * trim) ** 2
 
 
-def _excess_z(ratio: float, se_sampling: float, scale_error: float) -> float:
+def excess_z(ratio: float, se_sampling: float, scale_error: float) -> float:
     """A mean chi2/dof ``ratio`` against 1, in units of its sampling error combined with
     the noise model's own relative error (:func:`noise_scale_error`)."""
     return float((ratio - 1.0) / max(np.hypot(se_sampling, scale_error), 1e-12))
 
 
-def _radial_trend(positions, values, shape, threshold: float) -> dict:
+def radial_trend(positions, values, shape, threshold: float) -> dict:
     """F-test of a paraboloid of revolution (free centre) in ``log(values)`` over the
     field: ``z`` (normal equivalent of the F-test's p), ``F``, ``p``, the radial
     coefficients as monomials, and the smallest centred fall-off to the corners

@@ -17,40 +17,27 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..beads.centering import refine_centers
-from ..beads.detect import FAINT, KEPT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
+from ..beads.detect import FAINT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches, extract_patches
 from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance
-from ..common.validate import as_image, check_positive, check_psf_radius
+from ..common.progress import Progress, run_with_progress
+from ..common.validate import (
+    as_image,
+    check_grid_step,
+    check_positive,
+    check_psf_radius,
+    check_saturation,
+)
 from .cone import Cone
 from .fewbeads import FEW_BEADS, fit_few_beads
-from .field import fit_field
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .motion import detect_motion
 from .motion import remove_motion as divide_motion
 from .operator import ProductConvolution
 from .patch_fit import fit_patches
 from .pca import PsfBasis, min_beads_for
-
-
-@dataclass(frozen=True)
-class Progress:
-    """One step of a long computation.
-
-    Attributes
-    ----------
-    stage : str
-        Short name of the step that just finished.
-    fraction : float
-        Fraction of the whole computation done, in [0, 1].
-    message : str
-        Human-readable detail.
-    """
-
-    stage: str
-    fraction: float
-    message: str = ""
 
 
 @dataclass
@@ -130,7 +117,8 @@ def iter_estimate(
     img = as_image(raw)
     shape = img.shape
     r = check_psf_radius(psf_radius, shape)
-    grid_step = check_positive(grid_step, "grid_step")
+    grid_step = check_grid_step(grid_step, np.shape(image)[-2:])
+    saturation = check_saturation(saturation)
     if n_psf is not None and not isinstance(n_psf, str) and (int(n_psf) != n_psf or n_psf < 1):
         raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
                          f"got {n_psf!r}.")
@@ -411,17 +399,6 @@ def hot_pixel_record(pixels, limit: int = 10_000) -> dict:
     return {"count": int(len(pix)), "positions": pix[:limit].astype(int).tolist()}
 
 
-def run_with_progress(gen: Generator, progress: Callable[[Progress], None] | None = None):
-    """Drain a progress generator, calling ``progress`` on each record; return its value."""
-    while True:
-        try:
-            rec = next(gen)
-        except StopIteration as stop:
-            return stop.value
-        if progress is not None:
-            progress(rec)
-
-
 def estimate_operator(
     image,
     *,
@@ -507,5 +484,4 @@ def estimate_operator(
     return run_with_progress(gen, progress).operator
 
 
-__all__ = ["KEPT", "Estimation", "Progress", "estimate_operator", "iter_estimate",
-           "run_with_progress", "fit_field"]
+__all__ = ["Estimation", "estimate_operator", "iter_estimate"]

@@ -32,7 +32,7 @@ from .cone import Cone, reduce_cone
 from .field import assemble_operator
 from .heldout import HeldoutResiduals, heldout_residuals
 from .operator import ProductConvolution
-from .pca import _orient
+from .pca import orient
 from .tps import ThinPlateSpline
 
 #: Up to this many usable beads, :func:`fit_few_beads` chooses the field model.
@@ -129,7 +129,7 @@ def _model(psf: np.ndarray, positions: np.ndarray, kind: str, n_psf: int,
     x = psf[:, support]
     xn = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-300)
     _, _, vt = np.linalg.svd(xn, full_matrices=False)
-    vt = _orient(vt[:n_psf])
+    vt = orient(vt[:n_psf])
     basis = np.zeros((n_psf, p, p))
     basis[:, support] = vt
     beta = x @ vt.T

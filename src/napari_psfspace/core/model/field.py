@@ -16,12 +16,12 @@ from ..beads.patches import Patches
 from .cone import Cone, reduce_cone
 from .operator import ProductConvolution
 from .pca import PsfBasis
-from .psf_field import _interp_weights
+from .psf_field import interp_weights
 from .tps import ThinPlateSpline
 from .voronoi import voronoi_areas
 
 
-def _coarse_grid(shape: tuple[int, int], step: float) -> tuple[np.ndarray, np.ndarray]:
+def coarse_grid(shape: tuple[int, int], step: float) -> tuple[np.ndarray, np.ndarray]:
     """Node coordinates spanning the image with spacing at most ``step`` pixels."""
     nodes = [np.linspace(0.0, n - 1.0, max(2, int(np.ceil((n - 1) / step)) + 1)) for n in shape]
     return nodes[0], nodes[1]
@@ -114,7 +114,7 @@ def assemble_operator(
     -------
     operator, cone
     """
-    gy, gx = _coarse_grid(shape, grid_step)
+    gy, gx = coarse_grid(shape, grid_step)
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     coarse = np.asarray(field(nodes), dtype=np.float64).reshape(len(nodes), -1)  # (G, I)
     cone = reduce_cone(beta) if cone is None else cone
@@ -122,8 +122,8 @@ def assemble_operator(
         coarse = cone.project(coarse)
     else:
         pts = np.asarray(at, dtype=np.float64).reshape(-1, 2)
-        j0, j1, _ = _interp_weights(gy, pts[:, 0])
-        k0, k1, _ = _interp_weights(gx, pts[:, 1])
+        j0, j1, _ = interp_weights(gy, pts[:, 0])
+        k0, k1, _ = interp_weights(gx, pts[:, 1])
         near = np.unique(np.concatenate([j * len(gx) + k for j in (j0, j1) for k in (k0, k1)]))
         coarse[near] = cone.project(coarse[near])
     psfs = basis if basis_filter is None else basis_filter(basis)

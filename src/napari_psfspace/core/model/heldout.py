@@ -15,7 +15,7 @@ import numpy as np
 from ..beads.window import bump_window
 
 
-def _morton_order(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def morton_order(positions: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Indices sorting positions along a Z-order (Morton) curve over the field."""
     bits = 10
     scale = (2**bits - 1) / np.maximum(np.asarray(shape, float) - 1, 1)
@@ -47,7 +47,7 @@ def split_holdout(positions, shape: tuple[int, int], fraction: float = 0.2) -> n
     if not 0 < fraction <= 0.5:
         raise ValueError(f"`holdout` must be in (0, 0.5], got {fraction!r}.")
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-    order = _morton_order(pos, shape)
+    order = morton_order(pos, shape)
     step = 1.0 / fraction
     picks = order[(np.floor(np.arange(0, len(pos), step) + step / 2)).astype(int)
                   .clip(0, len(pos) - 1)]

@@ -39,16 +39,16 @@ from scipy.sparse.linalg import LinearOperator
 
 from ..common.threads import by_rows, by_rows_many
 from .operator_fft import (
-    _computation_dtype,
-    _conj_multiply,
-    _copy_into,
-    _cropped_irfft2,
-    _multiply_accumulate,
-    _multiply_into,
-    _subtract_into,
     check_dc,
+    computation_dtype,
+    conj_multiply,
+    copy_into,
+    cropped_irfft2,
     kernel_spectra,
+    multiply_accumulate,
+    multiply_into,
     n_workers,
+    subtract_into,
 )
 from .operator_file import FORMAT_NAME, FORMAT_VERSION, read_model, write_model
 from .psf_field import PsfField
@@ -121,7 +121,7 @@ class ProductConvolution(PsfField):
 
     def _check_image(self, u: ArrayLike, name: str) -> tuple[np.ndarray, np.dtype]:
         arr = np.asarray(u)
-        dt = _computation_dtype(arr, name)
+        dt = computation_dtype(arr, name)
         if arr.shape != self._shape:
             raise ValueError(
                 f"model was estimated for an image of shape {self._shape}, "
@@ -159,9 +159,9 @@ class ProductConvolution(PsfField):
         w = n_workers(workers)
         H, W = self._shape
         fshape = self.padded_shape()
-        full = _cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
+        full = cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
         out = np.empty((H, W), dtype=full.dtype)
-        by_rows(_copy_into, (out, full[:, :W]), w)
+        by_rows(copy_into, (out, full[:, :W]), w)
         return out
 
     def adjoint(self, v: ArrayLike, *, workers: int | None = None) -> np.ndarray:
@@ -228,9 +228,9 @@ class ProductConvolution(PsfField):
         w = n_workers(workers)
         H, W = self._shape
         fshape = self.padded_shape()
-        full = _cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
+        full = cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
         buf = np.zeros(fshape, dtype=dt)
-        by_rows(_subtract_into, (full[:, :W], y, buf[:H, :W]), w)
+        by_rows(subtract_into, (full[:, :W], y, buf[:H, :W]), w)
         del full
         if censored is not None:
             buf[censored] = np.minimum(buf[censored], 0)
@@ -248,15 +248,15 @@ class ProductConvolution(PsfField):
         maps = self.coefficient_maps(dt)
         buf = np.zeros(fshape, dtype=dt)  # zero padding written once, reused
         view = buf[:H, :W]
-        by_rows(_multiply_into, (maps[0], u, view), w)
+        by_rows(multiply_into, (maps[0], u, view), w)
         acc = scipy.fft.rfft2(buf, workers=w)
         check_dc(acc, "u")
-        pending = (_multiply_into, (acc, spectra[0], acc))  # the last spectrum's product
+        pending = (multiply_into, (acc, spectra[0], acc))  # the last spectrum's product
         for i in range(1, self.n_psf):
             # this kernel's map product and the last spectrum's product: one hand-over
-            by_rows_many([(_multiply_into, (maps[i], u, view)), pending], w)
+            by_rows_many([(multiply_into, (maps[i], u, view)), pending], w)
             spec = scipy.fft.rfft2(buf, workers=w)
-            pending = (_multiply_accumulate, (acc, spec, spectra[i]))
+            pending = (multiply_accumulate, (acc, spec, spectra[i]))
         by_rows(*pending, w)
         return acc
 
@@ -268,16 +268,16 @@ class ProductConvolution(PsfField):
         maps = self.coefficient_maps(dt)
         out = np.empty((H, W), dtype=dt)
         prod = np.empty_like(vhat)
-        by_rows(_conj_multiply, (spectra[0], vhat, prod), w)
+        by_rows(conj_multiply, (spectra[0], vhat, prod), w)
         for i in range(self.n_psf):
-            r = _cropped_irfft2(prod, fshape, H, w)[:, :W]  # prod is free again
+            r = cropped_irfft2(prod, fshape, H, w)[:, :W]  # prod is free again
             # this kernel's accumulation, and the next kernel's product, in one hand-over
             if i == 0:
-                tasks = [(_multiply_into, (maps[i], r, out))]
+                tasks = [(multiply_into, (maps[i], r, out))]
             else:  # out += alpha_i r, in r's buffer (no temporary)
-                tasks = [(_multiply_accumulate, (out, r, maps[i]))]
+                tasks = [(multiply_accumulate, (out, r, maps[i]))]
             if i + 1 < self.n_psf:
-                tasks.append((_conj_multiply, (spectra[i + 1], vhat, prod)))
+                tasks.append((conj_multiply, (spectra[i + 1], vhat, prod)))
             by_rows_many(tasks, w)
             del r
         return out

@@ -15,7 +15,7 @@ def _shape_str(a: Any) -> str:
     return str(tuple(np.shape(a)))
 
 
-def _as_real_array(value: Any, name: str) -> np.ndarray:
+def as_real_array(value: Any, name: str) -> np.ndarray:
     """Convert to a float64 array, rejecting complex, object and non-finite data."""
     try:
         arr = np.asarray(value)
@@ -31,7 +31,7 @@ def _as_real_array(value: Any, name: str) -> np.ndarray:
 
 
 
-def _normalise_metadata(metadata: Mapping[str, Any] | None) -> dict[str, Any]:
+def normalise_metadata(metadata: Mapping[str, Any] | None) -> dict[str, Any]:
     """Deep-copy ``metadata`` through JSON, converting numpy scalars and arrays."""
     if metadata is None:
         return {}
@@ -80,7 +80,7 @@ def validated_inputs(
     ValueError
         With the parameter's name, what was expected and what was received.
     """
-    basis = _as_real_array(basis, "basis")
+    basis = as_real_array(basis, "basis")
     if basis.ndim != 3:
         raise ValueError(f"`basis` must have shape (I, P, P), got {_shape_str(basis)}")
     n_psf, p0, p1 = basis.shape
@@ -91,7 +91,7 @@ def validated_inputs(
     if p0 % 2 != 1:
         raise ValueError(f"`basis` must have odd patch size, got {_shape_str(basis)}")
 
-    coefficients = _as_real_array(coefficients, "coefficients")
+    coefficients = as_real_array(coefficients, "coefficients")
     if coefficients.ndim != 3:
         raise ValueError(
             f"`coefficients` must have shape (I, H, W) or (I, gy, gx), "
@@ -136,8 +136,8 @@ def validated_inputs(
             raise ValueError(
                 f"`grid` must be a pair (grid_y, grid_x), got {type(grid).__name__}"
             ) from exc
-        grid_y = _as_real_array(gy_in, "grid[0] (grid_y)")
-        grid_x = _as_real_array(gx_in, "grid[1] (grid_x)")
+        grid_y = as_real_array(gy_in, "grid[0] (grid_y)")
+        grid_x = as_real_array(gx_in, "grid[1] (grid_x)")
         for name, g, n in (
             ("grid[0] (grid_y)", grid_y, coefficients.shape[1]),
             ("grid[1] (grid_x)", grid_x, coefficients.shape[2]),

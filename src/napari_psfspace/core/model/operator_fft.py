@@ -11,31 +11,31 @@ import numpy as np
 import scipy.fft
 
 
-def _multiply_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+def multiply_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     np.multiply(a, b, out=out, casting="unsafe")
 
 
-def _multiply_accumulate(acc: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+def multiply_accumulate(acc: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
     """``acc += a * b``, overwriting ``a``."""
     np.multiply(a, b, out=a)
     np.add(acc, a, out=acc)
 
 
-def _copy_into(out: np.ndarray, a: np.ndarray) -> None:
+def copy_into(out: np.ndarray, a: np.ndarray) -> None:
     np.copyto(out, a)
 
 
-def _conj_multiply(k: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+def conj_multiply(k: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
     """``out = conj(k) * v``."""
     np.conjugate(k, out=out)
     np.multiply(out, v, out=out)
 
 
-def _subtract_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+def subtract_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
     np.subtract(a, b, out=out, casting="unsafe")
 
 
-def _cropped_irfft2(spec: np.ndarray, fshape: tuple[int, int], n_rows: int, workers: int):
+def cropped_irfft2(spec: np.ndarray, fshape: tuple[int, int], n_rows: int, workers: int):
     """``irfft2(spec, s=fshape)[:n_rows]``, destroying ``spec``.
 
     Done as an in-place complex inverse FFT along axis 0 followed by real
@@ -47,7 +47,7 @@ def _cropped_irfft2(spec: np.ndarray, fshape: tuple[int, int], n_rows: int, work
     return scipy.fft.irfft(spec[:n_rows], n=fshape[1], axis=1, workers=workers)
 
 
-def _computation_dtype(arr: np.ndarray, name: str) -> np.dtype:
+def computation_dtype(arr: np.ndarray, name: str) -> np.dtype:
     kind = arr.dtype.kind
     if kind == "f":
         return np.dtype(np.float32) if arr.dtype.itemsize <= 4 else np.dtype(np.float64)

@@ -22,7 +22,7 @@ FORMAT_VERSION = 1
 _REQUIRED_KEYS = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header")
 
 
-def _software_string() -> str:
+def software_string() -> str:
     try:
         from ... import __version__
     except Exception:  # pragma: no cover - broken install
@@ -50,7 +50,7 @@ def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
     header = {
         "format": FORMAT_NAME,
         "version": FORMAT_VERSION,
-        "software": _software_string(),
+        "software": software_string(),
         "full_resolution": bool(full_resolution),
         "metadata": metadata,
     }

@@ -111,7 +111,7 @@ def _svd(x: np.ndarray, k: int | None, method: str, seed: int = 0):
     return s, vt
 
 
-def _orient(vt: np.ndarray) -> np.ndarray:
+def orient(vt: np.ndarray) -> np.ndarray:
     """Deterministic signs: the first component sums positive, the others have a positive
     largest-magnitude entry."""
     vt = vt.copy()
@@ -263,7 +263,7 @@ def learn_basis(
         heldout_errors = per_bead.mean(axis=0)
         best = float(heldout_errors.min())
         n_final = int(np.flatnonzero(heldout_errors <= 1.01 * best)[0]) + 1
-    vt = _orient(vt[:n_final])
+    vt = orient(vt[:n_final])
     basis = np.zeros((n_final, p, p))
     basis[:, mask] = vt
     beta = psfs[inliers][:, mask] @ vt.T

@@ -18,13 +18,13 @@ import numpy as np
 import scipy.sparse
 from numpy.typing import ArrayLike, DTypeLike
 
-from .operator_checks import _as_real_array, _normalise_metadata, validated_inputs
+from .operator_checks import as_real_array, normalise_metadata, validated_inputs
 
 #: Coarse grids with at most this many node rows use a dense Ry (BLAS) for the maps.
 _DENSE_MAX_NODES = 64
 
 
-def _interp_weights(
+def interp_weights(
     nodes: np.ndarray, pos: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Linear interpolation weights with constant extrapolation.
@@ -55,9 +55,9 @@ def _interp_weights(
     return j0, j1, t
 
 
-def _interp_matrix(nodes: np.ndarray, n_pixels: int) -> scipy.sparse.csr_array:
+def interp_matrix(nodes: np.ndarray, n_pixels: int) -> scipy.sparse.csr_array:
     """Sparse ``(n_pixels, n_nodes)`` matrix interpolating node values at pixels 0..n-1."""
-    j0, j1, t = _interp_weights(nodes, np.arange(n_pixels, dtype=np.float64))
+    j0, j1, t = interp_weights(nodes, np.arange(n_pixels, dtype=np.float64))
     rows = np.arange(n_pixels)
     mat = scipy.sparse.coo_array(
         (np.concatenate([1.0 - t, t]), (np.concatenate([rows, rows]), np.concatenate([j0, j1]))),
@@ -98,7 +98,7 @@ class PsfField:
             and np.array_equal(grid_y, np.arange(shape[0]))
             and np.array_equal(grid_x, np.arange(shape[1]))
         )
-        self._metadata = _normalise_metadata(metadata)
+        self._metadata = normalise_metadata(metadata)
         for arr in (self._basis, self._coefficients, self._grid_y, self._grid_x):
             arr.flags.writeable = False
 
@@ -207,8 +207,8 @@ class PsfField:
         if self._full_res:
             return self._coefficients.astype(dt)
         H, W = self._shape
-        ry = _interp_matrix(self._grid_y, H)  # (H, gy), 2 non-zeros per row
-        rx = _interp_matrix(self._grid_x, W)  # (W, gx)
+        ry = interp_matrix(self._grid_y, H)  # (H, gy), 2 non-zeros per row
+        rx = interp_matrix(self._grid_x, W)  # (W, gx)
         out = np.empty((self.n_psf, H, W), dtype=dt)
         dense = self._grid_y.size <= _DENSE_MAX_NODES
         ry_dense = ry.toarray().astype(dt) if dense else None
@@ -237,8 +237,8 @@ class PsfField:
         -------
         ndarray of float64, shape (I,) for scalar inputs or (N, I)
         """
-        ya = _as_real_array(y, "y")
-        xa = _as_real_array(x, "x")
+        ya = as_real_array(y, "y")
+        xa = as_real_array(x, "x")
         if ya.shape != xa.shape or ya.ndim > 1:
             raise ValueError(
                 f"`y` and `x` must be scalars or 1-D arrays of equal length, "
@@ -246,8 +246,8 @@ class PsfField:
             )
         scalar = ya.ndim == 0
         ya, xa = np.atleast_1d(ya), np.atleast_1d(xa)
-        j0, j1, ty = _interp_weights(self._grid_y, ya)
-        k0, k1, tx = _interp_weights(self._grid_x, xa)
+        j0, j1, ty = interp_weights(self._grid_y, ya)
+        k0, k1, tx = interp_weights(self._grid_x, xa)
         a = self._coefficients  # (I, gy, gx)
         out = (
             (1.0 - ty) * ((1.0 - tx) * a[:, j0, k0] + tx * a[:, j0, k1])

@@ -18,8 +18,8 @@ from ..beads.centering import gather_windows, refine_centers
 from ..beads.detect import BORDER, KEPT, Beads
 from ..beads.patches import extract_patches
 from ..beads.window import bump_window, radial_distance
+from ..common.progress import Progress
 from ..common.validate import as_image, check_psf_radius
-from .estimate import Progress
 from .pca import learn_basis, min_beads_for
 
 #: The three views of a patch, in display order.

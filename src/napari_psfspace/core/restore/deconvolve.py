@@ -52,13 +52,19 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..common.validate import as_image
+from ..common.progress import Progress, run_with_progress
+from ..common.validate import (
+    as_image,
+    check_grid_step,
+    check_instance,
+    check_int,
+    check_saturation,
+)
 from ..diagnosis.noise import background_variance
 from ..model.compress import compress_operator
-from ..model.estimate import Progress, run_with_progress
 from ..model.heldout import beyond_noise
 from ..model.operator import ProductConvolution
-from ..model.psf_field import _interp_matrix
+from ..model.psf_field import interp_matrix
 from .fista import BlockFista
 from .polish import polish_support
 
@@ -157,8 +163,8 @@ class SmoothGrid:
         ny = max(2, int(np.ceil((h - 1) / step)) + 1)
         nx = max(2, int(np.ceil((w - 1) / step)) + 1)
         self.nodes = (np.linspace(0, h - 1, ny), np.linspace(0, w - 1, nx))
-        self.ry = _interp_matrix(self.nodes[0], h).astype(np.float32).tocsr()  # (H, ny)
-        self.rx = _interp_matrix(self.nodes[1], w).astype(np.float32).tocsr()  # (W, nx)
+        self.ry = interp_matrix(self.nodes[0], h).astype(np.float32).tocsr()  # (H, ny)
+        self.rx = interp_matrix(self.nodes[1], w).astype(np.float32).tocsr()  # (W, nx)
         self.ryt, self.rxt = self.ry.T.tocsr(), self.rx.T.tocsr()
         # synthesis as dense products (BLAS): 5 ms against 30 ms sparse at 2048 x 2048
         self._ry_dense = self.ry.toarray()
@@ -286,18 +292,20 @@ def iter_deblur(
     """Generator form of :func:`deblur`: yields progress between iterations (stop it
     there to cancel), returns the :class:`Deblurred`."""
     t0 = time.perf_counter()
+    check_instance(operator, ProductConvolution, "operator",
+                   "A family (OperatorSubspace) gives its operator for an image with "
+                   "identify_operator(image, subspace).")
     raw = np.asarray(image)
     y = as_image(image, dtype=np.float32)
     if tuple(y.shape) != tuple(operator.shape):
         raise ValueError(f"`image` has shape {tuple(y.shape)}, but `operator` acts on "
                          f"images of shape {tuple(operator.shape)}")
-    if int(max_iter) < 1:
-        raise ValueError(f"`max_iter` must be a positive integer, got {max_iter!r}")
+    max_iter = check_int(max_iter, "max_iter", minimum=1)
+    saturation = check_saturation(saturation)
     if not tol > 0:
         raise ValueError(f"`tol` must be positive, got {tol!r}")
-    step = float(grid_step) if grid_step is not None else 2.0 * operator.psf_size
-    if not (np.isfinite(step) and step >= 2):
-        raise ValueError(f"`grid_step` must be at least 2 pixels, got {grid_step!r}")
+    step = (check_grid_step(grid_step, y.shape) if grid_step is not None
+            else 2.0 * operator.psf_size)
     grid = SmoothGrid(y.shape, step)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)

@@ -41,7 +41,7 @@ import warnings
 import numpy as np
 from scipy.optimize import nnls
 
-from ..common.validate import as_image
+from ..common.validate import as_image, check_instance, check_int
 from ..model.heldout import (
     beyond_noise,
     heldout_residuals,
@@ -332,6 +332,10 @@ def identify_operator(
         An image of another shape than the family's, a radius giving another patch size,
         bad bead positions, or no usable bead.
     """
+    check_instance(subspace, OperatorSubspace, "subspace",
+                   "Learn a family with estimate_subspace, or load one with "
+                   "load_subspace; a single image's operator needs no identification.")
+    max_iter = check_int(max_iter, "max_iter", minimum=1)
     img = as_image(image)
     if tuple(img.shape) != tuple(subspace.shape):
         raise ValueError(f"`image` has shape {tuple(img.shape)}, but the family was learnt "

@@ -26,7 +26,7 @@ from collections.abc import Generator
 
 import numpy as np
 
-from ..model.estimate import Progress
+from ..common.progress import Progress
 from ..model.operator import ProductConvolution
 
 

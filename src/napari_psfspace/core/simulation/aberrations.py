@@ -111,9 +111,9 @@ class FieldAberrations:
         FieldAberrations
         """
         try:
-            return cls(_PRESETS[name])
+            return cls(PRESETS[name])
         except KeyError:
-            raise ValueError(f"unknown preset {name!r}; choose from {sorted(_PRESETS)}") from None
+            raise ValueError(f"unknown preset {name!r}; choose from {sorted(PRESETS)}") from None
 
     @classmethod
     def random(
@@ -149,7 +149,7 @@ class FieldAberrations:
 
 
 #               1      u      v      u^2    u*v    v^2
-_PRESETS: dict[str, dict[int, tuple[float, ...]]] = {
+PRESETS: dict[str, dict[int, tuple[float, ...]]] = {
     "none": {},
     "moderate": {
         4: (0.0, 0.075, 0.05, 0.0, 0.0, 0.0),
@@ -170,7 +170,7 @@ _PRESETS: dict[str, dict[int, tuple[float, ...]]] = {
 }
 
 
-def _as_aberrations(aberrations: str | FieldAberrations | None) -> FieldAberrations:
+def as_aberrations(aberrations: str | FieldAberrations | None) -> FieldAberrations:
     if aberrations is None:
         return FieldAberrations()
     if isinstance(aberrations, str):

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 
-def _camera_adu(
+def camera_adu(
     rng: np.random.Generator,
     photons: np.ndarray,
     gain: float,
@@ -20,7 +20,7 @@ def _camera_adu(
     return adu
 
 
-def _digitise(adu: np.ndarray, dtype: np.dtype, level: float | None = None) -> np.ndarray:
+def digitise(adu: np.ndarray, dtype: np.dtype, level: float | None = None) -> np.ndarray:
     """Integer dtypes rounded and clipped to their range; everything clipped at ``level``."""
     if np.issubdtype(dtype, np.integer):
         info = np.iinfo(dtype)
@@ -30,7 +30,7 @@ def _digitise(adu: np.ndarray, dtype: np.dtype, level: float | None = None) -> n
     return adu.astype(dtype)
 
 
-def _camera(
+def camera(
     rng: np.random.Generator,
     photons: np.ndarray,
     gain: float,
@@ -39,10 +39,10 @@ def _camera(
     dtype: np.dtype,
 ) -> np.ndarray:
     """Poisson shot noise, gain, offset, Gaussian read noise; integer dtypes rounded, clipped."""
-    return _digitise(_camera_adu(rng, photons, gain, offset, read_noise), dtype)
+    return digitise(camera_adu(rng, photons, gain, offset, read_noise), dtype)
 
 
-def _as_range(value: float | tuple[float, float], name: str) -> tuple[float, float]:
+def as_range(value: float | tuple[float, float], name: str) -> tuple[float, float]:
     low, high = (float(value), float(value)) if np.isscalar(value) else map(float, value)
     if not 0 <= low <= high:
         raise ValueError(f"{name} must satisfy 0 <= low <= high, got {value!r}")

@@ -12,7 +12,7 @@ from typing import Any
 
 import numpy as np
 
-from .optics import _psf_stack
+from .optics import psf_stack
 
 # ---------------------------------------------------------------------------
 # Injectable effects (the ``effects`` argument of simulate_beads)
@@ -75,7 +75,7 @@ def _pair(effect: str, value: Any) -> tuple[float, float]:
     return a, b
 
 
-def _check_effects(
+def check_effects(
     effects: Mapping[str, Any] | None,
     shape: tuple[int, int],
     dtype: np.dtype,
@@ -163,7 +163,7 @@ def _check_effects(
     return out
 
 
-def _illumination_map(
+def illumination_map(
     rng: np.random.Generator, shape: tuple[int, int], strength: float, centre
 ) -> tuple[np.ndarray, Any]:
     """Centre of ``I = 1 - s rho^2`` and a function evaluating it at ``(y, x)``.
@@ -187,12 +187,12 @@ def _illumination_map(
     return centre, evaluate
 
 
-def _fixed_pattern(rng: np.random.Generator, n: int, sd: float) -> np.ndarray:
+def fixed_pattern(rng: np.random.Generator, n: int, sd: float) -> np.ndarray:
     """Per-row (or per-column) offsets, ADU, normal with standard deviation ``sd``."""
     return rng.normal(0.0, sd, n)
 
 
-def _hot_pixels(
+def hot_pixels(
     rng: np.random.Generator, shape: tuple[int, int], count: int, peak_adu: float,
     factors: tuple[float, float] = _HOT_PIXEL_RANGE,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -204,7 +204,7 @@ def _hot_pixels(
     return where, values
 
 
-def _nonlinear(electrons: np.ndarray, c: float, e_ref: float) -> np.ndarray:
+def nonlinear(electrons: np.ndarray, c: float, e_ref: float) -> np.ndarray:
     """Compressive response ``e (1 - c e / e_ref)``, monotone.
 
     Increasing for ``e <= e_ref / (2 c)`` (which holds up to ``e_ref`` since
@@ -214,7 +214,7 @@ def _nonlinear(electrons: np.ndarray, c: float, e_ref: float) -> np.ndarray:
     return e * (1.0 - c * e / e_ref)
 
 
-def _companions(
+def companions(
     rng: np.random.Generator, positions: np.ndarray, spec, radius: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Owner index, position and relative amplitude of companion beads.
@@ -238,7 +238,7 @@ def _companions(
     return owners, where, factor
 
 
-def _bead_diameters(
+def bead_diameters(
     rng: np.random.Generator, n: int, d_range: tuple[float, float]
 ) -> tuple[np.ndarray, np.ndarray]:
     """Diameters (µm) uniform in ``d_range`` and brightness factors ``d^3 / E[d^3]``."""
@@ -249,7 +249,7 @@ def _bead_diameters(
     return diameters, factors
 
 
-def _background_structure(
+def background_structure(
     rng: np.random.Generator, shape: tuple[int, int], peak: float, radius: float
 ) -> np.ndarray:
     """Sum of Gaussian blobs of peak ``peak`` photons, sigma in ``[0.3, 0.6] * radius``.
@@ -273,12 +273,12 @@ def _background_structure(
     return out.astype(np.float32)
 
 
-def _typical_peak(
+def typical_peak(
     amplitudes: np.ndarray, peaks: np.ndarray, amp_range, aberrations, optics, shape
 ) -> float:
     """Median expected bead peak, photons (mean amplitude x PSF peak at the centre if no bead)."""
     if len(amplitudes):
         return float(np.median(amplitudes * peaks))
     centre = aberrations.coefficient_matrix((shape[0] - 1) / 2.0, (shape[1] - 1) / 2.0, shape)
-    psf = _psf_stack(aberrations.noll_indices, centre[None], np.zeros((1, 2)), optics, 9)
+    psf = psf_stack(aberrations.noll_indices, centre[None], np.zeros((1, 2)), optics, 9)
     return float(np.mean(amp_range) * psf.max())

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .aberrations import FieldAberrations
-from .optics import PSF_ENERGY_FRACTION, Optics, _field_psf_radius, simulate_psf
+from .optics import PSF_ENERGY_FRACTION, Optics, field_psf_radius, simulate_psf
 from .scene import simulate_beads
 from .truth import SimulationTruth
 
@@ -188,7 +188,7 @@ def random_scene(
         peaks = p["peak_photons"] * np.exp(p["spread"] * rng.standard_normal(p["n_beads"]))
     photons = peaks / peak_fraction
     dtype = np.uint8 if p["bits"] == 8 else np.uint16
-    r = _field_psf_radius(layout, optics, shape, PSF_ENERGY_FRACTION)
+    r = field_psf_radius(layout, optics, shape, PSF_ENERGY_FRACTION)
     # dart throwing fills about half of a hexagonal packing: never ask for more
     sep = p["min_separation"] * r
     room = (shape[0] - 2 * r) * (shape[1] - 2 * r) / (np.sqrt(3) / 2 * max(sep, 1.0) ** 2)

@@ -23,10 +23,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .aberrations import FieldAberrations, _as_aberrations
-from .camera import _as_range, _camera
-from .optics import RENDER_RADIUS_FACTOR, Optics, _field_psf_radius
-from .render import _place_beads, _render_beads, _smooth_background, _spawn
+from .aberrations import FieldAberrations, as_aberrations
+from .camera import as_range, camera
+from .optics import RENDER_RADIUS_FACTOR, Optics, field_psf_radius
+from .render import place_beads, render_beads, smooth_background, spawn
 
 #: Highest radial order of the Zernike expansion of the defocus phase.
 MAX_ORDER = 12
@@ -187,23 +187,23 @@ def simulate_focus_series(
     series : FocusSeries
     """
     optics = Optics() if optics is None else optics
-    base = _as_aberrations(aberrations)
+    base = as_aberrations(aberrations)
     z = np.asarray(z_um, float).reshape(-1)
     shape = (int(shape[0]), int(shape[1]))
-    radii = np.array([_field_psf_radius(with_defocus(base, float(zk), optics), optics, shape)
+    radii = np.array([field_psf_radius(with_defocus(base, float(zk), optics), optics, shape)
                       for zk in z], int)
     rng = np.random.default_rng(seed)
     sep = 2.5 * float(radii.max()) if min_separation is None else float(min_separation)
-    positions = _place_beads(rng, shape, int(n_beads), sep, float(radii.min()))
-    amplitudes = rng.uniform(*_as_range(amplitude, "amplitude"), size=len(positions))
-    bg = _smooth_background(rng, shape, *_as_range(background, "background"))
-    noise = _spawn(rng, len(z))
+    positions = place_beads(rng, shape, int(n_beads), sep, float(radii.min()))
+    amplitudes = rng.uniform(*as_range(amplitude, "amplitude"), size=len(positions))
+    bg = smooth_background(rng, shape, *as_range(background, "background"))
+    noise = spawn(rng, len(z))
     stack = np.empty((len(z), *shape), dtype=np.dtype(dtype))
     for k, zk in enumerate(z):
         photons = bg.astype(np.float64)
-        _render_beads(photons, positions, amplitudes, with_defocus(base, float(zk), optics),
+        render_beads(photons, positions, amplitudes, with_defocus(base, float(zk), optics),
                       optics, int(RENDER_RADIUS_FACTOR * radii[k]))
-        stack[k] = _camera(noise[k], photons, gain, offset, read_noise, np.dtype(dtype))
+        stack[k] = camera(noise[k], photons, gain, offset, read_noise, np.dtype(dtype))
     return stack, FocusSeries(z, positions, amplitudes, radii, optics, base)
 
 

@@ -11,7 +11,7 @@ with ``P`` the indicator of the pupil disk of radius ``NA / λ`` (cycles/µm),
 ``c_j(z)`` smooth low-degree polynomials of the field position
 (:class:`FieldAberrations`).
 
-Numerics (:func:`_psf_stack`): the amplitude is the matrix Fourier transform
+Numerics (:func:`psf_stack`): the amplitude is the matrix Fourier transform
 of the finely sampled pupil (sub-pixel shift as a phase ramp) evaluated on a
 window of spacing ``p / q`` (``p`` the camera pixel, ``q`` such that the
 intensity is Nyquist sampled); the intensity is normalised to unit integral
@@ -196,7 +196,7 @@ def _window(optics: Optics, size: int, bins: int):
     return dft, transfer, samples
 
 
-def _psf_stack(
+def psf_stack(
     noll: tuple[int, ...],
     coefs: np.ndarray,
     shifts: np.ndarray,
@@ -244,7 +244,7 @@ def _psf_stack(
     spectrum of the finely sampled intensity (band limited and Nyquist
     sampled, so the product is the exact convolution up to the periodic
     wrap-around of the fine window, which callers keep away from the output
-    with :func:`_object_pad`).
+    with :func:`object_pad`).
 
     An ``optics`` with a ``psf_stack(noll, coefs, shifts, size, *, diameters, drift)``
     method (a subclass of :class:`Optics`) computes the PSFs itself: the scene, the
@@ -319,7 +319,7 @@ def _object_transfer(
     return out
 
 
-def _object_pad(
+def object_pad(
     optics: Optics, diameters: np.ndarray | None, drift: tuple[float, float] | None
 ) -> int:
     """Extra window radius (pixels) that holds the spread of the bead-size/drift filters."""
@@ -336,7 +336,7 @@ def _split_zernike(zernike_coefs: Mapping[int, float] | None) -> tuple[tuple[int
     return tuple(j for j, _ in items), np.array([c for _, c in items], float)
 
 
-def _check_size(size: int) -> int:
+def check_size(size: int) -> int:
     if int(size) != size or size < 1 or size % 2 == 0:
         raise ValueError(f"size must be a positive odd integer, got {size!r}")
     return int(size)
@@ -371,9 +371,9 @@ def simulate_psf(
         pixel). The PSF integrates to 1 over the whole plane, so the sum over a
         window much larger than the PSF is ~1.
     """
-    size = _check_size(size)
+    size = check_size(size)
     noll, coefs = _split_zernike(zernike)
-    return _psf_stack(noll, coefs[None], np.asarray(shift, float)[None], optics, size)[0]
+    return psf_stack(noll, coefs[None], np.asarray(shift, float)[None], optics, size)[0]
 
 
 # ---------------------------------------------------------------------------
@@ -396,7 +396,7 @@ def _energy_radius(psf: np.ndarray, fraction: float) -> float:
 
 
 @lru_cache(maxsize=32)
-def _field_psf_radius(
+def field_psf_radius(
     aberrations: FieldAberrations,
     optics: Optics,
     shape: tuple[int, int],
@@ -411,7 +411,7 @@ def _field_psf_radius(
     extent = float(_blur_radius(noll, coefs, optics).max())
     size = 2 * ceil(3.0 * extent) + 1
     while True:
-        psfs = _psf_stack(noll, coefs, np.zeros((len(yy), 2)), optics, size)
+        psfs = psf_stack(noll, coefs, np.zeros((len(yy), 2)), optics, size)
         radius = max(_energy_radius(p, fraction) for p in psfs)
         if np.isfinite(radius):
             return max(4, ceil(radius - 1e-9))

@@ -9,10 +9,10 @@ import numpy as np
 from scipy import fft as sfft
 
 from .aberrations import FieldAberrations
-from .optics import Optics, _object_pad, _psf_stack
+from .optics import Optics, object_pad, psf_stack
 
 
-def _place_beads(
+def place_beads(
     rng: np.random.Generator,
     shape: tuple[int, int],
     n_beads: int,
@@ -69,7 +69,7 @@ def _place_beads(
     return positions
 
 
-def _smooth_background(
+def smooth_background(
     rng: np.random.Generator, shape: tuple[int, int], low: float, high: float
 ) -> np.ndarray:
     """Gaussian random field (white noise smoothed with sigma ``min(shape)/6``) in [low, high]."""
@@ -84,7 +84,7 @@ def _smooth_background(
     return (low + (high - low) * field_).astype(np.float32)
 
 
-def _render_beads(
+def render_beads(
     image: np.ndarray,
     positions: np.ndarray,
     amplitudes: np.ndarray,
@@ -99,9 +99,9 @@ def _render_beads(
     Each PSF uses the Zernike coefficients at the bead's own position and its
     sub-pixel offset; windows of side ``2 radius + 1`` are clipped at the border.
     ``diameters`` (µm, per bead) and ``drift`` (pixels) are passed to
-    :func:`_psf_stack`; the window radius then grows by :func:`_object_pad`.
+    :func:`psf_stack`; the window radius then grows by :func:`object_pad`.
     """
-    radius += _object_pad(optics, diameters, drift)
+    radius += object_pad(optics, diameters, drift)
     size = 2 * radius + 1
     centres = np.rint(positions).astype(int)
     offsets = positions - centres
@@ -111,9 +111,9 @@ def _render_beads(
     for start in range(0, len(positions), chunk):
         sl = slice(start, start + chunk)
         if diameters is None and drift is None:
-            psfs = _psf_stack(aberrations.noll_indices, coefs[sl], offsets[sl], optics, size)
+            psfs = psf_stack(aberrations.noll_indices, coefs[sl], offsets[sl], optics, size)
         else:
-            psfs = _psf_stack(
+            psfs = psf_stack(
                 aberrations.noll_indices,
                 coefs[sl],
                 offsets[sl],
@@ -131,7 +131,7 @@ def _render_beads(
     return peaks
 
 
-def _spawn(rng: np.random.Generator, n: int) -> list[np.random.Generator]:
+def spawn(rng: np.random.Generator, n: int) -> list[np.random.Generator]:
     """``n`` independent child generators of ``rng`` without drawing from its stream."""
     try:
         return rng.spawn(n)

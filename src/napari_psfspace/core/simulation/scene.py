@@ -14,22 +14,22 @@ from typing import Any
 
 import numpy as np
 
-from .aberrations import FieldAberrations, _as_aberrations
-from .camera import _as_range, _camera, _camera_adu, _digitise
+from .aberrations import FieldAberrations, as_aberrations
+from .camera import as_range, camera, camera_adu, digitise
 from .effects import (
     EFFECTS,
-    _background_structure,
-    _bead_diameters,
-    _check_effects,
-    _companions,
-    _fixed_pattern,
-    _hot_pixels,
-    _illumination_map,
-    _nonlinear,
-    _typical_peak,
+    background_structure,
+    bead_diameters,
+    check_effects,
+    companions,
+    fixed_pattern,
+    hot_pixels,
+    illumination_map,
+    nonlinear,
+    typical_peak,
 )
-from .optics import PSF_ENERGY_FRACTION, RENDER_RADIUS_FACTOR, Optics, _field_psf_radius
-from .render import _place_beads, _render_beads, _smooth_background, _spawn
+from .optics import PSF_ENERGY_FRACTION, RENDER_RADIUS_FACTOR, Optics, field_psf_radius
+from .render import place_beads, render_beads, smooth_background, spawn
 from .truth import SimulationTruth
 
 __all__ = ["simulate_beads"]
@@ -200,20 +200,20 @@ def simulate_beads(
     if n_beads < 0:
         raise ValueError(f"n_beads must be >= 0, got {n_beads}")
     optics = Optics() if optics is None else optics
-    aberrations = _as_aberrations(aberrations)
-    amp_range = _as_range(amplitude, "amplitude")
-    bg_range = _as_range(background, "background")
+    aberrations = as_aberrations(aberrations)
+    amp_range = as_range(amplitude, "amplitude")
+    bg_range = as_range(background, "background")
     dtype = np.dtype(dtype)
-    effect_params = _check_effects(effects, shape, dtype, offset)
+    effect_params = check_effects(effects, shape, dtype, offset)
     if not 0.0 < psf_energy < 1.0:
         raise ValueError(f"psf_energy must be in (0, 1), got {psf_energy!r}")
     rng = np.random.default_rng(seed)
 
-    psf_radius = _field_psf_radius(aberrations, optics, shape, psf_energy)
+    psf_radius = field_psf_radius(aberrations, optics, shape, psf_energy)
     border = float(psf_radius if border is None else border)
     min_separation = float(2.5 * psf_radius if min_separation is None else min_separation)
 
-    positions = _place_beads(rng, shape, n_beads, min_separation, border)
+    positions = place_beads(rng, shape, n_beads, min_separation, border)
     if bead_photons is None:
         amplitudes = rng.uniform(*amp_range, size=n_beads)
     else:
@@ -224,7 +224,7 @@ def simulate_beads(
                              f"numbers, got shape {np.shape(bead_photons)}")
         if n_beads:
             amp_range = (float(amplitudes.min()), float(amplitudes.max()))
-    bg = _smooth_background(rng, shape, *bg_range)
+    bg = smooth_background(rng, shape, *bg_range)
     if effect_params:
         return _simulate_with_effects(
             rng,
@@ -244,10 +244,10 @@ def simulate_beads(
         )
 
     photons = bg.astype(np.float64)
-    peaks = _render_beads(
+    peaks = render_beads(
         photons, positions, amplitudes, aberrations, optics, RENDER_RADIUS_FACTOR * psf_radius
     )
-    image = _camera(rng, photons, gain, offset, read_noise, dtype)
+    image = camera(rng, photons, gain, offset, read_noise, dtype)
 
     peak = amplitudes * peaks
     centres = np.clip(np.rint(positions).astype(int), 0, np.array(shape) - 1)
@@ -291,19 +291,19 @@ def _simulate_with_effects(
     drift), nonlinearity, camera noise (main generator, as without effects),
     row/column offsets, hot pixels, saturation and digitisation.
     """
-    rngs = dict(zip(EFFECTS, _spawn(rng, len(EFFECTS)), strict=True))
+    rngs = dict(zip(EFFECTS, spawn(rng, len(EFFECTS)), strict=True))
     fx: dict[str, Any] = {}
     n = len(positions)
     amplitudes = amplitudes.astype(np.float64)
     diameters = None
     if "bead_size" in params:
-        diameters, factors = _bead_diameters(rngs["bead_size"], n, params["bead_size"])
+        diameters, factors = bead_diameters(rngs["bead_size"], n, params["bead_size"])
         amplitudes = amplitudes * factors
         fx.update(bead_size=params["bead_size"], bead_diameters=diameters)
 
     all_pos, all_amp, all_diam = positions, amplitudes, diameters
     if "neighbours" in params:
-        owners, comp_pos, comp_factor = _companions(
+        owners, comp_pos, comp_factor = companions(
             rngs["neighbours"], positions, params["neighbours"], psf_radius
         )
         all_pos = np.concatenate([positions, comp_pos])
@@ -314,7 +314,7 @@ def _simulate_with_effects(
     background = bg.astype(np.float64)
     if "illumination" in params:
         strength, centre = params["illumination"]
-        centre, illumination = _illumination_map(rngs["illumination"], shape, strength, centre)
+        centre, illumination = illumination_map(rngs["illumination"], shape, strength, centre)
         field_map = illumination(np.arange(shape[0])[:, None], np.arange(shape[1])[None, :])
         factors = illumination(all_pos[:, 0], all_pos[:, 1])
         all_amp = all_amp * factors
@@ -326,7 +326,7 @@ def _simulate_with_effects(
             illumination_factors=factors[:n],
         )
     if "background_structure" in params:
-        structure = _background_structure(
+        structure = background_structure(
             rngs["background_structure"], shape, params["background_structure"], psf_radius
         )
         background += structure
@@ -348,7 +348,7 @@ def _simulate_with_effects(
         fx["drift"] = drift
 
     photons = background.copy()
-    peaks = _render_beads(
+    peaks = render_beads(
         photons,
         all_pos,
         all_amp,
@@ -362,15 +362,15 @@ def _simulate_with_effects(
 
     if "nonlinearity" in params:
         e_ref = float(photons.max())
-        photons = _nonlinear(photons, params["nonlinearity"], e_ref)
+        photons = nonlinear(photons, params["nonlinearity"], e_ref)
         fx.update(nonlinearity=params["nonlinearity"], nonlinearity_reference=e_ref)
-    adu = _camera_adu(rng, photons, gain, offset, read_noise)
+    adu = camera_adu(rng, photons, gain, offset, read_noise)
     if "row_offsets" in params:
-        rows = _fixed_pattern(rngs["row_offsets"], shape[0], params["row_offsets"])
+        rows = fixed_pattern(rngs["row_offsets"], shape[0], params["row_offsets"])
         adu += rows[:, None]
         fx.update(row_offsets=params["row_offsets"], row_offset_values=rows)
     if "column_offsets" in params:
-        cols = _fixed_pattern(rngs["column_offsets"], shape[1], params["column_offsets"])
+        cols = fixed_pattern(rngs["column_offsets"], shape[1], params["column_offsets"])
         adu += cols[None, :]
         fx.update(column_offsets=params["column_offsets"], column_offset_values=cols)
     if "hot_pixels" in params:
@@ -378,19 +378,19 @@ def _simulate_with_effects(
         if isinstance(hot, tuple):  # factors of the brightest expected bead peak
             count, factors = hot
             top = float(np.max(amplitudes * peaks)) if len(amplitudes) else 0.0
-            where, values = _hot_pixels(rngs["hot_pixels"], shape, count, gain * top, factors)
+            where, values = hot_pixels(rngs["hot_pixels"], shape, count, gain * top, factors)
         else:
             count = hot
-            typical = gain * _typical_peak(amplitudes, peaks, amp_range, aberrations, optics,
+            typical = gain * typical_peak(amplitudes, peaks, amp_range, aberrations, optics,
                                            shape)
-            where, values = _hot_pixels(rngs["hot_pixels"], shape, count, typical)
+            where, values = hot_pixels(rngs["hot_pixels"], shape, count, typical)
         adu[where[:, 0], where[:, 1]] += values
         fx.update(hot_pixels=count, hot_pixel_positions=where, hot_pixel_values=values)
     level = params.get("saturation")
     if level is not None:
         rounded = np.rint(adu) if np.issubdtype(dtype, np.integer) else adu
         fx.update(saturation=level, saturated_pixels=int(np.count_nonzero(rounded >= level)))
-    image = _digitise(adu, dtype, level)
+    image = digitise(adu, dtype, level)
 
     peak = amplitudes * peaks
     centres = np.clip(np.rint(positions).astype(int), 0, np.array(shape) - 1)

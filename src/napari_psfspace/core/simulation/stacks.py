@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .aberrations import _PRESETS, FieldAberrations
+from .aberrations import PRESETS, FieldAberrations
 from .optics import Optics
 from .scene import simulate_beads
 from .truth import SimulationTruth
@@ -110,7 +110,7 @@ def simulate_stack(
     """
     if int(k) < 1:
         raise ValueError(f"`k` must be a positive number of images, got {k!r}")
-    base_field = FieldAberrations(_PRESETS[base]) if isinstance(base, str) else base
+    base_field = FieldAberrations(PRESETS[base]) if isinstance(base, str) else base
     conds = random_conditions(k, [seed, 1]) if conditions is None else list(conditions)
     if len(conds) != int(k):
         raise ValueError(f"`conditions` must hold k={k} conditions, got {len(conds)}")

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from .aberrations import FieldAberrations
-from .optics import Optics, _check_size, _object_pad, _psf_stack
+from .optics import Optics, check_size, object_pad, psf_stack
 
 
 @dataclass(eq=False)
@@ -67,9 +67,9 @@ class SimulationTruth:
 
     def _psfs(self, ys: np.ndarray, xs: np.ndarray, size: int | None) -> np.ndarray:
         """Centred true PSFs at ``(ys, xs)`` (flat arrays), each normalised to sum 1."""
-        size = _check_size(2 * self.psf_radius + 1 if size is None else size)
+        size = check_size(2 * self.psf_radius + 1 if size is None else size)
         coefs = self.aberrations.coefficient_matrix(ys, xs, self.shape)
-        psfs = _psf_stack(
+        psfs = psf_stack(
             self.aberrations.noll_indices, coefs, np.zeros((len(ys), 2)), self.optics, size
         )
         return psfs / psfs.sum(axis=(-2, -1), keepdims=True)
@@ -126,11 +126,11 @@ class SimulationTruth:
         drift = self.effects.get("drift")
         if diameter == 0 and drift is None:
             return self.psf_at(y, x, size)
-        size = _check_size(2 * self.psf_radius + 1 if size is None else size)
+        size = check_size(2 * self.psf_radius + 1 if size is None else size)
         diameters = np.array([diameter]) if diameter > 0 else None
-        pad = _object_pad(self.optics, diameters, drift)
+        pad = object_pad(self.optics, diameters, drift)
         coefs = self.aberrations.coefficient_matrix(float(y), float(x), self.shape)[None]
-        psf = _psf_stack(
+        psf = psf_stack(
             self.aberrations.noll_indices,
             coefs,
             np.zeros((1, 2)),

@@ -35,10 +35,10 @@ import numpy as np
 
 from ..beads.patches import Patches
 from ..beads.window import bump_window, radial_distance
+from ..common.progress import Progress, run_with_progress
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
-from ..model.estimate import Progress, run_with_progress
-from ..model.field import _coarse_grid
+from ..model.field import coarse_grid
 from ..model.heldout import split_holdout
 from ..model.pca import learn_basis, min_beads_for, rank_by_threshold
 from ..model.tps import ThinPlateSpline
@@ -143,7 +143,7 @@ class _Pooled:
     basis: object  # PsfBasis
 
 
-def _pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
+def pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
     """Steps 2-4: one (noise-aware) PCA of the patches of all images."""
     psf = np.concatenate([f.patches.psf for f in used])
     owner = np.concatenate([np.full(f.n_beads, i) for i, f in enumerate(used)])
@@ -160,7 +160,7 @@ def _pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
     return _Pooled(psf, owner, sd, weights, window, support, basis)
 
 
-def _maps(used: list[ImagePatches], pooled: _Pooled, nodes: np.ndarray,
+def coefficient_maps(used: list[ImagePatches], pooled: _Pooled, nodes: np.ndarray,
           shape: tuple[int, int]) -> tuple[list[np.ndarray], list[tuple]]:
     """Step 5: each image's coefficient maps at the nodes (G, I), and its inlier beads'
     (centers, coefficients)."""
@@ -179,20 +179,20 @@ def _maps(used: list[ImagePatches], pooled: _Pooled, nodes: np.ndarray,
     return maps, bead_coef
 
 
-def _nodes(shape, grid_step):
-    gy, gx = _coarse_grid(shape, grid_step)
+def grid_nodes(shape, grid_step):
+    gy, gx = coarse_grid(shape, grid_step)
     return (gy, gx), np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
 def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
            grid_step: float, refine: bool, denoise: bool) -> OperatorSubspace:
     """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
-    pooled = _pool(used, n_psf, denoise)
+    pooled = pool(used, n_psf, denoise)
     basis, psf, sd, weights, window = (pooled.basis, pooled.psf, pooled.sd, pooled.weights,
                                        pooled.window)
     n_i = basis.basis.shape[0]
-    (gy, gx), nodes = _nodes(shape, grid_step)
-    maps, bead_coef = _maps(used, pooled, nodes, shape)
+    (gy, gx), nodes = grid_nodes(shape, grid_step)
+    maps, bead_coef = coefficient_maps(used, pooled, nodes, shape)
     stacked = np.concatenate([m.T for m in maps])  # (K I, G): one row per map alpha_ik
     _, s, vt = np.linalg.svd(stacked, full_matrices=False)
     if n_space is None:

@@ -13,10 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..common.validate import check_int
 from ..model.cone import Cone, project_onto_cone
 from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
-from ..model.psf_field import _interp_weights
+from ..model.psf_field import interp_weights
 from .choice import blend
 
 
@@ -37,8 +38,8 @@ def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
     """
     gy, gx = grid
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    j0, j1, ty = _interp_weights(gy, pts[:, 0])
-    k0, k1, tx = _interp_weights(gx, pts[:, 1])
+    j0, j1, ty = interp_weights(gy, pts[:, 0])
+    k0, k1, tx = interp_weights(gx, pts[:, 1])
     a = space
     out = ((1 - ty) * ((1 - tx) * a[:, j0, k0] + tx * a[:, j0, k1])
            + ty * ((1 - tx) * a[:, j1, k0] + tx * a[:, j1, k1]))
@@ -147,9 +148,7 @@ class OperatorSubspace:
         with the image's own estimate by its weight (:attr:`family_weights`).
         Built once and kept: make a new subspace rather than editing ``gammas`` in place.
         """
-        k = int(k)
-        if not 0 <= k < self.n_images:
-            raise ValueError(f"`k` must be an image index in [0, {self.n_images}), got {k}")
+        k = check_int(k, "k", minimum=0, maximum=self.n_images - 1)
         w = self.family_weight(k)
         if w == 0.0:
             return self.own[k]

@@ -11,7 +11,7 @@ import numpy as np
 
 from ..model.cone import Cone
 from ..model.operator import ProductConvolution
-from ..model.operator_file import _software_string, read_archive, write_archive
+from ..model.operator_file import read_archive, software_string, write_archive
 from .result import OperatorSubspace
 
 #: Value of the ``"format"`` field of the JSON header of a saved subspace.
@@ -27,7 +27,7 @@ def save_subspace(subspace: OperatorSubspace, path: str | os.PathLike[str]) -> N
     """Write ``subspace`` to ``path`` (atomically: an existing file is replaced only once
     the new one is complete; no pickle)."""
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
-              "software": _software_string(), "grid_step": float(subspace.grid_step),
+              "software": software_string(), "grid_step": float(subspace.grid_step),
               "metadata": subspace.metadata}
     arrays = {"basis": subspace.basis, "space": subspace.space,
               "grid_y": subspace.grid[0], "grid_x": subspace.grid[1],

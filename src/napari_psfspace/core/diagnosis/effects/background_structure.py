@@ -29,7 +29,7 @@ from ...beads.centering import gather_windows, refine_centers
 from ...beads.detect import BORDER, FAINT, KEPT, NEIGHBOUR, OUTLIER, STRUCTURE, Beads, flag_unusable
 from ...beads.window import radial_distance
 from ..noise import NoiseModel
-from ..residuals import _fourier_shift
+from ..residuals import fourier_shift
 from .base import Context, Effect
 
 #: Widths (units of the PSF radius) of the Gaussians by which the local PSF is blurred
@@ -92,7 +92,7 @@ def blur_of_detections(image: np.ndarray, positions, psf_radius: float, noise: N
     win = gather_windows(img, pos, half)
     data = win - np.median(win[:, dist > r], axis=1)[:, None, None]
     frac = pos - np.round(pos)
-    centred = _fourier_shift(data[reference], -frac[reference]) * (dist <= 1.2 * r)
+    centred = fourier_shift(data[reference], -frac[reference]) * (dist <= 1.2 * r)
     total = centred[:, inner].sum(axis=1)
     shapes = centred / np.where(total > 0, total, 1.0)[:, None, None]
     _, near = cKDTree(pos[reference]).query(pos, k=min(5, len(reference)))
@@ -100,7 +100,7 @@ def blur_of_detections(image: np.ndarray, positions, psf_radius: float, noise: N
     ones = np.ones(int(inner.sum()))
     chi2 = np.empty((k, len(BLUR_GRID)))
     for i in range(k):
-        ref = _fourier_shift(np.median(shapes[near[i]], axis=0)[None], frac[i][None])[0]
+        ref = fourier_shift(np.median(shapes[near[i]], axis=0)[None], frac[i][None])[0]
         var = noise.variance(win[i][inner])
         w = 1.0 / np.sqrt(var)
         d = data[i][inner]

@@ -22,8 +22,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ...beads.sphere import change_size
-from ...model.estimate import run_with_progress
-from ..analysis import bead_flux
+from ...common.progress import run_with_progress
+from ..bead_tests import bead_flux
 from ..crossfit import iter_crossfit
 from ..residuals import BeadResiduals
 from .base import Context, Effect

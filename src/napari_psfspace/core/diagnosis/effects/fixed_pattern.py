@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..analysis import _smooth_background, bead_free_mask
+from ..background_tests import bead_free_mask, smooth_background
 from .base import Context, Effect
 
 
@@ -13,7 +13,7 @@ def line_offsets(image: np.ndarray, free: np.ndarray, psf_radius: float, axis: i
                  ) -> np.ndarray:
     """Offset of each row (axis=1) or column (axis=0): the median of the bead-free,
     detrended pixels of the line minus the mean of its +-4 neighbours' medians."""
-    level = _smooth_background(image, free, sigma=max(8.0, 2 * psf_radius))
+    level = smooth_background(image, free, sigma=max(8.0, 2 * psf_radius))
     med = np.nanmedian(np.where(free, image - level, np.nan), axis=axis)
     med = np.where(np.isfinite(med), med, 0.0)
     kern = np.ones(9) / 8.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...beads.detect import COMPANION, NEIGHBOUR
-from ..residuals import BeadResiduals, _fourier_shift
+from ..residuals import BeadResiduals, fourier_shift
 from .base import Context, Effect
 
 #: Companion offsets searched around a stretched bead, pixels: from 0.75 to 3.5 px (a
@@ -32,7 +32,7 @@ def locate_companion(res: BeadResiduals, i: int) -> tuple[float, float] | None:
     one = np.ones(d.size)
 
     def search(offsets, best, where):
-        shifted = _fourier_shift(np.repeat(h[None], len(offsets), axis=0), offsets)[:, msk]
+        shifted = fourier_shift(np.repeat(h[None], len(offsets), axis=0), offsets)[:, msk]
         for k, s in enumerate(shifted):
             x = np.stack([h[msk], s, one], axis=1)
             c = np.linalg.lstsq(x * w[:, None], d * w, rcond=None)[0]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...beads.window import radial_distance
-from ..analysis import core_residuals, core_trend
+from ..bead_tests import core_residuals, core_trend
 from .base import Context, Effect
 
 #: Candidate response coefficients ``c`` (``c < 1/4`` keeps the response increasing up to

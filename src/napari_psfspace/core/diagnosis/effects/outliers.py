@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...beads.spikes import inpaint_pixels
-from ..analysis import outlier_pixels
+from ..background_tests import outlier_pixels
 from .base import Context, Effect
 
 

@@ -13,7 +13,8 @@ import numpy as np
 
 from ...beads.centering import gather_windows
 from ...beads.detect import KEPT
-from ...model.estimate import iter_estimate, run_with_progress
+from ...common.progress import run_with_progress
+from ...model.estimate import iter_estimate
 from ..residuals import fit_beads
 from .base import Context, Effect
 
