@@ -283,7 +283,7 @@ def beads_from_points(layer, frame: Frame) -> tuple[Beads, np.ndarray]:
 
 #: Statuses a fit gives (its outlier rejection, its held-out split): verdicts of the
 #: last run, not the user's choice. A new fit starts again from the user's selection,
-#: or each re-run would drop the last run's outliers for good (79 -> 78 -> 73 beads).
+#: or each re-run would drop the last run's outliers for good (fewer beads each time).
 FIT_VERDICTS = (OUTLIER, HELDOUT)
 
 

@@ -7,8 +7,8 @@ spots along its edge, which then reject one another as neighbours.
 
 * :func:`detection_image`: at low counts (a background of a few ADU) the noise is skewed
   and its filtered tail far heavier than its robust spread says, so a threshold in noise
-  sd lets hundreds of noise bumps through (measured: 160 on a 1024 x 1024 confocal slice
-  of noise at scale 1, 4 once stabilised). There the detection runs on the
+  sd lets hundreds of noise bumps through on a slice of noise (``bench/bench_camera.py``).
+  There the detection runs on the
   variance-stabilised image ``2 sqrt(x - m + 3/8)`` (Anscombe; ``m`` the image's floor).
 * :func:`characteristic_scale`: Lindeberg's scale selection on a few spots (windows about
   them): the scale at which their amplitude-normalised response ``-sigma^2 LoG`` is

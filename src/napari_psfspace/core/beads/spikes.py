@@ -114,7 +114,7 @@ def find_spikes(
     counts at its level: ``sd^2 = noise_sd^2 + (ring mean - image minimum)`` (one count
     per ADU, the most a photon-counting or low-gain camera shows). The background's
     robust spread alone misses the long tail of a few counts: on a confocal image of
-    0.4 counts per pixel it took 355 single-photon bursts for hot pixels.
+    well under one count per pixel it takes single-photon bursts for hot pixels.
 
     Parameters
     ----------

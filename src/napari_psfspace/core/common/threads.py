@@ -36,8 +36,8 @@ def by_rows(fn: Callable, arrays: tuple[np.ndarray, ...], workers: int) -> None:
     """Run ``fn(*blocks)`` on ``workers`` row blocks of the arrays, in parallel threads.
 
     Element-wise numpy operations release the GIL, and between two FFTs the cores are
-    otherwise idle: on 2 cores this halves the element-wise part of ``apply`` (measured
-    on 2400 x 1201 complex64: multiply-accumulate 9.4 -> 4.6 ms).
+    otherwise idle: the element-wise part of ``apply`` scales with the cores
+    (``bench/bench_apply.py``).
     """
     by_rows_many([(fn, arrays)], workers)
 
@@ -98,8 +98,8 @@ def filter_by_rows(fn: Callable[[np.ndarray], np.ndarray], image: np.ndarray, ha
     parallel threads; the same result as one call (each block is filtered with ``halo``
     rows of its neighbours, the image's own edges keep the filter's boundary mode).
 
-    Measured: a Laplacian of Gaussian of 2304 x 2304 float32 (sigma 5.5) 418 -> 256 ms on
-    2 cores, bit-identical.
+    The result is bit-identical to one call (tested); ``bench/bench_speed.py`` times
+    the estimate that filters this way.
     """
     workers = default_workers() if workers is None else int(workers)
     n = image.shape[0]

@@ -262,12 +262,11 @@ def analyse(
         if ok.sum() >= 12:
             # vignetting / an off-centre illumination spot: a paraboloid of revolution
             # with a free centre, as the throughput is fitted (3 dof, not the full
-            # quadratic's 5: on 150 beads of brightness spread 0.25 a 40 % fall-off to
-            # the corners gave F = 4.4, z = 3.1). A throughput shows in the model-free
-            # patch fluxes as much as in the fitted amplitudes; a PSF model whose error
-            # grows towards the edge biases the amplitudes alone (still scenes of the
-            # family: z 2.8 and 3.2 from the amplitudes, 2.1 and 1.6 from the fluxes,
-            # 1.6 from the true amplitudes). The test's z is the smaller of the two
+            # quadratic's 5: fewer dof, more power, bench/bench_power.py). A throughput
+            # shows in the model-free patch fluxes as much as in the fitted amplitudes;
+            # a PSF model whose error grows towards the edge biases the amplitudes alone
+            # (on still scenes of the family the amplitudes alone can exceed the
+            # threshold where the fluxes do not). The test's z is the smaller of the two
             d_amp = radial_trend(res.positions[ok], res.amplitude[ok], img.shape,
                                   th["amplitude_field"])
             d_flux = radial_trend(res.positions[ok], flux[ok], img.shape,

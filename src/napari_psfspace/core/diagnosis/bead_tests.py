@@ -266,9 +266,8 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
         tau2 = 0.0
     z = np.sqrt(score(tau2))
     # and a stretch no model error makes: the model's error is heavy-tailed from bead to
-    # bead in bright or sparse fields (on the scene family still beads reached z = 31,
-    # stretched by up to 28 % of the PSF's variance; a companion 1-3 px away at 50-100 %
-    # brightness stretches by 3-180 %)
+    # bead in bright or sparse fields, where still beads reach large z with a small
+    # stretch; a merged companion stretches a bead by much more (bench/bench_diagnose.py)
     var = _psf_variance(res)[idx]
     stretch = 4.0 * np.hypot(e[idx, 0], e[idx, 1]) / np.maximum(var, 1e-12)
     hits = idx[(z > k) & (stretch > MIN_STRETCH)]

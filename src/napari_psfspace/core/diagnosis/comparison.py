@@ -50,8 +50,8 @@ def _compare_photometry(before: CrossFit, after: CrossFit, shape: tuple[int, int
     p_held = float(np.mean(q1[idx].mean(axis=1) >= q0[idx].mean(axis=1)))
     # the size of the gain is the held-out drop; its significance the nested models'
     # permutation test on the same beads (the paired test of held-out squared errors
-    # carries the beads' own brightness scatter twice and has about half the z: a 40 %
-    # vignetting on 150 beads of spread 0.25 gave 1.0-3.1 against 3.2-6.5), see
+    # carries the beads' own brightness scatter twice and has about half the z,
+    # bench/bench_power.py), see
     # :func:`~napari_psfspace.core.diagnosis.photometry.trend_p_value`. It must hold in the
     # model-free patch fluxes too: a PSF model whose error grows towards the edge
     # biases the fitted amplitudes radially by itself
@@ -178,17 +178,16 @@ def compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 
     imp, p = drop(e0, e1)
     # the mean is led by the few beads farthest from their noise floor, and so is its
     # bootstrap: an effect that helps most beads a little can read as not significant
-    # (a compressive response: -12 %, p = 0.09 on 150 beads). The typical bead's
+    # (a weak compressive response, bench/bench_diagnose.py). The typical bead's
     # relative change, the mean log ratio, is a second, robust test of the same drop
     tiny = 1e-300
     lr = np.log(np.maximum(e1, tiny) / np.maximum(e0, tiny))
     p_log = float(np.mean(lr[idx].mean(axis=1) >= 0.0))
     # an excess chi-square within its own uncertainty is no excess: relative to it, any
-    # change reads as a large drop (a model at its noise floor "improved by 83 %" on the
-    # scene family). Two sources: the mean of pure noise's chi2/dof (sd sqrt(2 / dof) per
-    # bead), and the noise model's own relative error (a gain known to 5 % puts the
-    # "1" of chi2/dof - 1 within about 0.05; the bead-size effect "dropped" a 1.036 to
-    # 1.032 by 12 % on a scene with no effect)
+    # change reads as a large relative drop (a model at its noise floor). Two sources:
+    # the mean of pure noise's chi2/dof (sd sqrt(2 / dof) per bead), and the noise
+    # model's own relative error (a gain known to 5 % puts the "1" of chi2/dof - 1 within
+    # about 0.05)
     se_noise = float(np.sqrt(2.0 / np.mean(r0.dof[i0]) / len(common)))
     se_model = float((noise.checks or {}).get("gain_relative_error", 0.0) or 0.0)
     chi2_noise = CHI2_EXCESS_Z * float(np.hypot(se_noise, se_model))

@@ -360,8 +360,8 @@ def iter_diagnose(
             # "explained" a constant-variance model's missing shot noise in bright cores
             metrics = [m for m in metrics if m != "chi2_"]
         # an effect its own test calls significant needs a smaller drop (the effect is
-        # often a small part of a model's error: a compressive response of 0.15 dropped
-        # a 3x-floor error by 3.6 %, p = 0.002); one only explored needs the full one
+        # often a small part of a model's error, bench/bench_diagnose.py); one only
+        # explored needs the full one
         need = min(min_improvement, evident_improvement) if ev > 1.0 else min_improvement
         ok = bool(any(cmp[f"{m}improvement"] >= need
                       and cmp[f"{m}p_no_drop"] <= max_p / 2 for m in metrics)

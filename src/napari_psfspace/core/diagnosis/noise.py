@@ -135,8 +135,8 @@ MAX_FIT_CHI2 = 25.0
 CLIP_SD = 5.0
 #: Side (pixels) of the box whose mean (over its structure-free pixels) is a pixel's
 #: level. Wide, so that the level is not the pixel's own noise: binned by a noisy level,
-#: the variance-vs-level slope is diluted (measured on 1-5 photon backgrounds with a 5-px
-#: box: gains 0.3-0.4 x the truth); what dilution is left is corrected.
+#: the variance-vs-level slope is diluted (a narrow box under-estimates the gain at a few
+#: photons, ``bench/bench_camera.py``); what dilution is left is corrected.
 LEVEL_WINDOW = 31
 #: Photon transfer needs at least this share of the spread of the measured levels to be
 #: true variation of the background (not the levels' own noise).
@@ -144,7 +144,7 @@ MIN_LEVEL_SHARE = 0.5
 #: For integer images, the noise variance must reach this many times the rounding
 #: variance 1/12 ADU^2 at every level: below it the variance of rounded values swings with
 #: the level's distance to the nearest integer, which photon transfer would read as a
-#: slope (measured on 8-bit scenes with a noise sd under 0.5 ADU: gains off by 1.4-3.3 x).
+#: slope (on 8-bit scenes with a noise sd under 0.5 ADU, ``bench/bench_camera.py``).
 MIN_ROUNDING_RATIO = 4.0
 #: Variance of a MAD-based variance estimate from n Gaussian samples is about
 #: ``MAD_VARIANCE_FACTOR v^2 / n`` (the MAD's efficiency is 37 %); the Laplacian samples
@@ -158,8 +158,8 @@ def _noise_laplacian(img: np.ndarray, integer: bool) -> np.ndarray:
 
     For integer images each pixel is first dithered by a uniform ``[-1/2, 1/2)`` value
     (seeded): the Laplacian of rounded values takes few distinct values, and their
-    median absolute deviation is too coarse to follow the variance from bin to bin
-    (measured: the same MAD in every bin, a slope of exactly 0). The dither's variance
+    median absolute deviation is too coarse to follow the variance from bin to bin (it
+    can take the same value in every bin: a slope of 0). The dither's variance
     is removed again in :func:`_robust_variance`.
     """
     if integer:
@@ -174,8 +174,8 @@ def _robust_variance(e: np.ndarray, integer: bool) -> float:
     images (see :func:`_noise_laplacian`).
 
     The plain variance of the samples within :data:`CLIP_SD` robust sd (MAD) of their
-    median: the MAD alone is biased for the skewed, heavy-tailed noise of a few photons
-    (measured: gains 0.55-0.97 x the truth on 1-5 photon backgrounds), the clipping keeps
+    median: the MAD alone is biased low for the skewed, heavy-tailed noise of a few photons
+    (``bench/bench_camera.py``), the clipping keeps
     what the structure mask missed from deciding the variance.
     """
     med = float(np.median(e))

@@ -67,8 +67,8 @@ def fit_throughput(positions, amplitude, shape: tuple[int, int], *, degree: int 
     radial : bool
         For degree 2: a paraboloid of revolution with a free centre (``1, u, v,
         u^2 + v^2``: vignetting, an off-centre illumination spot), 4 coefficients
-        fitted instead of 6: on 150 beads of brightness spread 0.25 a 40 % fall-off
-        to the corners stands out where the full quadratic's does not.
+        fitted instead of 6: a fall-off to the corners stands out where the full
+        quadratic's does not (``bench/bench_power.py``).
 
     Returns
     -------
@@ -172,9 +172,8 @@ def trend_p_value(positions, amplitude, shape: tuple[int, int], *, degree0: int 
 
     Why not the held-out errors' own paired test: for nested linear models, the paired
     difference of held-out squared errors ``(y - p0)^2 - (y - p1)^2`` carries the
-    beads' own scatter twice, and its z is about half the added terms' (on 150 beads
-    of brightness spread 0.25 with a 40 % vignetting: 1.0-3.1 where the F-test's is
-    3.2-6.5). The held-out drop still measures the size of the gain.
+    beads' own scatter twice, and its z is about half the added terms'
+    (``bench/bench_power.py``). The held-out drop still measures the size of the gain.
 
     Parameters
     ----------

@@ -44,10 +44,10 @@ def noise_scale_error(noise: NoiseModel) -> float:
     for an assumed model.
 
     The background tests compare a chi-square over hundreds of windows or lines with
-    its noise-only value: against the sampling error alone, a gain known to 5 % gave z
-    of 10-800 on still scenes of the family. (Measuring the scale on the image's own
-    bead-free pixels instead, from second differences, was tried: quantised 8-bit
-    backgrounds and faint undetected beads made it worse, 18 of 102 scenes firing.)
+    its noise-only value: against the sampling error alone, a gain known to a few per
+    cent fires them on still scenes. (Measuring the scale on the image's own bead-free
+    pixels instead, from second differences, was tried: quantised 8-bit backgrounds and
+    faint undetected beads made it worse, ``bench/bench_diagnose.py``.)
     """
     if noise.kind == "camera":
         return 0.0
@@ -90,7 +90,7 @@ def radial_trend(positions, values, shape, threshold: float) -> dict:
     f = ((rss0 - rss1) / q) / max(rss1 / (n - q - 1), 1e-300)
     pval = float(stats.f.sf(f, q, n - q - 1))
     # the beads' own brightness spread and their number set the smallest visible
-    # fall-off (a 40 % vignetting is not always seen on 150 beads of spread 0.25)
+    # fall-off (bench/bench_power.py)
     cov = np.linalg.pinv(x.T @ x) * rss1 / max(n - q - 1, 1)
     g_min = threshold * float(np.sqrt(max(cov[3, 3], 0.0)))
     return {"z": float(stats.norm.isf(max(pval, 1e-300))), "F": float(f), "p": pval,

@@ -2,9 +2,9 @@
 
 A product-convolution operator ``H u = sum_i h_i * (alpha_i . u)`` costs ``2 (I + 1)``
 FFTs per application of ``H`` and ``H^T``. An operator identified from a family carries
-the family's ``I`` kernels, although one image's PSFs vary over a smaller space: on the
-SP8 slice 300 nm from focus, the 12 kernels' field keeps all but 3e-4 of its energy on
-6 directions. :func:`compress_operator` finds them.
+the family's ``I`` kernels, although one image's PSFs vary over a smaller space (a
+field near focus keeps almost all its energy on half the family's directions,
+``bench/bench_deblur_tol.py``). :func:`compress_operator` finds them.
 
 The PSF at ``x`` is ``alpha(x)^T B`` (``B``: the basis as ``I`` rows of ``P^2``
 pixels), and ``alpha(x)`` is linear in the stored coefficients (bilinear between grid

@@ -39,8 +39,7 @@ def project_onto_cone(
         ``scipy.optimize.nnls``, ~15 us per point for k = 20, I = 5): the default,
         since the maps are projected on a coarse grid. "apg": accelerated projected
         gradient vectorised over all points (paper), for very many points; with
-        rank-deficient generators it converges only sublinearly (measured: 2e-2
-        relative error after 2000 iterations, k = 20, I = 5).
+        rank-deficient generators it converges only sublinearly.
     max_iter, tol : int, float
         Iteration limit and relative tolerance of "apg".
 

@@ -67,8 +67,8 @@ ALTERNATIVE = ("Motion during the exposure, or the line focus of an astigmatic l
                "(remove_motion) or image the beads again")
 #: A smear whose zero lies near the optics' cutoff: its second lobe (a few % of the
 #: first, on an optical transfer that is nearly gone there) sinks into the spectrum's
-#: floor, so the zero has no upper flank and reads as a cutoff, not a dip (3-px smears
-#: at 57-90 % of the cutoff, issue 9). Below its zero, though, the power along the smear
+#: floor, so the zero has no upper flank and reads as a cutoff, not a dip
+#: (``bench/bench_motion.py``). Below its zero, though, the power along the smear
 #: still falls, against the perpendicular direction, as ``sinc^2(L t)``, to a ratio no
 #: lens reaches: this route reports a smear when that ratio (plus two standard errors)
 #: falls below MAX_EDGE_RATIO (97 effect-free scenes of the family reach >= 0.07, 3-px

@@ -62,7 +62,7 @@ def kernel_spectra(basis: np.ndarray, fshape: tuple[int, int], dt: np.dtype) -> 
 
     Tap ``h[c + k, c + l]`` sits at ``(k mod fy, l mod fx)``. As the patch is
     small, its DFT is computed directly as ``Ey @ h @ Ex`` with the DFT matrices
-    restricted to the offsets ``-c..c`` (exact, and ~4x cheaper than a padded
+    restricted to the offsets ``-c..c`` (exact, and cheaper than a padded
     FFT). Wrapping is implicit in the DFT phase; if ``P`` exceeds the padded
     size, aliased taps add up, which is harmless since ``fshape >= (H + c,
     W + c)`` ensures at most one of them meets the support of the image.

@@ -81,8 +81,8 @@ def min_beads_for(n_psf: int) -> int:
 
 def _svd(x: np.ndarray, k: int | None, method: str, seed: int = 0):
     """Thin SVD, full, randomized (Halko et al.) when ``k`` is given, or "gram": from the
-    eigendecomposition of the smaller Gram matrix (about 3x faster than the full SVD
-    for the pooled patches of a family; singular values below ``sqrt(eps)`` of the
+    eigendecomposition of the smaller Gram matrix (faster than the full SVD for the
+    pooled patches of a family, whose matrix is tall; singular values below ``sqrt(eps)`` of the
     largest lose their relative precision, far below any bead's noise)."""
     if method == "gram":
         if x.shape[0] >= x.shape[1]:

@@ -93,9 +93,8 @@ class ThinPlateSpline:
         leave-one-out error (each bead held out in turn, exact closed form
         ``r_m / (1 - S_mm)``); "gcv", generalised cross-validation. GCV's limit at
         ``eta -> 0`` is governed by the smallest kernel eigenvalues, which are
-        numerically unreliable for hundreds of beads: measured on a 150-bead field it
-        chose interpolation (139 of 140 dof) where the leave-one-out error was
-        lowest at 32 dof.
+        numerically unreliable for hundreds of beads: it can choose interpolation
+        (all the dof) where the leave-one-out error is lowest at a fraction of them.
 
     Attributes
     ----------
@@ -135,7 +134,7 @@ class ThinPlateSpline:
         binned = None
         if max_nodes is not None and m > max_nodes:
             # the solves are O(M^3): beyond max_nodes, fit weighted means of the samples in
-            # the cells of a grid (smooth maps lose nothing; measured 80 s -> see tests)
+            # the cells of a grid (smooth maps lose nothing: tested)
             binned = (pts, vals, w, *_bin_samples(pts, vals, w, max_nodes))
             pts, vals, w = binned[3], binned[4], binned[5]
             w = w / w.mean()

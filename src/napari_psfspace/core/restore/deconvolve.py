@@ -35,9 +35,9 @@ error:
   high probability (the universal threshold for ``N / A`` independent values). Near a
   bright bead the residual is the operator's error, about ``eps`` of the signal, not
   the noise, and ``|<h_x, r>| <= ||h|| eps e(x)``: the second term keeps the sparse part
-  from fitting that error. With the noise alone, the sparse part fitted it with rings
-  of spurious points around every bead of the measured SP8 stack (bright beads: the
-  operator's residual there is 4 times its noise floor);
+  from fitting that error. With the noise alone, the sparse part fits it with rings
+  of spurious points around bright beads, whose residual stands above the noise
+  (``bench/bench_deblur_measured.py``);
 - ``gamma2 = SMOOTH_WEIGHT * s^4``: relative to the data term on one node's cell, the
   penalty on a bump of one node is the same for every grid step (both terms are
   quadratic, so it does not depend on the noise).
@@ -73,29 +73,26 @@ SMOOTH_WEIGHT = 0.05
 #: Iterations at most of the amplitudes' refit (``debias``).
 DEBIAS_MAX_ITER = 100
 #: ``c`` of the blocks' majorisation ``||H(u1 + U w)||^2 <= (1 + c) ||H u1||^2 +
-#: (1 + 1/c) ||H U w||^2`` (any c > 0 is valid). 1 halved the sparse block's step; 0.25
-#: gives it 0.8 of the full step and the few background nodes 0.2: on SP8 slice 35 315
-#: iterations instead of 360, on bench_deblur's scenes 12-25 % less time, every figure
-#: the same to the third decimal (bench/RESULTS.md).
+#: (1 + 1/c) ||H U w||^2`` (any c > 0 is valid). 1 halves the sparse block's step; 0.25
+#: gives it 0.8 of the full step and the few background nodes 0.2: fewer iterations for
+#: the same result (``bench/bench_deblur.py``, bench/RESULTS.md).
 BLOCK_SPLIT = 0.25
 #: With ``polish``, FISTA runs to this tolerance (its support found), then coordinate
-#: descent on the support to ``tol`` (:mod:`.polish`). 1e-3 and 3e-3 give the same
-#: measured figures (3e-3: 0.5-0.65 times the iterations on bench_deblur_tol.py's
-#: scenes); what FISTA leaves off the support, the optimality check after the sweeps
-#: sends back to it.
+#: descent on the support to ``tol`` (:mod:`.polish`); the tolerance is the loosest that
+#: changes no figure of ``bench/bench_deblur_tol.py``. What FISTA leaves off the support,
+#: the optimality check after the sweeps sends back to it.
 POLISH_AFTER = 3e-3
 #: Sweeps at most of the coordinate descent.
 POLISH_MAX_SWEEPS = 300
-#: Largest support polished (pixels; a sweep is a Python loop over them, about 12 us
-#: each); beyond it FISTA runs on to ``tol``.
+#: Largest support polished (pixels; a sweep is a Python loop over them); beyond it
+#: FISTA runs on to ``tol``.
 POLISH_MAX_SUPPORT = 60000
 #: A pixel off the support whose correlation with the residual exceeds its weight by
 #: more than this (relatively) sends the run back to FISTA after the polish.
 KKT_SLACK = 1e-3
 #: The operator is compressed to this fraction of its own error (``model_error``) by
-#: default. A third (errors in quadrature: 5 % more error) cost the astigmatic slice's
-#: refocused correlation 0.006 (0.671 -> 0.666, 5 -> 4 kernels); a tenth changes no
-#: figure of ``bench/bench_deblur_tol.py`` (bench/RESULTS.md).
+#: default: a tenth (errors in quadrature: 0.5 % more error) changes no figure of
+#: ``bench/bench_deblur_tol.py``, a third does (bench/RESULTS.md).
 COMPRESSION = 0.1
 #: With ``polish``, FISTA's search for the support uses the operator compressed to this
 #: fraction of its error (the sweeps, the optimality check and any FISTA after them use
@@ -103,8 +100,8 @@ COMPRESSION = 0.1
 #: matter yet.
 SEARCH_COMPRESSION = 0.3
 #: Margin on the power-iteration estimate of ``||H||^2`` (run until an iteration adds
-#: less than 0.1 %: on SP8 slice 35's identified operator 0.9981 after 12 iterations,
-#: 0.9989 after 60; 1.2 on 12 iterations cost 8 % more iterations than 1.05).
+#: less than 0.1 %, which leaves the estimate within a fraction of a per cent below the
+#: norm; a wider margin costs iterations, ``bench/bench_deblur_tol.py``).
 NORM_MARGIN = 1.05
 
 
@@ -166,7 +163,7 @@ class SmoothGrid:
         self.ry = interp_matrix(self.nodes[0], h).astype(np.float32).tocsr()  # (H, ny)
         self.rx = interp_matrix(self.nodes[1], w).astype(np.float32).tocsr()  # (W, nx)
         self.ryt, self.rxt = self.ry.T.tocsr(), self.rx.T.tocsr()
-        # synthesis as dense products (BLAS): 5 ms against 30 ms sparse at 2048 x 2048
+        # synthesis as dense products (BLAS): faster than the sparse ones (bench_deblur_speed)
         self._ry_dense = self.ry.toarray()
         self._rxt_dense = np.ascontiguousarray(self.rxt.toarray())  # (nx, W)
         self.step = float(max((h - 1) / (ny - 1), (w - 1) / (nx - 1)))
@@ -455,8 +452,8 @@ def _refit_amplitudes(u1: np.ndarray, w: np.ndarray, gradient: Callable,
 
     The l1 term shrinks every amplitude by about ``gamma1 / ||h||^2``. Refitting every
     pixel of the support instead was ill-conditioned: neighbouring pixels seen through
-    the blur are nearly the same column of ``H``, and the flux moved between them (on
-    the tests' scene: precision 0.95 -> 0.84, spurious peaks as bright as the points).
+    the blur are nearly the same column of ``H``, and the flux moved between them
+    (spurious peaks as bright as the points).
     One scale per cluster keeps each cluster's shape; the shapes have disjoint supports
     and unit norm, so ``||H Phi||^2 <= ||H||^2``: the sparse block's step holds.
     """
@@ -550,8 +547,8 @@ def deblur(
         ``gamma2``; default ``0.05 * grid_step**4``.
     grid_step : float, optional
         Node spacing of the background, pixels; default twice the PSF size (finer, the
-        background formed a bump under each bright bead of the SP8 stack, taking its
-        flux where the operator's error raises the sparse weight).
+        background forms a bump under each bright bead, taking its flux where the
+        operator's error raises the sparse weight).
     model_error : float, optional
         The operator's relative error beyond the noise; default from its metadata
         (:func:`model_error_of`). 0: the noise alone sets ``gamma1``.
@@ -559,28 +556,21 @@ def deblur(
         Iterations at most.
     tol : float
         Stop when the objective falls by less than this (relatively) over 10 iterations.
-        At 1e-4 the points found no longer change (on 512 x 512 scenes: recall 0.933
-        after 150 iterations, 0.938 after 500). 5e-4 takes half the iterations on
-        measured slices at the same refocused correlation and F1 (within 0.004 on
-        ``bench/bench_deblur_tol.py``'s scenes), but the beads come out wider (SP8
-        slice 35: a median FWHM of 1.80 px against 1.30) and a clipped bead keeps less
-        of its flux (14,500 of 21,800 photons against 17,400).
+        At the default the points found no longer change; a looser tolerance keeps the
+        same points but leaves the beads wider and a clipped bead with less of its flux
+        (``bench/bench_deblur_tol.py``).
     debias : bool
         Then refit one scale per cluster of points (8-connected), by least squares with
         the background free (at most ``DEBIAS_MAX_ITER`` iterations, same ``tol``). The
-        l1 term shrinks each amplitude by about ``gamma1 / ||h||^2``: with the exact
-        operator, 500-2000-photon points keep a median 0.72-0.79 of their flux, 1.05-1.08
-        after the refit. Off by default: the refit also raises every spurious point
-        the l1 term let through (noise that correlates with the PSF) to about the
-        detection level, 240-445 photons on the tests' scene against 16-60 before, so
-        that amplitudes no longer tell them from real points. For photometry of points
-        known to be real; no point is added or removed.
+        l1 term shrinks each amplitude by about ``gamma1 / ||h||^2``; the refit gives
+        it back (``bench/bench_deblur.py``). Off by default: the refit also raises every
+        spurious point the l1 term let through (noise that correlates with the PSF) to
+        about the detection level, so that amplitudes no longer tell them from real
+        points. For photometry of points known to be real; no point is added or removed.
     saturation : float, optional
         Pixels at or above it only bound ``H u`` from below in the data term (a
         saturated bead is brighter than it looks; fitted as measured, its clipped top
-        pulls its flux down: a point of 21000 photons, found with 22000 unclipped, gives
-        8100 with 45 pixels clipped and fitted as they are, 16900 with them as bounds;
-        ``tests/test_restore.py``). Default:
+        pulls its flux down; ``tests/test_restore.py``). Default:
         the dtype's maximum for integer images, none for floating ones. More than 1 % of
         the image saturated is an error.
     compression : float, optional
@@ -589,18 +579,16 @@ def deblur(
         kernels whose PSF is within it everywhere); default ``0.1 * model_error``, a tenth
         of what the operator is known to miss by (none where that error is 0). An
         operator identified from a family carries the family's kernels, more than one
-        image's field needs: on SP8 slice 35, 12 -> 10 kernels. 0: the operator as it
-        is.
+        image's field needs. 0: the operator as it is.
     polish : bool
         Run FISTA only until its support is found (``POLISH_AFTER``), then coordinate
         descent on that support to ``tol`` (:mod:`.polish`), back to FISTA if a pixel
         off it then wants in. Gradient steps spend most of their iterations
         concentrating each source's cluster (neighbouring pixels are nearly the same
-        column of ``H``); one pixel at a time is exact there: on the measured SP8 slice
-        35, 77 iterations and 122 sweeps (about 4 s) reach a lower objective than
-        FISTA's 299 iterations, with sharper beads (``bench/RESULTS.md``). Off: FISTA
-        to ``tol``. Supports of more than ``POLISH_MAX_SUPPORT`` pixels are not
-        polished.
+        column of ``H``); one pixel at a time is exact there and reaches a lower
+        objective in less time, with sharper beads (``bench/bench_deblur_tol.py``,
+        ``bench/RESULTS.md``). Off: FISTA to ``tol``. Supports of more than
+        ``POLISH_MAX_SUPPORT`` pixels are not polished.
     workers : int, optional
         FFT threads.
     progress : callable, optional

@@ -21,15 +21,14 @@ each step exactly:
 ``P >= J`` beads should identify ``Gamma`` (each bead gives ``I`` equations); with fewer,
 the cone alone keeps it plausible.
 
-By default (``prior=True``, issue 24) the family is a prior rather than a hard
-constraint: on wide focus series the cone's ``Gamma`` was 1.7-2.1x as far from the truth
-as an operator estimated from all the image's beads, even identified from all of them
-(a condition between those learnt is rarely a non-negative mix of them). The weights of
-the ``Gamma_k`` are then left free in sign, and the ``Gamma`` corrected towards the
-beads by kernel ridge regression with the family's spatial kernel
-(:func:`identify_gamma`): 1.2-1.3x from 5 beads, 0.8-0.9x from all
-(``bench/bench_identify_wide.py``). :func:`resample` says how sure it is (the spread of
-the PSFs when beads are left out), and a warning (:class:`IdentificationWarning`,
+By default (``prior=True``) the family is a prior rather than a hard constraint: on
+wide focus series the cone's ``Gamma`` is far from the truth even identified from all
+the image's beads (a condition between those learnt is rarely a non-negative mix of
+them). The weights of the ``Gamma_k`` are then left free in sign, and the ``Gamma``
+corrected towards the beads by kernel ridge regression with the family's spatial kernel
+(:func:`identify_gamma`; both measured by ``bench/bench_identify_wide.py``).
+:func:`resample` says how sure it is (the spread of the PSFs when beads are left out),
+and a warning (:class:`IdentificationWarning`,
 ``metadata["identification"]["warning"]``) says when the operator misses the clicked
 beads beyond their noise.
 """
@@ -133,10 +132,9 @@ def solve_identification(c: np.ndarray, v: np.ndarray, *,
 
 #: Ridge of the correction of the family's ``Gamma`` towards the beads, relative to the
 #: mean squared norm of the spatial basis at the beads (:func:`correction`). Chosen on
-#: wide focus series (``bench_identify_wide.py``, 3 seeds, bright and faint beads): 0.1
-#: and 0.01 gave the same errors, 1 and no correction larger ones. Leaving beads out
-#: did not choose it reliably from 5 beads (it preferred no correction where the field
-#: error asked for one), so it is fixed.
+#: wide focus series, bright and faint beads (``bench/bench_identify_wide.py``): a
+#: decade either way of the plateau it sits on. Leaving beads out does not choose it
+#: reliably from 5 beads, so it is fixed.
 CORRECTION_RIDGE = 0.1
 #: Tikhonov weight that keeps the weights of the ``Gamma_k`` near the cone's solution
 #: where the beads leave them undetermined (more images than equations), relative to
@@ -147,11 +145,10 @@ N_FOLDS = 5
 #: The warning's bound on the identified operator's error on the clicked beads, beyond
 #: their noise (relative l2 of the PSF; ``model_error``, measured on the beads it was
 #: fitted to), in units of the family's own error on beads it never saw (the median
-#: over its images of the same measure on their held-out beads). On wide focus series
-#: (``bench_identify_wide.py``, 3 seeds: the family's error 0.09-0.12) the images whose
-#: operator was more than twice as far from the truth as one estimated from all their
-#: beads had 1.23 times it, every other image at most 0.97 times; on measured SP8
-#: slices (the family's error 0.19) 0.9 times.
+#: over its images of the same measure on their held-out beads). The bound separates,
+#: on wide focus series, the images whose operator is more than twice as far from the
+#: truth as one estimated from all their beads from the others, and passes the measured
+#: stacks (``bench/bench_identify_wide.py``, bench/RESULTS.md).
 WARN_RATIO = 1.1
 #: The bound without held-out figures (a family learnt with ``holdout=None``), and its
 #: floor otherwise.

@@ -3,14 +3,12 @@
 FISTA (:mod:`.fista`) finds the support of the point sources quickly and then spends
 most of its iterations concentrating each source's cluster: neighbouring pixels seen
 through the blur are nearly the same column of ``H``, the slow direction of any
-gradient method (on the measured SP8 slice 35, iterations 109-299 shrink the support
-from 7,020 to 3,924 pixels and the beads' median FWHM from 1.96 to 1.30 px, while the
-objective moves by 0.8 %). Coordinate descent treats one pixel at a time exactly, so
-correlated columns cost it nothing; restricted to the support it is cheap (one column
-is the PSF at the pixel: ``P^2`` multiply-adds per update, about 12 us each in this
-Python loop; pixels held at zero are skipped until a full sweep checks them again, so
-a sweep costs 0.02-0.08 s on SP8 slice 35's 7,000-pixel support, against 0.13-0.2 s for
-one FISTA iteration's FFTs at 1024 x 1024).
+gradient method (late iterations shrink the support and sharpen the beads while the
+objective hardly moves; ``bench/bench_deblur_tol.py``). Coordinate descent treats one
+pixel at a time exactly, so correlated columns cost it nothing; restricted to the
+support it is cheap (one column is the PSF at the pixel: ``P^2`` multiply-adds per
+update; pixels held at zero are skipped until a full sweep checks them again, so a
+sweep costs less than one FISTA iteration's FFTs).
 
 With the background ``u2`` fixed, each update minimises the objective of
 :func:`~.deconvolve.deblur` over one pixel ``j`` of the support exactly (saturated pixels

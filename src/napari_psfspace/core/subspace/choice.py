@@ -207,8 +207,8 @@ def pick_weight(residuals: dict) -> tuple[float, bool]:
     2. Among the weights the beads cannot tell from it (the mean of the paired
        differences within one standard error), the one nearest :data:`PRIOR_WEIGHT`:
        with 20 held-out beads the curve over the weights is flat within its scatter and
-       its minimum wanders (on the wide focus series of ``bench_family_oracle.py`` it
-       chose 0.75 where the truth preferred 0.25-0.5, 1.01x the image's own error).
+       its minimum wanders away from the weight the truth prefers
+       (``bench/bench_family_oracle.py``).
     3. The image's own estimate (0) stays unless that weight beats it beyond one
        standard error of the paired differences: the single estimate is left only on
        the held-out beads' evidence.

@@ -10,8 +10,8 @@ Steps, on top of the single-image pipeline:
    own beads and sampled on the coarse grid the single operator uses;
 6-7. an SVD of all the maps of all images: the spatial basis ``a_j``;
 8. ``Gamma_k[i, j] = <alpha_ik, a_j>`` (``refine=True`` refits each ``Gamma_k`` to its own
-   beads' coefficients through the ``a_j`` instead: measured no better, 0.92 against 0.88
-   of one image's error on dense stacks, so off by default);
+   beads' coefficients through the ``a_j`` instead: no better on dense stacks,
+   ``bench/bench_subspace.py``, so off by default);
 and the cone of the observed PSFs that every operator's PSFs are kept in (2.5): the union
 of every image's own reduced cone (:func:`family_cone`);
 9. (with a held-out split, the default) the family as a prior rather than a hard
@@ -101,8 +101,8 @@ def family_cone(coefficients: np.ndarray, owner: np.ndarray) -> Cone:
 
     One image's PSFs take about 20 generators (the paper's reduced cone); the family
     holds the PSFs of every condition. Reduced to 20 for all images together, the cone
-    of a wide focus series left out much of each image's PSFs (1.47x one image's error,
-    ``bench_family_oracle.py``); the union keeps every image's own cone, so that no
+    of a wide focus series leaves out much of each image's PSFs
+    (``bench/bench_family_oracle.py``); the union keeps every image's own cone, so that no
     image's operator is held tighter than its own estimate would be.
 
     Parameters
@@ -211,9 +211,8 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
     if denoise:
         # basis images refitted to the raw patches of all beads given each bead's own
         # coefficients. Given the family's coefficients at the beads instead (as one
-        # image's operator does with its maps), the refit takes in the maps' errors:
-        # with bead photons x0.05, 1.18 of one image's error against 0.84 (0.88 against
-        # 0.90 at x0.2; bench_subspace --noise, seed 1)
+        # image's operator does with its maps), the refit takes in the maps' errors and
+        # loses to one image's own estimate on faint stacks (bench_subspace --noise)
         inl = basis.inliers
         at = np.concatenate([c for _, c in bead_coef])  # (n_inliers, I), image order
         images, _ = refit_basis(psf[inl], at, sd[inl], window, weights=weights[inl],

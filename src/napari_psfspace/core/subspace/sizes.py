@@ -2,20 +2,17 @@
 
 The Gavish-Donoho rule assumes white noise of one level. The family's patches are
 Wiener-filtered and their noise varies from bead to bead: on faint stacks the rule on
-them kept up to 50 PSF components, most of them noise, and the family's operators were
-worse than each image's own (1.08-1.45 times its error, 10 images of 24 beads at bead
-photons x0.05, ``bench/bench_subspace.py --noise``). :func:`white_rank` applies the rule
-to the raw patches whitened by each bead's noise instead: 4, 10 and 12 (capped) components
-at photons x0.05, x0.2 and x1 on those stacks; with the refit of the basis images to the
-beads' own coefficients, 0.79-0.88 of one image's error at x0.05.
+them keeps dozens of PSF components, most of them noise, and the family's operators are
+worse than each image's own (``bench/bench_subspace.py --noise``). :func:`white_rank`
+applies the rule to the raw patches whitened by each bead's noise instead: fewer
+components the fainter the stack, and the family beats one image at a time there.
 
 Tried, not kept: choosing ``I`` and ``J`` by 5-fold cross-validation over each image's
 beads (the closed-form held-out residual of ``Gamma_k a(x)`` inside the cone, amplitude
 fitted). It chose too small a model wherever an image has few beads (``I = J = 1`` on
-7-bead images: 0.91 of one image's error, against 0.70 at ``I = 4``, ``J = 8``): taking
-one bead of six out changes an image's maps more than the sizes do. ``J`` by
-cross-validation was worse than the rule on the maps in 5 of 6 stacks (K = 20, 7 beads:
-0.84 against 0.65).
+7-bead images): taking one bead of six out changes an image's maps more than the sizes
+do. ``J`` by cross-validation was worse than the rule on the maps on most stacks
+(``bench/bench_subspace.py``).
 """
 
 from __future__ import annotations

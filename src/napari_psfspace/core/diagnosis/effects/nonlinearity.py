@@ -106,7 +106,7 @@ class Nonlinearity(Effect):
             best = float(C_GRID[i] - z[i] * (C_GRID[i + 1] - C_GRID[i]) / (z[i + 1] - z[i]))
         elif best in (C_GRID[0], C_GRID[-1]):
             # the trend does not vanish inside the grid: no quadratic response describes
-            # it (on the SP8 confocal stack the fit ran to the grid's edge, c = 0.24)
+            # it (a fit that runs to the grid's edge describes something else)
             raise ValueError(
                 f"no detector response y = x (1 - c x / x_ref) with c in [{C_GRID[0]:g}, "
                 f"{C_GRID[-1]:g}] removes the core-vs-brightness trend (|z| >= "
