@@ -52,7 +52,7 @@ def test_diagnose_writes_report_and_model(hot_tiff, tmp_path, capsys):
 @pytest.mark.parametrize("args, message", [
     (["--read-noise", "1.5"], "--read-noise needs --gain"),
     (["--gain", "2"], "together"),
-    (["--psf-radius", "-3"], "psf_radius"),
+    (["--psf-radius", "-3"], "--psf-radius"),
 ])
 def test_bad_options_are_one_line_errors(hot_tiff, tmp_path, capsys, args, message):
     path, _ = hot_tiff

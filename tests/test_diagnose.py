@@ -148,14 +148,14 @@ def test_assumed_noise_model_chi_square_does_not_decide(monkeypatch):
             x_ref = float(np.max(ctx.image[~ctx.pixel_mask]) - offset)
             return {"c": -0.1, "x_ref_adu": x_ref, "offset_adu": offset}
 
-    real = loop._compare
+    real = loop.compare
 
     def chi2_only(before, after, noise, **kw):
         out = real(before, after, noise, **kw)
         return {**out, "error_after": out["error_before"], "improvement": 0.0,
                 "p_no_drop": 1.0, "chi2_improvement": 0.3, "chi2_p_no_drop": 0.0}
 
-    monkeypatch.setattr(loop, "_compare", chi2_only)
+    monkeypatch.setattr(loop, "compare", chi2_only)
     REGISTRY["_test_nonlinearity"] = Forced
     try:
         image, truth, p = random_scene(5)

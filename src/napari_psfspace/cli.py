@@ -19,6 +19,9 @@ import numpy as np
 
 from . import __version__
 
+#: How long ``learn --scheduler`` waits for the scheduler to answer.
+SCHEDULER_TIMEOUT = "10s"
+
 
 def _progress_printer(stream=None):
     start = time.perf_counter()
@@ -30,10 +33,68 @@ def _progress_printer(stream=None):
     return show
 
 
+def _number(kind: str, *, low: float | None = None, high: float | None = None,
+            low_open: bool = False, high_open: bool = False):
+    """An argparse ``type`` for a finite number in a range: a bad value makes argparse
+    name the option and exit 2 before any work."""
+    def parse(text: str):
+        try:
+            v = int(text) if kind == "int" else float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"expected {'a whole number' if kind == 'int' else 'a number'}, got "
+                f"{text!r}") from None
+        bad = not np.isfinite(v)
+        if low is not None:
+            bad |= v <= low if low_open else v < low
+        if high is not None:
+            bad |= v >= high if high_open else v > high
+        if bad:
+            lo = "" if low is None else f"{'>' if low_open else '>='} {low:g}"
+            hi = "" if high is None else f"{'<' if high_open else '<='} {high:g}"
+            raise argparse.ArgumentTypeError(
+                f"expected a finite number {' and '.join(x for x in (lo, hi) if x)}, got "
+                f"{text!r}")
+        return v
+    parse.__name__ = kind  # argparse's "invalid <name> value" when it is not ours
+    return parse
+
+
+POSITIVE = _number("float", low=0, low_open=True)
+NON_NEGATIVE = _number("float", low=0)
+FINITE = _number("float")
+COUNT = _number("int", low=1)
+INDEX = _number("int", low=0)
+
+
+def _n_psf(text: str):
+    """--n-psf: a whole number >= 1, or 'heldout' / 'rule'."""
+    if text in ("heldout", "rule"):
+        return text
+    try:
+        return COUNT(text)
+    except argparse.ArgumentTypeError:
+        raise argparse.ArgumentTypeError(
+            f"expected a whole number >= 1, 'heldout' or 'rule', got {text!r}") from None
+
+
+def _existing(path: str, option: str) -> str:
+    """An input file that must exist (checked before any work)."""
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{option} {path}: is a folder, expected a file")
+    if not p.exists():
+        raise ValueError(f"{option} {path}: no such file")
+    return path
+
+
 def _cmd_simulate(args) -> int:
     from .core.simulation import simulate_beads
-    from .io import write_tiff
+    from .io import check_output_file, write_tiff
 
+    check_output_file(args.output, "-o")
+    if args.truth_grid:
+        check_output_file(args.truth_grid, "--truth-grid")
     image, truth = simulate_beads(tuple(args.shape), args.beads, aberrations=args.aberrations,
                                   seed=args.seed)
     meta = {"psf_radius": truth.psf_radius, "n_beads": int(len(truth.positions)),
@@ -98,12 +159,12 @@ def _cmd_estimate(args) -> int:
     from .core.common.progress import run_with_progress
     from .core.diagnosis.loop import iter_heldout_error
     from .core.model.estimate import iter_estimate
+    from .io import check_output_file
     from .report import model_lines
 
+    check_output_file(args.output, "-o")
     image, info, r = _image_and_radius(args)
     n_psf = args.n_psf
-    if n_psf is not None and n_psf not in ("heldout", "rule"):
-        n_psf = int(n_psf)
     gen = iter_estimate(image, psf_radius=r, n_psf=n_psf, smoothing=args.smoothing,
                         threshold=args.threshold, holdout=args.holdout or None,
                         bead_diameter=_bead_diameter_px(args, info),
@@ -138,13 +199,15 @@ def _cmd_estimate(args) -> int:
 def _cmd_diagnose(args) -> int:
     from .core.common.progress import run_with_progress
     from .core.diagnosis.loop import iter_diagnose
+    from .io import check_output_file, check_output_folder
     from .report import model_lines, summary_text, write_report
 
     if args.read_noise is not None and args.gain is None:
         raise ValueError("--read-noise needs --gain and --offset: give the three camera "
                          "values together (or only --offset).")
-    if Path(args.report).exists() and not Path(args.report).is_dir():
-        raise ValueError(f"--report {args.report!r} is a file: give a folder.")
+    check_output_folder(args.report, "--report")
+    if args.model:
+        check_output_file(args.model, "--model")
     image, info, r = _image_and_radius(args)
     gen = iter_diagnose(image, psf_radius=r, threshold=args.threshold, gain=args.gain,
                         offset=args.offset, read_noise=args.read_noise, n_psf=args.n_psf,
@@ -172,8 +235,9 @@ def _cmd_learn(args) -> int:
     from .core.beads.scale import suggest_psf_radius
     from .core.common.progress import run_with_progress
     from .core.subspace import iter_estimate_subspace
-    from .io import read_image, read_slice, stack_loaders
+    from .io import check_output_file, read_image, read_slice, stack_loaders
 
+    check_output_file(args.output, "-o")
     loaders, labels = stack_loaders(args.inputs, args.slices)
     if len(loaders) < 2:
         raise ValueError(f"learn needs at least 2 images (conditions), got {len(loaders)}: "
@@ -209,7 +273,11 @@ def _cmd_learn(args) -> int:
         except ImportError:
             raise ValueError("--scheduler needs dask.distributed: pip install "
                              "'napari-psfspace[cluster]'") from None
-        client = Client(args.scheduler)
+        try:
+            client = Client(args.scheduler, timeout=SCHEDULER_TIMEOUT)
+        except (OSError, TimeoutError) as exc:
+            raise ValueError(f"--scheduler {args.scheduler}: no dask scheduler answered "
+                             f"within {SCHEDULER_TIMEOUT} ({type(exc).__name__})") from None
     try:
         gen = iter_estimate_subspace(loaders, psf_radius=r, n_psf=args.n_psf,
                                      n_space=args.n_space, client=client,
@@ -233,13 +301,18 @@ def _cmd_psf(args) -> int:
     from .core.model.operator_file import archive_format
     from .core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
     from .core.subspace.subspace_file import load_subspace
-    from .io import write_tiff
+    from .io import check_output_file, write_tiff
 
+    _existing(args.model, "MODEL")
+    check_output_file(args.output, "-o")
     if archive_format(args.model) == SUBSPACE:
         sub = load_subspace(args.model)
         if args.image is None:
             raise ValueError(f"{args.model} is a subspace of {sub.n_images} images: pass "
                              f"--image K (0 to {sub.n_images - 1})")
+        if not args.image < sub.n_images:
+            raise ValueError(f"--image {args.image} is out of range: {args.model} holds "
+                             f"{sub.n_images} images (0 to {sub.n_images - 1})")
         op = sub.operator(args.image)
     elif args.image is not None:
         raise ValueError(f"--image is for a subspace; {args.model} is a single model")
@@ -265,12 +338,26 @@ def _cmd_deblur(args) -> int:
     from .core.restore.identify import IdentificationWarning
     from .core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
     from .core.subspace.subspace_file import load_subspace
-    from .io import read_image, read_points_csv, write_tiff
+    from .io import check_output_file, read_image, read_points_csv, write_tiff
 
+    out = check_output_file(args.output, "-o")
+    if args.parts:
+        for name in ("sparse", "smooth"):
+            check_output_file(out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}"),
+                              "--parts")
+    if args.subspace is not None:
+        _existing(args.subspace, "--subspace")
+    else:
+        _existing(args.model, "--model")
+        if args.beads:
+            raise ValueError("--beads identifies an operator of a --subspace; with --model "
+                             "the model is used as it is")
+    if args.beads:
+        _existing(args.beads, "--beads")
     image, info = read_image(args.image, index=args.slice)
     t0 = time.perf_counter()
     if args.subspace is not None:
-        if archive_format(args.subspace) != SUBSPACE:
+        if archive_format(args.subspace) not in (SUBSPACE, None):  # None: for the reader
             raise ValueError(f"--subspace {args.subspace} is not a subspace file (learn one "
                              "with psfspace learn); a single model goes with --model")
         sub = load_subspace(args.subspace)
@@ -290,15 +377,11 @@ def _cmd_deblur(args) -> int:
         if ident.get("warning"):
             print(f"WARNING: {ident['warning']}", file=sys.stderr)
     else:
-        if args.beads:
-            raise ValueError("--beads identifies an operator of a --subspace; with --model "
-                             "the model is used as it is")
         op = load_operator(args.model)
     gen = iter_deblur(image, op, sparse_weight=args.sparse_weight,
                       smooth_weight=args.smooth_weight, max_iter=args.max_iter,
                       debias=args.refit_amplitudes)
     res = run_with_progress(gen, None if args.quiet else _progress_printer())
-    out = Path(args.output)
     write_tiff(out, res.image, pixel_size=info.pixel_size,
                metadata={"deblur": res.parameters, "iterations": res.iterations})
     written = [str(out)]
@@ -319,10 +402,15 @@ def _cmd_deblur(args) -> int:
 
 def _cmd_apply(args) -> int:
     from .core.model.operator import load_operator
-    from .io import read_image, write_tiff
+    from .io import check_output_file, read_image, write_tiff
 
+    _existing(args.model, "MODEL")
+    check_output_file(args.output, "-o")
     op = load_operator(args.model)
     image, info = read_image(args.image, index=args.slice)
+    if tuple(image.shape) != tuple(op.shape):
+        raise ValueError(f"IMAGE {args.image} has shape {tuple(image.shape)}, the model "
+                         f"{args.model} acts on images of shape {tuple(op.shape)}")
     t0 = time.perf_counter()
     out = op.adjoint(image.astype(np.float32)) if args.adjoint else op.apply(
         image.astype(np.float32))
@@ -334,7 +422,9 @@ def _cmd_apply(args) -> int:
 
 def _cmd_demo(args) -> int:
     from .demo import format_table, run_demo
+    from .io import check_output_folder
 
+    check_output_folder(args.out, "--out")
     result = run_demo(args.out, scene=args.scene, seed=args.seed,
                       progress=None if args.quiet else _progress_printer())
     print(format_table(result))
@@ -348,14 +438,14 @@ def _add_radius_and_slice(parser: argparse.ArgumentParser) -> None:
     """--psf-radius / --psf-radius-um (default: measured from the image), --slice,
     --pixel-size-nm and --bead-diameter-nm."""
     g = parser.add_mutually_exclusive_group()
-    g.add_argument("--psf-radius", type=float,
+    g.add_argument("--psf-radius", type=POSITIVE,
                    help="PSF radius r in pixels (default: suggested from the image)")
-    g.add_argument("--psf-radius-um", type=float,
+    g.add_argument("--psf-radius-um", type=POSITIVE,
                    help="PSF radius in micrometres (needs the pixel size in the TIFF)")
-    parser.add_argument("--slice", type=int, help="slice of a stack to use")
-    parser.add_argument("--pixel-size-nm", type=float,
+    parser.add_argument("--slice", type=INDEX, help="slice of a stack to use (from 0)")
+    parser.add_argument("--pixel-size-nm", type=POSITIVE,
                         help="pixel size in nanometres (overrides the file's)")
-    parser.add_argument("--bead-diameter-nm", type=float,
+    parser.add_argument("--bead-diameter-nm", type=NON_NEGATIVE,
                         help="bead diameter in nanometres (from the beads' data sheet): "
                              "divided out of the learnt PSFs (needs the pixel size)")
     parser.add_argument("--remove-motion", action="store_true",
@@ -364,8 +454,16 @@ def _add_radius_and_slice(parser: argparse.ArgumentParser) -> None:
                              "(motion blur is always looked for and reported)")
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with one-line errors: the option and what is wrong, then where to look
+    (the usage block would bury the line that matters)."""
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="psfspace",
         description="Learn space-varying PSF operators from images of fluorescent beads.",
     )
@@ -374,10 +472,11 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("simulate", help="simulate a bead image with a known PSF field")
     s.add_argument("-o", "--output", required=True, help="output TIFF")
-    s.add_argument("--shape", type=int, nargs=2, default=(1024, 1024), metavar=("ROWS", "COLS"))
-    s.add_argument("--beads", type=int, default=150, help="number of beads (default 150)")
+    s.add_argument("--shape", type=_number("int", low=16), nargs=2, default=(1024, 1024),
+                   metavar=("ROWS", "COLS"))
+    s.add_argument("--beads", type=COUNT, default=150, help="number of beads (default 150)")
     s.add_argument("--aberrations", choices=("none", "moderate", "strong"), default="moderate")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=INDEX, default=0)
     s.add_argument("--truth-grid", help="also write the true PSFs on an 8x8 grid to this TIFF")
     s.set_defaults(func=_cmd_simulate)
 
@@ -385,11 +484,12 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("image", help="TIFF bead image (2-D, or a stack with --slice)")
     e.add_argument("-o", "--output", required=True, help="model file to write (.npz)")
     _add_radius_and_slice(e)
-    e.add_argument("--n-psf", help="basis size I, or 'heldout' (default) or 'rule'")
-    e.add_argument("--smoothing", type=float, help="thin-plate smoothing eta (default: LOO CV)")
-    e.add_argument("--threshold", type=float, default=8.0,
+    e.add_argument("--n-psf", type=_n_psf, help="basis size I, or 'heldout' (default) or 'rule'")
+    e.add_argument("--smoothing", type=NON_NEGATIVE,
+                   help="thin-plate smoothing eta (default: LOO CV)")
+    e.add_argument("--threshold", type=POSITIVE, default=8.0,
                    help="detection threshold in noise standard deviations (default 8)")
-    e.add_argument("--holdout", type=float, default=0.2,
+    e.add_argument("--holdout", type=_number("float", low=0, high=0.5), default=0.2,
                    help="fraction of beads held out to measure the error (0 to skip)")
     e.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     e.set_defaults(func=_cmd_estimate)
@@ -400,16 +500,16 @@ def build_parser() -> argparse.ArgumentParser:
     dg.add_argument("--report", required=True, metavar="DIR",
                     help="folder for report.md, report.json and the figures")
     _add_radius_and_slice(dg)
-    dg.add_argument("--gain", type=float,
+    dg.add_argument("--gain", type=POSITIVE,
                     help="camera gain in ADU per electron (with --offset and --read-noise; "
                          "default: noise model measured on the image)")
-    dg.add_argument("--offset", type=float, help="camera offset in ADU")
-    dg.add_argument("--read-noise", type=float, help="camera read noise in electrons rms")
-    dg.add_argument("--threshold", type=float, default=8.0,
+    dg.add_argument("--offset", type=FINITE, help="camera offset in ADU")
+    dg.add_argument("--read-noise", type=NON_NEGATIVE, help="camera read noise in electrons rms")
+    dg.add_argument("--threshold", type=POSITIVE, default=8.0,
                     help="detection threshold in noise standard deviations (default 8)")
-    dg.add_argument("--n-psf", type=int, help="diagnose a model of this basis size "
+    dg.add_argument("--n-psf", type=COUNT, help="diagnose a model of this basis size "
                     "(default: chosen from the beads)")
-    dg.add_argument("--smoothing", type=float, help="diagnose a model of this thin-plate "
+    dg.add_argument("--smoothing", type=NON_NEGATIVE, help="diagnose a model of this thin-plate "
                     "smoothing (default: chosen from the beads)")
     dg.add_argument("--model", metavar="OUT.npz", help="also save the refined model")
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
@@ -422,14 +522,14 @@ def build_parser() -> argparse.ArgumentParser:
                          "whose slices are the conditions")
     ln.add_argument("-o", "--output", required=True, help="subspace file to write (.npz)")
     g = ln.add_mutually_exclusive_group()
-    g.add_argument("--psf-radius", type=float,
+    g.add_argument("--psf-radius", type=POSITIVE,
                    help="PSF radius r in pixels (default: suggested from the first image)")
-    g.add_argument("--psf-radius-um", type=float,
+    g.add_argument("--psf-radius-um", type=POSITIVE,
                    help="PSF radius in micrometres (needs the pixel size in the TIFF)")
     ln.add_argument("--slices", metavar="A:B", help="slices A to B-1 of a stack")
-    ln.add_argument("--n-psf", type=int, help="PSF basis size I (default: Gavish-Donoho)")
-    ln.add_argument("--n-space", type=int, help="spatial basis size J (default: the rule)")
-    ln.add_argument("--threshold", type=float, default=8.0,
+    ln.add_argument("--n-psf", type=COUNT, help="PSF basis size I (default: Gavish-Donoho)")
+    ln.add_argument("--n-space", type=COUNT, help="spatial basis size J (default: the rule)")
+    ln.add_argument("--threshold", type=POSITIVE, default=8.0,
                     help="detection threshold in noise standard deviations (default 8)")
     ln.add_argument("--scheduler", metavar="ADDRESS",
                     help="run on this dask.distributed scheduler (default: this machine)")
@@ -439,8 +539,8 @@ def build_parser() -> argparse.ArgumentParser:
     f = sub.add_parser("psf", help="write the PSF of a model (or of image K of a subspace) "
                        "at a field position")
     f.add_argument("model", help="model or subspace file (.npz)")
-    f.add_argument("--image", type=int, metavar="K", help="image K of a subspace")
-    f.add_argument("--at", type=float, nargs=2, required=True, metavar=("ROW", "COL"))
+    f.add_argument("--image", type=INDEX, metavar="K", help="image K of a subspace")
+    f.add_argument("--at", type=FINITE, nargs=2, required=True, metavar=("ROW", "COL"))
     f.add_argument("-o", "--output", required=True, help="output TIFF")
     f.set_defaults(func=_cmd_psf)
 
@@ -448,7 +548,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("model", help="model file (.npz)")
     a.add_argument("image", help="TIFF image of the model's shape")
     a.add_argument("-o", "--output", required=True, help="output TIFF (float32)")
-    a.add_argument("--slice", type=int, help="slice of a stack to use")
+    a.add_argument("--slice", type=INDEX, help="slice of a stack to use")
     a.add_argument("--adjoint", action="store_true", help="apply the adjoint H^T instead")
     a.set_defaults(func=_cmd_apply)
 
@@ -461,14 +561,14 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--model", metavar="FILE", help="one operator (psfspace estimate)")
     db.add_argument("--beads", metavar="CSV", help="bead positions to identify from "
                     "(napari Points CSV or row,column; default: detected)")
-    db.add_argument("--slice", type=int, help="slice of a stack to deblur")
+    db.add_argument("--slice", type=INDEX, help="slice of a stack to deblur")
     db.add_argument("-o", "--output", required=True, help="deblurred image (TIFF, float32: "
                     "sparse + smooth parts)")
     db.add_argument("--parts", action="store_true", help="also write OUT.sparse.tif and "
                     "OUT.smooth.tif")
-    db.add_argument("--sparse-weight", type=float, help="gamma1 (default: from the noise)")
-    db.add_argument("--smooth-weight", type=float, help="gamma2 (default: 0.05 step^4)")
-    db.add_argument("--max-iter", type=int, default=500)
+    db.add_argument("--sparse-weight", type=NON_NEGATIVE, help="gamma1 (default: from the noise)")
+    db.add_argument("--smooth-weight", type=NON_NEGATIVE, help="gamma2 (default: 0.05 step^4)")
+    db.add_argument("--max-iter", type=COUNT, default=500)
     db.add_argument("--refit-amplitudes", action="store_true",
                     help="then refit each cluster of points' flux by least squares (the l1 "
                          "term shrinks it; also raises spurious points: see deblur's "
@@ -480,7 +580,7 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")
     d.add_argument("--scene", choices=("wide", "moderate", "small"), default="wide",
                    help="wide: 2048x2048, 400 beads, strong aberrations (default)")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=INDEX, default=0)
     d.add_argument("--json", action="store_true", help="also print the errors as JSON")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     d.set_defaults(func=_cmd_demo)
@@ -490,11 +590,18 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``psfspace``; returns the exit status."""
     parser = build_parser()
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # --help, --version, or a bad option (said in one line)
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         return args.func(args)
-    except (ValueError, FileNotFoundError, IsADirectoryError, PermissionError) as exc:
-        print(f"psfspace {args.command}: error: {exc}", file=sys.stderr)
+    except FileNotFoundError as exc:
+        print(f"psfspace {args.command}: error: {exc.filename}: no such file", file=sys.stderr)
+        return 2
+    except (ValueError, OSError) as exc:
+        msg = " ".join(str(exc).split())  # one line
+        print(f"psfspace {args.command}: error: {msg}", file=sys.stderr)
         return 2
 
 

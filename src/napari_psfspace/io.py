@@ -68,7 +68,8 @@ def read_image(path: str | os.PathLike, *, index: int | None = None):
     path : str or path-like
         TIFF file.
     index : int, optional
-        Slice of a 3-D stack to return. Required for stacks; a 2-D file ignores it.
+        Slice of a 3-D stack to return, from 0. Required for stacks; a 2-D file takes
+        None or 0.
 
     Returns
     -------
@@ -79,11 +80,65 @@ def read_image(path: str | os.PathLike, *, index: int | None = None):
     Raises
     ------
     ValueError
-        A stack without ``index``, an index out of range, or more than 3 dimensions.
+        A stack without ``index``, an index out of range, more than 3 dimensions, a
+        colour or complex image, a file that is not a readable TIFF.
     """
-    with tifffile.TiffFile(path) as tif:
+    data, info = _read_tiff(path)
+    name = os.fspath(path)
+    if data.ndim == 2:
+        if index not in (None, 0):
+            raise ValueError(f"--slice {index}: {name!r} is one 2-D image, not a stack "
+                             "(leave --slice out)")
+        return data, info
+    if data.ndim != 3:
+        raise ValueError(
+            f"{name!r} holds an array of shape {data.shape}; expected a 2-D image "
+            "or a 3-D stack (Z, Y, X)."
+        )
+    if index is None:
+        best = best_focus_index(data)
+        raise ValueError(
+            f"{name!r} is a stack of {data.shape[0]} slices of {data.shape[1:]}: "
+            f"choose one (`index`, or --slice on the command line), e.g. --slice {best}: "
+            f"slice {best} is where the beads are most concentrated, the one in focus."
+        )
+    index = _slice_index(index, data.shape[0], name)
+    return data[index], info
+
+
+def _slice_index(index, n: int, name: str) -> int:
+    """``index`` checked against a stack of ``n`` slices (no negative counting from the
+    end: a slice number is the one the microscope's software shows)."""
+    ok = isinstance(index, (int, np.integer)) and not isinstance(index, bool)
+    if not ok or not 0 <= int(index) < n:
+        raise ValueError(f"--slice {index!r} is out of range: {name!r} has {n} slices "
+                         f"(0 to {n - 1}).")
+    return int(index)
+
+
+def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
+    """The first series of a TIFF as a real array (squeezed beyond 3-D) and its
+    :class:`ImageInfo`. Colour (RGB) and complex files are refused."""
+    name = os.fspath(path)
+    if os.path.isdir(name):
+        raise ValueError(f"{name!r} is a folder, expected a TIFF file")
+    try:
+        tif = tifffile.TiffFile(name)
+    except FileNotFoundError:
+        raise
+    except (tifffile.TiffFileError, OSError, ValueError, EOFError) as exc:
+        raise ValueError(f"{name!r} is not a readable TIFF file ({exc})") from exc
+    with tif:
         series = tif.series[0]
-        data = series.asarray()
+        if "S" in series.axes:
+            raise ValueError(f"{name!r} is a colour image (axes {series.axes}, "
+                             f"{series.shape}): export the bead channel as a grey-level "
+                             "image or stack")
+        try:
+            data = series.asarray()
+        except Exception as exc:  # a damaged strip: tifffile raises many kinds
+            raise ValueError(f"{name!r}: damaged TIFF, its pixels cannot be read "
+                             f"({type(exc).__name__}: {exc})") from exc
         ij = tif.imagej_metadata or {}
         pixel = _pixel_size_from_tags(tif.pages[0])
         unit = str(ij.get("unit", "um")).lower().replace("\\u00b5", "u").replace("µ", "u")
@@ -91,26 +146,11 @@ def read_image(path: str | os.PathLike, *, index: int | None = None):
             pixel /= 1000.0
         z = ij.get("spacing")
         info = ImageInfo(pixel, float(z) if z else None, tuple(data.shape), series.axes)
+    if data.dtype.kind not in "uif" and data.dtype != bool:
+        raise ValueError(f"{name!r} holds {data.dtype} values; expected real intensities "
+                         "(integers or floats)")
     data = np.squeeze(data) if data.ndim > 3 else data
-    if data.ndim == 2:
-        return data, info
-    if data.ndim != 3:
-        raise ValueError(
-            f"{os.fspath(path)!r} holds an array of shape {data.shape}; expected a 2-D image "
-            "or a 3-D stack (Z, Y, X)."
-        )
-    if index is None:
-        best = best_focus_index(data)
-        raise ValueError(
-            f"{os.fspath(path)!r} is a stack of {data.shape[0]} slices of {data.shape[1:]}: "
-            f"choose one (`index`, or --slice on the command line), e.g. --slice {best}: "
-            f"slice {best} is where the beads are most concentrated, the one in focus."
-        )
-    if not -data.shape[0] <= index < data.shape[0]:
-        raise ValueError(
-            f"slice index {index} is out of range for a stack of {data.shape[0]} slices."
-        )
-    return data[index], info
+    return data, info
 
 
 def read_slice(path: str, index: int | None) -> np.ndarray:
@@ -154,10 +194,30 @@ def stack_loaders(inputs: list[str], slices: str | None = None) -> tuple[list, l
             lo, hi = (int(a) if a else None), (int(b) if b else None)
         except ValueError:
             raise ValueError(f"--slices must be A:B (B excluded), got {slices!r}") from None
+        if len(files) != 1:
+            raise ValueError(f"--slices {slices} picks slices of one stack; got {len(files)} "
+                             "files (pass the stack alone, or leave --slices out)")
     loaders, labels = [], []
     for f in files:
-        with tifffile.TiffFile(f) as tif:
-            shape = tif.series[0].shape
+        try:
+            with tifffile.TiffFile(f) as tif:
+                shape = tif.series[0].shape
+                axes = tif.series[0].axes
+        except (tifffile.TiffFileError, OSError, ValueError, EOFError) as exc:
+            raise ValueError(f"INPUT {f} is not a readable TIFF file ({exc})") from exc
+        if "S" in axes:
+            raise ValueError(f"INPUT {f} is a colour image (axes {axes}): export the bead "
+                             "channel as a grey-level image or stack")
+        shape = tuple(n for n in shape if n != 1) if len(shape) > 3 else tuple(shape)
+        if slices and len(shape) == 3:
+            n = shape[0]
+            if (lo is not None and not 0 <= lo < n) or (hi is not None and not 0 < hi <= n) \
+                    or (lo or 0) >= (n if hi is None else hi):
+                raise ValueError(f"--slices {slices} is out of range: {f.name} has {n} slices "
+                                 f"(A:B with 0 <= A < B <= {n})")
+        elif slices:
+            raise ValueError(f"--slices {slices} picks slices of a stack; {f.name} is one "
+                             "2-D image")
         if len(shape) == 2:
             loaders.append(functools.partial(read_slice, str(f), None))
             labels.append(f.name)
@@ -179,8 +239,14 @@ def read_points_csv(path: str | os.PathLike) -> np.ndarray:
     """
     import csv
 
-    with open(path, newline="") as fh:
-        rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    try:
+        with open(path, newline="", encoding="utf-8") as fh:
+            rows = [r for r in csv.reader(fh) if r and any(c.strip() for c in r)]
+    except UnicodeDecodeError:
+        raise ValueError(f"{path} is not a CSV text file (binary content: a TIFF?); "
+                         "expected bead positions as row,column lines") from None
+    except csv.Error as exc:
+        raise ValueError(f"{path} is not a readable CSV file ({exc})") from None
     if not rows:
         raise ValueError(f"{path} holds no bead position")
     header = rows[0]
@@ -275,6 +341,51 @@ def _folder_writable(folder: Path) -> bool:
         return False
     return bool(mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH)) and os.access(folder,
                                                                                      os.W_OK)
+
+
+def check_output_file(path: str | os.PathLike, option: str) -> Path:
+    """Check, before any work, that a file can be written at ``path``: not a folder, in a
+    folder that exists and is writable, not a read-only file. ``option`` names it in the
+    message (e.g. ``-o``)."""
+    p = Path(path)
+    if p.is_dir():
+        raise ValueError(f"{option} {path}: is a folder, expected a file name")
+    folder = p.parent if str(p.parent) else Path(".")
+    if not folder.is_dir():
+        raise ValueError(f"{option} {path}: folder {folder} does not exist")
+    if not _folder_writable(folder):
+        raise ValueError(f"{option} {path}: folder {folder} is not writable")
+    if p.exists() and not _file_writable(p):
+        raise ValueError(f"{option} {path}: the file exists and is read-only")
+    return p
+
+
+def check_output_folder(path: str | os.PathLike, option: str) -> Path:
+    """Check, before any work, that ``path`` is a writable folder or can be made one."""
+    p = Path(path)
+    if p.exists() and not p.is_dir():
+        raise ValueError(f"{option} {path}: is a file, expected a folder")
+    if p.is_dir():
+        if not _folder_writable(p):
+            raise ValueError(f"{option} {path}: folder is not writable")
+        return p
+    parent = p.parent if str(p.parent) else Path(".")
+    while not parent.exists() and parent != parent.parent:
+        parent = parent.parent
+    if not parent.is_dir() or not _folder_writable(parent):
+        raise ValueError(f"{option} {path}: cannot be created ({parent} is not a writable "
+                         "folder)")
+    return p
+
+
+def _file_writable(path: Path) -> bool:
+    import stat
+
+    try:
+        mode = path.stat().st_mode
+    except OSError:
+        return False
+    return bool(mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
 
 
 def default_model_path(image_path: str | os.PathLike | None, name: str = "image") -> Path:

@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import json
 import os
+import zipfile
+import zlib
 from typing import Any
 
 import numpy as np
@@ -94,11 +96,21 @@ def read_archive(path: str | os.PathLike[str], *, format_name: str, format_versi
     """
     path = os.fspath(path)
     what = f"{path!r} is not a napari-psfspace {kind} file"
+    if os.path.isdir(path):
+        raise ValueError(f"{what}: it is a folder")
+    with open(path, "rb") as fh:  # FileNotFoundError names the file
+        magic = fh.read(4)
+    if magic != ZIP_MAGIC:
+        raise ValueError(f"{what} (not an .npz archive: it starts with {magic!r}, an .npz "
+                         f"with {ZIP_MAGIC!r})")
+    damaged = f"{path!r}: damaged {kind} file (truncated or altered since it was written)"
     try:
         data = np.load(path, allow_pickle=False)
     except FileNotFoundError:
         raise
-    except (ValueError, OSError, EOFError) as exc:
+    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
+        raise DamagedFileError(f"{damaged}: {exc}") from exc
+    except (ValueError, OSError) as exc:
         raise ValueError(f"{what} (could not read it as a NumPy .npz archive: {exc})") from exc
     if not isinstance(data, np.lib.npyio.NpzFile):
         raise ValueError(f"{what} (it is a single .npy array, expected an .npz archive)")
@@ -107,7 +119,7 @@ def read_archive(path: str | os.PathLike[str], *, format_name: str, format_versi
         if "header" in missing:
             raise ValueError(f"{what} (no 'header' entry; entries: {sorted(data.files)})")
         try:
-            raw = data["header"]
+            raw = _entry(data, "header", damaged)
             if raw.dtype != np.uint8 or raw.ndim != 1:
                 raise ValueError(
                     f"header must be a 1-D uint8 array, got {raw.dtype} {raw.shape}"
@@ -115,6 +127,8 @@ def read_archive(path: str | os.PathLike[str], *, format_name: str, format_versi
             header = json.loads(raw.tobytes().decode("utf-8"))
             if not isinstance(header, dict):
                 raise ValueError("header is not a JSON object")
+        except DamagedFileError:
+            raise
         except (ValueError, UnicodeDecodeError) as exc:
             raise ValueError(f"{what} (unreadable header: {exc})") from exc
         fmt = header.get("format")
@@ -131,10 +145,29 @@ def read_archive(path: str | os.PathLike[str], *, format_name: str, format_versi
         if missing:
             raise ValueError(f"{path!r}: corrupt {kind} file, missing entries {missing}")
         try:
-            arrays = {k: data[k] for k in entries if k != "header"}
-        except (ValueError, OSError, EOFError) as exc:
+            arrays = {k: _entry(data, k, damaged) for k in entries if k != "header"}
+        except DamagedFileError:
+            raise
+        except (ValueError, OSError) as exc:
             raise ValueError(f"{path!r}: corrupt {kind} file ({exc})") from exc
     return arrays, header
+
+
+#: The first bytes of a zip archive (an ``.npz`` is one).
+ZIP_MAGIC = b"PK\x03\x04"
+
+
+class DamagedFileError(ValueError):
+    """A file of the family that cannot be read back as written."""
+
+
+def _entry(data, key: str, damaged: str) -> np.ndarray:
+    """One array of an open ``.npz``; a checksum or decompression failure (a truncated or
+    altered file) is a :class:`DamagedFileError`."""
+    try:
+        return data[key]
+    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError) as exc:
+        raise DamagedFileError(f"{damaged}: entry {key!r}: {exc}") from exc
 
 
 def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dict[str, Any]]:

@@ -197,8 +197,12 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
     _, s, vt = np.linalg.svd(stacked, full_matrices=False)
     if n_space is None:
         n_j = min(rank_by_threshold(s, stacked.shape)[0], MAX_SPACE, len(s))
+    elif int(n_space) > len(s):
+        raise ValueError(f"`n_space` = {n_space} is more spatial maps than the images give: "
+                         f"at most {len(s)} ({len(maps)} images x {n_i} PSFs, "
+                         f"{stacked.shape[1]} grid nodes)")
     else:
-        n_j = min(int(n_space), len(s))
+        n_j = int(n_space)
     space = vt[:n_j]  # (J, G), orthonormal rows
     gammas = np.stack([m.T @ space.T for m in maps])  # (K, I, J)
     space_grid = space.reshape(n_j, len(gy), len(gx))
