@@ -33,6 +33,7 @@ from .core.model.estimate import Estimation, estimate_operator, iter_estimate
 from .core.model.operator import ProductConvolution, load_operator
 from .core.restore import Deblurred, deblur, identify_operator, iter_deblur
 from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
+from .core.simulation.focus import simulate_focus_series
 from .core.simulation.metrics import psf_error
 from .core.subspace import OperatorSubspace, estimate_subspace, iter_estimate_subspace
 from .core.subspace.subspace_file import load_subspace
@@ -70,6 +71,7 @@ __all__ = [
     "psf_error",
     "run_with_progress",
     "simulate_beads",
+    "simulate_focus_series",
     "simulate_psf",
     "spot_scale",
     "suggest_psf_radius",

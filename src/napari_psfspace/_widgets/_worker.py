@@ -2,7 +2,7 @@
 notifications.
 
 The core's long computations are generators that yield
-:class:`~napari_psfspace.core.model.estimate.Progress` records and return their result. A
+:class:`~napari_psfspace.core.common.progress.Progress` records and return their result. A
 :class:`CoreTask` runs one with :func:`napari.qt.threading.thread_worker`:
 
 * ``yielded`` moves the progress bar and the status line;

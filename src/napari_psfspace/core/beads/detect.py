@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..common import spacing
 from ..common.errors import PsfSpaceError
 from ..common.threads import filter_by_rows
 from ..common.validate import as_image, check_positive, check_psf_radius
@@ -270,11 +271,11 @@ def detect_beads(
     threshold = check_positive(threshold, "threshold")
     neighbour_ratio = check_positive(neighbour_ratio, "neighbour_ratio", allow_zero=True)
     auto_sigma = sigma is None
-    sigma = max(1.0, r / 4.0) if sigma is None else check_positive(sigma, "sigma")
+    sigma = spacing.centring_sigma(r) if sigma is None else check_positive(sigma, "sigma")
     if border is None:
-        border = np.ceil(1.2 * r) + 2
+        border = spacing.bead_border(r)
     if min_separation is None:
-        min_separation = 2.0 * r
+        min_separation = spacing.min_separation(r)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
 

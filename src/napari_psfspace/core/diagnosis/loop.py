@@ -39,6 +39,7 @@ from ..beads.centering import refine_centers
 from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
+from ..common.spacing import bead_border, centring_sigma, min_separation
 from ..common.validate import as_image, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
@@ -205,10 +206,11 @@ def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.
     img = beads.clean_image(as_image(image))
     kept = beads.kept
     beads.positions[kept] = refine_centers(img, beads.positions[kept],
-                                           sigma=max(1.0, psf_radius / 4),
+                                           sigma=centring_sigma(psf_radius),
                                            half=int(np.ceil(psf_radius)))
     flag_unusable(beads, img, psf_radius, saturation=None,
-                  border=np.ceil(1.2 * psf_radius) + 2, min_separation=2 * psf_radius)
+                  border=bead_border(psf_radius),
+                  min_separation=min_separation(psf_radius))
     return beads
 
 
@@ -461,8 +463,28 @@ def iter_heldout_error(image, *, psf_radius: float, **kwargs
                                      max_steps=0, _baseline_only=True, **kwargs))
 
 
-def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] | None = None,
-             **kwargs) -> Diagnosis:
+def diagnose(
+    image,
+    *,
+    psf_radius: float,
+    threshold: float = 8.0,
+    gain: float | None = None,
+    offset: float | None = None,
+    read_noise: float | None = None,
+    folds: int = 5,
+    effects: Sequence[str] | None = None,
+    max_steps: int = 8,
+    min_improvement: float = 0.05,
+    evident_improvement: float = 0.02,
+    max_p: float = 0.01,
+    explore: float = 0.5,
+    n_psf: int | None = None,
+    smoothing: float | None = None,
+    bead_diameter: float = 0.0,
+    remove_motion: bool = False,
+    beads: Beads | None = None,
+    progress: Callable[[Progress], None] | None = None,
+) -> Diagnosis:
     """Fit, trace the held-out residual to what the model lacks, add it, report.
 
     Parameters
@@ -509,6 +531,9 @@ def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] |
         ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the
         noise floor, effects with evidence above this fraction of their threshold are
         tried too (kept only by the same rule); 0 tries significant evidence only.
+    beads : Beads, optional
+        The user's bead table (e.g. edited in napari: beads rejected by hand keep that
+        status and are not used); None detects them at ``threshold``.
     progress : callable, optional
         Receives :class:`Progress` records.
 
@@ -517,4 +542,9 @@ def diagnose(image, *, psf_radius: float, progress: Callable[[Progress], None] |
     Diagnosis
         ``.steps``, ``.error_before``, ``.error_after``, ``.operator`` (refined model).
     """
-    return run_with_progress(iter_diagnose(image, psf_radius=psf_radius, **kwargs), progress)
+    return run_with_progress(iter_diagnose(
+        image, psf_radius=psf_radius, threshold=threshold, gain=gain, offset=offset,
+        read_noise=read_noise, folds=folds, effects=effects, max_steps=max_steps,
+        min_improvement=min_improvement, evident_improvement=evident_improvement,
+        max_p=max_p, explore=explore, n_psf=n_psf, smoothing=smoothing,
+        bead_diameter=bead_diameter, remove_motion=remove_motion, beads=beads), progress)

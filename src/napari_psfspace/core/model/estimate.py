@@ -23,6 +23,7 @@ from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress
+from ..common.spacing import bead_border, centring_sigma, min_separation
 from ..common.validate import (
     as_image,
     check_grid_step,
@@ -137,8 +138,8 @@ def iter_estimate(
         img = beads.clean_image(img)
         if saturation is None and raw.dtype.kind in "ui":
             saturation = float(np.iinfo(raw.dtype).max)
-        flag_unusable(beads, img, r, saturation=saturation, border=np.ceil(1.2 * r) + 2,
-                      min_separation=2 * r)
+        flag_unusable(beads, img, r, saturation=saturation, border=bead_border(r),
+                      min_separation=min_separation(r))
     yield Progress("detect", 0.15, beads.summary())
 
     kept = np.flatnonzero(beads.kept)
@@ -148,12 +149,12 @@ def iter_estimate(
             f"No usable bead (0 kept): {beads.summary()}. Lower `threshold`, check "
             f"`psf_radius` = {r:g} px, or image a denser bead slide."
         )
-    sigma = max(1.0, r / 4.0)
+    sigma = centring_sigma(r)
     beads.positions[kept] = refine_centers(img, beads.positions[kept], sigma=sigma,
                                            half=int(np.ceil(r)))
     # a bead may have moved closer to the border while being centred
-    flag_unusable(beads, img, r, saturation=None, border=np.ceil(1.2 * r) + 2,
-                  min_separation=2 * r)
+    flag_unusable(beads, img, r, saturation=None, border=bead_border(r),
+                  min_separation=min_separation(r))
     kept = np.flatnonzero(beads.kept)
     yield Progress("centre", 0.3, f"{len(kept)} beads centred to sub-pixel precision")
 

@@ -19,6 +19,7 @@ from ..beads.detect import BORDER, KEPT, Beads
 from ..beads.patches import extract_patches
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress
+from ..common.spacing import bead_border, centring_sigma, min_separation
 from ..common.validate import as_image, check_psf_radius
 from .pca import learn_basis, min_beads_for
 
@@ -118,7 +119,7 @@ def iter_patch_review(
         saturation = float(np.iinfo(raw.dtype).max)
     pos = beads.positions
     h, w = img.shape
-    margin = np.ceil(1.2 * r) + 2
+    margin = bead_border(r)
     inside = ((pos[:, 0] >= margin) & (pos[:, 1] >= margin) & (pos[:, 0] <= h - 1 - margin)
               & (pos[:, 1] <= w - 1 - margin))
     index = np.flatnonzero(inside & (beads.status != BORDER))
@@ -127,7 +128,7 @@ def iter_patch_review(
             f"None of the {len(beads)} beads lies at least {margin:g} px from the border: "
             "nothing to review. Detect beads first, or lower `psf_radius`."
         )
-    centers = refine_centers(img, pos[index], sigma=max(1.0, r / 4.0), half=int(np.ceil(r)))
+    centers = refine_centers(img, pos[index], sigma=centring_sigma(r), half=int(np.ceil(r)))
     yield Progress("centre", 0.3, f"{len(index)} beads centred")
     patches = extract_patches(img, centers, r)
     signal = patches.raw - patches.background
@@ -147,7 +148,7 @@ def iter_patch_review(
     neighbour = np.zeros(len(index), bool)
     if len(pos) > 1:
         dist, _ = cKDTree(pos).query(pos[index], k=2)
-        neighbour = dist[:, 1] < 2 * r
+        neighbour = dist[:, 1] < min_separation(r)
     saturated = np.zeros(len(index), bool)
     if saturation is not None:
         core = gather_windows(raw, pos[index], max(1, int(round(r / 3))))

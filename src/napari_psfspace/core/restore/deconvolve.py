@@ -224,12 +224,13 @@ def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float
 
 
 def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
-                   seed: int = 0, workers: int | None = None) -> float:
+                   seed: int = 0, workers: int | None = None,
+                   progress: Callable[[Progress], None] | None = None) -> float:
     """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
     below): at most ``n_iter`` iterations, stopping once an iteration raises the value
     by less than ``rtol`` (relatively)."""
     return float(run_with_progress(iter_operator_norm2(op, n_iter=n_iter, rtol=rtol,
-                                                       seed=seed, workers=workers)))
+                                                       seed=seed, workers=workers), progress))
 
 
 def model_error_of(op: ProductConvolution) -> float:
@@ -592,7 +593,7 @@ def deblur(
     workers : int, optional
         FFT threads.
     progress : callable, optional
-        Called with each :class:`~napari_psfspace.core.model.estimate.Progress`.
+        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
 
     Returns
     -------

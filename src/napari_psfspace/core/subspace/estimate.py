@@ -370,8 +370,13 @@ def estimate_subspace(
     n_psf: int | None = None,
     n_space: int | None = None,
     client=None,
+    threshold: float = 8.0,
+    grid_step: float = 32.0,
+    refine: bool = False,
+    denoise: bool = True,
+    holdout: float | None = 0.2,
+    chunk: int = 8,
     progress: Callable[[Progress], None] | None = None,
-    **kwargs,
 ) -> OperatorSubspace:
     """Learn the subspace of a microscope's operators from images of beads.
 
@@ -387,15 +392,25 @@ def estimate_subspace(
         noise (capped at 12) and on the maps (capped at 16).
     client : dask.distributed.Client, optional
         Run the per-image tasks on this cluster; default: dask's local threaded scheduler.
+    threshold : float
+        Detection threshold, noise standard deviations of the filtered image.
+    grid_step : float
+        Spacing (pixels) of the coarse grid the maps ``a_j`` live on.
+    refine : bool
+        Refit each ``Gamma_k`` to its own beads' coefficients through the ``a_j`` (step
+        8 of the module's notes) instead of projecting its maps.
+    denoise : bool
+        Learn the basis from Wiener-filtered patches and refit its images to the raw
+        patches (as :func:`~napari_psfspace.core.model.estimate.estimate_operator`).
+    holdout : float or None
+        Fraction of each image's beads held out: they measure each image's operator and
+        choose its blend with the image's own estimate
+        (:mod:`~napari_psfspace.core.subspace.choice`); None: the paper's model, the
+        family's operators alone, and no held-out figures.
+    chunk : int
+        Images per dask task.
     progress : callable, optional
-        Called with each :class:`~napari_psfspace.core.model.estimate.Progress`.
-    **kwargs
-        ``threshold``, ``grid_step``, ``refine``, ``denoise``, ``chunk``, and
-        ``holdout`` (the fraction of each image's beads held out, default 0.2: they
-        measure each image's operator and choose its blend with the image's own
-        estimate, :mod:`~napari_psfspace.core.subspace.choice`; None: the paper's model,
-        the family's operators alone, and no held-out figures) of
-        :func:`iter_estimate_subspace`.
+        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
 
     Returns
     -------
@@ -403,4 +418,5 @@ def estimate_subspace(
     """
     return run_with_progress(iter_estimate_subspace(
         images, psf_radius=psf_radius, n_psf=n_psf, n_space=n_space, client=client,
-        **kwargs), progress)
+        threshold=threshold, grid_step=grid_step, refine=refine, denoise=denoise,
+        holdout=holdout, chunk=chunk), progress)

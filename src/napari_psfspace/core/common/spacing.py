@@ -1,0 +1,33 @@
+"""The bead rule: how far a usable bead keeps from the image's edge and from other beads,
+and the scale at which it is centred, all from the PSF radius ``r`` (pixels).
+
+Every stage that picks or re-checks beads (detection, the estimate, the family's
+patches, the diagnosis, the review) uses these, so that a bead usable in one is usable
+in all.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def bead_border(psf_radius: float) -> float:
+    """Least distance (pixels) from a usable bead's centre to the image's edge:
+    ``ceil(1.2 r) + 2`` (its windowed patch, a little wider than ``r``, and the pixels its
+    sub-pixel centring moves it by)."""
+    return float(np.ceil(1.2 * psf_radius) + 2)
+
+
+def min_separation(psf_radius: float) -> float:
+    """Least distance (pixels) between two usable beads: ``2 r`` (their PSFs do not
+    overlap)."""
+    return 2.0 * float(psf_radius)
+
+
+def centring_sigma(psf_radius: float) -> float:
+    """Scale (pixels) of the Gaussian a bead is detected and centred at: ``max(1, r / 4)``
+    (the core of a PSF of radius ``r``)."""
+    return max(1.0, float(psf_radius) / 4.0)
+
+
+__all__ = ["bead_border", "centring_sigma", "min_separation"]
