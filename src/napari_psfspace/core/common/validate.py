@@ -115,12 +115,13 @@ def check_int(value, name: str, *, minimum: int | None = None,
     return v
 
 
-def check_grid_step(grid_step, shape: tuple[int, ...], name: str = "grid_step") -> float:
-    """Check a coarse grid's spacing (pixels): finite, at least 2, at most the image's
-    larger side (a larger step leaves one node: no field)."""
+def check_grid_step(grid_step, shape: tuple[int, ...], name: str = "grid_step", *,
+                    minimum: float = 1.0) -> float:
+    """Check a coarse grid's spacing (pixels): finite, at least ``minimum``, at most the
+    image's larger side (a larger step leaves one node: no field)."""
     step = check_positive(grid_step, name)
-    if step < 2 or step > max(shape):
-        raise ValueError(f"`{name}` must be between 2 and the image's larger side "
+    if step < minimum or step > max(shape):
+        raise ValueError(f"`{name}` must be between {minimum:g} and the image's larger side "
                          f"({max(shape)} px), got {grid_step!r}.")
     return step
 

@@ -307,9 +307,11 @@ def iter_diagnose(
     informative = bool(cf.residuals.informative.any())  # else every bead, as summary()
     reference = cf.bead_index[cf.residuals.informative] if informative else cf.bead_index
     base = paired_errors(cf, cf, noise, reference, informative=informative)
-    steps = [Step(None, 0.0, [t.name for t in an.significant()], base["error_before"],
-                  base["error_before"], base["chi2_before"], base["chi2_before"], 0.0, 1.0,
-                  True, {"n_beads": base["n_beads"]})]
+    steps = [Step(effect=None, evidence=0.0, tests=[t.name for t in an.significant()],
+                  error_before=base["error_before"], error_after=base["error_before"],
+                  chi2_before=base["chi2_before"], chi2_after=base["chi2_before"],
+                  improvement=0.0, p_no_drop=1.0, accepted=True,
+                  params={"n_beads": base["n_beads"]})]
     held = HeldoutError(base["error_before"], base["noise_floor"], base["chi2_before"],
                         base["n_beads"], noise_source)
     yield Progress("baseline", 0.2, f"{held.line()}; chi2/dof {held.chi2_dof:.3g}")
@@ -340,11 +342,13 @@ def iter_diagnose(
                                                  min(0.9, 0.2 + 0.1 * k))
         except ValueError as exc:  # e.g. too few beads left to learn from: not kept
             s0 = paired_errors(cf, cf, ctx.noise, reference, informative=informative)
-            steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
-                                                      and an.tests[t].significant],
-                              s0["error_before"], s0["error_before"], s0["chi2_before"],
-                              s0["chi2_before"], float("nan"), 1.0, False,
-                              {"_error": str(exc), "n_beads": s0["n_beads"]}))
+            steps.append(Step(effect=eff.name, evidence=float(ev),
+                              tests=[t for t in eff.tests
+                                     if t in an.tests and an.tests[t].significant],
+                              error_before=s0["error_before"], error_after=s0["error_before"],
+                              chi2_before=s0["chi2_before"], chi2_after=s0["chi2_before"],
+                              improvement=float("nan"), p_no_drop=1.0, accepted=False,
+                              params={"_error": str(exc), "n_beads": s0["n_beads"]}))
             yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
                            f"{eff.name}: could not be applied ({exc}), rejected")
             continue
@@ -373,11 +377,14 @@ def iter_diagnose(
         # after and the drop are one quantity and each step starts where the last kept
         # one ended
         err0, err1 = cmp["error_before"], cmp["error_after"]
-        steps.append(Step(eff.name, float(ev), [t for t in eff.tests if t in an.tests
-                                                  and an.tests[t].significant],
-                          err0, err1, cmp["chi2_before"], cmp["chi2_after"],
-                          float(cmp["improvement"]), cmp["p_no_drop"], ok,
-                          {**new_ctx.params.get(eff.name, params), "_comparison": cmp}))
+        steps.append(Step(effect=eff.name, evidence=float(ev),
+                          tests=[t for t in eff.tests
+                                 if t in an.tests and an.tests[t].significant],
+                          error_before=err0, error_after=err1,
+                          chi2_before=cmp["chi2_before"], chi2_after=cmp["chi2_after"],
+                          improvement=float(cmp["improvement"]), p_no_drop=cmp["p_no_drop"],
+                          accepted=ok,
+                          params={**new_ctx.params.get(eff.name, params), "_comparison": cmp}))
         if ok:
             ctx, cf, an = new_ctx, new_cf, new_an
             if cf.model_meta:
@@ -433,9 +440,12 @@ def iter_diagnose(
                "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
                "bead_diameter": bead_diameter, "remove_motion": remove_motion,
                "effects": names}
-    return Diagnosis(steps, total["error_before"], total["error_after"],
-                     total["chi2_before"], total["chi2_after"], total["noise_floor"], op, ctx,
-                     first_an, an, first_cf, cf, noise_source, options, beads.hot_pixels,
+    return Diagnosis(steps=steps, error_before=total["error_before"],
+                     error_after=total["error_after"], chi2_before=total["chi2_before"],
+                     chi2_after=total["chi2_after"], noise_floor=total["noise_floor"],
+                     operator=op, context=ctx, analysis_before=first_an, analysis_after=an,
+                     crossfit_before=first_cf, crossfit_after=cf, noise_source=noise_source,
+                     options=options, masked_pixels=beads.hot_pixels,
                      n_beads=total["n_beads"], heldout=held)
 
 

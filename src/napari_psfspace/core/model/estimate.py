@@ -128,103 +128,32 @@ def iter_estimate(
         check_positive(smoothing, "smoothing", allow_zero=True)
     bead_diameter = check_bead_diameter(bead_diameter, r)
 
-    if beads is None:
-        beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
-        img = beads.clean_image(img)
-    else:
-        beads = beads.copy()
-        if beads.hot_pixels is None:  # a table made by hand: look for spikes here
-            beads.hot_pixels = find_spikes(raw)
-        img = beads.clean_image(img)
-        if saturation is None and raw.dtype.kind in "ui":
-            saturation = float(np.iinfo(raw.dtype).max)
-        flag_unusable(beads, img, r, saturation=saturation, border=bead_border(r),
-                      min_separation=min_separation(r))
+    beads, img = find_usable_beads(raw, img, r, beads=beads, threshold=threshold,
+                                   saturation=saturation)
     yield Progress("detect", 0.15, beads.summary())
-
-    kept = np.flatnonzero(beads.kept)
-    reasons: dict[int, str] = {}  # why a detection was left out, beyond its status
-    if len(kept) == 0:
-        raise NoBeadsError(
-            f"No usable bead (0 kept): {beads.summary()}. Lower `threshold`, check "
-            f"`psf_radius` = {r:g} px, or image a denser bead slide."
-        )
-    sigma = centring_sigma(r)
-    beads.positions[kept] = refine_centers(img, beads.positions[kept], sigma=sigma,
-                                           half=int(np.ceil(r)))
-    # a bead may have moved closer to the border while being centred
-    flag_unusable(beads, img, r, saturation=None, border=bead_border(r),
-                  min_separation=min_separation(r))
-    kept = np.flatnonzero(beads.kept)
+    kept = centre_beads(img, beads, r)
     yield Progress("centre", 0.3, f"{len(kept)} beads centred to sub-pixel precision")
-
-    patches = extract_patches(img, beads.positions[kept], r)
-    faint, why_faint = faint_beads(patches.flux)
-    if faint.any():
-        beads.status[kept[faint]] = FAINT
-        reasons.update({int(i): w for i, w in zip(kept[faint], why_faint[faint], strict=True)})
-        kept, patches = kept[~faint], patches.subset(~faint)
-    if len(kept) == 0:
-        raise NoBeadsError(f"No usable bead after background removal. {beads.summary()}.")
-    if patch_filter is not None:
-        psf = patch_filter(patches.psf, patches.centers)
-        total = psf.sum(axis=(1, 2))
-        psf = psf / np.where(total > 0, total, 1.0)[:, None, None]
-        patches = Patches(patches.centers, patches.raw, patches.background, psf,
-                          patches.flux, patches.noise, patches.r, patches.r_ext)
+    kept, patches, reasons = usable_patches(img, beads, kept, r, patch_filter=patch_filter)
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
 
+    motion = (motion_of(patches) if motion_test or remove_motion else None)
+    removers = PointSource(bead_diameter, motion if remove_motion else None)
     support = radial_distance(patches.size) < patches.r_ext
-    sphere: dict = {}
-
-    window = bump_window(patches.size, patches.r, patches.r_ext)
-    sd_all = patches.noise / patches.flux
-    motion = (detect_motion(patches.psf, sd_all, window, positions=patches.centers)
-              if motion_test or remove_motion else None)
-    motion_record = None if motion is None else motion.to_dict()
-    removed: dict = {}
-    if remove_motion and not motion.detected:  # (motion is tested when asked to remove)
-        motion_record["removed"] = None
-        motion_record["note"] = "remove_motion was asked, but no motion blur was found: " \
-            "nothing removed"
-
-    def point_source(psf: np.ndarray):
-        """The basis filter that removes the beads' own size and, on request, a smear
-        found in them (None when there is nothing to remove)."""
-        steps = []
-        if bead_diameter:
-            steps.append(_basis_remover(
-                psf, lambda h, **kw: remove_sphere(h, bead_diameter, **kw), sphere))
-        if remove_motion and motion.detected:
-            steps.append(_basis_remover(
-                psf, lambda h, **kw: divide_motion(h, motion.length_px, motion.angle_deg,
-                                                   **kw), removed))
-        if not steps:
-            return None
-
-        def chain(h):
-            for step in steps:
-                h = step(h)
-            return h
-        return chain
-
-    few = None
-    heldout = None
+    few = heldout = spline = None
     denoised: dict = {}
     if len(kept) <= FEW_BEADS:  # a handful of beads: the richest model they support
         few = fit_few_beads(patches, shape, n_psf=fixed_n, support=support,
-                            grid_step=grid_step, basis_filter=point_source(patches.psf))
+                            grid_step=grid_step, basis_filter=removers(patches.psf))
         heldout, op, cone = few.heldout, few.operator, few.cone
         n = len(patches)
         basis = PsfBasis(few.basis, few.coefficients, np.ones(n, bool), np.zeros(n),
                          np.zeros(0), float("nan"), few.n_psf)
-        spline = None
         yield Progress("held-out", 0.7, few.reason)
     else:
         def fit(sub: Patches, *, final: bool = False):
             return fit_patches(sub, shape, n_psf=n_psf, smoothing=smoothing,
                                grid_step=grid_step, z_threshold=z_threshold,
-                               denoise=denoise, basis_filter=point_source if final else None,
+                               denoise=denoise, basis_filter=removers if final else None,
                                record=denoised)
 
         need = min_beads_for(fixed_n or 1)
@@ -241,18 +170,7 @@ def iter_estimate(
     meta = {
         "psf_radius": r,
         "r_ext": patches.r_ext,
-        "n_psf": basis.n_psf,
-        "n_psf_rule": basis.n_psf_rule,
-        "n_psf_requested": n_psf,
-        "heldout_error_by_n_psf": (None if basis.heldout_errors is None
-                                   else [float(v) for v in basis.heldout_errors]),
-        "smoothing": None if spline is None else [float(s) for s in spline.smoothing],
-        "smoothing_requested": smoothing,
-        "effective_dof": None if spline is None else [float(d) for d in spline.effective_dof],
-        "field_dof": None if spline is None else field_dof_record(spline),
-        "field_model": "thin-plate" if few is None else few.field_model,
-        "field_model_reason": None if few is None else few.reason,
-        "few_beads_loo_errors": None if few is None else few.metadata()["loo_errors"],
+        **basis_record(basis, n_psf, spline, smoothing, few),
         "threshold": threshold,
         "z_threshold": z_threshold,
         "grid_step": grid_step,
@@ -267,19 +185,169 @@ def iter_estimate(
         "heldout": heldout.summary() if heldout is not None else None,
         "denoise": ({"passband": denoised.get("passband"),
                      "basis_noise": denoised.get("noise_rel")} if denoised else None),
-        "motion": (None if motion_record is None
-                   else {**motion_record, **({"removed": removed} if removed else {})}),
-        "bead_diameter_px": bead_diameter,
-        "bead_correction": ({**sphere, "note": "the PSFs are those of a point source: the "
-                             "beads' projected sphere was divided out; the held-out "
-                             "residual judges bead images with the uncorrected model"}
-                            if bead_diameter else None),
+        **removers.records(motion, remove_motion),
     }
     op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
     yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads"
                    + ("" if few is None or few.field_model != "shift-invariant"
                       else " (one PSF for the whole field)"))
     return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+def find_usable_beads(raw: np.ndarray, img: np.ndarray, r: float, *, beads: Beads | None,
+                      threshold: float, saturation: float | None) -> tuple[Beads, np.ndarray]:
+    """Step 1: the beads (detected, or the given table checked here) and the image with
+    its hot pixels inpainted.
+
+    Returns
+    -------
+    beads : Beads
+        A new table (the given one is not modified).
+    image : ndarray of shape (M, N)
+    """
+    if beads is None:
+        beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)
+        return beads, beads.clean_image(img)
+    beads = beads.copy()
+    if beads.hot_pixels is None:  # a table made by hand: look for spikes here
+        beads.hot_pixels = find_spikes(raw)
+    img = beads.clean_image(img)
+    if saturation is None and raw.dtype.kind in "ui":
+        saturation = float(np.iinfo(raw.dtype).max)
+    flag_unusable(beads, img, r, saturation=saturation, border=bead_border(r),
+                  min_separation=min_separation(r))
+    return beads, img
+
+
+def centre_beads(img: np.ndarray, beads: Beads, r: float) -> np.ndarray:
+    """Step 2: the kept beads centred sub-pixel in place, then checked again (a bead may
+    have moved towards the border). Returns the indices of the beads still kept.
+
+    Raises
+    ------
+    NoBeadsError
+        No bead is kept.
+    """
+    kept = np.flatnonzero(beads.kept)
+    if len(kept) == 0:
+        raise NoBeadsError(
+            f"No usable bead (0 kept): {beads.summary()}. Lower `threshold`, check "
+            f"`psf_radius` = {r:g} px, or image a denser bead slide."
+        )
+    beads.positions[kept] = refine_centers(img, beads.positions[kept],
+                                           sigma=centring_sigma(r), half=int(np.ceil(r)))
+    flag_unusable(beads, img, r, saturation=None, border=bead_border(r),
+                  min_separation=min_separation(r))
+    return np.flatnonzero(beads.kept)
+
+
+def usable_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float, *,
+                   patch_filter=None) -> tuple[np.ndarray, Patches, dict[int, str]]:
+    """Step 3: the kept beads' patches (background removed, windowed, sum 1), faint
+    beads left out (status set to faint in ``beads``), ``patch_filter`` applied.
+
+    Returns
+    -------
+    kept : ndarray of shape (K,)
+        Indices into ``beads`` of the patches.
+    patches : Patches
+    reasons : dict
+        Bead index -> why it was left out, beyond its status.
+    """
+    patches = extract_patches(img, beads.positions[kept], r)
+    reasons: dict[int, str] = {}
+    faint, why_faint = faint_beads(patches.flux)
+    if faint.any():
+        beads.status[kept[faint]] = FAINT
+        reasons.update({int(i): w for i, w in zip(kept[faint], why_faint[faint], strict=True)})
+        kept, patches = kept[~faint], patches.subset(~faint)
+    if len(kept) == 0:
+        raise NoBeadsError(f"No usable bead after background removal. {beads.summary()}.")
+    if patch_filter is not None:
+        psf = patch_filter(patches.psf, patches.centers)
+        total = psf.sum(axis=(1, 2))
+        psf = psf / np.where(total > 0, total, 1.0)[:, None, None]
+        patches = Patches(patches.centers, patches.raw, patches.background, psf,
+                          patches.flux, patches.noise, patches.r, patches.r_ext)
+    return kept, patches, reasons
+
+
+def motion_of(patches: Patches):
+    """Step 4: the motion-blur test on the patches
+    (:func:`~napari_psfspace.core.model.motion.detect_motion`)."""
+    window = bump_window(patches.size, patches.r, patches.r_ext)
+    return detect_motion(patches.psf, patches.noise / patches.flux, window,
+                         positions=patches.centers)
+
+
+class PointSource:
+    """The basis filter that makes the learnt PSFs those of a point source: divides the
+    beads' own sphere out (``bead_diameter`` > 0) and a smear found in them (``motion``,
+    when it is to be removed and was detected). Called with the patches' PSFs, it gives
+    the filter (None when there is nothing to remove); it records what it did."""
+
+    def __init__(self, bead_diameter: float, motion=None):
+        self.bead_diameter = bead_diameter
+        self.motion = motion if motion is not None and motion.detected else None
+        self.sphere: dict = {}
+        self.removed: dict = {}
+
+    def __call__(self, psf: np.ndarray):
+        steps = []
+        if self.bead_diameter:
+            steps.append(_basis_remover(
+                psf, lambda h, **kw: remove_sphere(h, self.bead_diameter, **kw), self.sphere))
+        if self.motion is not None:
+            m = self.motion
+            steps.append(_basis_remover(
+                psf, lambda h, **kw: divide_motion(h, m.length_px, m.angle_deg, **kw),
+                self.removed))
+        if not steps:
+            return None
+
+        def chain(h):
+            for step in steps:
+                h = step(h)
+            return h
+        return chain
+
+    def records(self, motion, remove_motion: bool) -> dict:
+        """The metadata of what was tested and removed: ``motion``, ``bead_diameter_px``
+        and ``bead_correction``."""
+        record = None if motion is None else motion.to_dict()
+        if remove_motion and record is not None and not motion.detected:
+            record["removed"] = None
+            record["note"] = ("remove_motion was asked, but no motion blur was found: "
+                              "nothing removed")
+        if record is not None and self.removed:
+            record = {**record, "removed": self.removed}
+        return {
+            "motion": record,
+            "bead_diameter_px": self.bead_diameter,
+            "bead_correction": ({**self.sphere, "note": "the PSFs are those of a point "
+                                 "source: the beads' projected sphere was divided out; the "
+                                 "held-out residual judges bead images with the uncorrected "
+                                 "model"} if self.bead_diameter else None),
+        }
+
+
+def basis_record(basis: PsfBasis, n_psf, spline, smoothing, few) -> dict:
+    """The metadata of the basis and the field: sizes asked and chosen, smoothing, degrees
+    of freedom, and the few-bead model when there is one."""
+    return {
+        "n_psf": basis.n_psf,
+        "n_psf_rule": basis.n_psf_rule,
+        "n_psf_requested": n_psf,
+        "heldout_error_by_n_psf": (None if basis.heldout_errors is None
+                                   else [float(v) for v in basis.heldout_errors]),
+        "smoothing": None if spline is None else [float(s) for s in spline.smoothing],
+        "smoothing_requested": smoothing,
+        "effective_dof": None if spline is None else [float(d) for d in spline.effective_dof],
+        "field_dof": None if spline is None else field_dof_record(spline),
+        "field_model": "thin-plate" if few is None else few.field_model,
+        "field_model_reason": None if few is None else few.reason,
+        "few_beads_loo_errors": None if few is None else few.metadata()["loo_errors"],
+    }
 
 
 #: A detection whose flux is below this fraction of the median kept bead's carries too

@@ -302,7 +302,7 @@ def iter_deblur(
     saturation = check_saturation(saturation)
     if not tol > 0:
         raise ValueError(f"`tol` must be positive, got {tol!r}")
-    step = (check_grid_step(grid_step, y.shape) if grid_step is not None
+    step = (check_grid_step(grid_step, y.shape, minimum=2.0) if grid_step is not None
             else 2.0 * operator.psf_size)
     grid = SmoothGrid(y.shape, step)
     if saturation is None and raw.dtype.kind in "ui":
