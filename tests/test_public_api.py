@@ -136,3 +136,28 @@ def test_every_function_takes_its_generators_parameters(name, twin, extra):
     assert list(own) == list(public), (name, list(own), list(public))
     for k, p in own.items():
         assert p.default == public[k].default, (name, k)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: p.name)
+def test_every_link_is_to_what_a_clone_contains(page):
+    """Relative links and images resolve inside the repository; nothing points to
+    ``../shared`` (beside the repository in CI, not in a user's clone)."""
+    text = page.read_text(encoding="utf-8")
+    for target in re.findall(r"\]\(([^)#\s]+)[^)]*\)", text):
+        if re.match(r"[a-z]+:", target):
+            continue  # a web address
+        path = (page.parent / target).resolve()
+        assert path.is_relative_to(ROOT) and path.exists(), f"{page.name}: {target}"
+    if page.name == "README.md":
+        assert "../shared" not in text and not re.search(r"\bissue \d+", text)
+
+
+def test_the_readme_is_a_front_page():
+    """About 150 lines: what it is, a figure, set-up, three quick starts, citation and
+    licence; the rest lives in docs/."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= 170
+    for heading in ("## Set-up", "## Quick start: napari", "## Quick start: Python",
+                    "## Quick start: command line", "## Citation", "## Licence"):
+        assert heading in text
+    assert (ROOT / "CITATION.cff").exists() and "![" in text
