@@ -221,6 +221,90 @@ def noise_model_with_source(image, gain, offset, read_noise, mask=None) -> tuple
     return noise, source
 
 
+def forward(gen, stage: str, fraction: float):
+    """Run a sub-generator, passing its messages on at ``fraction`` (each of its yields is
+    a point to cancel at); return its value."""
+    while True:
+        try:
+            p = next(gen)
+        except StopIteration as done:
+            return done.value
+        yield Progress(stage, fraction, p.message)
+
+
+def next_effect(candidates: list[Effect], tried: set[str], ctx: Context, cf: CrossFit,
+                an: Analysis, explore: float) -> tuple[float, Effect] | None:
+    """The effect to try next, with its evidence: significant evidence first; while a
+    residual common to the beads remains far above the noise (mean or coherent residual
+    significant, error > 1.5 x floor), weaker evidence (> ``explore``) is followed too
+    (the acceptance rule decides). None when no untried effect qualifies."""
+    ranked = sorted(((e.evidence(an), e) for e in candidates
+                     if e.name not in tried and e.applicable(ctx)), key=lambda t: -t[0])
+    cur = cf.summary()
+    unexplained = (cur["error"] > 1.5 * cur["noise_floor"]
+                   and any(an.tests[t].significant for t in EXPLAIN_TESTS if t in an.tests))
+    floor = 1.0 if not (explore and unexplained) else min(1.0, explore)
+    ranked = [(ev, e) for ev, e in ranked if ev > floor]
+    return ranked[0] if ranked else None
+
+
+def accept_effect(cmp: dict, noise_kind: str, evidence: float, *, min_improvement: float,
+                  evident_improvement: float, max_p: float) -> bool:
+    """Keep an effect: one held-out metric of the comparison drops (by the improvement
+    needed, with ``p <= max_p / 2``) and none gets worse by ``min_improvement``.
+
+    An assumed noise model (a fallback) makes the chi-square only indicative (the report
+    says so): it does not decide (an effect could "explain" a constant-variance model's
+    missing shot noise in bright cores). An effect its own test calls significant
+    (evidence > 1) needs only ``evident_improvement`` (the effect is often a small part of
+    a model's error, ``bench/bench_diagnose.py``); one only explored needs the full one.
+    """
+    metrics = [m for m in ("", "chi2_", "photometric_") if f"{m}improvement" in cmp]
+    if noise_kind not in ("photon transfer", "camera"):
+        metrics = [m for m in metrics if m != "chi2_"]
+    need = min(min_improvement, evident_improvement) if evidence > 1.0 else min_improvement
+    return bool(any(cmp[f"{m}improvement"] >= need and cmp[f"{m}p_no_drop"] <= max_p / 2
+                    for m in metrics)
+                and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
+
+
+def _evident(eff: Effect, an: Analysis) -> list[str]:
+    """The effect's own residual tests that are significant."""
+    return [t for t in eff.tests if t in an.tests and an.tests[t].significant]
+
+
+def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
+                   added: list[str], total: dict) -> ProductConvolution:
+    """The refined operator with the diagnosis in its metadata: the reference bead size
+    when the bead-size effect was kept, and the throughput (vignetting) fitted on the
+    last cross-fit's photometric beads folded into its maps."""
+    def finite(v):
+        return float(v) if np.isfinite(v) else None
+
+    shape = ctx.image.shape
+    meta = {**operator.metadata, "diagnosis": {"added": added,
+                                               "error_before": finite(total["error_before"]),
+                                               "error_after": finite(total["error_after"]),
+                                               "noise_floor": finite(total["noise_floor"]),
+                                               "n_beads": total["n_beads"]}}
+    coefficients = operator.coefficients
+    if "bead_size" in ctx.params:  # the PSFs are those of a bead of the reference size
+        meta["bead_size"] = {"d_ref_px": ctx.params["bead_size"].get("d_ref_px")}
+    if ctx.throughput_degree > 0:
+        res = cf.residuals
+        use = res.photometric
+        tcoef = fit_throughput(res.positions[use], res.amplitude[use], shape,
+                               degree=ctx.throughput_degree)
+        grid = operator.grid
+        gy, gx = grid if grid is not None else (np.arange(shape[0]), np.arange(shape[1]))
+        coefficients = coefficients * throughput_map(tcoef, gy, gx, shape)[None]
+        meta["throughput"] = {"model": "exp(polynomial of u, v)", "degree":
+                              ctx.throughput_degree, "coefficients": tcoef.tolist(),
+                              "normalisation": "mean over the field = 1"}
+    return ProductConvolution(operator.basis, coefficients, shape=operator.shape,
+                              grid=operator.grid, metadata=meta)
+
+
 def iter_diagnose(
     image,
     *,
@@ -274,16 +358,6 @@ def iter_diagnose(
                   bead_diameter=bead_diameter)
     yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
 
-    def forward(gen, stage: str, fraction: float):
-        """Run a sub-generator, passing its messages on at ``fraction`` (each of its
-        yields is a point to cancel at); return its value."""
-        while True:
-            try:
-                p = next(gen)
-            except StopIteration as done:
-                return done.value
-            yield Progress(stage, fraction, p.message)
-
     def evaluate(c: Context, stage: str, fraction: float):
         cf = yield from forward(iter_crossfit(c.image, c.beads, c.noise, psf_radius=r,
                                               folds=folds, estimate_kwargs=c.estimate_kwargs,
@@ -319,21 +393,10 @@ def iter_diagnose(
         return held
     tried: set[str] = set()
     for k in range(max_steps):
-        ranked = sorted(((e.evidence(an), e) for e in candidates
-                         if e.name not in tried and e.applicable(ctx)),
-                        key=lambda t: -t[0])
-        # significant evidence first; while a residual common to the beads remains far
-        # above the noise (mean or coherent residual significant, error > 1.5 x floor),
-        # weaker evidence (> ``explore``) is followed too: the acceptance rule decides
-        cur = cf.summary()
-        unexplained = (cur["error"] > 1.5 * cur["noise_floor"]
-                       and any(an.tests[t].significant for t in EXPLAIN_TESTS
-                               if t in an.tests))
-        floor = 1.0 if not (explore and unexplained) else min(1.0, explore)
-        ranked = [(ev, e) for ev, e in ranked if ev > floor]
-        if not ranked:
+        chosen = next_effect(candidates, tried, ctx, cf, an, explore)
+        if chosen is None:
             break
-        ev, eff = ranked[0]
+        ev, eff = chosen
         tried.add(eff.name)
         try:
             params = eff.fit(ctx, an)
@@ -342,9 +405,7 @@ def iter_diagnose(
                                                  min(0.9, 0.2 + 0.1 * k))
         except ValueError as exc:  # e.g. too few beads left to learn from: not kept
             s0 = paired_errors(cf, cf, ctx.noise, reference, informative=informative)
-            steps.append(Step(effect=eff.name, evidence=float(ev),
-                              tests=[t for t in eff.tests
-                                     if t in an.tests and an.tests[t].significant],
+            steps.append(Step(effect=eff.name, evidence=float(ev), tests=_evident(eff, an),
                               error_before=s0["error_before"], error_after=s0["error_before"],
                               chi2_before=s0["chi2_before"], chi2_after=s0["chi2_before"],
                               improvement=float("nan"), p_no_drop=1.0, accepted=False,
@@ -357,29 +418,14 @@ def iter_diagnose(
                 if throughput[0] != throughput[1] else None)
         cmp = compare(cf, new_cf, new_ctx.noise, shape=img.shape, throughput=throughput,
                        flux=flux, reference=reference, informative=informative)
-        # one held-out metric must drop (by min_improvement, p <= max_p / 2) and none
-        # may get worse by as much
-        metrics = [m for m in ("", "chi2_", "photometric_") if f"{m}improvement" in cmp]
-        if new_ctx.noise.kind not in ("photon transfer", "camera"):
-            # an assumed noise model (a fallback) makes the chi-square only indicative
-            # (the report says so): it does not decide. On the scene family an effect
-            # "explained" a constant-variance model's missing shot noise in bright cores
-            metrics = [m for m in metrics if m != "chi2_"]
-        # an effect its own test calls significant needs a smaller drop (the effect is
-        # often a small part of a model's error, bench/bench_diagnose.py); one only
-        # explored needs the full one
-        need = min(min_improvement, evident_improvement) if ev > 1.0 else min_improvement
-        ok = bool(any(cmp[f"{m}improvement"] >= need
-                      and cmp[f"{m}p_no_drop"] <= max_p / 2 for m in metrics)
-                  and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
+        ok = accept_effect(cmp, new_ctx.noise.kind, ev, min_improvement=min_improvement,
+                           evident_improvement=evident_improvement, max_p=max_p)
         # the step's figures are the decision's: the model before and after it on the
         # same beads (the plain model's informative beads both judge), so that before,
         # after and the drop are one quantity and each step starts where the last kept
         # one ended
         err0, err1 = cmp["error_before"], cmp["error_after"]
-        steps.append(Step(effect=eff.name, evidence=float(ev),
-                          tests=[t for t in eff.tests
-                                 if t in an.tests and an.tests[t].significant],
+        steps.append(Step(effect=eff.name, evidence=float(ev), tests=_evident(eff, an),
                           error_before=err0, error_after=err1,
                           chi2_before=cmp["chi2_before"], chi2_after=cmp["chi2_after"],
                           improvement=float(cmp["improvement"]), p_no_drop=cmp["p_no_drop"],
@@ -406,32 +452,7 @@ def iter_diagnose(
                                            **ctx.estimate_kwargs), "final", 0.95)
     added = [s.effect for s in steps if s.effect and s.accepted]
     total = paired_errors(first_cf, cf, ctx.noise, reference, informative=informative)
-
-    def finite(v):
-        return float(v) if np.isfinite(v) else None
-
-    meta = {**est.operator.metadata, "diagnosis": {"added": added,
-                                                   "error_before": finite(total["error_before"]),
-                                                   "error_after": finite(total["error_after"]),
-                                                   "noise_floor": finite(total["noise_floor"]),
-                                                   "n_beads": total["n_beads"]}}
-    coefficients = est.operator.coefficients
-    if "bead_size" in ctx.params:  # the PSFs are those of a bead of the reference size
-        meta["bead_size"] = {"d_ref_px": ctx.params["bead_size"].get("d_ref_px")}
-    if ctx.throughput_degree > 0:
-        res = cf.residuals
-        use = res.photometric
-        tcoef = fit_throughput(res.positions[use], res.amplitude[use], img.shape,
-                               degree=ctx.throughput_degree)
-        grid = est.operator.grid
-        gy, gx = grid if grid is not None else (np.arange(img.shape[0]),
-                                                np.arange(img.shape[1]))
-        coefficients = coefficients * throughput_map(tcoef, gy, gx, img.shape)[None]
-        meta["throughput"] = {"model": "exp(polynomial of u, v)", "degree":
-                              ctx.throughput_degree, "coefficients": tcoef.tolist(),
-                              "normalisation": "mean over the field = 1"}
-    op = ProductConvolution(est.operator.basis, coefficients,
-                            shape=est.operator.shape, grid=est.operator.grid, metadata=meta)
+    op = final_operator(est.operator, ctx, cf, added, total)
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
     options = {"folds": folds, "leave_one_bead_out": folds == n_kept,
                "min_improvement": min_improvement,
