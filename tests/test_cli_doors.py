@@ -104,6 +104,8 @@ CASES = [
      "f.npz"),
     ("learn {d}/beads.tif {d}/beads2.tif --slices 0:2 -o {d}/f.npz", "--slices", "f.npz"),
     ("learn {d}/stack.tif -o {d}/f.npz --n-space 1e9", "--n-space", "f.npz"),
+    ("learn {d}/stack.tif -o {d}/f.npz --psf-radius 5 --n-space 1000000000",
+     "--n-space 1000000000 is more", "f.npz"),
     ("psf {d}/model.npz --at nan 5 -o {d}/p.tif", "--at", "p.tif"),
     ("deblur {d}/beads.tif --model {d}/model.npz -o {d}/x.tif --max-iter 2.5", "--max-iter",
      "x.tif"),

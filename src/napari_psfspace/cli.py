@@ -259,6 +259,7 @@ def _cmd_learn(args) -> int:
     from .core.beads.scale import suggest_psf_radius
     from .core.common.progress import run_with_progress
     from .core.subspace import iter_estimate_subspace
+    from .core.subspace.estimate import max_space
     from .io import check_output_file, read_image, read_slice, stack_loaders
 
     check_output_file(args.output, "-o")
@@ -266,6 +267,10 @@ def _cmd_learn(args) -> int:
     if len(loaders) < 2:
         raise ValueError(f"learn needs at least 2 images (conditions), got {len(loaders)}: "
                          "pass several TIFFs, a folder, or a stack (with --slices)")
+    most = max_space(len(loaders), args.n_psf)
+    if args.n_space is not None and args.n_space > most:
+        raise ValueError(f"--n-space {args.n_space} is more spatial maps than {len(loaders)} "
+                         f"images give: at most {most}")
     r = args.psf_radius
     if r is None:
         _, info = read_image(loaders[0].args[0], index=loaders[0].args[1])

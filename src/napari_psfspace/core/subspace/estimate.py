@@ -231,6 +231,12 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
                             grid_step=float(grid_step), metadata=meta)
 
 
+def max_space(n_images: int, n_psf: int | None = None) -> int:
+    """The most spatial maps ``J`` a family of ``n_images`` images can have: one per map
+    ``alpha_ik``, ``K x I`` (``I`` at most :data:`MAX_PSF` unless given)."""
+    return int(n_images) * int(n_psf or MAX_PSF)
+
+
 def iter_estimate_subspace(
     images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
     *,
@@ -256,6 +262,10 @@ def iter_estimate_subspace(
     for name, v in (("n_psf", n_psf), ("n_space", n_space)):
         if v is not None and (int(v) != v or v < 1):
             raise ValueError(f"`{name}` must be a positive integer or None, got {v!r}")
+    most = max_space(len(items), n_psf)
+    if n_space is not None and n_space > most:
+        raise ValueError(f"`n_space` = {n_space} is more spatial maps than {len(items)} images "
+                         f"of at most {int(n_psf or MAX_PSF)} PSFs give: at most {most}")
     options = {"n_psf": n_psf, "n_space": n_space, "grid_step": grid_step, "refine": refine,
                "denoise": denoise}
     import dask
