@@ -30,7 +30,8 @@ def _run(code: str) -> subprocess.CompletedProcess:
 
 
 #: The stage folders, and what each may import besides itself (data flow one way:
-#: beads -> model -> diagnosis / subspace -> restore; the simulator beside the flow).
+#: beads -> model -> diagnosis / subspace -> restore -> volume (3D); the simulator beside
+#: the flow).
 ALLOWED = {
     "common": set(),
     "beads": {"common"},
@@ -39,6 +40,7 @@ ALLOWED = {
     "subspace": {"common", "beads", "model"},
     "restore": {"common", "beads", "model", "subspace", "diagnosis"},
     "simulation": {"common", "beads"},
+    "volume": {"common", "beads", "model", "diagnosis", "restore"},
 }
 
 

@@ -30,7 +30,8 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 METHOD = ["estimate_operator", "iter_estimate", "diagnose", "iter_diagnose",
           "estimate_subspace", "iter_estimate_subspace", "OperatorSubspace", "load_subspace",
           "identify_operator", "deblur", "iter_deblur", "Deblurred", "load_operator",
-          "ProductConvolution", "suggest_psf_radius", "Progress", "run_with_progress"]
+          "ProductConvolution", "suggest_psf_radius", "Progress", "run_with_progress",
+          "estimate_operator_3d", "ProductConvolution3D", "load_operator_3d"]
 
 
 def test_the_whole_method_is_public():
@@ -112,6 +113,7 @@ TWINS = [
     ("diagnose", "iter_diagnose", set()),
     ("estimate_subspace", "iter_estimate_subspace", set()),
     ("deblur", "iter_deblur", set()),
+    ("estimate_operator_3d", "iter_estimate_operator_3d", set()),
     ("core.restore.deconvolve.operator_norm2", "core.restore.deconvolve.iter_operator_norm2",
      set()),
 ]

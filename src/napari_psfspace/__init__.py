@@ -17,7 +17,8 @@ progress and can stop). Typical use::
 One operator (:func:`estimate_operator`), its diagnosis (:func:`diagnose`), a family
 of operators from many images (:func:`estimate_subspace`, :func:`load_subspace`), the
 operator of the family that explains a few beads (:func:`identify_operator`) and the
-deblurring with it (:func:`deblur`).
+deblurring with it (:func:`deblur`); from a bead z-stack, a space-varying 3D PSF
+(:func:`estimate_operator_3d`).
 """
 
 __version__ = "0.1.0"
@@ -37,6 +38,12 @@ from .core.simulation.focus import simulate_focus_series
 from .core.simulation.metrics import psf_error
 from .core.subspace import OperatorSubspace, estimate_subspace, iter_estimate_subspace
 from .core.subspace.subspace_file import load_subspace
+from .core.volume import (
+    ProductConvolution3D,
+    estimate_operator_3d,
+    iter_estimate_operator_3d,
+    load_operator_3d,
+)
 
 __all__ = [
     "Beads",
@@ -49,6 +56,7 @@ __all__ = [
     "Optics",
     "Patches",
     "ProductConvolution",
+    "ProductConvolution3D",
     "Progress",
     "PsfSpaceError",
     "SimulationTruth",
@@ -58,15 +66,18 @@ __all__ = [
     "detect_beads",
     "diagnose",
     "estimate_operator",
+    "estimate_operator_3d",
     "estimate_subspace",
     "extract_patches",
     "identify_operator",
     "iter_deblur",
     "iter_diagnose",
     "iter_estimate",
+    "iter_estimate_operator_3d",
     "iter_estimate_subspace",
     "iter_heldout_error",
     "load_operator",
+    "load_operator_3d",
     "load_subspace",
     "psf_error",
     "run_with_progress",

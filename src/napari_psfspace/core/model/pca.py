@@ -138,8 +138,9 @@ def learn_basis(
 
     Parameters
     ----------
-    psfs : ndarray of shape (K, P, P)
-        Background-free PSF patches, each summing to 1.
+    psfs : ndarray of shape (K, P, P), or (K, Z, P, P) for 3D patches
+        Background-free PSF patches, each summing to 1 (a 3D patch: its own
+        normalisation; the basis has the patches' shape).
     n_psf : int, "heldout", "rule" or None
         Basis size ``I``. "heldout" (the default when ``positions`` are given): the
         ``I`` with the lowest leave-one-bead-out error of the whole model (basis and
@@ -147,7 +148,7 @@ def learn_basis(
         ``I`` within 1 % of that minimum is kept. "rule" (the default without
         positions): the Gavish-Donoho threshold. Both are capped at ``max_psf`` and at
         what the number of beads supports.
-    support : ndarray of shape (P, P), bool, optional
+    support : ndarray of the patches' shape, bool, optional
         Pixels where the windowed patches can be non-zero (the window support). Only
         these enter the rank rule's aspect ratio and median. Default: all pixels.
     positions : ndarray of shape (K, 2), optional
@@ -182,9 +183,10 @@ def learn_basis(
         Too few patches for the requested basis size.
     """
     psfs = np.asarray(psfs, dtype=np.float64)
-    if psfs.ndim != 3 or psfs.shape[1] != psfs.shape[2]:
-        raise ValueError(f"`psfs` must have shape (K, P, P), got {psfs.shape}.")
-    k, p, _ = psfs.shape
+    if psfs.ndim not in (3, 4) or psfs.shape[-1] != psfs.shape[-2]:
+        raise ValueError(f"`psfs` must have shape (K, P, P) or (K, Z, P, P), got "
+                         f"{psfs.shape}.")
+    k, patch_shape = psfs.shape[0], psfs.shape[1:]
     if svd not in ("auto", "full", "randomized", "gram"):
         raise ValueError(f"`svd` must be 'auto', 'full', 'randomized' or 'gram', got {svd!r}.")
     if n_psf is None:
@@ -212,7 +214,7 @@ def learn_basis(
             f"{min_beads_for(n_psf)} usable beads, got {k}. Lower `n_psf` or use more beads."
         )
     pos = None if positions is None else np.asarray(positions, dtype=np.float64).reshape(k, 2)
-    mask = np.ones((p, p), bool) if support is None else np.asarray(support, bool)
+    mask = np.ones(patch_shape, bool) if support is None else np.asarray(support, bool)
     x = psfs[:, mask]
     norms = np.linalg.norm(x, axis=1)
     if np.any(norms <= 0):
@@ -264,7 +266,7 @@ def learn_basis(
         best = float(heldout_errors.min())
         n_final = int(np.flatnonzero(heldout_errors <= 1.01 * best)[0]) + 1
     vt = orient(vt[:n_final])
-    basis = np.zeros((n_final, p, p))
+    basis = np.zeros((n_final, *patch_shape))
     basis[:, mask] = vt
     beta = psfs[inliers][:, mask] @ vt.T
     return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors)

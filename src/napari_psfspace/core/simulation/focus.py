@@ -25,7 +25,7 @@ import numpy as np
 
 from .aberrations import FieldAberrations, as_aberrations
 from .camera import as_range, camera
-from .optics import RENDER_RADIUS_FACTOR, Optics, field_psf_radius
+from .optics import RENDER_RADIUS_FACTOR, Optics, field_psf_radius, psf_stack
 from .render import place_beads, render_beads, smooth_background, spawn
 
 #: Highest radial order of the Zernike expansion of the defocus phase.
@@ -112,6 +112,8 @@ class FocusSeries:
     optics : Optics
     aberrations : FieldAberrations
         The microscope's own field, before the defocus of each slice.
+    shape : (int, int)
+        ``(H, W)`` of a slice.
     """
 
     z_um: np.ndarray
@@ -120,6 +122,21 @@ class FocusSeries:
     psf_radius: np.ndarray
     optics: Optics
     aberrations: FieldAberrations
+    shape: tuple[int, int] = (0, 0)
+
+    def psf_at(self, y: float, x: float, size: int) -> np.ndarray:
+        """The true 3D PSF of a point on the bead plane at ``(y, x)``: its image on every
+        slice, shape (Z, size, size), centred on pixel ``size // 2`` (no sub-pixel shift).
+        A slice's PSF integrates to 1 over the whole plane (the window holds less of a
+        wide one)."""
+        out = np.empty((len(self.z_um), int(size), int(size)))
+        for k in range(len(self.z_um)):
+            field = self.slice_aberrations(k)
+            coefs = field.coefficient_matrix(np.array([float(y)]), np.array([float(x)]),
+                                             self.shape)
+            out[k] = psf_stack(field.noll_indices, coefs, np.zeros((1, 2)), self.optics,
+                               int(size))[0]
+        return out
 
     @property
     def focus_index(self) -> int:
@@ -204,7 +221,7 @@ def simulate_focus_series(
         render_beads(photons, positions, amplitudes, with_defocus(base, float(zk), optics),
                       optics, int(RENDER_RADIUS_FACTOR * radii[k]))
         stack[k] = camera(noise[k], photons, gain, offset, read_noise, np.dtype(dtype))
-    return stack, FocusSeries(z, positions, amplitudes, radii, optics, base)
+    return stack, FocusSeries(z, positions, amplitudes, radii, optics, base, shape)
 
 
 __all__ = ["FocusSeries", "defocus_zernike", "immersion_index", "simulate_focus_series",

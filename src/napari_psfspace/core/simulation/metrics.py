@@ -105,6 +105,37 @@ def psf_error(estimate: np.ndarray, truth: np.ndarray, *, align: bool = True) ->
     return best_shift(estimate, truth)[1]
 
 
+def psf_error_3d(estimate: np.ndarray, truth: np.ndarray, *, max_shift: float = 2.0
+                 ) -> float:
+    """Rescaled relative l2 error between two 3D PSFs (Z, P, P) after the best lateral
+    sub-pixel translation, one for every plane (a bead's lateral centre is one point):
+    ``min_{c, s} ||c T_s estimate - truth|| / ||truth||``."""
+    est = np.asarray(estimate, dtype=np.float64)
+    tru = np.asarray(truth, dtype=np.float64)
+    if est.shape != tru.shape or est.ndim != 3:
+        raise ValueError(f"`estimate` and `truth` must be volumes of one shape, got "
+                         f"{est.shape} and {tru.shape}")
+    p = est.shape[-1]
+    pad = p // 2 + 2
+    big = np.pad(est, ((0, 0), (pad, pad), (pad, pad)))
+    spec = sfft.rfft2(big)
+    ky = sfft.fftfreq(big.shape[1])[:, None]
+    kx = sfft.rfftfreq(big.shape[2])[None, :]
+
+    def cost(s):
+        if np.max(np.abs(s)) > max_shift:
+            return 1.0 + float(np.max(np.abs(s)))
+        ph = np.exp(-2j * np.pi * (ky * s[0] + kx * s[1]))
+        out = sfft.irfft2(spec * ph, s=big.shape[1:])[:, pad:pad + p, pad:pad + p]
+        return rescaled_error(out, tru)
+
+    s0 = best_shift(est.sum(axis=0), tru.sum(axis=0), max_shift)[0]
+    res = minimize(cost, s0, method="Nelder-Mead",
+                   options={"xatol": 1e-3, "fatol": 1e-7,
+                            "initial_simplex": s0 + np.array([[0, 0], [0.2, 0], [0, 0.2]])})
+    return float(min(res.fun, cost(s0)))
+
+
 def grid_positions(shape, n: int = 8, *, layout: str = "cells", margin: float = 0.0):
     """Field positions of an ``n x n`` evaluation grid.
 

@@ -1,0 +1,226 @@
+"""A space-varying 3D PSF from a bead z-stack (the paper's extension to 3D).
+
+detect on the best-focus slice -> centre laterally -> the bead plane (the median of the
+beads' planes of best focus) -> 3D patches on that common plane
+(:mod:`~napari_psfspace.core.volume.patches3d`) -> PCA of the 3D patches with the 2D
+estimator's outlier rejection -> the same weighted thin-plate field over (row, column)
+-> the cone of the observed coefficients ->
+:class:`~napari_psfspace.core.volume.operator3d.ProductConvolution3D`.
+
+The patches are referenced to one plane, not re-centred in depth bead by bead: field
+curvature and a tilted focus stay in the operator, which a deconvolution needs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads
+from ..beads.focus import best_focus_index
+from ..beads.window import radial_distance
+from ..common.progress import Progress, run_with_progress
+from ..common.validate import check_grid_step, check_psf_radius
+from ..model.cone import Cone, reduce_cone
+from ..model.estimate import centre_beads, faint_beads
+from ..model.field import coarse_grid
+from ..model.pca import PsfBasis, learn_basis, min_beads_for
+from ..model.tps import ThinPlateSpline
+from ..model.voronoi import voronoi_areas
+from .operator3d import ProductConvolution3D
+from .patches3d import Patches3D, bead_planes, extract_patches_3d
+
+
+@dataclass
+class Estimation3D:
+    """What :func:`iter_estimate_operator_3d` produced.
+
+    Attributes
+    ----------
+    operator : ProductConvolution3D
+    beads : Beads
+        Every detection on the best-focus slice with its status.
+    patches : Patches3D
+        The patches that entered the PCA (their order: ``patch_index``).
+    patch_index : ndarray of shape (K,)
+        Index into ``beads`` of each patch.
+    basis : PsfBasis
+    cone : Cone
+    bead_plane : ndarray of shape (K,), int
+        Each patch's bead's plane of best focus (its focal shift is ``bead_plane -
+        operator.plane``).
+    """
+
+    operator: ProductConvolution3D
+    beads: Beads
+    patches: Patches3D
+    patch_index: np.ndarray
+    basis: PsfBasis
+    cone: Cone
+    bead_plane: np.ndarray
+    info: dict = field(default_factory=dict)
+
+
+def as_stack(stack) -> np.ndarray:
+    """A bead z-stack as float32 (Z, H, W), checked: three dimensions, at least 3
+    planes, finite values."""
+    arr = np.asarray(stack)
+    if arr.ndim != 3:
+        raise ValueError(f"`stack` must be a z-stack (Z, H, W), got shape {arr.shape}")
+    if arr.shape[0] < 3:
+        raise ValueError(f"`stack` must have at least 3 planes, got {arr.shape[0]}")
+    if arr.dtype.kind not in "biuf":
+        raise ValueError(f"`stack` must hold real intensities, got dtype {arr.dtype}")
+    out = arr.astype(np.float32)
+    if not np.isfinite(out).all():
+        raise ValueError("`stack` contains NaN or infinite values; expected only finite ones")
+    return out
+
+
+def iter_estimate_operator_3d(
+    stack,
+    *,
+    psf_radius: float,
+    z_radius: int | None = None,
+    bead_diameter: float = 0.0,
+    n_psf: int | str | None = None,
+    smoothing: float | None = None,
+    threshold: float = 8.0,
+    grid_step: float = 32.0,
+    z_threshold: float = 3.0,
+    voxel_size: tuple[float, float, float] | None = None,
+) -> Generator[Progress, None, Estimation3D]:
+    """Generator form of :func:`estimate_operator_3d`: yields progress, returns the
+    :class:`Estimation3D`."""
+    vol = as_stack(stack)
+    depth, h, w = vol.shape
+    r = check_psf_radius(psf_radius, (h, w))
+    grid_step = check_grid_step(grid_step, (h, w))
+    if bead_diameter:
+        raise ValueError(f"`bead_diameter` = {bead_diameter!r}: dividing a bead's sphere out "
+                         "of a 3D PSF is not implemented yet; give 0 (point sources)")
+    focus = best_focus_index(vol)
+    beads = detect_beads(np.asarray(stack)[focus], r, threshold=threshold)
+    img = beads.clean_image(vol[focus])
+    yield Progress("detect", 0.15, f"slice {focus} (best focus): {beads.summary()}")
+    kept = centre_beads(img, beads, r)
+    yield Progress("centre", 0.3, f"{len(kept)} beads centred laterally")
+
+    own = bead_planes(vol, beads.positions[kept], r)
+    plane = int(np.round(np.median(own)))
+    if z_radius is None:
+        z_radius = max(plane, depth - 1 - plane)
+    if int(z_radius) != z_radius or z_radius < 1:
+        raise ValueError(f"`z_radius` must be a whole number of planes >= 1, got {z_radius!r}")
+    z_radius = int(z_radius)
+    patches = extract_patches_3d(vol, beads.positions[kept], r, plane=plane, z_radius=z_radius)
+    usable = patches.flux > 0
+    faint, _ = faint_beads(np.where(usable, patches.flux, 0.0))
+    usable &= ~faint
+    beads.status[kept[~usable & (beads.status[kept] == KEPT)]] = FAINT
+    kept, own, patches = kept[usable], own[usable], patches.subset(usable)
+    need = min_beads_for(n_psf if isinstance(n_psf, int) else 1)
+    if len(kept) < need:
+        raise NoBeadsError(f"Too few usable beads for a 3D PSF: {len(kept)}, need at least "
+                           f"{need}. {beads.summary()}")
+    yield Progress("patches", 0.45, f"{len(kept)} patches of {len(patches.planes)} x "
+                   f"{patches.size} x {patches.size} voxels about plane {plane}")
+
+    inside = (patches.planes >= 0) & (patches.planes < depth)
+    support = (inside[:, None, None]
+               & (radial_distance(patches.size) < patches.r_ext)[None])
+    basis = learn_basis(patches.psf, n_psf, support=support, positions=patches.centers,
+                        z_threshold=z_threshold)
+    yield Progress("basis", 0.7, f"{basis.n_psf} 3D PSFs from {int(basis.inliers.sum())} "
+                   "beads")
+    centers = patches.centers[basis.inliers]
+    beta = basis.coefficients
+    spline = ThinPlateSpline(centers, beta, weights=voronoi_areas(centers, (h, w)),
+                             smoothing=smoothing, scale=0.5 * float(np.hypot(h, w)))
+    gy, gx = coarse_grid((h, w), grid_step)
+    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+    cone = reduce_cone(beta)
+    coarse = cone.project(np.asarray(spline(nodes), np.float64).reshape(len(nodes), -1))
+    coefficients = coarse.T.reshape(basis.n_psf, len(gy), len(gx))
+    shift = own[basis.inliers] - plane
+    meta = {
+        "psf_radius": r, "z_radius": z_radius, "plane": plane, "focus_slice": focus,
+        "n_psf": basis.n_psf, "n_beads_used": int(basis.inliers.sum()),
+        "bead_positions": centers.round(3).tolist(),
+        "bead_focal_shift_planes": shift.astype(int).tolist(),
+        "smoothing": [float(s) for s in spline.smoothing],
+        "threshold": threshold, "grid_step": grid_step, "image_shape": [depth, h, w],
+        "image_dtype": str(np.asarray(stack).dtype), "bead_counts": beads.counts(),
+    }
+    op = ProductConvolution3D(basis.basis, coefficients, shape=(depth, h, w), grid=(gy, gx),
+                              plane=plane, voxel_size=voxel_size, metadata=meta)
+    yield Progress("fit", 1.0, f"{basis.n_psf} 3D PSFs of {op.kernel_shape[0]} x "
+                   f"{op.kernel_shape[1]} x {op.kernel_shape[2]} voxels from "
+                   f"{meta['n_beads_used']} beads")
+    return Estimation3D(op, beads, patches, kept, basis, cone, own)
+
+
+def estimate_operator_3d(
+    stack,
+    *,
+    psf_radius: float,
+    z_radius: int | None = None,
+    bead_diameter: float = 0.0,
+    n_psf: int | str | None = None,
+    smoothing: float | None = None,
+    threshold: float = 8.0,
+    grid_step: float = 32.0,
+    z_threshold: float = 3.0,
+    voxel_size: tuple[float, float, float] | None = None,
+    progress: Callable[[Progress], None] | None = None,
+) -> ProductConvolution3D:
+    """Learn the space-varying 3D PSF of a microscope from a z-stack of beads on a
+    coverslip.
+
+    Parameters
+    ----------
+    stack : array_like of shape (Z, H, W)
+        The same bead field at Z focus positions, any real dtype.
+    psf_radius : float
+        ``r``, pixels: the PSF's lateral radius on the widest plane used (beyond it,
+        background only).
+    z_radius : int, optional
+        Planes kept on each side of the bead plane; default all the stack's.
+    bead_diameter : float
+        Must be 0 (point sources): the bead's sphere is not divided out in 3D yet.
+    n_psf : int, "heldout", "rule" or None
+        Basis size, as in :func:`~napari_psfspace.core.model.estimate.estimate_operator`.
+    smoothing : float, optional
+        Thin-plate smoothing; default by leave-one-out.
+    threshold : float
+        Detection threshold on the best-focus slice, noise sd.
+    grid_step : float
+        Spacing of the maps' coarse grid, pixels.
+    z_threshold : float
+        Outlier rejection of the PCA, standard deviations.
+    voxel_size : (float, float, float), optional
+        ``(dz, dy, dx)``, µm (from the file: ``napari_psfspace.io``).
+    progress : callable, optional
+        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
+
+    Returns
+    -------
+    ProductConvolution3D
+        ``psf_at(y, x)`` is a point on the bead plane at ``(y, x)`` seen on the stack's
+        planes, shape (Z, P, P).
+
+    Raises
+    ------
+    ValueError
+        A bad argument, or :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (too
+        few usable beads).
+    """
+    return run_with_progress(iter_estimate_operator_3d(
+        stack, psf_radius=psf_radius, z_radius=z_radius, bead_diameter=bead_diameter,
+        n_psf=n_psf, smoothing=smoothing, threshold=threshold, grid_step=grid_step,
+        z_threshold=z_threshold, voxel_size=voxel_size), progress).operator
+
+
+__all__ = ["Estimation3D", "as_stack", "estimate_operator_3d", "iter_estimate_operator_3d"]

@@ -1,0 +1,343 @@
+"""The space-varying 3D blur of a microscope: ``H u = sum_i h_i *3 (alpha_i . u)``.
+
+Beads on a coverslip give the PSF of a point on one plane, seen through focus: a 3D
+kernel ``h(dz, dy, dx)`` whose lateral shape varies over the field (coma, astigmatism)
+and whose axial position varies too (field curvature, a tilted focus). The operator keeps
+a small basis of 3D kernels ``h_i`` of shape ``(K, P, P)`` (``K`` and ``P`` odd, centred
+at ``K // 2`` and ``P // 2``) and lateral coefficient maps ``alpha_i(y, x)``, the same at
+every depth: the field varies over the coverslip's plane, and a point at depth ``z``
+is blurred by the kernel of its lateral position. With constant maps it is a plain 3D
+convolution (tested).
+
+``apply`` and ``adjoint`` are ``I + 1`` 3D FFT pairs on a volume zero-padded by half a
+kernel along each axis: linear convolution with zero boundaries. The file format is the
+model family's (:mod:`~napari_psfspace.core.model.operator_file`): an ``.npz`` of plain
+arrays and a JSON header, read without pickle, format
+``"napari-psfspace/product-convolution-3d"``.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import scipy.fft
+from numpy.typing import ArrayLike
+
+from ..model.operator_checks import as_real_array, normalise_metadata
+from ..model.operator_file import read_archive, software_string, write_archive
+from ..model.psf_field import interp_matrix, interp_weights
+
+#: Value of the ``"format"`` field of a 3D model file's JSON header.
+FORMAT_NAME = "napari-psfspace/product-convolution-3d"
+#: Version of the 3D model file format written here.
+FORMAT_VERSION = 1
+_ENTRIES = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header")
+
+
+class ProductConvolution3D:
+    """Space-varying 3D blur learnt from a bead z-stack.
+
+    Parameters
+    ----------
+    basis : array_like of shape (I, K, P, P)
+        3D kernels ``h_i``: ``K`` planes (odd; the bead plane at ``K // 2``) of ``P x P``
+        pixels (odd; centre ``P // 2``). A plane of the PSF sums to about 1 (the flux a
+        plane of a widefield stack receives from a point), less what falls outside the
+        patch.
+    coefficients : array_like of shape (I, gy, gx)
+        Lateral maps ``alpha_i`` at the nodes of a coarse grid (bilinear in between,
+        constant beyond).
+    shape : tuple of int (Z, H, W)
+        The stack the model was learnt on: its lateral shape is the operator's; its
+        depth and ``plane`` say how :meth:`psf_at` samples the kernel.
+    grid : (ndarray (gy,), ndarray (gx,))
+        Node coordinates, pixels (row, column), strictly increasing.
+    plane : int
+        Index of the bead plane in that stack (``0 <= plane < Z``).
+    voxel_size : (float, float, float), optional
+        ``(dz, dy, dx)`` in micrometres, when the file gave them.
+    metadata : dict, optional
+        JSON-ready information.
+
+    Raises
+    ------
+    ValueError
+        A bad argument: the message names it, what was expected and what was given.
+    """
+
+    def __init__(self, basis: ArrayLike, coefficients: ArrayLike, *,
+                 shape: tuple[int, int, int], grid: tuple[ArrayLike, ArrayLike],
+                 plane: int, voxel_size: tuple[float, float, float] | None = None,
+                 metadata: Mapping[str, Any] | None = None) -> None:
+        b = as_real_array(basis, "basis")
+        if b.ndim != 4 or b.shape[1] % 2 == 0 or b.shape[2] % 2 == 0 \
+                or b.shape[2] != b.shape[3]:
+            raise ValueError(f"`basis` must have shape (I, K, P, P) with K and P odd, got "
+                             f"{b.shape}")
+        c = as_real_array(coefficients, "coefficients")
+        if c.ndim != 3 or c.shape[0] != b.shape[0]:
+            raise ValueError(f"`coefficients` must have shape ({b.shape[0]}, gy, gx), got "
+                             f"{c.shape}")
+        if len(shape) != 3 or any(int(n) != n or n < 1 for n in shape):
+            raise ValueError(f"`shape` must be 3 positive integers (Z, H, W), got {shape!r}")
+        gy, gx = (as_real_array(g, n).reshape(-1) for g, n in zip(grid, ("grid_y", "grid_x"),
+                                                                   strict=True))
+        if (gy.size, gx.size) != c.shape[1:] or np.any(np.diff(gy) <= 0) \
+                or np.any(np.diff(gx) <= 0):
+            raise ValueError(f"`grid` must be two increasing axes of {c.shape[1:]} nodes, "
+                             f"got {gy.size} and {gx.size}")
+        z = int(shape[0])
+        if int(plane) != plane or not 0 <= plane < z:
+            raise ValueError(f"`plane` must be a slice index in [0, {z}), got {plane!r}")
+        if voxel_size is not None:
+            voxel_size = tuple(float(v) for v in voxel_size)
+            if len(voxel_size) != 3 or not all(np.isfinite(v) and v > 0 for v in voxel_size):
+                raise ValueError(f"`voxel_size` must be 3 positive numbers (dz, dy, dx) in "
+                                 f"µm, got {voxel_size!r}")
+        self._basis, self._coefficients = b, c
+        self._grid = (gy, gx)
+        self._shape = (z, int(shape[1]), int(shape[2]))
+        self._plane = int(plane)
+        self._voxel = voxel_size
+        self._metadata = normalise_metadata(metadata)
+        for arr in (b, c, gy, gx):
+            arr.flags.writeable = False
+        self._lock = threading.RLock()
+        self._maps: dict[np.dtype, np.ndarray] = {}
+        self._spectra: dict[tuple, np.ndarray] = {}
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def basis(self) -> np.ndarray:
+        """``h_i``, shape (I, K, P, P), read-only."""
+        return self._basis
+
+    @property
+    def coefficients(self) -> np.ndarray:
+        """``alpha_i`` at the grid's nodes, shape (I, gy, gx), read-only."""
+        return self._coefficients
+
+    @property
+    def grid(self) -> tuple[np.ndarray, np.ndarray]:
+        return self._grid
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """``(Z, H, W)`` of the stack the model was learnt on."""
+        return self._shape
+
+    @property
+    def plane(self) -> int:
+        """The bead plane's index in that stack."""
+        return self._plane
+
+    @property
+    def voxel_size(self) -> tuple[float, float, float] | None:
+        """``(dz, dy, dx)``, µm, or None."""
+        return self._voxel
+
+    @property
+    def n_psf(self) -> int:
+        return int(self._basis.shape[0])
+
+    @property
+    def kernel_shape(self) -> tuple[int, int, int]:
+        """``(K, P, P)``."""
+        return tuple(int(n) for n in self._basis.shape[1:])
+
+    @property
+    def metadata(self) -> dict[str, Any]:
+        return self._metadata
+
+    def __repr__(self) -> str:
+        k, p, _ = self.kernel_shape
+        return (f"ProductConvolution3D(I={self.n_psf}, kernel={k}x{p}x{p}, "
+                f"shape={self._shape}, plane={self._plane})")
+
+    # ------------------------------------------------------------------ PSFs
+    def coefficients_at(self, y: float, x: float) -> np.ndarray:
+        """``alpha(y, x)``, shape (I,) (bilinear between the nodes)."""
+        j0, j1, ty = interp_weights(self._grid[0], np.atleast_1d(float(y)))
+        k0, k1, tx = interp_weights(self._grid[1], np.atleast_1d(float(x)))
+        a = self._coefficients
+        return ((1 - ty) * ((1 - tx) * a[:, j0, k0] + tx * a[:, j0, k1])
+                + ty * ((1 - tx) * a[:, j1, k0] + tx * a[:, j1, k1]))[:, 0]
+
+    def kernel_at(self, y: float, x: float) -> np.ndarray:
+        """The 3D kernel at ``(y, x)``: ``sum_i alpha_i(y, x) h_i``, shape (K, P, P), the
+        bead plane at ``K // 2``."""
+        return np.tensordot(self.coefficients_at(y, x), self._basis, axes=(0, 0))
+
+    def psf_at(self, y: float, x: float) -> np.ndarray:
+        """A point on the bead plane at ``(y, x)`` seen on the stack's own planes.
+
+        Returns
+        -------
+        ndarray of shape (Z, P, P)
+            Plane ``z`` is the kernel's plane ``K // 2 + (z - plane)``; planes beyond
+            the kernel are zero.
+        """
+        kern = self.kernel_at(y, x)
+        k, p, _ = kern.shape
+        out = np.zeros((self._shape[0], p, p))
+        for z in range(self._shape[0]):
+            j = k // 2 + z - self._plane
+            if 0 <= j < k:
+                out[z] = kern[j]
+        return out
+
+    def coefficient_maps(self, dtype=np.float32) -> np.ndarray:
+        """Full-resolution lateral maps, shape (I, H, W), cached, read-only."""
+        dt = np.dtype(dtype)
+        with self._lock:
+            maps = self._maps.get(dt)
+            if maps is None:
+                _, h, w = self._shape
+                ry = interp_matrix(self._grid[0], h).toarray()
+                rx = interp_matrix(self._grid[1], w).toarray()
+                maps = np.einsum("hg,igf,wf->ihw", ry, self._coefficients, rx).astype(dt)
+                maps.flags.writeable = False
+                self._maps[dt] = maps
+        return maps
+
+    # ------------------------------------------------------------------ operator
+    def fft_shape(self, depth: int) -> tuple[int, int, int]:
+        """The padded FFT shape for a volume of ``depth`` planes: each axis padded by
+        half the kernel, so that no wrap-around reaches the volume."""
+        k, p, _ = self.kernel_shape
+        _, h, w = self._shape
+        return (scipy.fft.next_fast_len(depth + k // 2, real=True),
+                scipy.fft.next_fast_len(h + p // 2, real=True),
+                scipy.fft.next_fast_len(w + p // 2, real=True))
+
+    def _kernel_spectra(self, fshape: tuple[int, int, int], dt: np.dtype) -> np.ndarray:
+        key = (fshape, dt)
+        with self._lock:
+            spec = self._spectra.get(key)
+            if spec is None:
+                k, p, _ = self.kernel_shape
+                cz, cp = k // 2, p // 2
+                spec = np.empty((self.n_psf, fshape[0], fshape[1], fshape[2] // 2 + 1),
+                                np.complex64 if dt == np.float32 else np.complex128)
+                for i, h in enumerate(self._basis):
+                    big = np.zeros(fshape, dt)
+                    big[:k, :p, :p] = h
+                    big = np.roll(big, (-cz, -cp, -cp), axis=(0, 1, 2))  # centre at 0
+                    spec[i] = scipy.fft.rfftn(big)
+                spec.flags.writeable = False
+                self._spectra[key] = spec
+        return spec
+
+    def _check_volume(self, u: ArrayLike, name: str) -> tuple[np.ndarray, np.dtype]:
+        arr = np.asarray(u)
+        if arr.ndim != 3 or arr.shape[1:] != self._shape[1:]:
+            raise ValueError(f"`{name}` must be a volume (Z, {self._shape[1]}, "
+                             f"{self._shape[2]}), got shape {arr.shape}")
+        if arr.dtype.kind not in "biuf":
+            raise ValueError(f"`{name}` must be real, got dtype {arr.dtype}")
+        dt = np.dtype(np.float32) if arr.dtype in (np.float32, np.float16) or \
+            arr.dtype.kind in "biu" and arr.dtype.itemsize <= 2 else np.dtype(np.float64)
+        if not np.isfinite(arr).all():
+            raise ValueError(f"`{name}` contains NaN or infinite values")
+        return arr, dt
+
+    def apply(self, u: ArrayLike, *, workers: int | None = None) -> np.ndarray:
+        """``H u``: the volume ``u`` (Z', H, W) seen through the microscope.
+
+        Parameters
+        ----------
+        u : array_like of shape (Z', H, W)
+            Any depth; the lateral shape is the model's. float32 stays float32.
+        workers : int, optional
+            FFT threads.
+
+        Returns
+        -------
+        ndarray of shape (Z', H, W)
+        """
+        arr, dt = self._check_volume(u, "u")
+        fshape = self.fft_shape(arr.shape[0])
+        spectra = self._kernel_spectra(fshape, dt)
+        maps = self.coefficient_maps(dt)
+        acc = None
+        for i in range(self.n_psf):
+            spec = scipy.fft.rfftn(maps[i][None] * arr.astype(dt, copy=False), s=fshape,
+                                   workers=workers)
+            spec *= spectra[i]
+            acc = spec if acc is None else acc.__iadd__(spec)
+        out = scipy.fft.irfftn(acc, s=fshape, workers=workers)
+        return np.ascontiguousarray(out[:arr.shape[0], :arr.shape[1], :arr.shape[2]], dt)
+
+    def adjoint(self, v: ArrayLike, *, workers: int | None = None) -> np.ndarray:
+        """``H^T v``, the adjoint of :meth:`apply` (dot-tested).
+
+        Parameters
+        ----------
+        v : array_like of shape (Z', H, W)
+        workers : int, optional
+
+        Returns
+        -------
+        ndarray of shape (Z', H, W)
+        """
+        arr, dt = self._check_volume(v, "v")
+        fshape = self.fft_shape(arr.shape[0])
+        spectra = self._kernel_spectra(fshape, dt)
+        maps = self.coefficient_maps(dt)
+        vhat = scipy.fft.rfftn(arr.astype(dt, copy=False), s=fshape, workers=workers)
+        out = np.zeros(arr.shape, dt)
+        for i in range(self.n_psf):
+            back = scipy.fft.irfftn(vhat * np.conj(spectra[i]), s=fshape, workers=workers)
+            out += maps[i][None] * back[:arr.shape[0], :arr.shape[1], :arr.shape[2]]
+        return out
+
+    # ------------------------------------------------------------------ I/O
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the model to an ``.npz`` (atomically; no pickle). See
+        ``docs/file-format.md``."""
+        arrays = {"basis": self._basis, "coefficients": self._coefficients,
+                  "grid_y": self._grid[0], "grid_x": self._grid[1],
+                  "shape": np.asarray(self._shape, dtype=np.int64)}
+        header = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
+                  "software": software_string(), "plane": self._plane,
+                  "voxel_size_um": None if self._voxel is None else list(self._voxel),
+                  "metadata": self._metadata}
+        write_archive(path, arrays, header)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> ProductConvolution3D:
+        """Read a model written by :meth:`save`.
+
+        Raises
+        ------
+        ValueError
+            Not a 3D model file, a newer version, a damaged or inconsistent file.
+        FileNotFoundError
+        """
+        arr, header = read_archive(path, format_name=FORMAT_NAME,
+                                   format_version=FORMAT_VERSION, entries=_ENTRIES,
+                                   kind="3D model")
+        shape = arr["shape"]
+        if shape.shape != (3,) or shape.dtype.kind not in "iu":
+            raise ValueError(f"{os.fspath(path)!r}: corrupt 3D model file, 'shape' must be "
+                             f"3 integers, got {shape!r}")
+        try:
+            return cls(arr["basis"], arr["coefficients"], shape=tuple(int(n) for n in shape),
+                       grid=(arr["grid_y"], arr["grid_x"]), plane=header.get("plane", -1),
+                       voxel_size=header.get("voxel_size_um"),
+                       metadata=header.get("metadata", {}))
+        except (ValueError, TypeError) as exc:
+            raise ValueError(f"{os.fspath(path)!r}: inconsistent 3D model file: "
+                             f"{exc}") from exc
+
+
+def load_operator_3d(path: str | os.PathLike[str]) -> ProductConvolution3D:
+    """Load a :class:`ProductConvolution3D` saved with its ``save``."""
+    return ProductConvolution3D.load(path)
+
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "ProductConvolution3D", "load_operator_3d"]

@@ -1,0 +1,143 @@
+"""3D bead patches from a z-stack: every bead seen through focus, on one common plane.
+
+Beads on a coverslip share one physical depth. Each bead's patch is cut around its
+lateral centre (sub-pixel, from the bead plane) on the same planes for every bead,
+``plane - z_radius .. plane + z_radius``: the patches are *not* re-centred in depth bead
+by bead, so that a bead whose best focus lies a plane higher (field curvature, a tilted
+focus) shows it in its patch, and the model keeps it.
+
+Each plane of a patch is cut by cubic-spline re-sampling at the bead's sub-pixel centre,
+its background (an order-2 polynomial fitted outside the PSF radius ``r``, plane by
+plane: a background that changes with depth is followed) removed and the bump window of
+the 2D patches applied. A patch is divided by the bead's flux per plane (the mean of its
+three largest plane sums): a plane of the normalised patch sums to about 1, the flux a
+plane of a widefield stack receives from a point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..beads.background import fit_background
+from ..beads.patches import R_EXT_FACTOR, patch_size, resample_patches
+from ..beads.window import bump_window, radial_distance
+
+
+@dataclass
+class Patches3D:
+    """Background-free, windowed, flux-normalised 3D patches of K beads.
+
+    Attributes
+    ----------
+    centers : ndarray of shape (K, 2)
+        Lateral centres (row, column), pixels.
+    psf : ndarray of shape (K, Zp, P, P)
+        Normalised patches (a plane sums to about 1).
+    flux : ndarray of shape (K,)
+        Each bead's flux per plane (image units).
+    noise : ndarray of shape (K,)
+        Robust sd of its background-free pixels beyond ``r`` (image units).
+    planes : ndarray of shape (Zp,), int
+        The stack's planes the patches hold (``plane - z_radius`` to ``plane +
+        z_radius``; planes beyond the stack are zero).
+    r, r_ext : float
+        PSF radius and the window's outer radius, pixels.
+    """
+
+    centers: np.ndarray
+    psf: np.ndarray
+    flux: np.ndarray
+    noise: np.ndarray
+    planes: np.ndarray
+    r: float
+    r_ext: float
+
+    def __len__(self) -> int:
+        return len(self.centers)
+
+    @property
+    def size(self) -> int:
+        return int(self.psf.shape[-1])
+
+    def subset(self, index) -> Patches3D:
+        return Patches3D(self.centers[index], self.psf[index], self.flux[index],
+                         self.noise[index], self.planes, self.r, self.r_ext)
+
+
+def extract_patches_3d(stack: np.ndarray, centers: np.ndarray, psf_radius: float, *,
+                       plane: int, z_radius: int) -> Patches3D:
+    """Cut, clean and normalise the 3D patches of beads at lateral ``centers``.
+
+    Parameters
+    ----------
+    stack : ndarray of shape (Z, H, W)
+    centers : ndarray of shape (K, 2)
+        Sub-pixel lateral centres (row, column), pixels.
+    psf_radius : float
+        ``r``, pixels: the widest plane's PSF radius (beyond it, background only).
+    plane : int
+        The bead plane's index.
+    z_radius : int
+        Planes on each side of ``plane``.
+
+    Returns
+    -------
+    Patches3D
+        A bead whose flux is not positive keeps a zero patch and ``flux <= 0``.
+    """
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    r = float(psf_radius)
+    r_ext = R_EXT_FACTOR * r
+    size = patch_size(r)
+    planes = np.arange(plane - z_radius, plane + z_radius + 1)
+    window = bump_window(size, r, r_ext)
+    outside = radial_distance(size) > r
+    signal = np.zeros((len(centers), len(planes), size, size))
+    resid = []
+    for j, z in enumerate(planes):
+        if not 0 <= z < stack.shape[0]:
+            continue
+        raw = resample_patches(np.asarray(stack[z], np.float64), centers, size)
+        clean = raw - fit_background(raw, r)
+        signal[:, j] = clean * window
+        resid.append(clean[:, outside])
+    res = np.concatenate(resid, axis=1)
+    noise = 1.4826 * np.median(np.abs(res - np.median(res, axis=1, keepdims=True)), axis=1)
+    sums = signal.sum(axis=(2, 3))  # (K, Zp)
+    top = np.sort(sums, axis=1)[:, -min(3, sums.shape[1]):]
+    flux = top.mean(axis=1)
+    psf = np.zeros_like(signal)
+    good = flux > 0
+    psf[good] = signal[good] / flux[good, None, None, None]
+    return Patches3D(centers, psf, flux, noise, planes, r, r_ext)
+
+
+def bead_planes(stack: np.ndarray, centers: np.ndarray, psf_radius: float) -> np.ndarray:
+    """Each bead's plane of best focus: where the light within ``max(1.5, r / 4)``
+    pixels of its lateral centre is the largest share of the light within ``2 r``
+    (a concentration, not a peak: a ring out of focus is bright but spread).
+
+    Returns
+    -------
+    ndarray of shape (K,), int
+    """
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    r = float(psf_radius)
+    outer = int(np.ceil(2 * r))
+    size = 2 * outer + 1
+    dist = radial_distance(size)
+    core = dist <= max(1.5, r / 4)
+    ring = (dist > 1.5 * r) & (dist <= 2 * r)
+    share = np.zeros((len(centers), stack.shape[0]))
+    for z in range(stack.shape[0]):
+        wins = resample_patches(np.asarray(stack[z], np.float64), centers, size)
+        bg = np.median(wins[:, ring], axis=1)[:, None, None]
+        sig = wins - bg
+        total = np.clip(sig[:, dist <= 2 * r].sum(axis=1), 1e-12, None)
+        share[:, z] = sig[:, core].sum(axis=1) / total
+    return np.argmax(share, axis=1)
+
+
+__all__ = ["Patches3D", "bead_planes", "extract_patches_3d"]
