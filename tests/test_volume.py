@@ -255,3 +255,34 @@ def test_space_varying_rl_beats_one_psf_at_the_edges_and_is_level_in_the_centre(
     edge, centre = r > 38, r < 20
     assert err(sv, edge) < 0.8 * err(si, edge), (err(sv, edge), err(si, edge))
     assert err(sv, centre) <= 1.1 * err(si, centre), (err(sv, centre), err(si, centre))
+
+
+def test_the_command_line_learns_and_deblurs_a_stack(tmp_path, capsys):
+    """``psfspace simulate --focus-series``, ``estimate3d`` (with the per-bead table) and
+    ``deblur3d`` as a user runs them; a 2-D image given as a stack is one line."""
+    import csv
+
+    from napari_psfspace.cli import main
+
+    stack = tmp_path / "s.tif"
+    assert main(["simulate", "-o", str(stack), "--shape", "384", "384", "--beads", "16",
+                 "--focus-series", "7"]) == 0
+    assert main(["estimate3d", str(stack), "-o", str(tmp_path / "m3.npz"), "--psf-radius",
+                 "25", "--table", str(tmp_path / "b.csv"), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "focal_plane" in out and "fwhm_axial" in out
+    rows = list(csv.DictReader(open(tmp_path / "b.csv", encoding="utf-8")))
+    op = load_operator_3d(tmp_path / "m3.npz")
+    assert len(rows) == op.metadata["n_beads_used"] >= 8
+    assert main(["deblur3d", str(stack), "--model", str(tmp_path / "m3.npz"), "-o",
+                 str(tmp_path / "d.tif"), "--iterations", "3", "-q"]) == 0
+    import tifffile
+
+    assert tifffile.imread(tmp_path / "d.tif").shape == (7, 384, 384)
+    capsys.readouterr()
+    flat = tmp_path / "flat.tif"
+    tifffile.imwrite(flat, np.zeros((64, 64), np.uint16))
+    assert main(["estimate3d", str(flat), "-o", str(tmp_path / "x.npz"),
+                 "--psf-radius", "5"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "expected a z-stack" in err and "\n" not in err

@@ -1,4 +1,5 @@
-"""Command line: ``psfspace simulate | estimate | diagnose | psf | apply | demo``.
+"""Command line: ``psfspace simulate | estimate | diagnose | learn | psf | apply | deblur |
+estimate3d | deblur3d | demo``.
 
 Run ``psfspace COMMAND --help`` for the options of each command. Errors in the input
 (no beads, a stack without a slice, a model for another image size...) end with a
@@ -449,6 +450,94 @@ def _cmd_apply(args) -> int:
     return 0
 
 
+def _cmd_estimate3d(args) -> int:
+    from .core.common.progress import run_with_progress
+    from .core.volume import iter_estimate_operator_3d
+    from .core.volume.measures import (
+        NAMES,
+        bead_measures,
+        map_uncertainty,
+        measure_maps,
+        measure_table,
+    )
+    from .io import check_output_file, read_stack
+
+    check_output_file(args.output, "-o")
+    if args.table:
+        check_output_file(args.table, "--table")
+    stack, info = read_stack(args.stack)
+    pixel = args.pixel_size_nm / 1000.0 if args.pixel_size_nm else info.pixel_size
+    dz = args.z_step_nm / 1000.0 if args.z_step_nm else info.z_spacing
+    if args.psf_radius is not None:
+        r = args.psf_radius
+    elif not pixel:
+        raise ValueError("--psf-radius-um needs the pixel size, which the file does not "
+                         "give: pass --pixel-size-nm or --psf-radius in pixels")
+    else:
+        r = args.psf_radius_um / pixel
+    voxel = (dz, pixel, pixel) if pixel and dz else None
+    est = run_with_progress(iter_estimate_operator_3d(
+        stack, psf_radius=r, z_radius=args.z_radius, n_psf=args.n_psf,
+        threshold=args.threshold, voxel_size=voxel),
+        None if args.quiet else _progress_printer())
+    op = est.operator
+    op.save(args.output)
+    inl = est.basis.inliers
+    beads = bead_measures(est.patches.subset(inl))
+    unc = map_uncertainty(op, beads, est.patches.centers[inl])
+    _, _, maps = measure_maps(op, 4, 4)
+    print(f"wrote {args.output}: {op.n_psf} 3D PSFs of {'x'.join(map(str, op.kernel_shape))} "
+          f"voxels from {op.metadata['n_beads_used']} beads, bead plane {op.plane}")
+    units = {"focal_plane": ("planes", 1.0), "fwhm_lateral": ("px", 1.0),
+             "fwhm_row": ("px", 1.0), "fwhm_col": ("px", 1.0), "fwhm_axial": ("planes", 1.0),
+             "ellipticity": ("", 1.0), "astigmatic_split": ("planes", 1.0)}
+    for name in NAMES:
+        m = maps[name]
+        unit = units[name][0]
+        print(f"  {name}: {np.nanmin(m):.3g} to {np.nanmax(m):.3g} {unit} over the field "
+              f"(+- {unc[name]:.2g} between the beads and the model)")
+    if args.table:
+        import csv
+
+        from .core.common.atomic import atomic_write
+
+        rows = measure_table(beads, est.patches.centers[inl], voxel)
+
+        def write(fh):
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+        atomic_write(args.table, write, mode="w", encoding="utf-8", newline="")
+        print(f"wrote {args.table}: {len(rows)} beads' direct fits")
+    return 0
+
+
+def _cmd_deblur3d(args) -> int:
+    from .core.common.progress import run_with_progress
+    from .core.volume import load_operator_3d
+    from .core.volume.deconvolve3d import iter_richardson_lucy_3d
+    from .io import check_output_file, read_stack, write_tiff
+
+    _existing(args.model, "--model")
+    check_output_file(args.output, "-o")
+    op = load_operator_3d(args.model)
+    stack, info = read_stack(args.stack)
+    if stack.shape[1:] != op.shape[1:]:
+        raise ValueError(f"STACK {args.stack} has slices of {stack.shape[1:]}, the model "
+                         f"{args.model} acts on {op.shape[1:]}")
+    t0 = time.perf_counter()
+    res = run_with_progress(iter_richardson_lucy_3d(stack, op, n_iter=args.iterations,
+                                                    background=args.background),
+                            None if args.quiet else _progress_printer())
+    write_tiff(args.output, res.volume, pixel_size=info.pixel_size,
+               metadata={"deblur3d": {"iterations": res.iterations,
+                                      "background": res.background}})
+    print(f"wrote {args.output}: {res.iterations} Richardson-Lucy iterations with the "
+          f"space-varying 3D PSF, {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
 def _cmd_demo(args) -> int:
     from .demo import format_table, run_demo
     from .io import check_output_folder
@@ -607,6 +696,37 @@ def build_parser() -> argparse.ArgumentParser:
                          "`debias`)")
     db.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     db.set_defaults(func=_cmd_deblur)
+
+    e3 = sub.add_parser("estimate3d", help="learn the space-varying 3D PSF from a bead "
+                        "z-stack; print its maps (focal shift, FWHM, astigmatism)")
+    e3.add_argument("stack", help="TIFF z-stack of beads on a coverslip (Z, Y, X)")
+    e3.add_argument("-o", "--output", required=True, help="3D model file to write (.npz)")
+    g = e3.add_mutually_exclusive_group(required=True)
+    g.add_argument("--psf-radius", type=POSITIVE,
+                   help="lateral PSF radius on the widest plane used, pixels")
+    g.add_argument("--psf-radius-um", type=POSITIVE, help="the same in micrometres")
+    e3.add_argument("--z-radius", type=COUNT, help="planes kept on each side of the bead "
+                    "plane (default: the whole stack)")
+    e3.add_argument("--n-psf", type=COUNT, help="basis size I (default: held-out beads)")
+    e3.add_argument("--threshold", type=POSITIVE, default=8.0,
+                    help="detection threshold in noise standard deviations (default 8)")
+    e3.add_argument("--pixel-size-nm", type=POSITIVE, help="pixel size (overrides the file's)")
+    e3.add_argument("--z-step-nm", type=POSITIVE, help="plane spacing (overrides the file's)")
+    e3.add_argument("--table", metavar="CSV", help="also write each bead's direct fits")
+    e3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    e3.set_defaults(func=_cmd_estimate3d)
+
+    d3 = sub.add_parser("deblur3d", help="deblur a z-stack with a space-varying 3D PSF "
+                        "(Richardson-Lucy with H and H^T)")
+    d3.add_argument("stack", help="TIFF z-stack of the model's lateral size")
+    d3.add_argument("--model", required=True, metavar="FILE",
+                    help="3D model (psfspace estimate3d)")
+    d3.add_argument("-o", "--output", required=True, help="deblurred stack (TIFF, float32)")
+    d3.add_argument("--iterations", type=COUNT, default=50)
+    d3.add_argument("--background", type=FINITE,
+                    help="constant background (default: the stack's 1st percentile)")
+    d3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    d3.set_defaults(func=_cmd_deblur3d)
 
     d = sub.add_parser("demo", help="simulate a wide field, estimate, report errors, draw")
     d.add_argument("--out", default="demo-output", help="output folder (default demo-output)")

@@ -153,6 +153,29 @@ def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
     return data, info
 
 
+def read_stack(path: str | os.PathLike):
+    """Read a z-stack (Z, Y, X) and its sampling from a TIFF file.
+
+    Returns
+    -------
+    stack : ndarray of shape (Z, M, N)
+        Pixel values in the file's dtype.
+    info : ImageInfo
+        ``pixel_size`` and ``z_spacing`` in µm where the file gives them.
+
+    Raises
+    ------
+    ValueError
+        A 2-D image, more than 3 dimensions, a colour or complex image, a file that is
+        not a readable TIFF.
+    """
+    data, info = _read_tiff(path)
+    if data.ndim != 3:
+        raise ValueError(f"{os.fspath(path)!r} holds an array of shape {data.shape}; "
+                         "expected a z-stack (Z, Y, X)")
+    return data, info
+
+
 def read_slice(path: str, index: int | None) -> np.ndarray:
     """One image of a file (``index``: its slice; None for a 2-D image). Module level, so
     that a ``functools.partial`` of it is a loader a dask worker can unpickle."""
