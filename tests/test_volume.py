@@ -286,3 +286,25 @@ def test_the_command_line_learns_and_deblurs_a_stack(tmp_path, capsys):
                  "--psf-radius", "5"]) == 2
     err = capsys.readouterr().err.strip()
     assert "expected a z-stack" in err and "\n" not in err
+
+
+def test_a_compressed_field_keeps_its_psfs_within_the_bound():
+    """Fewer kernels, every node's 3D PSF within ``rtol`` of the model's; 0 keeps the
+    operator (exact), and RL runs on the compressed one when asked."""
+    op = _field_varying_blur()
+    rng = np.random.default_rng(6)
+    extra = rng.random((3, *op.kernel_shape)) * 1e-3  # three faint extra kernels
+    wide = ProductConvolution3D(np.concatenate([op.basis, extra]),
+                                np.concatenate([op.coefficients,
+                                                rng.random((3, *op.coefficients.shape[1:]))]),
+                                shape=op.shape, grid=op.grid, plane=op.plane)
+    small = wide.compressed(0.02)
+    assert small.n_psf < wide.n_psf and small.metadata["compressed"]["error"] <= 0.02
+    for y in wide.grid[0]:
+        for x in wide.grid[1]:
+            a, b = wide.kernel_at(y, x), small.kernel_at(y, x)
+            assert np.linalg.norm(a - b) <= 0.02 * np.linalg.norm(a) * (1 + 1e-9)
+    assert wide.compressed(0.0).n_psf <= wide.n_psf
+    stack = np.abs(rng.standard_normal(op.shape)).astype(np.float32) + 1
+    res = richardson_lucy_3d(stack, wide, n_iter=2, compression=0.02)
+    assert res.n_kernels == small.n_psf

@@ -27,6 +27,56 @@ from .operator import ProductConvolution
 MAX_ROWS = 65536
 
 
+def compressed_field(basis: np.ndarray, coefficients: np.ndarray, rtol: float
+                     ) -> tuple[np.ndarray, np.ndarray, int, float] | None:
+    """The fewest orthonormal kernels whose field stays within ``rtol`` of a field's own
+    (the module's notes), for kernels of any shape.
+
+    Parameters
+    ----------
+    basis : ndarray of shape (I, ...)
+        The kernels (2D or 3D).
+    coefficients : ndarray of shape (I, ...)
+        Their coefficients at the stored positions (grid nodes or pixels).
+    rtol : float
+        Largest relative l2 error of the kernel at any stored position.
+
+    Returns
+    -------
+    (new_basis (k, ...), new_coefficients (k, ...), k, error) or None
+        None when no kernel can be dropped.
+    """
+    if not (np.isfinite(rtol) and rtol >= 0):
+        raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
+    basis = np.asarray(basis, np.float64)
+    n, shape = basis.shape[0], basis.shape[1:]
+    b = basis.reshape(n, -1)  # (I, D)
+    coef = np.asarray(coefficients, np.float64).reshape(n, -1)  # (I, rows)
+    if coef.shape[1] > MAX_ROWS:
+        coef = coef[:, :: int(np.ceil(coef.shape[1] / MAX_ROWS))]
+    # M = coef^T B = coef^T R^T Q^T with B^T = Q R: the SVD of the small (rows, I) part
+    q, r = np.linalg.qr(b.T)  # (D, I), (I, I)
+    u, s, wt = np.linalg.svd(coef.T @ r.T, full_matrices=False)
+    us = u * s  # rows of M in the orthonormal directions V = Q W
+    total = np.einsum("ij,ij->i", us, us)
+    kept = np.cumsum(us ** 2, axis=1)  # energy of each row on the first k directions
+    scale = np.maximum(total, 1e-300)
+    k = n
+    for j in range(1, n + 1):
+        err = np.sqrt(np.clip(total - kept[:, j - 1], 0, None) / scale)
+        if float(err.max()) <= rtol or s[j - 1] == 0:
+            k = j
+            break
+    if k >= n:
+        return None
+    err = float(np.sqrt(np.clip(total - kept[:, k - 1], 0, None) / scale).max())
+    v = q @ wt.T[:, :k]  # (D, k), orthonormal
+    new_basis = v.T.reshape(k, *shape)
+    mix = b @ v  # (I, k): alpha' = mix^T alpha
+    new_coef = np.tensordot(mix.T, np.asarray(coefficients, np.float64), axes=1)
+    return new_basis, new_coef, k, err
+
+
 def compress_operator(operator: ProductConvolution, rtol: float) -> ProductConvolution:
     """The operator on the fewest kernels whose PSFs stay within ``rtol`` of its own.
 
@@ -47,35 +97,11 @@ def compress_operator(operator: ProductConvolution, rtol: float) -> ProductConvo
         with ``e`` the largest relative error reached. The operator itself when no
         kernel can be dropped.
     """
-    if not (np.isfinite(rtol) and rtol >= 0):
-        raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
-    basis = np.asarray(operator.basis, np.float64)
-    n, p = basis.shape[0], basis.shape[1]
-    b = basis.reshape(n, -1)  # (I, P^2)
-    coef = np.asarray(operator.coefficients, np.float64).reshape(n, -1)  # (I, rows)
-    if coef.shape[1] > MAX_ROWS:
-        coef = coef[:, :: int(np.ceil(coef.shape[1] / MAX_ROWS))]
-    # M = coef^T B = coef^T R^T Q^T with B^T = Q R: the SVD of the small (rows, I) part
-    q, r = np.linalg.qr(b.T)  # (P^2, I), (I, I)
-    u, s, wt = np.linalg.svd(coef.T @ r.T, full_matrices=False)
-    us = u * s  # rows of M in the orthonormal directions V = Q W
-    total = np.einsum("ij,ij->i", us, us)
-    kept = np.cumsum(us ** 2, axis=1)  # energy of each row on the first k directions
-    scale = np.maximum(total, 1e-300)
-    k = n
-    for j in range(1, n + 1):
-        err = np.sqrt(np.clip(total - kept[:, j - 1], 0, None) / scale)
-        if float(err.max()) <= rtol or s[j - 1] == 0:
-            k = j
-            break
-    if k >= n:
+    found = compressed_field(operator.basis, operator.coefficients, rtol)
+    if found is None:
         return operator
-    err = float(np.sqrt(np.clip(total - kept[:, k - 1], 0, None) / scale).max())
-    v = q @ wt.T[:, :k]  # (P^2, k), orthonormal
-    new_basis = v.T.reshape(k, p, p)
-    mix = b @ v  # (I, k): alpha' = mix^T alpha
-    full = np.asarray(operator.coefficients, np.float64)
-    new_coef = np.tensordot(mix.T, full, axes=1)  # (k, ...) like the stored maps
+    new_basis, new_coef, k, err = found
+    n = operator.basis.shape[0]
     meta = dict(operator.metadata or {})
     meta["compressed"] = {"from": int(n), "to": int(k), "rtol": float(rtol), "error": err}
     if operator.is_full_resolution:

@@ -260,17 +260,23 @@ class ProductConvolution3D:
         ndarray of shape (Z', H, W)
         """
         arr, dt = self._check_volume(u, "u")
+        arr = arr.astype(dt, copy=False)
         fshape = self.fft_shape(arr.shape[0])
         spectra = self._kernel_spectra(fshape, dt)
         maps = self.coefficient_maps(dt)
+        z, h, w = arr.shape
+        pad = np.zeros(fshape, dt)  # the product alpha_i u, zero-padded, reused
         acc = None
         for i in range(self.n_psf):
-            spec = scipy.fft.rfftn(maps[i][None] * arr.astype(dt, copy=False), s=fshape,
-                                   workers=workers)
-            spec *= spectra[i]
-            acc = spec if acc is None else acc.__iadd__(spec)
-        out = scipy.fft.irfftn(acc, s=fshape, workers=workers)
-        return np.ascontiguousarray(out[:arr.shape[0], :arr.shape[1], :arr.shape[2]], dt)
+            np.multiply(maps[i][None], arr, out=pad[:z, :h, :w])
+            spec = scipy.fft.rfftn(pad, workers=workers, overwrite_x=False)
+            if acc is None:
+                acc = np.multiply(spec, spectra[i], out=spec)
+            else:
+                spec *= spectra[i]
+                acc += spec
+        out = scipy.fft.irfftn(acc, s=fshape, workers=workers, overwrite_x=True)
+        return np.ascontiguousarray(out[:z, :h, :w], dt)
 
     def adjoint(self, v: ArrayLike, *, workers: int | None = None) -> np.ndarray:
         """``H^T v``, the adjoint of :meth:`apply` (dot-tested).
@@ -288,12 +294,33 @@ class ProductConvolution3D:
         fshape = self.fft_shape(arr.shape[0])
         spectra = self._kernel_spectra(fshape, dt)
         maps = self.coefficient_maps(dt)
+        z, h, w = arr.shape
         vhat = scipy.fft.rfftn(arr.astype(dt, copy=False), s=fshape, workers=workers)
         out = np.zeros(arr.shape, dt)
+        prod = np.empty_like(vhat)
         for i in range(self.n_psf):
-            back = scipy.fft.irfftn(vhat * np.conj(spectra[i]), s=fshape, workers=workers)
-            out += maps[i][None] * back[:arr.shape[0], :arr.shape[1], :arr.shape[2]]
+            np.conjugate(spectra[i], out=prod)
+            prod *= vhat
+            back = scipy.fft.irfftn(prod, s=fshape, workers=workers, overwrite_x=True)
+            out += maps[i][None] * back[:z, :h, :w]
         return out
+
+    def compressed(self, rtol: float) -> ProductConvolution3D:
+        """The operator on the fewest kernels whose 3D PSF stays within ``rtol``
+        (relative l2) of this one's at every grid node
+        (:func:`~napari_psfspace.core.model.compress.compressed_field`): fewer FFTs per
+        application. Itself when no kernel can be dropped; ``metadata["compressed"]``
+        says how many were kept and the error reached."""
+        from ..model.compress import compressed_field
+
+        found = compressed_field(self._basis, self._coefficients, rtol)
+        if found is None:
+            return self
+        basis, coef, k, err = found
+        meta = {**self._metadata, "compressed": {"from": self.n_psf, "to": int(k),
+                                                 "rtol": float(rtol), "error": err}}
+        return ProductConvolution3D(basis, coef, shape=self._shape, grid=self._grid,
+                                    plane=self._plane, voxel_size=self._voxel, metadata=meta)
 
     # ------------------------------------------------------------------ I/O
     def save(self, path: str | os.PathLike[str]) -> None:
