@@ -308,3 +308,13 @@ def test_a_compressed_field_keeps_its_psfs_within_the_bound():
     stack = np.abs(rng.standard_normal(op.shape)).astype(np.float32) + 1
     res = richardson_lucy_3d(stack, wide, n_iter=2, compression=0.02)
     assert res.n_kernels == small.n_psf
+
+
+def test_a_nan_in_the_volume_is_named():
+    op = _random_operator()
+    u = np.zeros(op.shape)
+    u[3, 10, 10] = np.nan
+    with pytest.raises(ValueError, match="`u` contains NaN"):
+        op.apply(u)
+    with pytest.raises(ValueError, match="`v` contains NaN"):
+        op.adjoint(u)

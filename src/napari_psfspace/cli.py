@@ -488,12 +488,10 @@ def _cmd_estimate3d(args) -> int:
     _, _, maps = measure_maps(op, 4, 4)
     print(f"wrote {args.output}: {op.n_psf} 3D PSFs of {'x'.join(map(str, op.kernel_shape))} "
           f"voxels from {op.metadata['n_beads_used']} beads, bead plane {op.plane}")
-    units = {"focal_plane": ("planes", 1.0), "fwhm_lateral": ("px", 1.0),
-             "fwhm_row": ("px", 1.0), "fwhm_col": ("px", 1.0), "fwhm_axial": ("planes", 1.0),
-             "ellipticity": ("", 1.0), "astigmatic_split": ("planes", 1.0)}
+    units = {"fwhm_lateral": "px", "fwhm_row": "px", "fwhm_col": "px", "ellipticity": ""}
     for name in NAMES:
         m = maps[name]
-        unit = units[name][0]
+        unit = units.get(name, "planes")
         print(f"  {name}: {np.nanmin(m):.3g} to {np.nanmax(m):.3g} {unit} over the field "
               f"(+- {unc[name]:.2g} between the beads and the model)")
     if args.table:

@@ -28,6 +28,7 @@ import scipy.fft
 from numpy.typing import ArrayLike
 
 from ..model.operator_checks import as_real_array, normalise_metadata
+from ..model.operator_fft import check_dc, computation_dtype
 from ..model.operator_file import read_archive, software_string, write_archive
 from ..model.psf_field import interp_matrix, interp_weights
 
@@ -237,13 +238,9 @@ class ProductConvolution3D:
         if arr.ndim != 3 or arr.shape[1:] != self._shape[1:]:
             raise ValueError(f"`{name}` must be a volume (Z, {self._shape[1]}, "
                              f"{self._shape[2]}), got shape {arr.shape}")
-        if arr.dtype.kind not in "biuf":
-            raise ValueError(f"`{name}` must be real, got dtype {arr.dtype}")
-        dt = np.dtype(np.float32) if arr.dtype in (np.float32, np.float16) or \
-            arr.dtype.kind in "biu" and arr.dtype.itemsize <= 2 else np.dtype(np.float64)
-        if not np.isfinite(arr).all():
-            raise ValueError(f"`{name}` contains NaN or infinite values")
-        return arr, dt
+        # NaN / inf are caught on the first spectrum's DC term (check_dc): no extra pass
+        # over the volume in every iteration of a deconvolution
+        return arr, computation_dtype(arr, name)
 
     def apply(self, u: ArrayLike, *, workers: int | None = None) -> np.ndarray:
         """``H u``: the volume ``u`` (Z', H, W) seen through the microscope.
@@ -270,6 +267,7 @@ class ProductConvolution3D:
         for i in range(self.n_psf):
             np.multiply(maps[i][None], arr, out=pad[:z, :h, :w])
             spec = scipy.fft.rfftn(pad, workers=workers, overwrite_x=False)
+            check_dc(spec, "u")
             if acc is None:
                 acc = np.multiply(spec, spectra[i], out=spec)
             else:
@@ -296,6 +294,7 @@ class ProductConvolution3D:
         maps = self.coefficient_maps(dt)
         z, h, w = arr.shape
         vhat = scipy.fft.rfftn(arr.astype(dt, copy=False), s=fshape, workers=workers)
+        check_dc(vhat, "v")
         out = np.zeros(arr.shape, dt)
         prod = np.empty_like(vhat)
         for i in range(self.n_psf):
