@@ -318,3 +318,17 @@ def test_a_nan_in_the_volume_is_named():
         op.apply(u)
     with pytest.raises(ValueError, match="`v` contains NaN"):
         op.adjoint(u)
+
+
+def test_single_bead_stacks_give_one_3d_psf_at_its_focus(shared_data):
+    """The measured single-bead stacks (1-4 beads): one 3D PSF for the field, said so,
+    its bead plane where the bead is in focus (the plane its PSF is most concentrated
+    on, within a plane)."""
+    import tifffile
+
+    for path in sorted((shared_data / "single_bead_psfs").glob("*.tif")):
+        op = estimate_operator_3d(tifffile.imread(path), psf_radius=12)
+        assert op.n_psf == 1 and op.metadata["field_model"] == "shift-invariant"
+        assert "one 3D PSF" in op.metadata["field_model_reason"]
+        m = psf_measures(op.psf_at((op.shape[1] - 1) / 2, (op.shape[2] - 1) / 2))
+        assert abs(m["focal_plane"] - op.plane) <= 1.0, (path.name, m, op.plane)

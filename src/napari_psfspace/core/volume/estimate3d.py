@@ -122,11 +122,14 @@ def iter_estimate_operator_3d(
     beads.status[kept[~usable & (beads.status[kept] == KEPT)]] = FAINT
     kept, own, patches = kept[usable], own[usable], patches.subset(usable)
     need = min_beads_for(n_psf if isinstance(n_psf, int) else 1)
-    if len(kept) < need:
+    if len(kept) == 0 or (len(kept) < need and isinstance(n_psf, int)):
         raise NoBeadsError(f"Too few usable beads for a 3D PSF: {len(kept)}, need at least "
-                           f"{need}. {beads.summary()}")
+                           f"{max(need, 1)}. {beads.summary()}")
     yield Progress("patches", 0.45, f"{len(kept)} patches of {len(patches.planes)} x "
                    f"{patches.size} x {patches.size} voxels about plane {plane}")
+    if len(kept) < need:  # a bead or a few: one 3D PSF for the whole field, their mean
+        return (yield from _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius,
+                                    r, threshold, grid_step, voxel_size, focus))
 
     inside = (patches.planes >= 0) & (patches.planes < depth)
     support = (inside[:, None, None]
@@ -160,6 +163,31 @@ def iter_estimate_operator_3d(
                    f"{op.kernel_shape[1]} x {op.kernel_shape[2]} voxels from "
                    f"{meta['n_beads_used']} beads")
     return Estimation3D(op, beads, patches, kept, basis, cone, own)
+
+
+def _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius, r, threshold,
+             grid_step, voxel_size, focus):
+    """The model of too few beads for a basis (fewer than ``min_beads_for(1)``): their
+    mean 3D patch, the same everywhere (a field cannot be learnt from them; said in
+    ``metadata["field_model_reason"]``)."""
+    depth, h, w = vol.shape
+    kernel = patches.psf.mean(axis=0)[None]
+    n = len(kept)
+    basis = PsfBasis(kernel, np.ones((n, 1)), np.ones(n, bool), np.zeros(n), np.zeros(0),
+                     float("nan"), 1)
+    reason = (f"{n} usable bead(s), fewer than {min_beads_for(1)}: one 3D PSF for the whole "
+              "field, their mean")
+    meta = {"psf_radius": r, "z_radius": z_radius, "plane": plane, "focus_slice": focus,
+            "n_psf": 1, "n_beads_used": n, "bead_positions": patches.centers.round(3).tolist(),
+            "bead_focal_shift_planes": (own - plane).astype(int).tolist(),
+            "field_model": "shift-invariant", "field_model_reason": reason,
+            "threshold": threshold, "grid_step": grid_step, "image_shape": [depth, h, w],
+            "image_dtype": str(np.asarray(stack).dtype), "bead_counts": beads.counts()}
+    op = ProductConvolution3D(kernel, np.ones((1, 1, 1)), shape=(depth, h, w),
+                              grid=(np.array([(h - 1) / 2]), np.array([(w - 1) / 2])),
+                              plane=plane, voxel_size=voxel_size, metadata=meta)
+    yield Progress("fit", 1.0, reason)
+    return Estimation3D(op, beads, patches, kept, basis, reduce_cone(np.ones((n, 1))), own)
 
 
 def estimate_operator_3d(

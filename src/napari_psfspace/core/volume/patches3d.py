@@ -116,8 +116,9 @@ def extract_patches_3d(stack: np.ndarray, centers: np.ndarray, psf_radius: float
 
 def bead_planes(stack: np.ndarray, centers: np.ndarray, psf_radius: float) -> np.ndarray:
     """Each bead's plane of best focus: where the light within ``max(1.5, r / 4)``
-    pixels of its lateral centre is the largest share of the light within ``2 r``
-    (a concentration, not a peak: a ring out of focus is bright but spread).
+    pixels of its lateral centre, above the local background, is largest (a ring out of
+    focus is bright but spread: its centre is dark). Not a share of the bead's light: on
+    the planes far from focus, where the bead has almost none, a share is the noise's.
 
     Returns
     -------
@@ -130,14 +131,12 @@ def bead_planes(stack: np.ndarray, centers: np.ndarray, psf_radius: float) -> np
     dist = radial_distance(size)
     core = dist <= max(1.5, r / 4)
     ring = (dist > 1.5 * r) & (dist <= 2 * r)
-    share = np.zeros((len(centers), stack.shape[0]))
+    light = np.zeros((len(centers), stack.shape[0]))
     for z in range(stack.shape[0]):
         wins = resample_patches(np.asarray(stack[z], np.float64), centers, size)
         bg = np.median(wins[:, ring], axis=1)[:, None, None]
-        sig = wins - bg
-        total = np.clip(sig[:, dist <= 2 * r].sum(axis=1), 1e-12, None)
-        share[:, z] = sig[:, core].sum(axis=1) / total
-    return np.argmax(share, axis=1)
+        light[:, z] = (wins - bg)[:, core].sum(axis=1)
+    return np.argmax(light, axis=1)
 
 
 __all__ = ["Patches3D", "bead_planes", "extract_patches_3d"]
