@@ -306,8 +306,8 @@ def test_a_compressed_field_keeps_its_psfs_within_the_bound():
             assert np.linalg.norm(a - b) <= 0.02 * np.linalg.norm(a) * (1 + 1e-9)
     assert wide.compressed(0.0).n_psf <= wide.n_psf
     stack = np.abs(rng.standard_normal(op.shape)).astype(np.float32) + 1
-    res = richardson_lucy_3d(stack, wide, n_iter=2, compression=0.02)
-    assert res.n_kernels == small.n_psf
+    res = richardson_lucy_3d(stack, wide, n_iter=2, rtol=0.02)  # blocks, each compressed
+    assert res.n_kernels <= small.n_psf
 
 
 def test_a_nan_in_the_volume_is_named():

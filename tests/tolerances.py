@@ -103,7 +103,8 @@ def product_convolution_errors(op, u: np.ndarray, v: np.ndarray) -> tuple[float,
     return err_hu, err_htv
 
 
-def product_convolution_3d_errors(op, u: np.ndarray, v: np.ndarray, prec: float = U32
+def product_convolution_3d_errors(op, u: np.ndarray, v: np.ndarray, prec: float = U32,
+                                  *, fft_shape=None, n_blocks: int = 1
                                   ) -> tuple[float, float]:
     """Bounds on ``||fl(H u) - H u||_2`` and ``||fl(H^T v) - H^T v||_2`` of a
     :class:`~napari_psfspace.core.volume.operator3d.ProductConvolution3D` run at unit
@@ -113,14 +114,21 @@ def product_convolution_3d_errors(op, u: np.ndarray, v: np.ndarray, prec: float 
     padded kernel: their error is at most ``fft_relative_error(N) ||K_i||_2`` in the
     2-norm, hence pointwise at most ``fft_relative_error(N) sqrt(N) ||h_i||_1``, a
     relative term on ``||h_i||_1 ||v_i||_2`` like the others.
+
+    On ``n_blocks`` lateral blocks of FFT shape ``fft_shape``
+    (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D` with ``rtol=0``)
+    each block's error obeys the same bound on its part of the products, and the blocks'
+    errors add: at most ``sqrt(n_blocks)`` times the bound on the whole (Cauchy-Schwarz
+    over a partition), plus the maps' own rounding to float32 (in ``gamma(6)``).
     """
     maps = op.coefficient_maps(np.float64)
     l1 = np.abs(op.basis).sum(axis=(1, 2, 3))
-    n = int(np.prod(op.fft_shape(np.shape(u)[0])))
+    n = int(np.prod(op.fft_shape(np.shape(u)[0]) if fft_shape is None else fft_shape))
     rel = (gamma(6, prec) + 2 * fft_relative_error(n, prec)
            + fft_relative_error(n, prec) * np.sqrt(n) + gamma(len(l1) + 4, prec))
     u = np.asarray(u, np.float64)
     err_hu = rel * float(np.sum(l1 * np.sqrt(((maps[:, None] * u[None]) ** 2).sum(
         axis=(1, 2, 3)))))
     err_htv = rel * float(np.sum(l1 * np.abs(maps).max(axis=(1, 2)))) * float(np.linalg.norm(v))
-    return err_hu, err_htv
+    scale = float(np.sqrt(n_blocks))
+    return err_hu * scale, err_htv * scale

@@ -7,7 +7,8 @@ The multiplicative update for Poisson data ``y ~ P(H u + b)``:
 with the space-varying operator ``H`` of
 :class:`~napari_psfspace.core.volume.operator3d.ProductConvolution3D` (``I + 1`` FFT
 pairs each way) instead of one PSF. ``u`` stays non-negative; ``b`` is a constant
-background (default: a low quantile of the stack). Everything runs in float32.
+background (default: a low quantile of the stack). Everything runs in float32, on
+lateral blocks (:mod:`~napari_psfspace.core.volume.blocks3d`) by default.
 :func:`shift_invariant` gives the operator of one PSF (the centre's, or the average of
 all beads), the baseline every space-varying result is compared with.
 """
@@ -21,10 +22,13 @@ import numpy as np
 
 from ..common.progress import Progress, run_with_progress
 from ..common.validate import check_int
+from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .operator3d import ProductConvolution3D
 
 #: Smallest denominator of the ratio ``y / (H u + b)`` (image units).
 TINY = 1e-6
+#: Voxels read to set the default background and the starting value.
+STATS_VOXELS = 1 << 22
 
 
 @dataclass
@@ -38,14 +42,15 @@ class Deconvolved3D:
     iterations : int
     background : float
         The constant ``b`` used.
-    n_kernels : int
-        Kernels of the operator it ran on (fewer than the model's when compressed).
+    n_kernels : float
+        Kernels per block it ran on (mean over the blocks, by area; the model's
+        ``I`` on the whole volume).
     """
 
     volume: np.ndarray
     iterations: int
     background: float
-    n_kernels: int = 0
+    n_kernels: float = 0.0
 
 
 def shift_invariant(operator: ProductConvolution3D, y: float | None = None,
@@ -62,46 +67,77 @@ def shift_invariant(operator: ProductConvolution3D, y: float | None = None,
                                 metadata={"shift_invariant_at": [y, x]})
 
 
+def stack_statistics(stack) -> tuple[float, float]:
+    """``(background, mean)`` of a stack from a strided subsample of at most about
+    ``STATS_VOXELS`` voxels: the default constant background (1st percentile) and the
+    mean that starts the iteration. The same rule on every path (whole volume, blocks,
+    tiles, dask), so that their results agree; a dask stack is read once, subsampled."""
+    z, h, w = stack.shape
+    step = max(1, int(np.ceil(np.sqrt(z * h * w / STATS_VOXELS))))
+    sample = np.asarray(stack[:, ::step, ::step], dtype=np.float32)
+    if not np.isfinite(sample).all():
+        raise ValueError("`stack` contains NaN or infinite values")
+    sample = np.clip(sample, 0, None)
+    return float(np.percentile(sample, 1)), float(sample.mean())
+
+
+def check_stack(stack, operator: ProductConvolution3D) -> None:
+    """Raise a clear error unless ``stack`` is a volume of the operator's lateral
+    shape."""
+    if not isinstance(operator, ProductConvolution3D):
+        raise TypeError(f"`operator` must be a ProductConvolution3D, got "
+                        f"{type(operator).__name__}")
+    shape = tuple(np.shape(stack))
+    if len(shape) != 3 or shape[1:] != operator.shape[1:]:
+        raise ValueError(f"`stack` must be a volume (Z, {operator.shape[1]}, "
+                         f"{operator.shape[2]}), got shape {shape}")
+
+
 def iter_richardson_lucy_3d(
     stack,
     operator: ProductConvolution3D,
     *,
     n_iter: int = 50,
     background: float | None = None,
-    compression: float | None = None,
+    block: int | None = BLOCK,
+    rtol: float = RTOL,
     workers: int | None = None,
+    start: float | None = None,
 ) -> Generator[Progress, None, Deconvolved3D]:
     """Generator form of :func:`richardson_lucy_3d`: yields progress after every
     iteration (stop it there to cancel), returns the :class:`Deconvolved3D`."""
-    if not isinstance(operator, ProductConvolution3D):
-        raise TypeError(f"`operator` must be a ProductConvolution3D, got "
-                        f"{type(operator).__name__}")
+    check_stack(stack, operator)
     n_iter = check_int(n_iter, "n_iter", minimum=1)
-    y = np.asarray(stack)
-    if y.ndim != 3 or y.shape[1:] != operator.shape[1:]:
-        raise ValueError(f"`stack` must be a volume (Z, {operator.shape[1]}, "
-                         f"{operator.shape[2]}), got shape {y.shape}")
-    y = y.astype(np.float32)
-    if not np.isfinite(y).all():
-        raise ValueError("`stack` contains NaN or infinite values")
-    b = float(np.percentile(y, 1)) if background is None else float(background)
+    b0, mean = stack_statistics(stack)
+    b = b0 if background is None else float(background)
     if not np.isfinite(b):
         raise ValueError(f"`background` must be finite, got {background!r}")
-    data = np.clip(y, 0, None)
-    if compression is not None:
-        operator = operator.compressed(compression)
-    norm = operator.adjoint(np.ones_like(data), workers=workers)
-    norm = np.maximum(norm, TINY * max(float(norm.max()), 1.0))
-    u = np.full_like(data, max(float(data.mean()) - b, TINY))
+    data = np.asarray(stack, dtype=np.float32)
+    data = np.clip(data, 0, None, out=data if data is not stack else None)
+    if not np.isfinite(data.sum(dtype=np.float64)):
+        raise ValueError("`stack` contains NaN or infinite values")
+    yield Progress("setup", 0.0, "blocks and their kernels")
+    op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    n_kernels = float(op.n_kernels) if block is not None else float(operator.n_psf)
+    buf = np.ones_like(data)
+    norm = op.adjoint(buf, workers=workers)
+    np.maximum(norm, TINY * max(float(norm.max()), 1.0), out=norm)
+    u = np.full_like(data, max(mean - b, TINY) if start is None else float(start))
     for k in range(n_iter):
-        model = operator.apply(u, workers=workers)
-        model += b
-        np.maximum(model, TINY, out=model)
-        ratio = data / model
-        u *= operator.adjoint(ratio, workers=workers)
+        if block is None:
+            buf = op.apply(u, workers=workers)
+        else:
+            op.apply(u, out=buf, workers=workers)
+        buf += b
+        np.maximum(buf, TINY, out=buf)
+        np.divide(data, buf, out=buf)
+        if block is None:
+            u *= op.adjoint(buf, workers=workers)
+        else:
+            op.adjoint(buf, multiply_into=u, workers=workers)
         u /= norm
         yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
-    return Deconvolved3D(u, n_iter, b, operator.n_psf)
+    return Deconvolved3D(u, n_iter, b, n_kernels)
 
 
 def richardson_lucy_3d(
@@ -110,11 +146,13 @@ def richardson_lucy_3d(
     *,
     n_iter: int = 50,
     background: float | None = None,
-    compression: float | None = None,
+    block: int | None = BLOCK,
+    rtol: float = RTOL,
     workers: int | None = None,
+    start: float | None = None,
     progress: Callable[[Progress], None] | None = None,
 ) -> Deconvolved3D:
-    """Space-varying Richardson-Lucy deconvolution of a z-stack.
+    """Space-varying Richardson-Lucy deconvolution of a z-stack, in float32.
 
     Parameters
     ----------
@@ -126,13 +164,21 @@ def richardson_lucy_3d(
     n_iter : int
         Iterations.
     background : float, optional
-        Constant background ``b``; default the stack's 1st percentile.
-    compression : float, optional
-        Run on the operator compressed to the fewest kernels within this relative
-        error of its PSFs (:meth:`ProductConvolution3D.compressed`): an iteration costs
-        ``2 (k + 1)`` FFTs for ``k`` kernels. None: the operator as it is.
+        Constant background ``b``; default the stack's 1st percentile
+        (:func:`stack_statistics`).
+    block : int or None
+        Lateral block size of the operator
+        (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`): memory
+        bounded by four float32 volumes and the blocks' spectra, and each block on the
+        few kernels its PSFs need. None: the whole volume on all the model's kernels.
+    rtol : float
+        With blocks, the largest relative error of a block's PSF against the model's
+        (0: every block on all kernels, the exact operator).
     workers : int, optional
         FFT threads.
+    start : float, optional
+        The constant value the iteration starts from; default the stack's mean less
+        the background (a tile of a larger stack is given the stack's).
     progress : callable, optional
         Called after each iteration.
 
@@ -141,9 +187,9 @@ def richardson_lucy_3d(
     Deconvolved3D
     """
     return run_with_progress(iter_richardson_lucy_3d(
-        stack, operator, n_iter=n_iter, background=background, compression=compression,
-        workers=workers), progress)
+        stack, operator, n_iter=n_iter, background=background, block=block, rtol=rtol,
+        workers=workers, start=start), progress)
 
 
-__all__ = ["Deconvolved3D", "iter_richardson_lucy_3d", "richardson_lucy_3d",
-           "shift_invariant"]
+__all__ = ["Deconvolved3D", "check_stack", "iter_richardson_lucy_3d", "richardson_lucy_3d",
+           "shift_invariant", "stack_statistics"]

@@ -1,0 +1,109 @@
+"""The 3D operator on lateral blocks (``core/volume/blocks3d``) and the deconvolution on
+tiles, in memory and through dask (``core/volume/tiles3d``)."""
+
+import numpy as np
+import pytest
+
+from napari_psfspace.core.volume.blocks3d import BlockedOperator3D
+from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d
+from napari_psfspace.core.volume.operator3d import ProductConvolution3D
+from napari_psfspace.core.volume.tiles3d import richardson_lucy_3d_tiled, tile_sizes
+from tolerances import U32, product_convolution_3d_errors
+
+
+def _operator(seed=0, shape=(6, 50, 44), kernel=(5, 7, 7), n=3):
+    rng = np.random.default_rng(seed)
+    basis = rng.random((n, *kernel))
+    gy, gx = np.linspace(0, shape[1] - 1, 5), np.linspace(0, shape[2] - 1, 4)
+    return ProductConvolution3D(basis, rng.random((n, 5, 4)), shape=shape, grid=(gy, gx),
+                                plane=2)
+
+
+@pytest.mark.parametrize("block", [7, 16, 50])
+def test_exact_blocks_are_the_operator_and_pass_the_dot_test(block):
+    op = _operator()
+    rng = np.random.default_rng(1)
+    u, v = rng.standard_normal((2, *op.shape))
+    blocked = BlockedOperator3D(op, block=block, rtol=0.0)
+    # a block narrower than a grid cell may need fewer kernels, exactly (error 0)
+    assert blocked.n_kernels <= op.n_psf and blocked.error == 0.0
+    hu, htv = blocked.apply(u, workers=2), blocked.adjoint(v, workers=2)
+    assert hu.dtype == htv.dtype == np.float32
+    e_hu, e_htv = product_convolution_3d_errors(op, u, v, prec=U32,
+                                                fft_shape=blocked.fft_shape(u.shape[0]),
+                                                n_blocks=len(blocked.blocks))
+    # against the whole-volume operator in float64 (its own rounding is negligible)
+    assert np.linalg.norm(hu - op.apply(u)) <= e_hu
+    assert np.linalg.norm(htv - op.adjoint(v)) <= e_htv
+    bound = np.linalg.norm(v) * e_hu + np.linalg.norm(u) * e_htv
+    assert abs(np.vdot(hu.astype(float), v) - np.vdot(u, htv.astype(float))) <= bound
+    # the Richardson-Lucy form: multiply_into
+    w = np.ones(op.shape, np.float32)
+    assert np.array_equal(blocked.adjoint(v, multiply_into=w, workers=1),
+                          blocked.adjoint(v, workers=1))
+
+
+def test_compressed_blocks_keep_each_point_within_rtol():
+    """A point's image is its PSF: with ``rtol`` the blocks' PSF is within ``rtol`` of the
+    model's wherever the point lies (plus float32 rounding), on fewer kernels."""
+    op = _operator(seed=3)
+    blocked = BlockedOperator3D(op, block=16, rtol=0.05)
+    assert blocked.n_kernels < op.n_psf and blocked.error <= 0.05
+    eps = 1e3 * U32  # float32 FFTs of a few thousand voxels
+    for y, x in [(3, 3), (20, 30), (47, 8), (33, 41)]:
+        u = np.zeros(op.shape)
+        u[2, y, x] = 1.0
+        ref = op.apply(u)
+        assert np.linalg.norm(blocked.apply(u) - ref) <= (0.05 + eps) * np.linalg.norm(ref)
+
+
+def test_bad_blocks_are_named():
+    op = _operator()
+    with pytest.raises(ValueError, match="`block`"):
+        BlockedOperator3D(op, block=3)
+    with pytest.raises(ValueError, match="`rtol`"):
+        BlockedOperator3D(op, rtol=-1)
+    with pytest.raises(TypeError, match="`operator`"):
+        BlockedOperator3D(np.ones(3))
+    with pytest.raises(ValueError, match="`u` must be a volume"):
+        BlockedOperator3D(op).apply(np.ones((4, 10, 10)))
+
+
+def test_rl_on_exact_blocks_is_rl_on_the_whole_volume():
+    op = _operator(seed=4)
+    rng = np.random.default_rng(2)
+    truth = (rng.random(op.shape) < 0.02) * 200.0
+    stack = rng.poisson(op.apply(truth) + 5).astype(np.float32)
+    whole = richardson_lucy_3d(stack, op, n_iter=10, block=None).volume
+    blocks = richardson_lucy_3d(stack, op, n_iter=10, block=16, rtol=0.0)
+    assert blocks.n_kernels == op.n_psf
+    # ten multiplicative steps, each within a few float32 roundings of the other's
+    assert np.abs(blocks.volume - whole).max() <= 1e-4 * whole.max()
+
+
+def test_tile_sizes_cover_the_axis_and_keep_no_sliver():
+    assert tile_sizes(100, 40, 14) == (40, 40, 20)
+    assert tile_sizes(90, 40, 14) == (40, 50)  # a 10 px tile would be thinner than the halo
+    assert tile_sizes(30, 40, 14) == (30,)
+    assert sum(tile_sizes(1234, 256, 100)) == 1234
+
+
+def test_dask_tiles_are_the_loop_over_tiles_and_near_the_whole_volume():
+    import dask.array as da
+
+    op = _operator(seed=5, shape=(6, 90, 80))
+    rng = np.random.default_rng(3)
+    truth = (rng.random(op.shape) < 0.01) * 300.0
+    stack = rng.poisson(op.apply(truth) + 5).astype(np.float32)
+    kw = dict(n_iter=15, tile=40, halo=14, block=None)
+    loop = richardson_lucy_3d_tiled(stack, op, use_dask=False, **kw)
+    eager = richardson_lucy_3d_tiled(stack, op, **kw)
+    lazy = richardson_lucy_3d_tiled(da.from_array(stack, chunks=(6, 30, 30)), op, **kw)
+    assert isinstance(lazy, da.Array)
+    # the same arithmetic on the same windows: equal to float32 rounding
+    np.testing.assert_allclose(eager, loop, rtol=0, atol=1e-5 * loop.max())
+    np.testing.assert_allclose(lazy.compute(), loop, rtol=0, atol=1e-5 * loop.max())
+    whole = richardson_lucy_3d(stack, op, n_iter=15, block=None).volume
+    assert np.linalg.norm(loop - whole) <= 0.02 * np.linalg.norm(whole)
+    with pytest.raises(ValueError, match="`halo`"):
+        richardson_lucy_3d_tiled(stack, op, tile=20, halo=30)
