@@ -50,7 +50,7 @@ def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(lapto
     window = v.window._qt_window
     assert type(panel._viewer).__name__ == "PublicOnlyProxy"  # the user's door
     titles = [panel.tabs.tabText(i) for i in range(panel.tabs.count())]
-    assert titles == ["Beads", "Review", "Model", "Diagnose", "Family", "Deblur"]
+    assert titles == ["Beads", "Review", "Model", "Diagnose", "Family", "Deblur", "3D"]
     for i in range(panel.tabs.count()):
         if not panel.tabs.isTabEnabled(i):
             continue

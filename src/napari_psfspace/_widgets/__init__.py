@@ -6,7 +6,7 @@ names the classes directly, so importing this package stays cheap.
 """
 
 __all__ = ["DeblurWidget", "DiagnoseWidget", "LearnOperatorWidget", "LearnSubspaceWidget",
-           "PickBeadsWidget", "ReviewPatchesWidget"]
+           "PickBeadsWidget", "ReviewPatchesWidget", "Volume3DWidget"]
 
 
 def __getattr__(name: str):
@@ -34,4 +34,8 @@ def __getattr__(name: str):
         from ._deblur import DeblurWidget
 
         return DeblurWidget
+    if name == "Volume3DWidget":
+        from ._volume import Volume3DWidget
+
+        return Volume3DWidget
     raise AttributeError(name)

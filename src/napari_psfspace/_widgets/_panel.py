@@ -1,8 +1,8 @@
 """The front door: one dock, "PSF space", with a tab per step of the workflow.
 
-Beads -> Review -> Model -> Diagnose -> Family -> Deblur. Each tab holds one of the step
-widgets (the same classes the Plugins menu offers one by one), in a scroll area so that
-the dock fits a laptop screen (1280 x 800) with the canvas beside it whatever the step
+Beads -> Review -> Model -> Diagnose -> Family -> Deblur, and 3D for z-stacks. Each tab
+holds one of the step widgets (the same classes the Plugins menu offers one by one), in a
+scroll area so that the dock fits a laptop screen (1280 x 800) with the canvas beside it whatever the step
 shows. A tab is enabled once its input exists (an image; a beads layer for Review; a
 learnt model or family for Deblur), and says why not in its tooltip otherwise. The steps
 share their state through the viewer's layers (the beads layer carries the user's
@@ -25,6 +25,7 @@ from ._learn_operator import LearnOperatorWidget
 from ._learn_subspace import LearnSubspaceWidget
 from ._pick_beads import PickBeadsWidget
 from ._review_patches import ReviewPatchesWidget
+from ._volume import Volume3DWidget
 
 if TYPE_CHECKING:
     import napari
@@ -37,6 +38,7 @@ STEPS = (
     ("Diagnose", DiagnoseWidget, "an image layer"),
     ("Family", LearnSubspaceWidget, "an image layer"),
     ("Deblur", DeblurWidget, "a learnt model or family (Model or Family step)"),
+    ("3D", Volume3DWidget, "a z-stack image layer (Z, Y, X)"),
 )
 #: Widest the dock asks for (px): the canvas keeps the rest of a 1280 px screen.
 PANEL_WIDTH = 380
@@ -67,6 +69,7 @@ NEEDS = {
     "Diagnose": _is_image,
     "Family": _is_image,
     "Deblur": _is_model,
+    "3D": lambda layer: _is_image(layer) and layer.ndim == 3 and not layer.rgb,
 }
 
 
@@ -82,7 +85,7 @@ class PsfSpacePanel(QWidget):
     ----------
     steps : dict of str to widget
         The step widgets by tab title ("Beads", "Review", "Model", "Diagnose",
-        "Family", "Deblur").
+        "Family", "Deblur", "3D").
     tabs : QTabWidget
     """
 
