@@ -49,6 +49,10 @@ def files(tmp_path_factory):
     (d / "family_trunc.npz").write_bytes(raw[: len(raw) - 100])
     shutil.copy(d / "beads.tif", d / "positions.csv")  # a TIFF given as --beads
     (d / "ok.csv").write_text("10,10\n50,60\n")
+    from napari_psfspace.core.volume import ProductConvolution3D
+
+    ProductConvolution3D(np.ones((1, 3, 7, 7)), np.ones((1, 1, 1)), shape=(3, 192, 192),
+                         grid=(np.zeros(1), np.zeros(1)), plane=1).save(d / "model3d.npz")
     ro = d / "readonly"
     ro.mkdir()
     ro.chmod(stat.S_IRUSR | stat.S_IXUSR)
@@ -68,6 +72,14 @@ CASES = [
     ("learn {d}/stack.tif --slices 0:3 -o {d} --psf-radius 5", "is a folder", None),
     ("deblur {d}/beads.tif --model {d}/model.npz -o {d}/readonly/x.tif", "not writable", None),
     ("apply {d}/model.npz {d}/beads.tif -o {d}/nofolder/x.tif", "does not exist", None),
+    ("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/readonly/x.tif", "not writable",
+     None),
+    ("deblur3d {d}/stack.tif --model {d}/nomodel.npz -o {d}/x3.tif", "--model", "x3.tif"),
+    ("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --rtol -1", "--rtol",
+     "x3.tif"),
+    ("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --scheduler tcp://a:1",
+     "--tile", "x3.tif"),
+    ("deblur3d {d}/stack.tif --model {d}/model.npz -o {d}/x3.tif", "3D model", "x3.tif"),
     ("simulate -o {d}/nofolder/x.tif", "does not exist", None),
     ("demo --out {d}/beads.tif", "--out", None),
     # inputs: missing, damaged, of another kind
@@ -121,6 +133,9 @@ def trapped(monkeypatch):
     import napari_psfspace.core.restore as restore
     import napari_psfspace.core.simulation as simulation
     import napari_psfspace.core.subspace as subspace
+    import napari_psfspace.core.volume.deconvolve3d as deconvolve3d
+    import napari_psfspace.core.volume.fista3d as fista3d
+    import napari_psfspace.core.volume.tiles3d as tiles3d
     import napari_psfspace.demo as demo
 
     def trap(*args, **kwargs):
@@ -129,7 +144,8 @@ def trapped(monkeypatch):
     for module, name in ((estimate, "iter_estimate"), (loop, "iter_diagnose"),
                          (subspace, "iter_estimate_subspace"), (restore, "iter_deblur"),
                          (restore, "identify_operator"), (simulation, "simulate_beads"),
-                         (demo, "run_demo")):
+                         (demo, "run_demo"), (deconvolve3d, "iter_richardson_lucy_3d"),
+                         (fista3d, "iter_deblur_3d"), (tiles3d, "richardson_lucy_3d_tiled")):
         monkeypatch.setattr(module, name, trap)
 
 

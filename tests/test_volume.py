@@ -279,7 +279,18 @@ def test_the_command_line_learns_and_deblurs_a_stack(tmp_path, capsys):
     import tifffile
 
     assert tifffile.imread(tmp_path / "d.tif").shape == (7, 384, 384)
+    # the sparse + smooth method, and tiles through dask (equal to the loop: tested in
+    # test_volume_blocks)
+    for extra in (["--method", "sparse"], ["--tile", "200", "--rtol", "0"]):
+        assert main(["deblur3d", str(stack), "--model", str(tmp_path / "m3.npz"), "-o",
+                     str(tmp_path / "e.tif"), "--iterations", "3", "-q", *extra]) == 0
+        e = tifffile.imread(tmp_path / "e.tif")
+        assert e.shape == (7, 384, 384) and np.isfinite(e).all() and e.min() >= 0
     capsys.readouterr()
+    assert main(["deblur3d", str(stack), "--model", str(tmp_path / "m3.npz"), "-o",
+                 str(tmp_path / "f.tif"), "--method", "sparse", "--tile", "100"]) == 2
+    assert "--tile" in capsys.readouterr().err
+    assert not (tmp_path / "f.tif").exists()
     flat = tmp_path / "flat.tif"
     tifffile.imwrite(flat, np.zeros((64, 64), np.uint16))
     assert main(["estimate3d", str(flat), "-o", str(tmp_path / "x.npz"),

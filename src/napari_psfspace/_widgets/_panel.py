@@ -2,12 +2,12 @@
 
 Beads -> Review -> Model -> Diagnose -> Family -> Deblur, and 3D for z-stacks. Each tab
 holds one of the step widgets (the same classes the Plugins menu offers one by one), in a
-scroll area so that the dock fits a laptop screen (1280 x 800) with the canvas beside it whatever the step
-shows. A tab is enabled once its input exists (an image; a beads layer for Review; a
-learnt model or family for Deblur), and says why not in its tooltip otherwise. The steps
-share their state through the viewer's layers (the beads layer carries the user's
-rejections) and through the panel: the PSF radius set in Beads is the radius of every
-later step.
+scroll area so that the dock fits a laptop screen (1280 x 800) with the canvas beside it
+whatever the step shows. A tab is enabled once its input exists (an image; a beads layer
+for Review; a learnt model or family for Deblur; a z-stack for 3D), and says why not in
+its tooltip otherwise. The steps share their state through the viewer's layers (the beads
+layer carries the user's rejections) and through the panel: the PSF radius set in Beads
+is the radius of every later step.
 """
 
 from __future__ import annotations

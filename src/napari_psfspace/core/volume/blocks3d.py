@@ -40,7 +40,7 @@ from .operator3d import ProductConvolution3D
 #: Default lateral block size, pixels.
 BLOCK = 256
 #: Default relative error of a block's PSF (against the model's) when compressed.
-RTOL = 0.01
+RTOL = 0.05
 #: Default budget for cached block spectra, bytes.
 CACHE_BYTES = 1 << 30
 #: Pixels of a block's maps used to choose its kernels (subsampled beyond).
