@@ -494,6 +494,13 @@ def _cmd_estimate3d(args) -> int:
         unit = units.get(name, "planes")
         print(f"  {name}: {np.nanmin(m):.3g} to {np.nanmax(m):.3g} {unit} over the field "
               f"(+- {unc[name]:.2g} between the beads and the model)")
+    held = op.metadata.get("heldout")
+    if held and held.get("n_beads"):
+        print(f"  held-out beads ({held['n_beads']}): residual {held['residual_median']:.3f}, "
+              f"{held['over_floor']:.2f}x their noise floor ({held['noise_kind']}); one 3D "
+              f"PSF {held['single_median']:.3f}")
+    if op.metadata.get("field_model") == "shift-invariant":
+        print(f"  one 3D PSF for the field: {op.metadata['field_model_reason']}")
     if args.table:
         import csv
 

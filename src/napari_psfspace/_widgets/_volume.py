@@ -129,7 +129,15 @@ class Volume3DWidget(Container):
             self.learn_result.value = (
                 f"I = {op.n_psf} 3D kernels of {'x'.join(map(str, op.kernel_shape))} from "
                 f"{meta.get('n_beads_used', '?')} beads; bead plane {op.plane}\n"
-                f"field model: {meta.get('field_model', 'space-varying')}")
+                f"field model: {meta.get('field_model', 'space-varying')}"
+                + (f" ({meta['field_model_reason']})" if meta.get("field_model_reason")
+                   else ""))
+            held = meta.get("heldout") or {}
+            if held.get("n_beads"):
+                self.learn_result.value += (
+                    f"\nheld-out beads ({held['n_beads']}): residual "
+                    f"{held['residual_median']:.3f}, {held['over_floor']:.2f}x the noise "
+                    f"floor; one 3D PSF {held['single_median']:.3f}")
 
         self.learn_task.run(gen, on_result)
 

@@ -29,6 +29,7 @@ from ..model.field import coarse_grid
 from ..model.pca import PsfBasis, learn_basis, min_beads_for
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
+from .heldout3d import FOLDS, Heldout3D, heldout_error_3d
 from .operator3d import ProductConvolution3D
 from .patches3d import Patches3D, bead_planes, extract_patches_3d
 
@@ -61,6 +62,7 @@ class Estimation3D:
     cone: Cone
     bead_plane: np.ndarray
     info: dict = field(default_factory=dict)
+    heldout: Heldout3D | None = None
 
 
 def as_stack(stack) -> np.ndarray:
@@ -91,6 +93,7 @@ def iter_estimate_operator_3d(
     grid_step: float = 32.0,
     z_threshold: float = 3.0,
     voxel_size: tuple[float, float, float] | None = None,
+    holdout: bool = True,
 ) -> Generator[Progress, None, Estimation3D]:
     """Generator form of :func:`estimate_operator_3d`: yields progress, returns the
     :class:`Estimation3D`."""
@@ -159,10 +162,33 @@ def iter_estimate_operator_3d(
     }
     op = ProductConvolution3D(basis.basis, coefficients, shape=(depth, h, w), grid=(gy, gx),
                               plane=plane, voxel_size=voxel_size, metadata=meta)
-    yield Progress("fit", 1.0, f"{basis.n_psf} 3D PSFs of {op.kernel_shape[0]} x "
+    yield Progress("fit", 0.9, f"{basis.n_psf} 3D PSFs of {op.kernel_shape[0]} x "
                    f"{op.kernel_shape[1]} x {op.kernel_shape[2]} voxels from "
                    f"{meta['n_beads_used']} beads")
-    return Estimation3D(op, beads, patches, kept, basis, cone, own)
+    est = Estimation3D(op, beads, patches, kept, basis, cone, own)
+    if holdout and meta["n_beads_used"] >= 2 * FOLDS:
+        held = heldout_error_3d(est, stack, smoothing=smoothing)
+        est.heldout = held
+        summary = held.summary()
+        meta["heldout"] = summary
+        yield Progress("held-out", 1.0, f"held-out beads: residual "
+                       f"{summary['residual_median']:.3f} ({summary['over_floor']:.2f}x the "
+                       f"noise floor), one 3D PSF {summary['single_median']:.3f}")
+        if not summary["field_wins"]:  # never worse than one PSF: fall back to it
+            kernel = patches.psf[basis.inliers].mean(axis=0)[None]
+            meta.update(n_psf=1, field_model="shift-invariant", field_model_reason=(
+                f"on {summary['n_beads']} held-out beads one 3D PSF (median residual "
+                f"{summary['single_median']:.3f}) beat the field of {basis.n_psf} kernels "
+                f"({summary['residual_median']:.3f}): one 3D PSF, the beads' mean"))
+            est.operator = ProductConvolution3D(
+                kernel, np.ones((1, 1, 1)), shape=(depth, h, w),
+                grid=(np.array([(h - 1) / 2]), np.array([(w - 1) / 2])), plane=plane,
+                voxel_size=voxel_size, metadata=meta)
+        else:
+            est.operator = ProductConvolution3D(
+                basis.basis, coefficients, shape=(depth, h, w), grid=(gy, gx), plane=plane,
+                voxel_size=voxel_size, metadata=meta)
+    return est
 
 
 def _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius, r, threshold,
@@ -202,6 +228,7 @@ def estimate_operator_3d(
     grid_step: float = 32.0,
     z_threshold: float = 3.0,
     voxel_size: tuple[float, float, float] | None = None,
+    holdout: bool = True,
     progress: Callable[[Progress], None] | None = None,
 ) -> ProductConvolution3D:
     """Learn the space-varying 3D PSF of a microscope from a z-stack of beads on a
@@ -230,6 +257,11 @@ def estimate_operator_3d(
         Outlier rejection of the PCA, standard deviations.
     voxel_size : (float, float, float), optional
         ``(dz, dy, dx)``, µm (from the file: ``napari_psfspace.io``).
+    holdout : bool
+        Score the field on held-out beads against one 3D PSF
+        (:func:`~napari_psfspace.core.volume.heldout3d.heldout_error_3d`, with 10 beads or
+        more): ``metadata["heldout"]``; where one PSF does better, the model is that one
+        PSF (``field_model`` says so, and why).
     progress : callable, optional
         Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
 
@@ -248,7 +280,8 @@ def estimate_operator_3d(
     return run_with_progress(iter_estimate_operator_3d(
         stack, psf_radius=psf_radius, z_radius=z_radius, bead_diameter=bead_diameter,
         n_psf=n_psf, smoothing=smoothing, threshold=threshold, grid_step=grid_step,
-        z_threshold=z_threshold, voxel_size=voxel_size), progress).operator
+        z_threshold=z_threshold, voxel_size=voxel_size, holdout=holdout),
+        progress).operator
 
 
 __all__ = ["Estimation3D", "as_stack", "estimate_operator_3d", "iter_estimate_operator_3d"]
