@@ -40,9 +40,14 @@ from .core.subspace import OperatorSubspace, estimate_subspace, iter_estimate_su
 from .core.subspace.subspace_file import load_subspace
 from .core.volume import (
     ProductConvolution3D,
+    deblur_3d,
     estimate_operator_3d,
+    iter_deblur_3d,
     iter_estimate_operator_3d,
+    iter_richardson_lucy_3d,
     load_operator_3d,
+    richardson_lucy_3d,
+    richardson_lucy_3d_tiled,
 )
 
 __all__ = [
@@ -63,6 +68,7 @@ __all__ = [
     "__version__",
     "best_focus_index",
     "deblur",
+    "deblur_3d",
     "detect_beads",
     "diagnose",
     "estimate_operator",
@@ -71,15 +77,19 @@ __all__ = [
     "extract_patches",
     "identify_operator",
     "iter_deblur",
+    "iter_deblur_3d",
     "iter_diagnose",
     "iter_estimate",
     "iter_estimate_operator_3d",
     "iter_estimate_subspace",
     "iter_heldout_error",
+    "iter_richardson_lucy_3d",
     "load_operator",
     "load_operator_3d",
     "load_subspace",
     "psf_error",
+    "richardson_lucy_3d",
+    "richardson_lucy_3d_tiled",
     "run_with_progress",
     "simulate_beads",
     "simulate_focus_series",
