@@ -1,4 +1,4 @@
-"""Space-varying 3D PSFs from bead z-stacks: accuracy against the truth, and speed.
+"""Space-varying 3D PSFs from bead z-stacks: accuracy against the truth.
 
 Two generators of bead z-stacks (beads on one plane, seen at every focus):
 
@@ -24,18 +24,16 @@ kernel: ``(I + 1) / 2`` times as much, which only ``I <= 2`` keeps within 1.6x.
 Measured (``../shared/data``, ``--sets measured``): the SP8 confocal and the astigmatic
 stacks; the model's measures at each bead against the bead's own direct fit.
 
-    python bench/bench_volume.py [--sets ours psfmodels measured] [--speed DEPTH SIZE]
+    python bench/bench_volume.py [--sets ours psfmodels measured]
 """
 
 from __future__ import annotations
 
 import argparse
-import resource
 import time
 from pathlib import Path
 
 import numpy as np
-import scipy.fft
 
 from _common import table
 from napari_psfspace.core.common.progress import run_with_progress
@@ -44,12 +42,9 @@ from napari_psfspace.core.simulation.focus import simulate_focus_series
 from napari_psfspace.core.simulation.metrics import grid_positions, psf_error_3d
 from napari_psfspace.core.simulation.render import place_beads
 from napari_psfspace.core.volume import iter_estimate_operator_3d
-from napari_psfspace.core.volume.deconvolve3d import iter_richardson_lucy_3d, shift_invariant
 from napari_psfspace.core.volume.measures import psf_measures
 
 GRID = 6
-#: The speed table's compressed field: PSFs within 2 % (relative l2) of the model's.
-COMPRESSION = 0.02
 
 
 def ours(preset: str, seed: int):
@@ -137,70 +132,6 @@ def judge(name: str, stack, truth, radius: int, z_radius: int | None) -> dict:
             "seconds": seconds}, op
 
 
-def speed(op, depth: int, size: int, n_iter: int = 5) -> dict:
-    """One RL iteration, space-varying and shift-invariant, and ``apply`` against
-    ``I + 1`` FFT pairs, on a (depth, size, size) volume with the model's kernels and
-    field (its grid scaled to the volume)."""
-    from napari_psfspace.core.volume.operator3d import ProductConvolution3D
-
-    # the model's own field, its grid scaled onto the (size, size) volume
-    gy = op.grid[0] * (size - 1) / max(op.shape[1] - 1, 1)
-    gx = op.grid[1] * (size - 1) / max(op.shape[2] - 1, 1)
-    big = ProductConvolution3D(op.basis, op.coefficients, shape=(depth, size, size),
-                               grid=(gy, gx), plane=depth // 2)
-    rng = np.random.default_rng(0)
-    vol = rng.poisson(50, (depth, size, size)).astype(np.float32)
-    big.apply(vol)  # spectra and maps cached, as in an iteration after the first
-    si = shift_invariant(big)
-    si.apply(vol)
-    out = {"volume": f"{depth}x{size}x{size}", "I": big.n_psf}
-    for name, o in (("rl_sv", big), ("rl_si", si)):
-        gen = iter_richardson_lucy_3d(vol, o, n_iter=n_iter, background=10.0)
-        next(gen)  # the first iteration builds the normalisation
-        t0 = time.perf_counter()
-        for _ in range(n_iter - 1):
-            next(gen)
-        out[name] = (time.perf_counter() - t0) / (n_iter - 1)
-    out["rl_ratio"] = out["rl_sv"] / out["rl_si"]
-    # the same on the field compressed to 2 % (fewer kernels, a stated error)
-    small = big.compressed(COMPRESSION)
-    small.apply(vol)
-    out["k"] = small.n_psf
-    out["k_error"] = (small.metadata.get("compressed") or {}).get("error", 0.0)
-    gen = iter_richardson_lucy_3d(vol, small, n_iter=n_iter, background=10.0)
-    next(gen)
-    t0 = time.perf_counter()
-    for _ in range(n_iter - 1):
-        next(gen)
-    out["rl_sv_k"] = (time.perf_counter() - t0) / (n_iter - 1)
-    out["rl_ratio_k"] = out["rl_sv_k"] / out["rl_si"]
-    # scikit-image's Richardson-Lucy with the centre's 3D PSF, per iteration
-    from skimage.restoration import richardson_lucy
-
-    kern = si.kernel_at((size - 1) / 2, (size - 1) / 2).astype(np.float32)
-    norm = vol / vol.max()
-    richardson_lucy(norm, kern, num_iter=1, clip=False)
-    t0 = time.perf_counter()
-    richardson_lucy(norm, kern, num_iter=n_iter - 1, clip=False)
-    out["rl_skimage"] = (time.perf_counter() - t0) / (n_iter - 1)
-    out["rl_ratio_skimage"] = out["rl_sv"] / out["rl_skimage"]
-    out["rl_ratio_k_skimage"] = out["rl_sv_k"] / out["rl_skimage"]
-    t0 = time.perf_counter()
-    for _ in range(3):
-        big.apply(vol)
-    out["apply"] = (time.perf_counter() - t0) / 3
-    fshape = big.fft_shape(depth)
-    x = np.zeros(fshape, np.float32)
-    t0 = time.perf_counter()
-    for _ in range(3):
-        scipy.fft.irfftn(scipy.fft.rfftn(x), s=fshape)
-    pair = (time.perf_counter() - t0) / 3
-    out["fft_pairs"] = (big.n_psf + 1) * pair
-    out["apply_ratio"] = out["apply"] / out["fft_pairs"]
-    out["peak_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-    return out
-
-
 #: Measured stacks (path under ../shared/data, z radius in planes, PSF radius in pixels
 #: on the widest plane kept, voxel (dz, dy, dx) in µm from the data's README).
 MEASURED = (
@@ -242,13 +173,19 @@ def measured(data: Path) -> list[dict]:
                          "model_median": float(np.median(m[ok])),
                          "rms_diff": float(np.sqrt(np.mean((b[ok] - m[ok]) ** 2))),
                          "n": int(ok.sum())})
+        held = op.metadata.get("heldout") or {}
+        if held.get("n_beads"):
+            HELD.append({"stack": path.stem[:24], "I": op.n_psf, **held})
     return rows
+
+
+#: The measured stacks' held-out beads (filled by :func:`measured`).
+HELD: list[dict] = []
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", nargs="+", default=["ours", "psfmodels", "measured"])
-    ap.add_argument("--speed", nargs=2, type=int, default=(32, 512), metavar=("DEPTH", "SIZE"))
     args = ap.parse_args()
     rows, op = [], None
     jobs = []
@@ -273,15 +210,12 @@ def main() -> None:
                              ("unit", "s"), ("beads_median", ".3f"), ("beads_10", ".3f"),
                              ("beads_90", ".3f"), ("model_median", ".3f"),
                              ("rms_diff", ".3f"), ("n", "d")]))
-    if op is not None:
-        s = speed(op, *args.speed)
-        print("\nSpeed (2 cores; bounds: rl_ratio <= 1.6, apply_ratio <= 1.5)")
-        print(table([s], [("volume", "s"), ("I", "d"), ("rl_sv", ".3f"), ("rl_si", ".3f"),
-                          ("rl_ratio", ".2f"), ("rl_skimage", ".3f"),
-                          ("rl_ratio_skimage", ".2f"), ("k", "d"), ("k_error", ".4f"),
-                          ("rl_sv_k", ".3f"), ("rl_ratio_k", ".2f"),
-                          ("rl_ratio_k_skimage", ".2f"), ("apply", ".3f"), ("fft_pairs", ".3f"),
-                          ("apply_ratio", ".2f"), ("peak_mb", ".0f")]))
+        print("\nHeld-out beads (5 folds): the field and one 3D PSF against the noise floor "
+              "(bound: residual within 1.5x the floor)")
+        print(table(HELD, [("stack", "s"), ("I", "d"), ("n_beads", "d"),
+                           ("residual_median", ".4f"), ("single_median", ".4f"),
+                           ("noise_floor_median", ".4f"), ("over_floor", ".2f"),
+                           ("noise_kind", "s"), ("gain", ".3f"), ("field_wins", "")]))
 
 
 COLUMNS = [("set", "s"), ("beads", "d"), ("I", "d"), ("kernel", "s"), ("error", ".4f"),

@@ -9,6 +9,7 @@ in a fresh process (its peak resident memory is its own):
 - ``si``: the same iteration with one PSF (the centre's; the whole volume, one kernel):
   one space-varying iteration against one shift-invariant iteration, the same run of
   this script (bound 1.6x); ``skimage``: scikit-image's ``richardson_lucy``, the same PSF;
+  ``redlionfish``: RedLionfish's CPU path (``method="cpu"``), where it is installed;
 - ``rl`` on 64 x 2048 x 2048, 3 iterations (bound: peak <= 8 GB);
 - ``apply``: the exact whole-volume ``apply`` against ``I + 1`` FFT pairs of its padded
   shape (bound 1.5x);
@@ -80,7 +81,15 @@ def child(case: str, path: str, depth: int, size: int, n_iter: int) -> dict:
     vol = np.random.default_rng(0).poisson(50, (depth, size, size)).astype(np.float32)
     out = {"case": case, "volume": f"{depth}x{size}x{size}", "I": op.n_psf,
            "kernel": "x".join(map(str, op.kernel_shape))}
-    if case == "skimage":
+    if case == "redlionfish":
+        from RedLionfishDeconv import RLDeconvolve
+
+        kern = op.kernel_at((size - 1) / 2, (size - 1) / 2).astype(np.float32)
+        t0 = time.perf_counter()
+        RLDeconvolve.doRLDeconvolutionFromNpArrays(vol, kern, niter=n_iter, method="cpu")
+        out["per_iteration"] = (time.perf_counter() - t0) / n_iter
+        out["seconds"] = time.perf_counter() - t0
+    elif case == "skimage":
         from skimage.restoration import richardson_lucy
 
         kern = op.kernel_at((size - 1) / 2, (size - 1) / 2).astype(np.float32)
@@ -161,11 +170,20 @@ def main() -> None:
     rl, si, sk = rows[0], rows[1], rows[2]
     rl["vs_si"] = rl["per_iteration"] / si["per_iteration"]
     rl["vs_skimage"] = rl["per_iteration"] / sk["per_iteration"]
+    try:  # RedLionfish's CPU path, where it installs (not a dependency)
+        import RedLionfishDeconv  # noqa: F401
+
+        lion = spawn("redlionfish", path, 64, 1024, 3)
+        rl["vs_redlionfish"] = rl["per_iteration"] / lion["per_iteration"]
+        rows.append(lion)
+    except ImportError:
+        print("RedLionfish is not installed: its row is left out")
     if not args.quick:
         rows.append(spawn("rl", path, 64, 2048, 3))
     print(table(rows, [("case", "s"), ("volume", "s"), ("I", "d"), ("kernel", "s"),
                        ("seconds", ".1f"), ("per_iteration", ".2f"), ("vs_si", ".2f"),
-                       ("vs_skimage", ".2f"), ("ratio", ".2f"), ("peak_gb", ".2f")]))
+                       ("vs_skimage", ".2f"), ("vs_redlionfish", ".2f"), ("ratio", ".2f"),
+                       ("peak_gb", ".2f")]))
     print("bounds: rl 50 iterations on 64x1024x1024 <= 300 s and peak <= 4 GB; vs_si <= "
           "1.6; apply ratio <= 1.5; rl on 64x2048x2048 peak <= 8 GB")
     t = tiles(path, 16, 1024, 10 if args.quick else 30)
