@@ -149,3 +149,22 @@ def test_sparse_smooth_3d_finds_the_points_and_takes_the_background():
     assert np.abs(seen / bg[2:-2, 8:-8, 8:-8] - 1).mean() <= 0.1
     with pytest.raises(ValueError, match="`grid_step`"):
         deblur_3d(stack, op, grid_step=1)
+
+
+def test_the_psf_grid_shows_each_kernel_and_its_sections():
+    from napari_psfspace.core.volume.views import psf_grid_3d
+
+    op = _operator(seed=6)
+    ys, xs, vol, sec_x, sec_y = psf_grid_3d(op, 3, gap=1, gamma=1.0)
+    k, p, _ = op.kernel_shape
+    assert vol.shape == (k, 3 * p + 2, 3 * p + 2) and sec_x.shape == sec_y.shape
+    for i, y in enumerate(ys):
+        for j, x in enumerate(xs):
+            kern = np.clip(op.kernel_at(y, x), 0, None)
+            tile = vol[:, i * (p + 1):i * (p + 1) + p, j * (p + 1):j * (p + 1) + p]
+            np.testing.assert_allclose(tile, kern / kern.max(), rtol=1e-5, atol=1e-6)
+            np.testing.assert_allclose(sec_y[i * (k + 1):i * (k + 1) + k,
+                                             j * (p + 1):j * (p + 1) + p],
+                                       tile[:, :, p // 2], rtol=1e-6)
+    with pytest.raises(ValueError, match="`n`"):
+        psf_grid_3d(op, 0)

@@ -28,6 +28,7 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         OPERATOR_3D_KEY,
         PSF_GRID_3D,
         PSF_SECTIONS,
+        PSF_SECTIONS_Y,
     )
 
     stack, series = bead_stack
@@ -55,7 +56,8 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     # the grid's bead plane on the stack's: world z of kernel plane K // 2 = op.plane
     assert grid.translate[0] + (op.kernel_shape[0] // 2) * grid.scale[0] == \
         pytest.approx(op.plane * 0.2)
-    assert PSF_SECTIONS in v.layers and all(name in v.layers for _, name, _ in MAPS)
+    assert PSF_SECTIONS in v.layers and PSF_SECTIONS_Y in v.layers
+    assert all(name in v.layers for _, name, _ in MAPS)
     assert np.isfinite(v.layers[MAPS[0][1]].data).all()
     # deblur with the learnt model, twice: one layer
     w.iterations.value = 3

@@ -6,7 +6,8 @@ on a z-stack layer (the voxel size from the layer's scale) and shows:
 - the 3D PSF grid (the PSF at 5 x 5 field positions, tiled) as a volume on the stack's
   own z axis, its bead plane on the stack's bead plane: scrolling through z, or the 3D
   view, shows how focus and shape change over the field;
-- its sections through focus (z down, x across), one orthogonal view of each PSF;
+- its sections through focus (z down, x across; z down, y across): the orthogonal views
+  of each PSF;
 - the maps over the field of the focal shift, the lateral and axial FWHM and the
   astigmatic split, each with a colour bar, beside the stack.
 
@@ -40,6 +41,7 @@ if TYPE_CHECKING:
 STEP = "3D"
 PSF_GRID_3D = "3D PSF grid"
 PSF_SECTIONS = "3D PSF grid: sections (z down, x across)"
+PSF_SECTIONS_Y = "3D PSF grid: sections (z down, y across)"
 DEBLURRED_3D = "deblurred 3D"
 OPERATOR_3D_KEY = "psfspace_operator_3d"
 #: (measure, layer name, colormap) of the maps shown.
@@ -122,9 +124,9 @@ class Volume3DWidget(Container):
                      n_psf=int(self.n_psf.value) or None)
 
         def on_result(got) -> None:
-            est, (_, _, volume, sections), (_, _, maps) = got
+            est, (_, _, volume, sections, sections_y), (_, _, maps) = got
             self.operator = op = est.operator
-            self._show(op, volume, sections, maps, scale, translate)
+            self._show(op, volume, (sections, sections_y), maps, scale, translate)
             meta = op.metadata
             self.learn_result.value = (
                 f"I = {op.n_psf} 3D kernels of {'x'.join(map(str, op.kernel_shape))} from "
@@ -157,9 +159,13 @@ class Volume3DWidget(Container):
                       "metadata": {OPERATOR_3D_KEY: op,
                                    "about": "3D PSF at 5 x 5 field positions, each scaled "
                                             "to its maximum, gamma 0.5"}}, "image"),
-            (sections, {"name": PSF_SECTIONS,
-                        "scale": (dz * s / dy, s), "translate": (ty + h * dy + gap, left),
-                        "colormap": "magma"}, "image"),
+            (sections[0], {"name": PSF_SECTIONS,
+                           "scale": (dz * s / dy, s), "translate": (ty + h * dy + gap, left),
+                           "colormap": "magma"}, "image"),
+            (sections[1], {"name": PSF_SECTIONS_Y, "scale": (dz * s / dy, s),
+                           "translate": (ty + h * dy + gap,
+                                         left + sections[1].shape[1] * s + gap),
+                           "colormap": "magma"}, "image"),
         ]
         for j, (key, name, cmap) in enumerate(MAPS):
             m = maps[key].astype(np.float32)

@@ -9,7 +9,8 @@ from .operator3d import ProductConvolution3D
 
 
 def psf_grid_3d(operator: ProductConvolution3D, n: int = 5, *, gap: int = 2,
-                gamma: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                gamma: float = 0.5
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The 3D PSF at the centres of an ``n x n`` tiling of the field, tiled side by side.
 
     Each PSF is scaled to its own 3D maximum (planes keep their relative brightness, so
@@ -33,6 +34,8 @@ def psf_grid_3d(operator: ProductConvolution3D, n: int = 5, *, gap: int = 2,
     sections : ndarray of shape (n (K + gap) - gap, n (P + gap) - gap), float32
         Each PSF's section through its centre row (z down, x across): the focal shift,
         the axial extent and the tilt of the axial profile over the field.
+    sections_y : ndarray of the same shape
+        The orthogonal sections, through each PSF's centre column (z down, y across).
     """
     n = int(n)
     if n < 1:
@@ -44,6 +47,7 @@ def psf_grid_3d(operator: ProductConvolution3D, n: int = 5, *, gap: int = 2,
     side = n * (p + gap) - gap
     volume = np.zeros((k, side, side), np.float32)
     sections = np.zeros((n * (k + gap) - gap, side), np.float32)
+    sections_y = np.zeros_like(sections)
     for i, y in enumerate(ys):
         for j, x in enumerate(xs):
             kern = np.clip(operator.kernel_at(y, x), 0, None)
@@ -52,7 +56,8 @@ def psf_grid_3d(operator: ProductConvolution3D, n: int = 5, *, gap: int = 2,
             r0, c0 = i * (p + gap), j * (p + gap)
             volume[:, r0:r0 + p, c0:c0 + p] = kern
             sections[i * (k + gap):i * (k + gap) + k, c0:c0 + p] = kern[:, p // 2, :]
-    return ys, xs, volume, sections
+            sections_y[i * (k + gap):i * (k + gap) + k, c0:c0 + p] = kern[:, :, p // 2]
+    return ys, xs, volume, sections, sections_y
 
 
 __all__ = ["psf_grid_3d"]
