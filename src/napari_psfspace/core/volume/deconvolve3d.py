@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..common.progress import Progress, run_with_progress
+from ..common.threads import default_workers
 from ..common.validate import check_int
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .operator3d import ProductConvolution3D
@@ -118,6 +119,7 @@ def iter_richardson_lucy_3d(
         raise ValueError("`stack` contains NaN or infinite values")
     yield Progress("setup", 0.0, "blocks and their kernels")
     op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    workers = default_workers() if workers is None else workers  # FFT threads or blocks
     n_kernels = float(op.n_kernels) if block is not None else float(operator.n_psf)
     buf = np.ones_like(data)
     norm = op.adjoint(buf, workers=workers)
@@ -175,7 +177,7 @@ def richardson_lucy_3d(
         With blocks, the largest relative error of a block's PSF against the model's
         (0: every block on all kernels, the exact operator).
     workers : int, optional
-        FFT threads.
+        Threads: over blocks, or the whole volume's FFTs; default the machine's cores.
     start : float, optional
         The constant value the iteration starts from; default the stack's mean less
         the background (a tile of a larger stack is given the stack's).

@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..common.progress import Progress, run_with_progress
+from ..common.threads import default_workers
 from ..common.validate import check_int
 from ..diagnosis.noise import background_variance
 from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT, SmoothGrid
@@ -133,6 +134,7 @@ def iter_deblur_3d(
         raise ValueError("`stack` contains NaN or infinite values")
     z, h, w = y.shape
     op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    workers = default_workers() if workers is None else workers
     grid = SmoothGrid((h, w), grid_step)
     ry, rx = grid.ry.toarray(), grid.rx.toarray()  # (H, ny), (W, nx)
 
