@@ -167,10 +167,14 @@ def iter_estimate_operator_3d(
                    f"{meta['n_beads_used']} beads")
     est = Estimation3D(op, beads, patches, kept, basis, cone, own)
     if holdout and meta["n_beads_used"] >= 2 * FOLDS:
-        held = heldout_error_3d(est, stack, smoothing=smoothing)
-        est.heldout = held
-        summary = held.summary()
-        meta["heldout"] = summary
+        try:  # a score of the model: it never aborts the estimate
+            held = heldout_error_3d(est, stack, smoothing=smoothing)
+            est.heldout = held
+            meta["heldout"] = held.summary()
+        except ValueError as exc:
+            meta["heldout"] = {"n_beads": 0, "not_measured": str(exc)}
+    if holdout and (meta.get("heldout") or {}).get("n_beads"):
+        summary = meta["heldout"]
         yield Progress("held-out", 1.0, f"held-out beads: residual "
                        f"{summary['residual_median']:.3f} ({summary['over_floor']:.2f}x the "
                        f"noise floor), one 3D PSF {summary['single_median']:.3f}")

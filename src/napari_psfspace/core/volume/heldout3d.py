@@ -30,7 +30,7 @@ from ..beads.window import bump_window, radial_distance
 from ..diagnosis.noise import noise_model
 from ..model.cone import reduce_cone
 from ..model.heldout import morton_order
-from ..model.pca import learn_basis
+from ..model.pca import learn_basis, min_beads_for
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 
@@ -122,8 +122,8 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     res, single, floor, pos = [], [], [], []
     for f in range(int(folds)):
         test, train = group == f, group != f
-        if test.sum() == 0 or train.sum() < max(n_psf + 2, 4):
-            continue
+        if test.sum() == 0 or train.sum() < max(min_beads_for(n_psf), 4):
+            continue  # too few beads left to learn this basis size: the fold is skipped
         basis = learn_basis(patches.psf[train], n_psf, support=support)
         centers = patches.centers[train][basis.inliers]
         spline = ThinPlateSpline(centers, basis.coefficients,
