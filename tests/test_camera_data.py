@@ -72,7 +72,7 @@ def _field_error(image, truth, **kwargs) -> float:
     return evaluate_against_truth(est.operator, truth)["aligned"]["mean"], est
 
 
-@pytest.mark.parametrize("fraction", [0.0005, 0.001])
+@pytest.mark.parametrize("fraction", [0.001])  # 0.05 % too: bench/bench_camera.py
 def test_hot_pixels_leave_the_field_error_alone(field_768, fraction):
     """sCMOS hot pixels without dark-frame correction: each 1-5 x the brightest bead."""
     image, truth = field_768
@@ -111,7 +111,9 @@ def test_known_bead_size_is_divided_out(field_768):
     assert est.operator.metadata["bead_diameter_px"] == 2.0
 
 
-@pytest.mark.parametrize(("d_um", "pixel"), [(0.1, 0.13), (0.2, 0.065), (0.5, 0.13)])
+# the common bead at its usual pixel, and one too big for the optics; 0.1 um at 0.13 um
+# and the other sizes: bench/bench_camera.py's table
+@pytest.mark.parametrize(("d_um", "pixel"), [(0.2, 0.065), (0.5, 0.13)])
 def test_bead_sizes_and_pixels_of_the_family(d_um, pixel):
     """100-500 nm beads at 65-130 nm pixels: the correction never makes the PSF worse,
     and says when the bead is too big for the optics."""
@@ -146,7 +148,8 @@ def _varying_field(n_beads, seed):
                              min_separation=60, amplitude=(4e4, 8e4), seed=seed)
 
 
-@pytest.mark.parametrize(("n_beads", "seed"), [(5, 0), (8, 1), (12, 2)])
+# 5 beads: the few-bead models; 12: the thin-plate field (8 was the same branch as 5)
+@pytest.mark.parametrize(("n_beads", "seed"), [(5, 0), (12, 2)])
 def test_few_beads_give_the_richest_model_they_support(n_beads, seed):
     image, truth = _varying_field(n_beads, seed)
     err, est = _field_error(image, truth)

@@ -185,7 +185,7 @@ def test_sp8_field_does_not_interpolate_noise(sp8):
 
 
 def test_every_slice_estimates_or_stops_with_a_message(shared_data):
-    """Every 12th slice of every stack, as the command line runs it without options (the
+    """Every 24th slice of every stack, as the command line runs it without options (the
     radius measured from the slice): a model, or one of the project's errors with a
     message, never another exception (``bench/bench_every_slice.py`` runs every slice,
     the diagnosis too). And the slices of the SP8 stack whose diagnosis once raised
@@ -200,7 +200,7 @@ def test_every_slice_estimates_or_stops_with_a_message(shared_data):
     for path in sorted(shared_data.glob("*/*.tif")):
         stack = tifffile.imread(path)
         stack = stack if stack.ndim == 3 else stack[None]
-        for z in range(0, len(stack), 12):  # bench_every_slice.py: every slice
+        for z in range(0, len(stack), 24):  # bench_every_slice.py: every slice
             try:
                 r = suggest_psf_radius(stack[z])
                 run_with_progress(iter_estimate(stack[z], psf_radius=r))
@@ -209,7 +209,7 @@ def test_every_slice_estimates_or_stops_with_a_message(shared_data):
                 assert str(exc)
                 outcomes["stopped"] += 1
     print(outcomes)
-    assert outcomes["model"] >= 10 and outcomes["stopped"] >= 10
+    assert outcomes["model"] >= 5 and outcomes["stopped"] >= 5
     sp8 = tifffile.imread(shared_data / "sp8_confocal_beads" / "sp8_series045_beads_zyx_uint8.tif")
     for z in (1, 62):
         try:

@@ -42,11 +42,11 @@ def test_variance_floor_and_dict():
     assert m.to_dict()["gain"] == 2.0
 
 
-def test_the_noise_model_completes_or_names_its_failure_on_200_scenes():
+def test_the_noise_model_completes_or_names_its_failure_on_120_scenes():
     """Every path either completes with a named model (photon transfer or a named
     fallback, finite at every level) or raises the project's NoiseModelError with a
-    message: over 200 scenes of the family (8/12/16-bit, 3-60 beads), plain, clipped,
-    saturated, flat and constant. (A flat 8-bit background once raised numpy's
+    message: over 120 scenes of the family (8/12/16-bit, 3-60 beads), about 20 each
+    plain, clipped, saturated, flat and constant. (A flat 8-bit background once raised numpy's
     "zero-size array" from inside the message meant to explain it.)"""
     from napari_psfspace.core.diagnosis.noise import NoiseModelError, noise_model
     from napari_psfspace.core.simulation.damage import damaged
@@ -54,7 +54,7 @@ def test_the_noise_model_completes_or_names_its_failure_on_200_scenes():
 
     kinds = {}
     seed = -1
-    while sum(kinds.values()) < 200:
+    while sum(kinds.values()) < 120:  # the whole estimate on such scenes: bench_fuzz.py
         seed += 1
         try:
             image, _, _ = random_scene(seed, shape=(160, 160), n_beads=(3, 60))

@@ -121,9 +121,9 @@ def _click_and_wait(qtbot, widget, button, timeout=120_000):
     wait_task(qtbot, widget.task, timeout=timeout)
 
 
-def test_every_step_three_times_the_same_layers_cancel_within_a_second(laptop, qtbot,
+def test_every_step_twice_the_same_layers_cancel_within_a_second(laptop, qtbot,
                                                                        monkeypatch):
-    """The walk a user takes, each step run three times: the same layer names after each
+    """The walk a user takes, each step run twice: the same layer names after each
     run, the user's rejection honoured by Diagnose, Cancel honoured within 1 s at every
     step, and no file anywhere (none was asked for)."""
     from functools import partial
@@ -157,7 +157,7 @@ def test_every_step_three_times_the_same_layers_cancel_within_a_second(laptop, q
             rejected_id = int(pts.features["id"].iloc[kept[0]])
             set_statuses(pts, [rejected_id], ["rejected"])
         names = statuses = None
-        for _ in range(3):
+        for _ in range(2):  # a re-run updates its layers: the second shows any pile-up
             _click_and_wait(qtbot, widget, getattr(widget, attr))
             assert "failed" not in widget.task.status.value, (title, widget.task.status.value)
             now = [layer.name for layer in v.layers]
