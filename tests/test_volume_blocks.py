@@ -168,3 +168,18 @@ def test_the_psf_grid_shows_each_kernel_and_its_sections():
                                        tile[:, :, p // 2], rtol=1e-6)
     with pytest.raises(ValueError, match="`n`"):
         psf_grid_3d(op, 0)
+
+
+def test_the_dask_path_runs_on_a_client():
+    """``client=``: the tiles computed on a dask.distributed cluster (here in-process)
+    give the loop's result."""
+    distributed = pytest.importorskip("distributed")
+    op = _operator(seed=7, shape=(6, 60, 60))
+    stack = np.random.default_rng(4).poisson(op.apply(np.ones(op.shape)) + 5)
+    stack = stack.astype(np.float32)
+    kw = dict(n_iter=4, tile=30, halo=10, block=None)
+    loop = richardson_lucy_3d_tiled(stack, op, use_dask=False, **kw)
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=2,
+                            dashboard_address=None) as client:
+        remote = richardson_lucy_3d_tiled(stack, op, client=client, **kw)
+    np.testing.assert_allclose(remote, loop, rtol=0, atol=1e-5 * loop.max())

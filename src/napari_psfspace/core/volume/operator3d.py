@@ -111,6 +111,17 @@ class ProductConvolution3D:
         self._maps: dict[np.dtype, np.ndarray] = {}
         self._spectra: dict[tuple, np.ndarray] = {}
 
+    def __getstate__(self) -> dict:
+        """For dask's transport to its workers (files never use pickle): the arrays and
+        settings, without the lock and the caches."""
+        return {k: v for k, v in self.__dict__.items()
+                if k not in ("_lock", "_maps", "_spectra")}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._lock = threading.RLock()
+        self._maps, self._spectra = {}, {}
+
     # ------------------------------------------------------------------ properties
     @property
     def basis(self) -> np.ndarray:

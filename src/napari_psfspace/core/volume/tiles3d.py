@@ -67,6 +67,24 @@ def deblur_tile(data: np.ndarray, operator: ProductConvolution3D, y0: int, x0: i
                               block=block, rtol=rtol, workers=1, start=start).volume
 
 
+class TileTask:
+    """One tile's deconvolution as dask calls it (a picklable object, so that a
+    ``dask.distributed`` cluster can run it): the chunk's index is reliable in
+    ``map_overlap``, its ``'array-location'`` is not (dask issue 11349), so the window's
+    origin is the chunk's start less the halo."""
+
+    def __init__(self, operator: ProductConvolution3D, starts_y: tuple[int, ...],
+                 starts_x: tuple[int, ...], halo: int, kwargs: dict) -> None:
+        self.operator, self.halo, self.kwargs = operator, int(halo), dict(kwargs)
+        self.starts_y, self.starts_x = starts_y, starts_x
+
+    def __call__(self, window: np.ndarray, block_info=None) -> np.ndarray:
+        _, iy, ix = block_info[0]["chunk-location"]
+        return deblur_tile(window.astype(np.float32, copy=False), self.operator,
+                           max(self.starts_y[iy] - self.halo, 0),
+                           max(self.starts_x[ix] - self.halo, 0), **self.kwargs)
+
+
 def richardson_lucy_3d_tiled(
     stack,
     operator: ProductConvolution3D,
@@ -138,14 +156,8 @@ def richardson_lucy_3d_tiled(
     arr = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
     starts_y, starts_x = np.cumsum((0,) + rows), np.cumsum((0,) + cols)
 
-    def one(window, block_info=None):
-        # the chunk's index is reliable in map_overlap; its 'array-location' is not
-        # (dask issue 11349): the window's origin is the chunk's start less the halo
-        _, iy, ix = block_info[0]["chunk-location"]
-        return deblur_tile(window.astype(np.float32, copy=False), operator,
-                           max(int(starts_y[iy]) - halo, 0),
-                           max(int(starts_x[ix]) - halo, 0), **kw)
-
+    one = TileTask(operator, tuple(int(v) for v in starts_y),
+                   tuple(int(v) for v in starts_x), halo, kw)
     res = arr.map_overlap(one, depth={0: 0, 1: halo, 2: halo}, boundary="none",
                           dtype=np.float32, trim=True, allow_rechunk=False,
                           meta=np.empty((0, 0, 0), np.float32))
@@ -156,4 +168,5 @@ def richardson_lucy_3d_tiled(
     return np.asarray(res.compute())
 
 
-__all__ = ["TILE", "deblur_tile", "default_halo", "richardson_lucy_3d_tiled", "tile_sizes"]
+__all__ = ["TILE", "TileTask", "deblur_tile", "default_halo", "richardson_lucy_3d_tiled",
+           "tile_sizes"]
