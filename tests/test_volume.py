@@ -190,6 +190,11 @@ def test_held_out_beads_prefer_the_field_and_a_losing_field_falls_back(estimated
     assert fallback.n_psf == 1 and fallback.metadata["field_model"] == "shift-invariant"
     assert "beat the field" in fallback.metadata["field_model_reason"]
     assert fallback.kernel_shape[0] == 5
+    # a basis that uses nearly every bead is still scored (each fold on the largest basis
+    # its training beads support): no model of 10 beads or more goes unscored
+    scored = run_with_progress(iter_estimate_operator_3d(
+        small, psf_radius=int(sseries.psf_radius.max()))).operator.metadata
+    assert scored["n_beads_used"] >= 10 and scored["heldout"]["n_beads"] >= 10
 
 
 def test_the_maps_follow_the_true_focal_shift_and_axial_width(estimated):

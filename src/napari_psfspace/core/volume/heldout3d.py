@@ -3,9 +3,10 @@
 The beads that entered the model are split into ``folds`` groups spread over the field
 (every ``folds``-th bead along a Z-order curve,
 :func:`~napari_psfspace.core.model.heldout.morton_order`). For each group the model is
-learnt again from the other beads' patches (the same PCA with outlier rejection, the
-weighted thin-plate field and the cone as
-:func:`~napari_psfspace.core.volume.estimate3d.estimate_operator_3d`), and each held-out
+learnt again from the other beads' patches, with the model's basis size or the largest
+the remaining beads support: the same PCA with outlier rejection, weighted thin-plate
+field and cone as :func:`~napari_psfspace.core.volume.estimate3d.estimate_operator_3d`.
+Each held-out
 bead's windowed 3D patch is compared with the model's PSF at its position, after fitting
 its amplitude: ``min_c ||p - c m|| / ||p||``. Its noise floor is the value a perfect
 model would reach, ``sqrt(sum_v w_v^2 (s^2 + a c m_v^+)) / ||p||``: the patch's own
@@ -122,9 +123,13 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     res, single, floor, pos = [], [], [], []
     for f in range(int(folds)):
         test, train = group == f, group != f
-        if test.sum() == 0 or train.sum() < max(min_beads_for(n_psf), 4):
-            continue  # too few beads left to learn this basis size: the fold is skipped
-        basis = learn_basis(patches.psf[train], n_psf, support=support)
+        # the largest basis the fold's training beads support, at most the model's: a
+        # fold of a model whose basis uses nearly every bead is still scored (with a
+        # smaller basis: the figure errs on the pessimistic side)
+        n_fold = min(n_psf, max((int(train.sum()) - 2) // 2, 0))
+        if test.sum() == 0 or n_fold < 1 or train.sum() < min_beads_for(n_fold):
+            continue  # too few beads left for any basis: the fold is skipped
+        basis = learn_basis(patches.psf[train], n_fold, support=support)
         centers = patches.centers[train][basis.inliers]
         spline = ThinPlateSpline(centers, basis.coefficients,
                                  weights=voronoi_areas(centers, (h, w)),
