@@ -113,8 +113,10 @@ def iter_richardson_lucy_3d(
     b = b0 if background is None else float(background)
     if not np.isfinite(b):
         raise ValueError(f"`background` must be finite, got {background!r}")
-    data = np.asarray(stack, dtype=np.float32)
-    data = np.clip(data, 0, None, out=data if data is not stack else None)
+    # always a copy, clipped in place: a view of the user's array (a memmap of their
+    # file) is never written to
+    data = np.array(stack, dtype=np.float32, copy=True)
+    np.clip(data, 0, None, out=data)
     if not np.isfinite(data.sum(dtype=np.float64)):
         raise ValueError("`stack` contains NaN or infinite values")
     yield Progress("setup", 0.0, "blocks and their kernels")
