@@ -196,11 +196,15 @@ def _curve(means, sd, n=20):
             for w, m in zip(WEIGHTS, means, strict=True)}
 
 
-def test_a_flat_held_out_curve_keeps_the_even_blend():
-    from napari_psfspace.core.subspace.choice import pick_weight
-    # minimum at 0.75 by less than the paired scatter: the even blend is kept
-    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0005, 0.0, 0.0008], sd=0.005))
-    assert (w, beaten) == (0.5, True)
+def test_a_flat_held_out_curve_keeps_the_prior_weight():
+    from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, pick_weight
+    # minimum at the family's 1.0 by less than the paired scatter: the prior is kept
+    assert PRIOR_WEIGHT == 0.75
+    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0008, 0.0005, 0.0], sd=0.005))
+    assert (w, beaten) == (0.75, True)
+    # minimum at 0.5, 0.75 within the scatter: 0.75
+    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0, 0.0005, 0.0008], sd=0.005))
+    assert (w, beaten) == (0.75, True)
 
 
 def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
@@ -211,9 +215,14 @@ def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
     # the own estimate clearly best: 0
     w, beaten = pick_weight(_curve([0.0, 0.01, 0.02, 0.03, 0.05], sd=0.002))
     assert w == 0.0
-    # the even blend ahead of the own estimate by less than the scatter of their paired
-    # differences (here from the beads' common term, made unequal): 0 is kept
+    # every blend ahead of the own estimate by less than the scatter of their paired
+    # differences (the blends share a term the own estimate does not): 0 is kept
     res = _curve([0.002, 0.001, 0.0, 0.001, 0.002], sd=0.0)
-    res[0.5] = res[0.5] + 0.01 * (-1.0) ** np.arange(20)
+    for w in (0.25, 0.5, 0.75, 1.0):
+        res[w] = res[w] + 0.01 * (-1.0) ** np.arange(20)
     w, beaten = pick_weight(res)
-    assert w == 0.5 and not beaten
+    assert w == 0.0
+    # one blend beats it beyond the scatter, the prior's does not: that blend
+    res[0.25] = res[0.25] - 0.01 * (-1.0) ** np.arange(20)
+    w, beaten = pick_weight(res)
+    assert (w, beaten) == (0.25, True)

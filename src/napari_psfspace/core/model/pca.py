@@ -44,6 +44,9 @@ class PsfBasis:
     heldout_errors : ndarray of shape (I_max,) or None
         Relative leave-one-bead-out error for each basis size, when ``n_psf`` was
         chosen by held-out beads.
+    components : ndarray of shape (M, S) or None
+        The first ``M`` principal directions of the inliers (second PCA) on the
+        ``support`` pixels, when ``components=M`` was asked for.
     """
 
     basis: np.ndarray
@@ -54,6 +57,7 @@ class PsfBasis:
     rank_threshold: float
     n_psf_rule: int
     heldout_errors: np.ndarray | None = None
+    components: np.ndarray | None = None
 
     @property
     def n_psf(self) -> int:
@@ -133,6 +137,7 @@ def learn_basis(
     svd: str = "auto",
     max_psf: int = 12,
     weights: np.ndarray | None = None,
+    components: int = 0,
 ) -> PsfBasis:
     """Learn an orthonormal PSF basis from sum-normalised patches.
 
@@ -172,6 +177,9 @@ def learn_basis(
         Default ``1 / ||p_m||^2`` (every patch l2-normalised, so each bead weighs the
         same): with denoised patches, pass the inverse of each raw patch's squared norm,
         so that a faint bead's noise still lowers its weight.
+    components : int
+        Also return the first ``components`` principal directions of the inliers
+        (:attr:`PsfBasis.components`; 0: none).
 
     Returns
     -------
@@ -265,11 +273,12 @@ def learn_basis(
         heldout_errors = per_bead.mean(axis=0)
         best = float(heldout_errors.min())
         n_final = int(np.flatnonzero(heldout_errors <= 1.01 * best)[0]) + 1
+    more = vt[:int(components)].copy() if components else None
     vt = orient(vt[:n_final])
     basis = np.zeros((n_final, *patch_shape))
     basis[:, mask] = vt
     beta = psfs[inliers][:, mask] @ vt.T
-    return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors)
+    return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors, more)
 
 
 def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, *,

@@ -41,9 +41,14 @@ MIN_BEADS_OWN = 3
 MIN_HELDOUT = 3
 #: The family's weights tried: 0 is the image's own estimate, 1 the family's operator.
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
-#: Among the weights the held-out beads cannot tell from the best, the one kept is the
-#: nearest to this (the even blend of two estimates with partly independent errors).
-PRIOR_WEIGHT = 0.5
+#: Among the weights the held-out beads cannot tell from the best (and that beat the
+#: image's own estimate), the one kept is the nearest to this: past the even blend of
+#: two estimates with partly independent errors, on the family's side, which pools
+#: every image's beads (its fields shrink to the family's where an image's beads do not
+#: determine them, :mod:`.shrink`). Chosen on bright and faint stacks of both
+#: generators (``bench/bench_family_oracle.py``; bench/RESULTS.md): 1 keeps the own
+#: estimate more often (the family's weight 1 must then beat it alone).
+PRIOR_WEIGHT = 0.75
 
 
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
@@ -203,15 +208,15 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
 def pick_weight(residuals: dict) -> tuple[float, bool]:
     """The family's weight from each weight's per-bead held-out residuals.
 
-    1. The best weight (least mean residual; ties: the family's side).
-    2. Among the weights the beads cannot tell from it (the mean of the paired
-       differences within one standard error), the one nearest :data:`PRIOR_WEIGHT`:
-       with 20 held-out beads the curve over the weights is flat within its scatter and
-       its minimum wanders away from the weight the truth prefers
-       (``bench/bench_family_oracle.py``).
-    3. The image's own estimate (0) stays unless that weight beats it beyond one
-       standard error of the paired differences: the single estimate is left only on
-       the held-out beads' evidence.
+    1. The best weight (least mean residual; ties: the family's side), and the weights
+       the beads cannot tell from it (the mean of the paired differences within one
+       standard error): with 20 held-out beads the curve over the weights is flat
+       within its scatter and its minimum wanders away from the weight the truth
+       prefers (``bench/bench_family_oracle.py``).
+    2. Of those, the weights that beat the image's own estimate (0) beyond one standard
+       error of the paired differences: the single estimate is left only on the
+       held-out beads' evidence. None: the own estimate stays.
+    3. Of those, the one nearest :data:`PRIOR_WEIGHT`.
 
     Parameters
     ----------
@@ -223,18 +228,26 @@ def pick_weight(residuals: dict) -> tuple[float, bool]:
     -------
     weight : float
     beaten : bool
-        Whether the weight beat the own estimate (False: ``weight`` is what the beads
+        Whether the weight beat the own estimate (False: ``weight`` is the one the beads
         preferred, but 0 is kept).
     """
     def se(d):
         return float(np.std(d, ddof=1)) / np.sqrt(len(d))
 
+    def nearest(ws):
+        return min(ws, key=lambda w: (abs(w - PRIOR_WEIGHT), -w))
+
     means = {w: float(np.mean(r)) for w, r in residuals.items()}
     best = min(residuals, key=lambda w: (means[w], -w))
     close = [w for w in residuals
              if w == best or means[w] - means[best] <= se(residuals[w] - residuals[best])]
-    best = min(close, key=lambda w: (abs(w - PRIOR_WEIGHT), -w))
-    if best == 0.0:
+    if 0.0 not in residuals:
+        return nearest(close), True
+    beating = [w for w in close if w != 0.0
+               and float(np.mean(residuals[w] - residuals[0.0]))
+               < -se(residuals[w] - residuals[0.0])]
+    if beating:
+        return nearest(beating), True
+    if 0.0 in close:
         return 0.0, True
-    diff = residuals[best] - residuals[0.0]
-    return best, bool(float(np.mean(diff)) < -se(diff))
+    return nearest(close), False

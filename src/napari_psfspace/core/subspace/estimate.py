@@ -5,9 +5,15 @@ Steps, on top of the single-image pipeline:
 1. every image's bead patches (:func:`~.patches.image_patches`), one dask task per
    image, read one at a time;
 2-4. one PCA of the patches of all images with z-score outlier rejection and a second
-   PCA (:func:`~napari_psfspace.core.model.pca.learn_basis`): the PSF basis ``h_i``;
-5. each image's coefficient maps, interpolated by weighted thin-plate splines from its
-   own beads and sampled on the coarse grid the single operator uses;
+   PCA (:func:`~napari_psfspace.core.model.pca.learn_basis`); with ``denoise`` (the
+   default) the PSF basis ``h_i`` is then learnt from each bead's value of its image's
+   field of the first :data:`FIELD_COMPONENTS` ``x I`` components, with the family as the
+   fields' prior (:mod:`.shrink`): faint beads' noise no longer picks the later
+   components;
+5. each image's coefficient maps on the coarse grid the single operator uses: its
+   field with the family as prior (its own thin-plate field where its beads determine
+   it, the family's mean field where they do not; ``denoise=False``: its own
+   weighted thin-plate spline, the paper's step);
 6-7. an SVD of all the maps of all images: the spatial basis ``a_j``;
 8. ``Gamma_k[i, j] = <alpha_ik, a_j>`` (``refine=True`` refits each ``Gamma_k`` to its own
    beads' coefficients through the ``a_j`` instead: no better on dense stacks,
@@ -29,7 +35,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -40,12 +46,13 @@ from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
 from ..model.heldout import split_holdout
-from ..model.pca import learn_basis, min_beads_for, rank_by_threshold
+from ..model.pca import learn_basis, min_beads_for, orient, rank_by_threshold
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .choice import Choice, choose, own_estimate
 from .patches import ImagePatches, image_patches
 from .result import OperatorSubspace, space_at
+from .shrink import Fields, shrunk_fields
 from .sizes import white_rank
 
 #: Largest ``J`` the rule may choose.
@@ -54,6 +61,9 @@ MAX_SPACE = 16
 MAX_PSF = 12
 #: Fewest beads for an image's own thin-plate map; below, its map is constant.
 MIN_BEADS_TPS = 4
+#: Principal components of the pooled patches whose fields (:mod:`.shrink`) the PSF
+#: basis is learnt from, per component of the basis: the basis is chosen in their span.
+FIELD_COMPONENTS = 2
 #: Ridge of the refit of ``Gamma_k`` towards its projection, relative to the mean
 #: diagonal of the beads' normal matrix.
 REFIT_RIDGE = 1e-2
@@ -141,10 +151,53 @@ class _Pooled:
     window: np.ndarray
     support: np.ndarray
     basis: object  # PsfBasis
+    fields: Fields | None = None  # each image's shrunk fields of the first components
+    to_basis: np.ndarray | None = None  # (M, I): those components' coordinates -> h_i's
 
 
-def pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
-    """Steps 2-4: one (noise-aware) PCA of the patches of all images."""
+def _inlier_beads(used: list[ImagePatches], owner: np.ndarray, inliers: np.ndarray,
+                  values: np.ndarray) -> tuple[list, list]:
+    """Each image's inlier bead positions and their rows of ``values`` (inliers only, in
+    image order)."""
+    own_in = owner[inliers]
+    centers = [f.patches.centers[inliers[owner == i]] for i, f in enumerate(used)]
+    return centers, [values[own_in == i] for i in range(len(used))]
+
+
+def _field_basis(used, learn, owner, weights, support, basis, grid, shape):
+    """The PSF basis learnt from every inlier patch replaced by its image's shrunk field
+    of the first :data:`FIELD_COMPONENTS` principal components (:mod:`.shrink`).
+
+    Faint patches' noise swamps the PSFs' smaller variations, so the plain PCA's later
+    components follow the noise; the fields average each bead with its neighbours and
+    with the family, so the PCA sees the PSFs' variation over the field and over the
+    conditions. The basis's coefficients stay those of the (band-limited) patches.
+    """
+    inl = basis.inliers
+    comps = basis.components  # (M, S)
+    x = learn[inl][:, support]
+    coords = x @ comps.T  # (n_in, M)
+    centers, values = _inlier_beads(used, owner, inl, coords)
+    fields = shrunk_fields(centers, values, grid, shape)
+    smooth = np.concatenate(fields.beads)  # (n_in, M), image order as ``coords``
+    w = np.sqrt(weights[inl]) if weights is not None else np.ones(len(smooth))
+    _, _, ut = np.linalg.svd(smooth * w[:, None], full_matrices=False)
+    n_i = basis.basis.shape[0]
+    flat = orient(ut[:n_i] @ comps)  # (I, S), orthonormal rows
+    images = np.zeros_like(basis.basis)
+    images[:, support] = flat
+    new = replace(basis, basis=images, coefficients=x @ flat.T)
+    return new, fields, comps @ flat.T
+
+
+def pool(used: list[ImagePatches], n_psf, denoise: bool,
+         grid: tuple[np.ndarray, np.ndarray] | None = None) -> _Pooled:
+    """Steps 2-4: one (noise-aware) PCA of the patches of all images.
+
+    With ``denoise``, the basis is learnt from each image's fields of its beads with the
+    family as their prior (:func:`_field_basis`, on the coarse ``grid``, default that of
+    a 32 px step), and so are the coefficient maps (:func:`coefficient_maps`).
+    """
     psf = np.concatenate([f.patches.psf for f in used])
     owner = np.concatenate([np.full(f.n_beads, i) for i, f in enumerate(used)])
     first = used[0].patches
@@ -156,24 +209,36 @@ def pool(used: list[ImagePatches], n_psf, denoise: bool) -> _Pooled:
         weights = 1.0 / (psf[:, support] ** 2).sum(axis=1)
         learn, _ = band_limit(psf, sd, window)
     basis = learn_basis(learn, int(n_psf) if n_psf is not None else "rule", support=support,
-                        weights=weights, svd="gram")
-    return _Pooled(psf, owner, sd, weights, window, support, basis)
+                        weights=weights, svd="gram",
+                        components=FIELD_COMPONENTS * (int(n_psf) if n_psf is not None
+                                                       else MAX_PSF) if denoise else 0)
+    out = _Pooled(psf, owner, sd, weights, window, support, basis)
+    if denoise and basis.components is not None and len(basis.components) >= basis.n_psf:
+        shape = used[0].shape
+        grid = grid if grid is not None else grid_nodes(shape, 32.0)[0]
+        out.basis, out.fields, out.to_basis = _field_basis(
+            used, learn, owner, weights, support, basis, grid, shape)
+    return out
 
 
 def coefficient_maps(used: list[ImagePatches], pooled: _Pooled, nodes: np.ndarray,
           shape: tuple[int, int]) -> tuple[list[np.ndarray], list[tuple]]:
     """Step 5: each image's coefficient maps at the nodes (G, I), and its inlier beads'
-    (centers, coefficients)."""
+    (centers, coefficients).
+
+    With the pooled fields (``denoise``), the maps are those fields on the basis: each
+    image's own field where its beads determine it, the family's mean where they do not
+    (:mod:`.shrink`); otherwise each image's own thin-plate field (the paper's step 5).
+    """
     basis, owner = pooled.basis, pooled.owner
-    coef_all = np.zeros((len(owner), basis.basis.shape[0]))
-    coef_all[basis.inliers] = basis.coefficients
-    maps, bead_coef = [], []
-    for i, f in enumerate(used):
-        mine = (owner == i) & basis.inliers
-        centers = f.patches.centers[mine[owner == i]]
-        bead_coef.append((centers, coef_all[mine]))
-        if mine.any():
-            maps.append(_image_map(centers, coef_all[mine], nodes, shape))  # (G, I)
+    centers, coefs = _inlier_beads(used, owner, basis.inliers, basis.coefficients)
+    bead_coef = list(zip(centers, coefs, strict=True))
+    if pooled.fields is not None:
+        return [f @ pooled.to_basis for f in pooled.fields.nodes], bead_coef
+    maps = []
+    for c, a in bead_coef:
+        if len(c):
+            maps.append(_image_map(c, a, nodes, shape))  # (G, I)
         else:  # every bead of this image an outlier: the mean PSF of all
             maps.append(np.tile(basis.coefficients.mean(axis=0), (len(nodes), 1)))
     return maps, bead_coef
@@ -187,11 +252,11 @@ def grid_nodes(shape, grid_step):
 def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
            grid_step: float, refine: bool, denoise: bool) -> OperatorSubspace:
     """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
-    pooled = pool(used, n_psf, denoise)
+    (gy, gx), nodes = grid_nodes(shape, grid_step)
+    pooled = pool(used, n_psf, denoise, grid=(gy, gx))
     basis, psf, sd, weights, window = (pooled.basis, pooled.psf, pooled.sd, pooled.weights,
                                        pooled.window)
     n_i = basis.basis.shape[0]
-    (gy, gx), nodes = grid_nodes(shape, grid_step)
     maps, bead_coef = coefficient_maps(used, pooled, nodes, shape)
     stacked = np.concatenate([m.T for m in maps])  # (K I, G): one row per map alpha_ik
     _, s, vt = np.linalg.svd(stacked, full_matrices=False)

@@ -1,0 +1,97 @@
+"""The family as the prior of each image's fields (core/subspace/shrink.py)."""
+
+import numpy as np
+import pytest
+
+from napari_psfspace.core.model.tps import ThinPlateSpline
+from napari_psfspace.core.model.voronoi import voronoi_areas
+from napari_psfspace.core.subspace.estimate import grid_nodes
+from napari_psfspace.core.subspace.shrink import shrunk_fields
+
+SHAPE = (512, 512)
+
+
+def _truth(k, pts):
+    """Two columns: a field the images share, plus each image's own affine departure
+    (an offset and a tilt, as a focus shift and a slide tilt give)."""
+    y, x = pts[:, 0] / SHAPE[0] - 0.5, pts[:, 1] / SHAPE[1] - 0.5
+    shared = np.column_stack([0.3 * y ** 2 + 0.2 * x * y, 0.1 * np.cos(3 * x)])
+    rng = np.random.default_rng([7, k])
+    off, tilt = rng.normal(0, 0.02, 2), rng.normal(0, 0.02, 2)
+    return shared + off + np.outer(y, tilt)
+
+
+def _stack(noise, n_beads=30, k=10, seed=0):
+    rng = np.random.default_rng(seed)
+    centers, values = [], []
+    for i in range(k):
+        pts = rng.uniform(20, 492, size=(n_beads, 2))
+        centers.append(pts)
+        values.append(_truth(i, pts) + rng.normal(0, noise, (n_beads, 2)))
+    return centers, values
+
+
+def _errors(centers, values):
+    """rms error at the nodes of the shrunk fields and of each image's own spline."""
+    (gy, gx), nodes = grid_nodes(SHAPE, 32.0)
+    fields = shrunk_fields(centers, values, (gy, gx), SHAPE)
+    shrunk, own = [], []
+    for k, (c, v) in enumerate(zip(centers, values, strict=True)):
+        truth = _truth(k, nodes)
+        spline = ThinPlateSpline(c, v, weights=voronoi_areas(c, SHAPE),
+                                 scale=0.5 * float(np.hypot(*SHAPE)))
+        own.append(np.sqrt(np.mean((np.asarray(spline(nodes)) - truth) ** 2)))
+        shrunk.append(np.sqrt(np.mean((fields.nodes[k] - truth) ** 2)))
+    return np.array(shrunk), np.array(own), fields
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_faint_beads_lean_on_the_family(seed):
+    # noise 0.1 per bead against departures of about 0.02: each image's own field
+    # follows its noise; the shrunk fields lean on the family's mean (shrink factors
+    # 0-0.7 on these seeds) and lose a third of the own fields' error
+    shrunk, own, fields = _errors(*_stack(0.1, seed=seed))
+    assert fields.shrink.max() < 0.8 and fields.shrink.min() < 0.5
+    assert shrunk.mean() < 0.8 * own.mean()
+    assert np.all(shrunk < 1.1 * own)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_bright_beads_keep_their_own_departure(seed):
+    # noise 0.001: each image's departure is measured, and the prior keeps it whole
+    # (shrink >= 0.99 on these seeds); the residual about the family's mean field is
+    # smoother than the field itself, so the spline of it is no worse than the own
+    shrunk, own, fields = _errors(*_stack(0.001, seed=seed))
+    assert fields.shrink.min() > 0.95
+    assert np.all(shrunk <= 1.05 * own)
+    assert shrunk.max() < 0.01  # ten times the beads' noise
+
+
+def test_images_with_few_or_no_beads_get_the_family_mean_plus_their_offset():
+    centers, values = _stack(0.01)
+    centers[3], values[3] = centers[3][:2], values[3][:2]  # 2 beads: a constant departure
+    centers[4], values[4] = centers[4][:0], values[4][:0]  # none: the family's mean
+    (gy, gx), nodes = grid_nodes(SHAPE, 32.0)
+    fields = shrunk_fields(centers, values, (gy, gx), SHAPE)
+    mean = np.mean([fields.nodes[k] for k in (0, 1, 2, 5, 6)], axis=0)
+    assert fields.shrink[4].max() == 0.0
+    assert np.all(np.isfinite(fields.nodes[3])) and np.all(np.isfinite(fields.nodes[4]))
+    assert len(fields.beads[4]) == 0 and fields.beads[3].shape == (2, 2)
+    # the field of the image without beads is the family's mean (up to the departures
+    # of the others, which average out over 9 images)
+    assert np.abs(fields.nodes[4] - mean).max() < 0.05
+
+
+@pytest.mark.parametrize("noise", [0.02, 0.05])
+def test_the_shrunk_fields_at_the_beads_are_those_at_the_nodes(noise):
+    centers, values = _stack(noise, k=4)
+    (gy, gx), _ = grid_nodes(SHAPE, 32.0)
+    fields = shrunk_fields(centers, values, (gy, gx), SHAPE)
+    # the bead values are the mean field interpolated bilinearly plus the departure's
+    # spline at the bead: against the nodes' field interpolated the same way, the
+    # difference is the bilinear interpolation of the departure (small on 32 px cells)
+    from napari_psfspace.core.subspace.result import space_at
+    for k in range(4):
+        grid_field = fields.nodes[k].T.reshape(2, len(gy), len(gx))
+        at = space_at(grid_field, (gy, gx), centers[k])
+        assert np.abs(at - fields.beads[k]).max() < 5e-3
