@@ -383,3 +383,24 @@ def test_row_helpers_cover_every_row_once_in_order():
     a, b = np.zeros((600, 3)), np.zeros((300, 5))
     by_rows_many([(lambda x: x.__iadd__(1), (a,)), (lambda x: x.__iadd__(2), (b,))], 2)
     assert (a == 1).all() and (b == 2).all()
+
+
+def test_the_affine_correction_recovers_an_affine_change_of_the_maps_from_5_beads():
+    from napari_psfspace.core.restore.identify import AFFINE_RIDGE, affine_correction
+
+    rng = np.random.default_rng(3)
+    n_j, n_i, n_g = 9, 4, 64
+    space = np.linalg.qr(rng.normal(size=(n_g, n_j)))[0].T  # (J, G) orthonormal rows
+    nodes = rng.uniform(0, 1, size=(n_g, 2))
+    plane = np.column_stack([np.ones(n_g), nodes - 0.5])
+    affine = plane.T @ space.T  # (3, J)
+    b = rng.normal(size=(n_i, 3))
+    at = space.T[rng.choice(n_g, 5, replace=False)]  # 5 beads at nodes: (5, J)
+    residual = at @ (b @ affine).T  # (5, I): an affine change seen at the beads
+    got = affine_correction(at, residual, affine)
+    # the beads' values are met to the ridge's bias (relative AFFINE_RIDGE x the
+    # normal matrix's conditioning), far below the change itself
+    fit = at @ got.T
+    assert np.linalg.norm(fit - residual) < 100 * AFFINE_RIDGE * np.linalg.norm(residual)
+    # fewer than 4 beads: no affine change is determined, none is made
+    assert not affine_correction(at[:3], residual[:3], affine).any()

@@ -185,18 +185,53 @@ def correction(at: np.ndarray, residual: np.ndarray, ridge: float) -> np.ndarray
     return (at.T @ alpha).T  # (I, J)
 
 
+def affine_maps(subspace: OperatorSubspace) -> np.ndarray:
+    """The maps ``1``, ``y`` and ``x`` over the field (coordinates scaled to the image,
+    centred) expressed on the family's spatial basis, shape (3, J)."""
+    gy, gx = subspace.grid
+    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+    plane = np.column_stack([np.ones(len(nodes)),
+                             nodes / np.asarray(subspace.shape, np.float64) - 0.5])
+    return plane.T @ subspace.space.reshape(subspace.n_space, -1).T
+
+
+def affine_correction(at: np.ndarray, residual: np.ndarray, affine: np.ndarray,
+                      sd: np.ndarray | None = None) -> np.ndarray:
+    """The change of ``Gamma`` (I, J) whose maps are affine over the field (``affine``,
+    (3, J), :func:`affine_maps`) that best explains the beads' residual coefficients
+    (P, I) at ``at`` (P, J): weighted least squares, each bead by its noise ``sd`` (P,),
+    with a ridge of :data:`AFFINE_RIDGE`; zero below 4 beads."""
+    if len(at) < 4:
+        return np.zeros((residual.shape[1], affine.shape[1]))
+    x = at @ affine.T  # (P, 3): the affine maps at the beads
+    w = np.ones(len(x)) if sd is None else 1.0 / np.maximum(np.asarray(sd, float), 1e-300) ** 2
+    normal = x.T @ (w[:, None] * x)
+    ridge = AFFINE_RIDGE * max(float(np.trace(normal)) / 3.0, 1e-300)
+    b = np.linalg.solve(normal + ridge * np.eye(3), x.T @ (w[:, None] * residual))  # (3, I)
+    return b.T @ affine
+
+
+#: Ridge of the affine correction, relative to the mean diagonal of its normal matrix.
+AFFINE_RIDGE = 1e-3
+
+
 def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
                    prior: bool = True, sd: np.ndarray | None = None,
                    amplitude_range=AMPLITUDE_RANGE,
-                   max_iter: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
+                   max_iter: int = 100,
+                   affine: np.ndarray | None = None
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
     """``Gamma`` (I, J) of the beads' coefficients ``c`` (P, I) at ``at`` (P, J).
 
     ``prior=False``: the paper's problem (9), ``Gamma`` in the cone of the ``Gamma_k``.
     ``prior=True``: the family as a prior: the weights of the ``Gamma_k`` free in sign
     (a condition between those learnt is rarely a non-negative mix of them; kept near
-    the cone's solution by :data:`WEIGHT_RIDGE` where undetermined), then the kernel
-    ridge :func:`correction` towards the beads. The operator's PSFs are still kept in
-    the cone of observed PSFs when it is built.
+    the cone's solution by :data:`WEIGHT_RIDGE` where undetermined), then, with
+    ``affine`` (:func:`affine_maps`), the :func:`affine_correction` (a focus shift and a
+    tilt of the slide move the whole field; a few beads determine an affine change
+    where they do not determine a free one), then the kernel ridge :func:`correction`
+    towards the beads. The operator's PSFs are still kept in the cone of observed PSFs
+    when it is built.
 
     Returns
     -------
@@ -213,6 +248,8 @@ def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
                                             max_iter=max_iter, prior=lam, sd=sd)
         history = history + more
     gamma = np.tensordot(lam, gammas, axes=1)
+    if prior and affine is not None:
+        gamma = gamma + affine_correction(at, c / g[:, None] - at @ gamma.T, affine, sd)
     if prior:
         scale = float(np.mean((at * at).sum(axis=1))) or 1.0
         gamma = gamma + correction(at, c / g[:, None] - at @ gamma.T,
@@ -257,7 +294,8 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
         out = folds == f
         gam, *_ = identify_gamma(c[~out], at[~out], subspace.gammas, prior=prior,
                                  sd=None if sd is None else sd[~out],
-                                 amplitude_range=amplitude_range, max_iter=max_iter)
+                                 amplitude_range=amplitude_range, max_iter=max_iter,
+                                 affine=affine_maps(subspace))
         left = patches.subset(out)
         r = residuals_of(subspace.psfs_of(gam, left.centers), left)
         res[out], floor[out] = r.residual, r.noise_floor
@@ -358,7 +396,7 @@ def identify_operator(
     sd = patches.noise / patches.flux  # per-pixel noise of the sum-1 patches
     gamma, lam, g, history = identify_gamma(c, at, subspace.gammas, prior=prior, sd=sd,
                                             amplitude_range=amplitude_range,
-                                            max_iter=max_iter)
+                                            max_iter=max_iter, affine=affine_maps(subspace))
     if not prior and not lam.any():
         raise ValueError("the beads' PSFs lie outside the family's cone (every weight is "
                          "0): is this image from the same microscope and PSF radius?")
