@@ -198,12 +198,13 @@ def _curve(means, sd, n=20):
 
 def test_a_flat_held_out_curve_keeps_the_prior_weight():
     from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, pick_weight
-    # minimum at the family's 1.0 by less than the paired scatter: the prior is kept
-    assert PRIOR_WEIGHT == 0.75
-    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0008, 0.0005, 0.0], sd=0.005))
-    assert (w, beaten) == (0.75, True)
-    # minimum at 0.5, 0.75 within the scatter: 0.75
-    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0, 0.0005, 0.0008], sd=0.005))
+    assert PRIOR_WEIGHT == 0.5
+    # minimum at 0.75 by less than the paired scatter: the even blend is kept
+    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0005, 0.0, 0.0008], sd=0.005))
+    assert (w, beaten) == (0.5, True)
+    # a prior on the family's side: 0.75
+    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0, 0.0005, 0.0008], sd=0.005),
+                            prior=0.75)
     assert (w, beaten) == (0.75, True)
 
 

@@ -42,13 +42,11 @@ MIN_HELDOUT = 3
 #: The family's weights tried: 0 is the image's own estimate, 1 the family's operator.
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: Among the weights the held-out beads cannot tell from the best (and that beat the
-#: image's own estimate), the one kept is the nearest to this: past the even blend of
-#: two estimates with partly independent errors, on the family's side, which pools
-#: every image's beads (its fields shrink to the family's where an image's beads do not
-#: determine them, :mod:`.shrink`). Chosen on bright and faint stacks of both
-#: generators (``bench/bench_family_oracle.py``; bench/RESULTS.md): 1 keeps the own
-#: estimate more often (the family's weight 1 must then beat it alone).
-PRIOR_WEIGHT = 0.75
+#: image's own estimate), the one kept is the nearest to this (the even blend of two
+#: estimates with partly independent errors). Leaning to the family (0.75, or from 0.5
+#: to 1 with the noise's share of the held-out residuals) helps faint stacks but made
+#: one image of a bright stack worse than its own estimate (bench/RESULTS.md).
+PRIOR_WEIGHT = 0.5
 
 
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
@@ -205,7 +203,7 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
     return Choice(best, fam, own, res[best], reason, by_weight)
 
 
-def pick_weight(residuals: dict) -> tuple[float, bool]:
+def pick_weight(residuals: dict, prior: float = PRIOR_WEIGHT) -> tuple[float, bool]:
     """The family's weight from each weight's per-bead held-out residuals.
 
     1. The best weight (least mean residual; ties: the family's side), and the weights
@@ -216,7 +214,7 @@ def pick_weight(residuals: dict) -> tuple[float, bool]:
     2. Of those, the weights that beat the image's own estimate (0) beyond one standard
        error of the paired differences: the single estimate is left only on the
        held-out beads' evidence. None: the own estimate stays.
-    3. Of those, the one nearest :data:`PRIOR_WEIGHT`.
+    3. Of those, the one nearest ``prior``.
 
     Parameters
     ----------
@@ -235,7 +233,7 @@ def pick_weight(residuals: dict) -> tuple[float, bool]:
         return float(np.std(d, ddof=1)) / np.sqrt(len(d))
 
     def nearest(ws):
-        return min(ws, key=lambda w: (abs(w - PRIOR_WEIGHT), -w))
+        return min(ws, key=lambda w: (abs(w - prior), -w))
 
     means = {w: float(np.mean(r)) for w, r in residuals.items()}
     best = min(residuals, key=lambda w: (means[w], -w))

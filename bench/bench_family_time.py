@@ -1,0 +1,75 @@
+"""Learning a family against one estimate per image, timed in the same run (issue 24).
+
+    python bench/bench_family_time.py [--k 10] [--size 1024] [--beads 100] [--repeats 3]
+        [--cache FILE]
+
+``K`` images under the wide conditions of ``bench_family_oracle.py`` (bright beads,
+defaults everywhere) are simulated once into ``--cache``; then ``estimate_subspace``
+(the held-out choice on, the default) and ``K`` calls of ``estimate_operator`` are
+timed in turn, ``--repeats`` times, interleaved so that a change of the machine's load
+falls on both. Issue 24: the family within 1.5x the single estimates. To compare two
+versions of the code on the same images, run it with each on ``PYTHONPATH`` (the first
+line printed names the package used).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from _common import table
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--k", type=int, default=10)
+    ap.add_argument("--size", type=int, default=1024)
+    ap.add_argument("--beads", type=int, default=100)
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--cache", default="/tmp/psfspace-bench-family-time.npz")
+    args = ap.parse_args()
+    import napari_psfspace
+    from napari_psfspace.core.model.estimate import estimate_operator
+    from napari_psfspace.core.subspace import estimate_subspace
+
+    key = (args.k, args.size, args.beads)
+    images = None
+    if os.path.exists(args.cache):
+        with np.load(args.cache, allow_pickle=False) as got:
+            if tuple(got["key"]) == key:
+                images, r = list(got["images"]), int(got["r"])
+    if images is None:
+        from bench_family_oracle import WIDE
+        from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
+
+        conds = random_conditions(args.k, [0, 1], WIDE)
+        images, truths, _ = simulate_stack(args.k, (args.size, args.size), args.beads,
+                                           seed=0, conditions=conds, amplitude=(2e4, 3e4))
+        r = int(np.median([t.psf_radius for t in truths]))
+        np.savez(args.cache, key=np.array(key), images=np.stack(images), r=r)
+    print(napari_psfspace.__file__, flush=True)
+    estimate_subspace(images[:3], psf_radius=r)  # warm-up
+    rows = []
+    for rep in range(args.repeats):
+        t0 = time.perf_counter()
+        estimate_subspace(images, psf_radius=r)
+        family = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        for im in images:
+            estimate_operator(im, psf_radius=r)
+        single = time.perf_counter() - t0
+        rows.append({"repeat": rep, "family_s": family, "singles_s": single,
+                     "ratio": family / single})
+        print(rows[-1], flush=True)
+    rows.append({"repeat": -1, "family_s": float(np.median([x["family_s"] for x in rows])),
+                 "singles_s": float(np.median([x["singles_s"] for x in rows])),
+                 "ratio": float(np.median([x["ratio"] for x in rows]))})
+    print(table(rows, [("repeat", "d"), ("family_s", ".2f"), ("singles_s", ".2f"),
+                       ("ratio", ".2f")]))
+
+
+if __name__ == "__main__":
+    main()
