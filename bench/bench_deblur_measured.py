@@ -126,7 +126,7 @@ def main():
         c, rc = corrs.get(name), refocus.get(name)
         print(f"{name:>10} | {widths[name]:14.2f} | "
               f"{'-' if c is None else f'{c:.3f}':>25} | "
-              f"{'-' if rc is None else f'{rc:.3f}':>9}")
+              f"{'-' if rc is None else f'{rc:.4f}':>9}")
     # figure: a 256 x 256 crop of each, side by side, each scaled to its own range
     cy, cx = (np.array(target.shape) // 2).tolist()
     crop = (slice(cy - 128, cy + 128), slice(cx - 128, cx + 128))

@@ -1,8 +1,8 @@
 """Each image's coefficient fields with the family as their prior (empirical Bayes).
 
 One image's thin-plate field follows its own beads only. With faint beads the noise of
-a bead's coefficients can be many times their spread over the field
-(``bench/bench_family_oracle.py --photons 0.06``), and each image's field then carries
+a bead's coefficients can be many times their spread over the field (faint stacks of
+``bench/bench_family_oracle.py``; bench/RESULTS.md), and each image's field then carries
 mostly noise, while the family holds the same microscope under other conditions. A
 two-level model pools them:
 
