@@ -32,6 +32,15 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _POOL
 
 
+def map_threads(fn: Callable, items: list, workers: int | None = None) -> list:
+    """``[fn(x) for x in items]`` on the shared pool of threads (in order); for work
+    that spends its time in numpy's and LAPACK's GIL-free calls."""
+    workers = default_workers() if workers is None else int(workers)
+    if workers <= 1 or len(items) < 2:
+        return [fn(x) for x in items]
+    return list(_pool(workers).map(fn, items))
+
+
 def by_rows(fn: Callable, arrays: tuple[np.ndarray, ...], workers: int) -> None:
     """Run ``fn(*blocks)`` on ``workers`` row blocks of the arrays, in parallel threads.
 

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..common.threads import map_threads
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .result import space_at
@@ -92,16 +93,18 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
     n_c = next(v.shape[1] for v in values if len(v))
     rich = [k for k, c in enumerate(centers) if len(c) >= MIN_BEADS_FIELD]
     some = [k for k, c in enumerate(centers) if len(c)]
-    areas = {k: voronoi_areas(centers[k], shape) for k in rich}
+    areas = dict(zip(rich, map_threads(lambda k: voronoi_areas(centers[k], shape), rich),
+                     strict=True))
     if rich:
-        own = [np.asarray(_spline(centers[k], values[k], shape, areas[k])(nodes))
-               .reshape(len(nodes), -1) for k in rich]
+        own = map_threads(lambda k: np.asarray(_spline(centers[k], values[k], shape,
+                                                       areas[k])(nodes))
+                          .reshape(len(nodes), -1), rich)
         mu = np.mean(own, axis=0)  # (G, C)
     else:  # no image holds a field: the mean of every bead, constant
         mu = np.tile(np.concatenate([values[k] for k in some]).mean(axis=0), (len(nodes), 1))
     mu_grid = mu.T.reshape(n_c, len(gy), len(gx))
-    dev_nodes, dev_beads, var = {}, {}, {}
-    for k in some:
+    def departure(k):
+        """Image ``k``'s departure from ``mu``: at its beads and the nodes, its noise."""
         at = space_at(mu_grid, grid, centers[k])  # (n, C)
         r = values[k] - at
         n = len(r)
@@ -109,16 +112,20 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
             spline = _spline(centers[k], r, shape, areas[k])
             fit = np.asarray(spline(centers[k])).reshape(n, -1)
             dof = np.asarray(spline.effective_dof, dtype=np.float64).reshape(-1)
-            dev_nodes[k] = np.asarray(spline(nodes)).reshape(len(nodes), -1)
+            at_nodes = np.asarray(spline(nodes)).reshape(len(nodes), -1)
         else:  # a constant departure: the mean of its beads' residuals
             fit = np.tile(r.mean(axis=0), (n, 1))
             dof = np.ones(n_c)
-            dev_nodes[k] = np.tile(r.mean(axis=0), (len(nodes), 1))
+            at_nodes = np.tile(r.mean(axis=0), (len(nodes), 1))
         s2 = ((r - fit) ** 2).sum(axis=0) / np.maximum(n - dof, 1.0)
         if n <= 1:  # one bead: its noise cannot be measured; the family's mean
             s2 = np.full(n_c, np.inf)
-        dev_beads[k] = (at, fit)
-        var[k] = s2 * dof / n
+        return at_nodes, (at, fit), s2 * dof / n
+
+    got = dict(zip(some, map_threads(departure, some), strict=True))
+    dev_nodes = {k: g[0] for k, g in got.items()}
+    dev_beads = {k: g[1] for k, g in got.items()}
+    var = {k: g[2] for k, g in got.items()}
     used = [k for k in some if np.all(np.isfinite(var[k]))]
     if used:
         spread = np.mean([(dev_nodes[k] ** 2).mean(axis=0) for k in used], axis=0)
