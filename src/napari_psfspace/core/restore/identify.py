@@ -290,12 +290,13 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
                                 (np.arange(n_grid) + 0.5) * w / n_grid, indexing="ij"),
                     axis=-1).reshape(-1, 2)
     res, floor, psfs = np.empty(n_p), np.empty(n_p), []
+    affine = affine_maps(subspace)
     for f in np.unique(folds):
         out = folds == f
         gam, *_ = identify_gamma(c[~out], at[~out], subspace.gammas, prior=prior,
                                  sd=None if sd is None else sd[~out],
                                  amplitude_range=amplitude_range, max_iter=max_iter,
-                                 affine=affine_maps(subspace))
+                                 affine=affine)
         left = patches.subset(out)
         r = residuals_of(subspace.psfs_of(gam, left.centers), left)
         res[out], floor[out] = r.residual, r.noise_floor
