@@ -172,3 +172,27 @@ def test_many_samples_are_binned_without_losing_accuracy():
     assert rms_binned < 1.3 * rms_exact + 1e-3
     assert binned.loo_residuals.shape == (1500,)
     assert np.corrcoef(binned.loo_residuals, exact.loo_residuals)[0, 1] > 0.98
+
+
+@pytest.mark.parametrize("max_nodes", [None, 40])
+def test_refit_equals_a_fresh_fit(max_nodes):
+    """``refit`` reuses the factorisation: the same spline as a new fit of the values, to
+    float64 rounding (eta chosen the same way), binned or not; bad values are refused."""
+    pts, y, rng = _data(3, m=90)
+    w = rng.uniform(0.5, 2.0, len(pts))
+    first = ThinPlateSpline(pts, y, weights=w, max_nodes=max_nodes)
+    z = np.column_stack([_f(pts[:, ::-1]), y ** 2]) + 0.02 * rng.standard_normal((90, 2))
+    fresh = ThinPlateSpline(pts, z, weights=w, max_nodes=max_nodes)
+    again = first.refit(z)
+    assert np.array_equal(again.smoothing, fresh.smoothing)
+    grid = rng.uniform(0, 100, (200, 2))
+    scale = np.abs(z).max()
+    assert np.allclose(again(grid), fresh(grid), rtol=0, atol=1e-10 * scale)
+    assert np.allclose(again.loo_residuals, fresh.loo_residuals, rtol=0, atol=1e-10 * scale)
+    assert np.allclose(first(grid), ThinPlateSpline(pts, y, weights=w,
+                                                    max_nodes=max_nodes)(grid))
+    assert again(grid).shape == (200, 2) and first(grid).shape == (200,)
+    with pytest.raises(ValueError, match="90 rows"):
+        first.refit(z[:10])
+    with pytest.raises(ValueError, match="NaN"):
+        first.refit(np.full(90, np.nan))

@@ -17,16 +17,20 @@ Each output column gets its own ``eta``.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 from scipy import linalg
 
 
 def _tps_kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Thin-plate kernel ``r^2 log r`` between two point sets, shape (len(a), len(b))."""
-    d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=-1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        k = 0.5 * d2 * np.log(d2)
-    k[d2 == 0] = 0.0
+    d2 = (a[:, 0, None] - b[None, :, 0]) ** 2
+    d2 += (a[:, 1, None] - b[None, :, 1]) ** 2
+    k = np.zeros_like(d2)
+    np.log(d2, out=k, where=d2 > 0)  # (0 at r = 0, the kernel's limit)
+    k *= d2
+    k *= 0.5
     return k
 
 
@@ -142,8 +146,6 @@ class ThinPlateSpline:
         self.n_nodes = m
         self.max_dof = (max(3.0, 0.5 * m) if max_dof == "half" else
                         None if max_dof is None else float(max_dof))
-        self.richer = np.zeros(vals.shape[1], bool)
-        self.loo_gain = np.zeros(vals.shape[1])
         self._center = pts.mean(axis=0)
         self._scale = scale if scale > 0 else 1.0
         z = (pts - self._center) / self._scale
@@ -159,8 +161,58 @@ class ThinPlateSpline:
         bt = q2.T @ (dinv[:, None] * q2)
         lam, vec = linalg.eigh(0.5 * (kt + kt.T), 0.5 * (bt + bt.T))
         lam = np.maximum(lam, 1e-12 * max(float(lam.max()), 1e-300))
+        self._factors = (q1, q2, rmat, kmat, dinv, w, lam, vec)
+        self._binned = binned
+        self._fit(vals, smoothing, criterion)
+
+    def refit(self, values, *, smoothing=None, criterion: str = "loo"
+              ) -> ThinPlateSpline:
+        """The spline of the same points, weights and scale fitted to other values.
+
+        Reuses this spline's factorisation (kernel matrix and eigendecomposition): the
+        cost of a fit is then that of choosing ``eta``.
+
+        Parameters
+        ----------
+        values : array_like of shape (M,) or (M, K)
+            New sample values at this spline's points.
+        smoothing, criterion
+            As for :class:`ThinPlateSpline`.
+
+        Returns
+        -------
+        ThinPlateSpline
+        """
+        if criterion not in ("loo", "gcv"):
+            raise ValueError(f"`criterion` must be 'loo' or 'gcv', got {criterion!r}.")
+        vals = np.asarray(values, dtype=np.float64)
+        m = len(self._binned[0]) if self._binned is not None else self.n_nodes
+        if vals.ndim not in (1, 2) or len(vals) != m:
+            raise ValueError(f"`values` must have {m} rows (one per point), got shape "
+                             f"{vals.shape}.")
+        if not np.all(np.isfinite(vals)):
+            raise ValueError("`values` contains NaN or infinite entries.")
+        new = copy.copy(self)
+        new._vector = vals.ndim == 2
+        vals = vals.reshape(m, -1)
+        if self._binned is not None:
+            p0, _, w0, nodes, _, wsum, cell, share = self._binned
+            node_vals = np.column_stack(
+                [np.bincount(cell, weights=w0 * vals[:, j], minlength=len(nodes))
+                 for j in range(vals.shape[1])]) / wsum[:, None]
+            new._binned = (p0, vals, w0, nodes, node_vals, wsum, cell, share)
+            vals = node_vals
+        new._fit(vals, smoothing, criterion)
+        return new
+
+    def _fit(self, vals, smoothing, criterion) -> None:
+        """Coefficients, residuals and leverages of ``vals`` (M, K) on the factors."""
+        q1, q2, rmat, kmat, dinv, w, lam, vec = self._factors
+        m = len(q2)
         proj = vec.T @ (q2.T @ vals)  # (M-3, K)
         n_col = vals.shape[1]
+        self.richer = np.zeros(n_col, bool)
+        self.loo_gain = np.zeros(n_col)
         if smoothing is None:
             etas, scores = self._select(lam, vec, q2, proj, dinv, w, criterion)
         else:
@@ -185,9 +237,9 @@ class ThinPlateSpline:
             [m - float(np.sum(e / (lam + e))) if e > 0 else float(m) for e in etas]
         )
         self.residuals = resid
-        if binned is not None:
+        if self._binned is not None:
             # per sample: in-sample residual, and its share of its node's leverage
-            p0, v0, w0, _, _, _, cell, share = binned
+            p0, v0, w0, _, _, _, cell, share = self._binned
             self.residuals = v0 - self._evaluate(p0)
             node_lev = 1.0 - self._one_minus_leverage  # (nodes, K)
             self._one_minus_leverage = 1.0 - node_lev[cell] * share[:, None]

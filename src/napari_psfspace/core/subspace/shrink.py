@@ -95,10 +95,11 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
     some = [k for k, c in enumerate(centers) if len(c)]
     areas = dict(zip(rich, map_threads(lambda k: voronoi_areas(centers[k], shape), rich),
                      strict=True))
+    splines = dict(zip(rich, map_threads(
+        lambda k: _spline(centers[k], values[k], shape, areas[k]), rich), strict=True))
     if rich:
-        own = map_threads(lambda k: np.asarray(_spline(centers[k], values[k], shape,
-                                                       areas[k])(nodes))
-                          .reshape(len(nodes), -1), rich)
+        own = map_threads(lambda k: np.asarray(splines[k](nodes)).reshape(len(nodes), -1),
+                          rich)
         mu = np.mean(own, axis=0)  # (G, C)
     else:  # no image holds a field: the mean of every bead, constant
         mu = np.tile(np.concatenate([values[k] for k in some]).mean(axis=0), (len(nodes), 1))
@@ -109,7 +110,7 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
         r = values[k] - at
         n = len(r)
         if k in rich:
-            spline = _spline(centers[k], r, shape, areas[k])
+            spline = splines[k].refit(r)  # (the same beads: the same factorisation)
             fit = np.asarray(spline(centers[k])).reshape(n, -1)
             dof = np.asarray(spline.effective_dof, dtype=np.float64).reshape(-1)
             at_nodes = np.asarray(spline(nodes)).reshape(len(nodes), -1)
