@@ -208,6 +208,20 @@ def test_a_flat_held_out_curve_keeps_the_prior_weight():
     assert (w, beaten) == (0.75, True)
 
 
+def test_the_prior_leans_to_the_family_as_the_image_s_share_of_its_field_falls():
+    from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, prior_weight
+    from napari_psfspace.core.subspace.shrink import Fields
+    assert prior_weight(1.0) == PRIOR_WEIGHT and prior_weight(0.0) == 1.0
+    assert prior_weight(0.5) == pytest.approx(0.75)
+    assert prior_weight(float("nan")) == PRIOR_WEIGHT  # unknown: the even blend
+    assert prior_weight(1.7) == PRIOR_WEIGHT and prior_weight(-1.0) == 1.0
+    # the share: shrink factors weighted by the columns' spread; no spread: their mean
+    f = Fields([], [], np.array([[1.0, 0.0], [0.5, 0.5]]), np.array([3.0, 1.0]))
+    assert np.allclose(f.share(), [0.75, 0.5])
+    f0 = Fields([], [], np.array([[0.0, 0.0], [0.0, 0.0]]), np.zeros(2))
+    assert np.allclose(f0.share(), [0.0, 0.0])
+
+
 def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
     from napari_psfspace.core.subspace.choice import pick_weight
     # the family alone better beyond the scatter: the family

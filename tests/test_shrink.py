@@ -52,6 +52,7 @@ def test_faint_beads_lean_on_the_family(seed):
     # 0-0.7 on these seeds) and lose a third of the own fields' error
     shrunk, own, fields = _errors(*_stack(0.1, seed=seed))
     assert fields.shrink.max() < 0.8 and fields.shrink.min() < 0.5
+    assert np.all(fields.share() < 0.8)  # (the shrink factors weighted by tau^2)
     assert shrunk.mean() < 0.8 * own.mean()
     assert np.all(shrunk < 1.1 * own)
 
@@ -63,6 +64,7 @@ def test_bright_beads_keep_their_own_departure(seed):
     # smoother than the field itself, so the spline of it is no worse than the own
     shrunk, own, fields = _errors(*_stack(0.001, seed=seed))
     assert fields.shrink.min() > 0.95
+    assert np.all(fields.share() > 0.95)
     assert np.all(shrunk <= 1.05 * own)
     assert shrunk.max() < 0.01  # ten times the beads' noise
 

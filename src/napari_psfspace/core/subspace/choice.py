@@ -7,8 +7,9 @@ the blend ``w H_family + (1 - w) H_own`` of the family's operator and its own es
 (PSFs ``w h_family + (1 - w) h_own``, still of sum 1) whose weight ``w`` in
 :data:`WEIGHTS` best explains beads of its own that neither model saw (the held-out
 split of :func:`~napari_psfspace.core.subspace.estimate.iter_estimate_subspace`; among
-the weights those beads cannot tell apart, the one nearest the even blend,
-:func:`pick_weight`). ``w = 0`` is the single-image estimate itself, so the family is
+the weights those beads cannot tell apart, the one nearest :func:`prior_weight`: the
+even blend where the image's beads determine its own field, leaning to the family where
+they do not; :func:`pick_weight`). ``w = 0`` is the single-image estimate itself, so the family is
 never kept where the image's held-out beads say its own estimate is better; ``w = 1`` is
 the paper's hard constraint.
 Two estimates with partly independent errors do better blended than either alone (on
@@ -42,11 +43,26 @@ MIN_HELDOUT = 3
 #: The family's weights tried: 0 is the image's own estimate, 1 the family's operator.
 WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: Among the weights the held-out beads cannot tell from the best (and that beat the
-#: image's own estimate), the one kept is the nearest to this (the even blend of two
-#: estimates with partly independent errors). Leaning to the family (0.75, or from 0.5
-#: to 1 with the noise's share of the held-out residuals) helps faint stacks but made
-#: one image of a bright stack worse than its own estimate (bench/RESULTS.md).
+#: image's own estimate), the one kept is the nearest to :func:`prior_weight`: this (the
+#: even blend of two estimates with partly independent errors) for an image whose beads
+#: determine its own field. Leaning to the family on every image (0.75, or from 0.5 to 1
+#: with the noise's share of the held-out residuals) helps faint stacks but made one
+#: image of a bright stack worse than its own estimate (bench/RESULTS.md).
 PRIOR_WEIGHT = 0.5
+
+
+def prior_weight(share: float) -> float:
+    """The family's weight a blend leans to, from the image's share of its own field.
+
+    ``share`` (:meth:`~napari_psfspace.core.subspace.shrink.Fields.share`, in [0, 1]) is
+    how much of its departure from the family's mean field the image's own beads
+    determine (empirical Bayes: its departure's spread over the family against its
+    noise). Where they determine it (bright or many beads, ``share`` 1) the even blend
+    :data:`PRIOR_WEIGHT`; where they determine none of it (``share`` 0) its own estimate
+    is mostly noise, and the family's operator (1); linear between.
+    """
+    s = float(np.clip(share, 0.0, 1.0)) if np.isfinite(share) else 1.0
+    return 1.0 - (1.0 - PRIOR_WEIGHT) * s
 
 
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
@@ -165,7 +181,8 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
     Parameters
     ----------
     family : OperatorSubspace
-        The family learnt without the held-out beads.
+        The family learnt without the held-out beads (its ``metadata["field_share"]``,
+        when there, sets each image's :func:`prior_weight`).
     k : int
         The image's index in ``family``.
     own_operator : ProductConvolution or None
@@ -192,7 +209,10 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
                       {})
     res = {w: residuals_of(w * fam_psf + (1 - w) * own_psf, held) for w in WEIGHTS}
     by_weight = {w: float(np.mean(r.residual)) for w, r in res.items()}
-    best, beaten = pick_weight({w: r.residual for w, r in res.items()})
+    shares = family.metadata.get("field_share")
+    prior = prior_weight(shares[k]) if shares is not None and k < len(shares) else \
+        PRIOR_WEIGHT
+    best, beaten = pick_weight({w: r.residual for w, r in res.items()}, prior=prior)
     if not beaten:
         reason = (f"the image's own estimate: no family weight explains its held-out beads "
                   f"better beyond their scatter (best {best:g}: {by_weight[best]:.4f} "

@@ -292,6 +292,8 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
         "n_space": int(n_j), "n_space_rule": int(rank_by_threshold(s, stacked.shape)[0]),
         "refine": bool(refine), "denoise": bool(denoise),
     }
+    if pooled.fields is not None:  # each image's share of its own field (shrink.py)
+        meta["field_share"] = [round(float(v), 4) for v in pooled.fields.share()]
     return OperatorSubspace(images, space_grid, (gy, gx), shape, gammas, cone,
                             grid_step=float(grid_step), metadata=meta)
 

@@ -56,11 +56,26 @@ class Fields:
     shrink : ndarray of shape (K, C)
         ``tau^2 / (tau^2 + v_k)`` of each image and column (1: its own field; 0: the
         family's mean).
+    tau2 : ndarray of shape (C,)
+        The spread of the images' departures from the family's mean, per column (less
+        their noise).
     """
 
     nodes: list
     beads: list
     shrink: np.ndarray
+    tau2: np.ndarray
+
+    def share(self) -> np.ndarray:
+        """Each image's share of its own field, shape (K,): the shrink factors weighted
+        by the columns' spread ``tau^2`` (1: its beads determine its departure from the
+        family's mean; 0: they do not, the family's mean stands for it); where no
+        column departs from the mean beyond the noise, the plain mean of the factors
+        (all 0: the family's mean for every image)."""
+        total = float(self.tau2.sum())
+        if total <= 0:
+            return self.shrink.mean(axis=1)
+        return self.shrink @ self.tau2 / total
 
 
 def _spline(centers, values, shape, weights) -> ThinPlateSpline:
@@ -143,4 +158,4 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
         at, fit = dev_beads[k]
         out_nodes[k] = mu + dev_nodes[k] * s
         out_beads[k] = at + fit * s
-    return Fields(out_nodes, out_beads, shrink)
+    return Fields(out_nodes, out_beads, shrink, tau2)
