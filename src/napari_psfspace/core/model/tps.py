@@ -49,11 +49,15 @@ def _bin_samples(pts: np.ndarray, vals: np.ndarray, w: np.ndarray, max_nodes: in
     _, cell = np.unique(idx[:, 0] * g + idx[:, 1], return_inverse=True)
     n = int(cell.max()) + 1
     wsum = np.bincount(cell, weights=w, minlength=n)
-    nodes = np.column_stack([np.bincount(cell, weights=w * pts[:, j], minlength=n)
-                             for j in range(2)]) / wsum[:, None]
-    node_vals = np.column_stack([np.bincount(cell, weights=w * vals[:, j], minlength=n)
-                                 for j in range(vals.shape[1])]) / wsum[:, None]
-    return nodes, node_vals, wsum, cell, w / wsum[cell]
+    nodes = _cell_means(pts, w, cell, wsum)
+    return nodes, _cell_means(vals, w, cell, wsum), wsum, cell, w / wsum[cell]
+
+
+def _cell_means(vals: np.ndarray, w: np.ndarray, cell: np.ndarray,
+                wsum: np.ndarray) -> np.ndarray:
+    """Weighted means (n, K) of the samples' values (M, K) in each cell."""
+    return np.column_stack([np.bincount(cell, weights=w * vals[:, j], minlength=len(wsum))
+                            for j in range(vals.shape[1])]) / wsum[:, None]
 
 
 #: A field richer than ``max_dof`` must lower the leave-one-out error by this many
@@ -197,9 +201,7 @@ class ThinPlateSpline:
         vals = vals.reshape(m, -1)
         if self._binned is not None:
             p0, _, w0, nodes, _, wsum, cell, share = self._binned
-            node_vals = np.column_stack(
-                [np.bincount(cell, weights=w0 * vals[:, j], minlength=len(nodes))
-                 for j in range(vals.shape[1])]) / wsum[:, None]
+            node_vals = _cell_means(vals, w0, cell, wsum)
             new._binned = (p0, vals, w0, nodes, node_vals, wsum, cell, share)
             vals = node_vals
         new._fit(vals, smoothing, criterion)
