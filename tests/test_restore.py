@@ -13,6 +13,7 @@ from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.restore.deconvolve import SmoothGrid, deblur, iter_deblur
 from napari_psfspace.core.restore.fista import BlockFista
 from napari_psfspace.core.restore.identify import (
+    MIN_BEADS_JUDGED,
     IdentificationWarning,
     identify_operator,
     solve_identification,
@@ -246,6 +247,7 @@ def test_five_beads_identify_the_operator_of_a_new_image(family):
             op = identify_operator(image, sub, beads=five)
         info = op.metadata["identification"]
         assert info["n_beads"] >= 4 and len(info["weights"]) == sub.n_images
+        assert info["choice"] is None  # too few beads to judge against the image's own
         # the warning is issued exactly when the metadata holds one
         assert (info["warning"] is not None) == any(
             issubclass(w.category, IdentificationWarning) for w in caught)
@@ -283,6 +285,31 @@ def test_identification_warns_when_the_family_cannot_explain_the_beads(family):
     near = identify_operator(family[2][0], sub)
     assert near.metadata["identification"]["warning"] is None
     assert near.metadata["identification"]["psf_spread"] < info["psf_spread"]
+
+
+def test_many_beads_identify_no_worse_than_the_image_alone(family):
+    """With many beads the identified operator is judged against the image's own
+    estimate on held-out beads, and blended with it (issue 24: never worse than the
+    simpler baseline). An image 0.3 waves out of focus, beyond the range the family
+    learnt, with 24 bright beads: the family's operator alone misses it."""
+    from napari_psfspace.core.simulation.stacks import Condition
+
+    sub, r, _, _ = family
+    image, truths, _ = simulate_stack(1, (384, 384), 24, seed=6,
+                                      conditions=[Condition(0.3, 0.0, 0.0, 0.0)],
+                                      amplitude=(2e4, 3e4))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        op = identify_operator(image[0], sub)
+    info = op.metadata["identification"]
+    assert info["n_beads"] >= MIN_BEADS_JUDGED and info["choice"]["family_weight"] < 1.0
+    alone = np.mean(grid_errors(estimate_operator(image[0], psf_radius=r), truths[0], n=4))
+    identified = np.mean(grid_errors(sub.operator_from(np.asarray(info["gamma"]),
+                                                       project=False), truths[0], n=4))
+    kept = np.mean(grid_errors(op, truths[0], n=4))
+    print(alone, identified, kept)
+    assert identified > 1.3 * alone  # the case the judgement is for
+    assert kept <= 1.1 * alone
 
 
 def test_identification_refuses_what_it_cannot_do(family):

@@ -196,7 +196,18 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
     """
     if held is None or len(held) == 0:
         return Choice(1.0, None, None, None, "no held-out beads: the family's operator", {})
-    fam_psf = family.psfs_at(k, held.centers)
+    shares = family.metadata.get("field_share")
+    prior = prior_weight(shares[k]) if shares is not None and k < len(shares) else \
+        PRIOR_WEIGHT
+    return choose_between(family.psfs_at(k, held.centers), own_operator, held, prior=prior)
+
+
+def choose_between(family_psfs: np.ndarray, own_operator: ProductConvolution | None,
+                   held: Patches, *, prior: float = PRIOR_WEIGHT) -> Choice:
+    """The family's weight that best explains held-out beads, given the family's PSFs at
+    them (``family_psfs``, (B, P, P)) and the image's own estimate from the other beads
+    (None: none possible); :func:`pick_weight` with ``prior``. See :func:`choose`."""
+    fam_psf = family_psfs
     fam = residuals_of(fam_psf, held)
     if own_operator is None:
         return Choice(1.0, fam, None, fam, f"fewer than {MIN_BEADS_OWN} training beads: "
@@ -209,9 +220,6 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
                       {})
     res = {w: residuals_of(w * fam_psf + (1 - w) * own_psf, held) for w in WEIGHTS}
     by_weight = {w: float(np.mean(r.residual)) for w, r in res.items()}
-    shares = family.metadata.get("field_share")
-    prior = prior_weight(shares[k]) if shares is not None and k < len(shares) else \
-        PRIOR_WEIGHT
     best, beaten = pick_weight({w: r.residual for w, r in res.items()}, prior=prior)
     if not beaten:
         reason = (f"the image's own estimate: no family weight explains its held-out beads "
