@@ -263,9 +263,9 @@ def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
 #: estimate on held-out beads (a fifth of them): with as many, the image's own estimate
 #: is a real alternative, and the identification is kept no worse than it (blended with
 #: it, or replaced, as the family's images are: :mod:`~napari_psfspace.core.subspace.
-#: choice`). From all of an image's beads the identified operator was up to 1.6x the
-#: error of ``estimate_operator`` on wide focus series (``bench/bench_identify_wide.py``,
-#: column ``all``).
+#: choice`). From all of an image's beads the identified operator could be worse than
+#: ``estimate_operator`` on wide focus series (``bench/bench_identify_wide.py``, column
+#: ``all``; bench/RESULTS.md).
 MIN_BEADS_JUDGED = 15
 
 
