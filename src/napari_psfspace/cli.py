@@ -28,8 +28,12 @@ SCHEDULER_TIMEOUT = "10s"
 
 def _progress_printer(stream=None):
     start = time.perf_counter()
+    last: list = []
 
     def show(p):
+        if last == [p]:  # a long step's repeated record (it is still running)
+            return
+        last[:] = [p]
         print(f"[{100 * p.fraction:5.1f}% {time.perf_counter() - start:6.1f}s] {p.stage}: "
               f"{p.message}", file=stream or sys.stderr, flush=True)
 

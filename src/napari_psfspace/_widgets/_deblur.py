@@ -94,7 +94,7 @@ class DeblurWidget(Container):
         self.in_viewer = ComboBox(label="in the viewer", choices=self._models, visible=False)
         self.points = ComboBox(label="beads", choices=self._points)
         self.points.tooltip = ("Beads to identify a family's operator from (at least J; "
-                               "10 spread over the field identify it far better than 5); "
+                               "10 spread over the field identify it better than 5); "
                                "(detect) finds them. Ignored for a model.")
         self.auto = CheckBox(value=True, text="weights from the noise")
         self.sparse_weight = FloatSpinBox(label="sparse weight", min=0.0, max=1e12,

@@ -8,6 +8,7 @@ and stops between two records (Cancel); a script calls the function.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any
@@ -60,4 +61,43 @@ def run_with_progress(gen: Generator[Progress, None, Any],
             progress(rec)
 
 
-__all__ = ["Progress", "ProgressCallback", "run_with_progress"]
+def wait_with_progress(fn: Callable[[], Any], record: Progress, *,
+                       every: float = 0.2) -> Generator[Progress, None, Any]:
+    """Run ``fn()`` in a thread of its own, yielding ``record`` every ``every`` seconds
+    until it returns; return its value (or raise its exception).
+
+    A long step that cannot yield itself (one ``dask.compute`` of many tasks) then keeps
+    its generator answering: a consumer that stops between two records (Cancel) is
+    answered within ``every`` seconds. The step itself runs on to its end in its thread
+    (a compute cannot be interrupted), and its result is dropped.
+
+    Parameters
+    ----------
+    fn : callable
+        The step, without arguments.
+    record : Progress
+        Yielded while it runs.
+    every : float
+        Seconds between two records.
+    """
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # handed to the generator's consumer
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="psfspace-step", daemon=True)
+    thread.start()
+    while True:
+        thread.join(timeout=float(every))
+        if not thread.is_alive():
+            break
+        yield record
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
+__all__ = ["Progress", "ProgressCallback", "run_with_progress", "wait_with_progress"]

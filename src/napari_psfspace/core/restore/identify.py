@@ -24,13 +24,14 @@ the cone alone keeps it plausible.
 By default (``prior=True``) the family is a prior rather than a hard constraint: on
 wide focus series the cone's ``Gamma`` is far from the truth even identified from all
 the image's beads (a condition between those learnt is rarely a non-negative mix of
-them). The weights of the ``Gamma_k`` are then left free in sign, and the ``Gamma``
-corrected towards the beads by kernel ridge regression with the family's spatial kernel
-(:func:`identify_gamma`; both measured by ``bench/bench_identify_wide.py``).
-:func:`resample` says how sure it is (the spread of the PSFs when beads are left out),
-and a warning (:class:`IdentificationWarning`,
+them). The weights of the ``Gamma_k`` are then left free in sign and vary over the
+field as a plane (a tilted focus puts each part of the field under another condition),
+and the ``Gamma`` is corrected towards the beads by kernel ridge regression with the
+family's spatial kernel (:func:`identify_gamma`; each measured by
+``bench/bench_identify_wide.py``). :func:`resample` says how sure it is (the spread of
+the PSFs when beads are left out), and a warning (:class:`IdentificationWarning`,
 ``metadata["identification"]["warning"]``) says when the operator misses the clicked
-beads beyond their noise.
+beads (or one of them) beyond their noise.
 """
 
 from __future__ import annotations
@@ -68,7 +69,8 @@ def _coefficients(psf: np.ndarray, basis: np.ndarray) -> np.ndarray:
 def solve_identification(c: np.ndarray, v: np.ndarray, *,
                          amplitude_range: tuple[float, float] = AMPLITUDE_RANGE,
                          max_iter: int = 100, tol: float = 1e-8,
-                         prior: np.ndarray | None = None, sd: np.ndarray | None = None
+                         prior: np.ndarray | None = None, sd: np.ndarray | None = None,
+                         n_slopes: int = 0
                          ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Problem (9) in the cone's weights.
 
@@ -92,6 +94,10 @@ def solve_identification(c: np.ndarray, v: np.ndarray, *,
     sd : ndarray of shape (P,), optional
         Noise standard deviation of each bead's coefficients (default 1: then the prior
         is only the small :data:`WEIGHT_RIDGE`).
+    n_slopes : int
+        With ``prior``: the last ``n_slopes`` of the ``K`` weights are slopes of the
+        weights over the field (:func:`identify_gamma`), centred on 0 with the ridge
+        :data:`SLOPE_RIDGE`; the others are the weights proper.
 
     Returns
     -------
@@ -117,11 +123,14 @@ def solve_identification(c: np.ndarray, v: np.ndarray, *,
             w = np.repeat(1.0 / np.asarray(sd, np.float64) ** 2, n_i) if sd is not None \
                 else np.ones(n_p * n_i)
             normal = m_mat.T @ (w[:, None] * m_mat)
-            eps = WEIGHT_RIDGE * max(float(np.trace(normal)) / n_k, 1e-300)
+            mean_diag = max(float(np.trace(normal)) / n_k, 1e-300)
+            n_w = n_k - int(n_slopes)
+            eps = WEIGHT_RIDGE * mean_diag
             if sd is not None:
-                eps = max(eps, 1.0 / max(float(np.mean(prior ** 2)), 1e-300))
-            lam = np.linalg.solve(normal + eps * np.eye(n_k),
-                                  m_mat.T @ (w * c.ravel()) + eps * prior)
+                eps = max(eps, 1.0 / max(float(np.mean(prior[:n_w] ** 2)), 1e-300))
+            reg = np.full(n_k, eps)
+            reg[n_w:] = SLOPE_RIDGE * mean_diag
+            lam = np.linalg.solve(normal + np.diag(reg), m_mat.T @ (w * c.ravel()) + reg * prior)
         m = np.tensordot(lam, v, axes=1)  # (P, I)
         mm = (m * m).sum(axis=1)
         g = np.where(mm > 0, (m * c).sum(axis=1) / np.maximum(mm, 1e-300), 1.0).clip(a, b)
@@ -156,6 +165,12 @@ WARN_RATIO = 1.1
 #: floor otherwise.
 WARN_MODEL_ERROR = 0.1
 WARN_FLOOR = 0.03
+#: The warning's bound on the worst clicked bead, in units of ``warning_bound``: the
+#: median (``model_error``) hides one bead of five that the family cannot explain (a
+#: corner of a tilted field beyond the focus learnt: its PSF a third outside the
+#: family's PSF basis; an unresolved pair). Set above the worst bead of 5 on all but a
+#: few images of wide focus series (``bench/bench_identify_wide.py``; bench/RESULTS.md).
+WARN_BEAD_RATIO = 4.0
 
 
 def family_model_error(subspace: OperatorSubspace) -> float | None:
@@ -197,6 +212,19 @@ def affine_maps(subspace: OperatorSubspace) -> np.ndarray:
     return plane.T @ subspace.space.reshape(subspace.n_space, -1).T
 
 
+def slope_frame(subspace: OperatorSubspace, centers: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """What :func:`identify_gamma` needs for weights that vary over the field: the
+    centred coordinates (row, column, scaled to the image: -0.5 to 0.5) of the beads at
+    ``centers`` (P, 2) and of the grid's nodes (G, 2), and the spatial basis at the
+    nodes (G, J)."""
+    gy, gx = subspace.grid
+    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+    size = np.asarray(subspace.shape, np.float64)
+    return (np.asarray(centers, np.float64) / size - 0.5, nodes / size - 0.5,
+            subspace.space.reshape(subspace.n_space, -1).T)
+
+
 def affine_correction(at: np.ndarray, residual: np.ndarray, affine: np.ndarray,
                       sd: np.ndarray | None = None) -> np.ndarray:
     """The change of ``Gamma`` (I, J) whose maps are affine over the field (``affine``,
@@ -221,14 +249,18 @@ def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
                    prior: bool = True, sd: np.ndarray | None = None,
                    amplitude_range=AMPLITUDE_RANGE,
                    max_iter: int = 100,
-                   affine: np.ndarray | None = None
+                   affine: np.ndarray | None = None,
+                   slopes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
     """``Gamma`` (I, J) of the beads' coefficients ``c`` (P, I) at ``at`` (P, J).
 
     ``prior=False``: the paper's problem (9), ``Gamma`` in the cone of the ``Gamma_k``.
     ``prior=True``: the family as a prior: the weights of the ``Gamma_k`` free in sign
     (a condition between those learnt is rarely a non-negative mix of them; kept near
-    the cone's solution by :data:`WEIGHT_RIDGE` where undetermined), then, with
+    the cone's solution by :data:`WEIGHT_RIDGE` where undetermined; with ``slopes``
+    (:func:`slope_frame`), the weights vary over the field as a plane, its slopes kept
+    near 0 by :data:`SLOPE_RIDGE`: a tilted focus puts one part of the field under one
+    learnt condition and another part under another), then, with
     ``affine`` (:func:`affine_maps`), the :func:`affine_correction` (a focus shift and a
     tilt of the slide move the whole field; a few beads determine an affine change
     where they do not determine a free one), then the kernel ridge :func:`correction`
@@ -238,18 +270,35 @@ def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
     Returns
     -------
     gamma : ndarray of shape (I, J)
+        With ``slopes``, the one whose coefficients are nearest those of the weights
+        varying over the field, at the grid's nodes.
     weights : ndarray of shape (K,)
+        The weights at the centre of the field.
     amplitudes : ndarray of shape (P,)
     objective : list of float
     """
     v = np.einsum("pj,kij->kpi", at, gammas)  # (K, P, I)
     lam, g, history = solve_identification(c, v, amplitude_range=amplitude_range,
                                            max_iter=max_iter)
-    if prior:
+    gamma = None
+    if prior and slopes is not None:
+        at_beads, at_nodes, space_nodes = slopes
+        n_k = len(gammas)
+        v3 = np.concatenate([v, v * at_beads[None, :, 0, None], v * at_beads[None, :, 1, None]])
+        w3, g, more = solve_identification(c, v3, amplitude_range=amplitude_range,
+                                           max_iter=max_iter, sd=sd, n_slopes=2 * n_k,
+                                           prior=np.concatenate([lam, np.zeros(2 * n_k)]))
+        history = history + more
+        lam = w3[:n_k]
+        field = lam + at_nodes @ w3[n_k:].reshape(2, n_k)  # (G, K): the weights at the nodes
+        coef = np.einsum("gk,kij,gj->gi", field, gammas, space_nodes)  # (G, I)
+        gamma = np.linalg.lstsq(space_nodes, coef, rcond=None)[0].T
+    elif prior:
         lam, g, more = solve_identification(c, v, amplitude_range=amplitude_range,
                                             max_iter=max_iter, prior=lam, sd=sd)
         history = history + more
-    gamma = np.tensordot(lam, gammas, axes=1)
+    if gamma is None:
+        gamma = np.tensordot(lam, gammas, axes=1)
     if prior and affine is not None:
         gamma = gamma + affine_correction(at, c / g[:, None] - at @ gamma.T, affine, sd)
     if prior:
@@ -257,6 +306,14 @@ def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
         gamma = gamma + correction(at, c / g[:, None] - at @ gamma.T,
                                    CORRECTION_RIDGE * scale)
     return gamma, lam, g, history
+
+
+#: Ridge of the slopes of the ``Gamma_k``'s weights over the field (:func:`identify_gamma`),
+#: relative to the mean diagonal of the normal matrix. Chosen on wide focus series from 5
+#: beads (``bench/bench_identify_wide.py``), at the upper end of a plateau spanning a
+#: decade, where 5 random beads of a narrow faint family lose nothing against the
+#: weights without slopes (``tests/test_restore.py``); figures in bench/RESULTS.md.
+SLOPE_RIDGE = 0.01
 
 
 #: Fewest usable beads at which the identified operator is judged against the image's own
@@ -289,7 +346,8 @@ def judge_against_own(patches, c: np.ndarray, at: np.ndarray, subspace: Operator
     gam, *_ = identify_gamma(c[~mask], at[~mask], subspace.gammas, prior=prior,
                              sd=None if sd is None else sd[~mask],
                              amplitude_range=amplitude_range, max_iter=max_iter,
-                             affine=affine_maps(subspace))
+                             affine=affine_maps(subspace),
+                             slopes=slope_frame(subspace, patches.centers[~mask]))
     held = patches.subset(mask)
     own = own_estimate(patches.subset(~mask), subspace.shape, grid_step=subspace.grid_step,
                        n_image=len(c))
@@ -335,7 +393,8 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
         gam, *_ = identify_gamma(c[~out], at[~out], subspace.gammas, prior=prior,
                                  sd=None if sd is None else sd[~out],
                                  amplitude_range=amplitude_range, max_iter=max_iter,
-                                 affine=affine)
+                                 affine=affine,
+                                 slopes=slope_frame(subspace, patches.centers[~out]))
         left = patches.subset(out)
         r = residuals_of(subspace.psfs_of(gam, left.centers), left)
         res[out], floor[out] = r.residual, r.noise_floor
@@ -398,8 +457,9 @@ def identify_operator(
         relative error of the operator beyond the noise (which
         :func:`~napari_psfspace.core.restore.deconvolve.deblur` allows for); how sure it
         is (:func:`resample`: ``psf_spread``, ``cv_model_error``, ...); ``warning``
-        (None, or why the family does not explain the beads: ``model_error`` above
-        ``warning_bound``, :func:`warn_bound`; an :class:`IdentificationWarning` is
+        (None, or why: the family does not explain the beads, ``model_error`` above
+        ``warning_bound``, :func:`warn_bound`, or one of them, by more than
+        :data:`WARN_BEAD_RATIO` times that bound; an :class:`IdentificationWarning` is
         issued too) and ``prior``; ``choice`` (None below :data:`MIN_BEADS_JUDGED`
         beads; else the held-out judgement against the image's own estimate,
         :func:`judge_against_own`: ``family_weight`` < 1 blends the own estimate in,
@@ -440,7 +500,8 @@ def identify_operator(
     sd = patches.noise / patches.flux  # per-pixel noise of the sum-1 patches
     gamma, lam, g, history = identify_gamma(c, at, subspace.gammas, prior=prior, sd=sd,
                                             amplitude_range=amplitude_range,
-                                            max_iter=max_iter, affine=affine_maps(subspace))
+                                            max_iter=max_iter, affine=affine_maps(subspace),
+                                            slopes=slope_frame(subspace, patches.centers))
     if not prior and not lam.any():
         raise ValueError("the beads' PSFs lie outside the family's cone (every weight is "
                          "0): is this image from the same microscope and PSF radius?")
@@ -458,11 +519,22 @@ def identify_operator(
                    "may be far from this image's (a condition the family did not learn, "
                    "another microscope, or beads that are not single points): click more "
                    "beads, or learn a family that covers this condition")
+    per_bead = np.sqrt(np.maximum(fit.residual ** 2 - fit.noise_floor ** 2, 0.0))
+    worst = int(np.argmax(per_bead))
+    if model_error <= bound and per_bead[worst] > WARN_BEAD_RATIO * bound:
+        y, x = patches.centers[worst]
+        warning = (f"the family does not explain the clicked bead at ({y:.0f}, {x:.0f}): "
+                   f"its operator misses it by {per_bead[worst]:.2f} of its PSF beyond its "
+                   f"noise ({per_bead[worst] / bound:.1f}x the bound {bound:.2g}); the "
+                   "operator may be far from this image's around it (a condition the "
+                   "family did not learn there, or not a single bead): click more beads "
+                   "around it, or learn a family that covers this condition")
     meta = {"identification": {
         "model_error": model_error,
         "residual_median": float(np.median(fit.residual)),
         "noise_floor_median": float(np.median(fit.noise_floor)),
         **sure, "warning": warning, "warning_bound": bound, "prior": bool(prior),
+        "bead_model_errors": per_bead.tolist(),
         "gamma": gamma.tolist(), "weights": lam.tolist(),
         "positions": patches.centers.tolist(), "amplitudes": g.tolist(),
         "objective": history, "n_beads": int(len(c)), "n_space": subspace.n_space,

@@ -41,7 +41,7 @@ import numpy as np
 
 from ..beads.patches import Patches
 from ..beads.window import bump_window, radial_distance
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress, run_with_progress, wait_with_progress
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
@@ -342,7 +342,10 @@ def iter_estimate_subspace(
     found: list[ImagePatches] = []
     step = max(1, int(chunk))
     for start in range(0, len(tasks), step):
-        found += _compute(tasks[start:start + step], client)
+        found += yield from wait_with_progress(
+            lambda part=tasks[start:start + step]: _compute(part, client),
+            Progress("patches", 0.6 * len(found) / len(tasks),
+                     f"{len(found)} of {len(tasks)} images: beads being extracted"))
         yield Progress("patches", 0.6 * len(found) / len(tasks),
                        f"{len(found)} of {len(tasks)} images: "
                        f"{sum(f.n_beads for f in found)} beads")
@@ -408,7 +411,10 @@ def iter_estimate_subspace(
             dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
                                        denoise=denoise, n_image=used[i].n_beads)
             for i in judged]
-        trained, *owns = _compute(tasks, client) if held else (None,)
+        trained, *owns = (yield from wait_with_progress(
+            lambda: _compute(tasks, client),
+            Progress("held-out", 0.6, "learning without the held-out beads"))
+            ) if held else (None,)
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
                                         f"held-out beads of {len(held)} images")
         own_train = dict(zip(judged, owns, strict=True))
@@ -422,7 +428,9 @@ def iter_estimate_subspace(
     tasks = [dask.delayed(_learn)(used, shape, **options)] + [
         dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
                                    denoise=denoise) for i in blended]
-    sub, *owns = _compute(tasks, client)
+    sub, *owns = yield from wait_with_progress(
+        lambda: _compute(tasks, client),
+        Progress("subspace", 0.8, f"learning from the {len(used)} images"))
     weights = np.ones(len(used))
     for i, own in zip(blended, owns, strict=True):
         if own is not None:
