@@ -41,3 +41,22 @@ def test_a_consumer_that_stops_is_answered_before_the_step_ends():
     stopped = time.perf_counter() - t0
     release.set()  # the step ends on its own
     assert stopped < 5.0  # the step alone would have taken 30 s
+
+
+def test_a_family_compute_in_its_own_thread_uses_no_more_threads_than_cores():
+    """dask's threads scheduler, called from a thread other than the main one, would make
+    a pool of Python's default size (cores + 4): on 2 cores that oversubscribed them and
+    made learning a family half as slow again. The family's computes name their workers."""
+    import dask
+    from dask.system import CPU_COUNT
+
+    from napari_psfspace.core.subspace.estimate import _compute
+
+    def who(_):
+        time.sleep(0.02)  # long enough for every worker of the pool to take a task
+        return threading.get_ident()
+
+    tasks = [dask.delayed(who)(i) for i in range(8 * (CPU_COUNT + 4))]
+    idents = run_with_progress(wait_with_progress(lambda: _compute(tasks, None), RECORD,
+                                                  every=0.05))
+    assert len(set(idents)) <= CPU_COUNT

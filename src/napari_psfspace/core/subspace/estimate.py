@@ -92,7 +92,12 @@ def _compute(tasks: list, client) -> list:
 
     if client is not None:
         return list(client.gather(client.compute(tasks)))
-    return list(dask.compute(*tasks, scheduler="threads"))
+    from dask.system import CPU_COUNT
+
+    # the workers named: called from a thread other than the main one (Cancel,
+    # wait_with_progress), dask's threads scheduler would otherwise make a pool of
+    # Python's default size (cores + 4), oversubscribing the cores
+    return list(dask.compute(*tasks, scheduler="threads", num_workers=CPU_COUNT))
 
 
 def _image_map(centers: np.ndarray, coef: np.ndarray, nodes: np.ndarray,
