@@ -60,3 +60,8 @@ def test_a_family_compute_in_its_own_thread_uses_no_more_threads_than_cores():
     idents = run_with_progress(wait_with_progress(lambda: _compute(tasks, None), RECORD,
                                                   every=0.05))
     assert len(set(idents)) <= CPU_COUNT
+    # a user's dask setting is kept
+    with dask.config.set(num_workers=1):
+        idents = run_with_progress(wait_with_progress(lambda: _compute(tasks, None), RECORD,
+                                                      every=0.05))
+    assert len(set(idents)) == 1

@@ -24,6 +24,17 @@ def default_workers() -> int:
     return os.cpu_count() or 1
 
 
+def dask_workers() -> int:
+    """Threads for a local dask compute: dask's ``num_workers`` setting, else the cores
+    dask counts (``dask.system.CPU_COUNT``). Named on every compute: from a thread other
+    than the main one, dask's threads scheduler would otherwise make a pool of Python's
+    default size (cores + 4)."""
+    import dask
+    from dask.system import CPU_COUNT
+
+    return int(dask.config.get("num_workers", None) or CPU_COUNT)
+
+
 def _pool(workers: int) -> ThreadPoolExecutor:
     global _POOL
     with _POOL_LOCK:

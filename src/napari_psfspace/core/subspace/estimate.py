@@ -42,6 +42,7 @@ import numpy as np
 from ..beads.patches import Patches
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress
+from ..common.threads import dask_workers
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
@@ -92,12 +93,10 @@ def _compute(tasks: list, client) -> list:
 
     if client is not None:
         return list(client.gather(client.compute(tasks)))
-    from dask.system import CPU_COUNT
-
-    # the workers named: called from a thread other than the main one (Cancel,
-    # wait_with_progress), dask's threads scheduler would otherwise make a pool of
-    # Python's default size (cores + 4), oversubscribing the cores
-    return list(dask.compute(*tasks, scheduler="threads", num_workers=CPU_COUNT))
+    # the workers named (dask's setting, else the cores): called from a thread other than
+    # the main one (Cancel, wait_with_progress), dask's threads scheduler would otherwise
+    # make a pool of Python's default size (cores + 4), oversubscribing the cores
+    return list(dask.compute(*tasks, scheduler="threads", num_workers=dask_workers()))
 
 
 def _image_map(centers: np.ndarray, coef: np.ndarray, nodes: np.ndarray,

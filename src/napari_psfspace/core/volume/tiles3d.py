@@ -165,11 +165,11 @@ def richardson_lucy_3d_tiled(
         return res
     if client is not None:
         return np.asarray(client.compute(res).result())
-    from dask.system import CPU_COUNT
+    from ..common.threads import dask_workers
 
     # the workers named: from a thread other than the main one (a widget's worker),
     # dask's threads scheduler would otherwise make a pool of cores + 4 threads
-    return np.asarray(res.compute(num_workers=CPU_COUNT))
+    return np.asarray(res.compute(num_workers=dask_workers()))
 
 
 __all__ = ["TILE", "TileTask", "deblur_tile", "default_halo", "richardson_lucy_3d_tiled",
