@@ -65,3 +65,16 @@ def test_a_family_compute_in_its_own_thread_uses_no_more_threads_than_cores():
         idents = run_with_progress(wait_with_progress(lambda: _compute(tasks, None), RECORD,
                                                       every=0.05))
     assert len(set(idents)) == 1
+
+
+def test_steps_reuse_their_thread_and_one_left_running_holds_up_no_other():
+    first = run_with_progress(wait_with_progress(threading.get_ident, RECORD))
+    assert run_with_progress(wait_with_progress(threading.get_ident, RECORD)) == first
+    release = threading.Event()
+    left = wait_with_progress(lambda: release.wait(30), RECORD, every=0.05)
+    next(left)
+    left.close()  # Cancel: the step runs on
+    t0 = time.perf_counter()
+    other = run_with_progress(wait_with_progress(threading.get_ident, RECORD, every=0.05))
+    assert time.perf_counter() - t0 < 5.0 and other != threading.get_ident()
+    release.set()

@@ -8,8 +8,10 @@ and stops between two records (Cancel); a script calls the function.
 
 from __future__ import annotations
 
+import queue
 import threading
 from collections.abc import Callable, Generator
+from concurrent.futures import Future, wait
 from dataclasses import dataclass
 from typing import Any
 
@@ -63,7 +65,7 @@ def run_with_progress(gen: Generator[Progress, None, Any],
 
 def wait_with_progress(fn: Callable[[], Any], record: Progress, *,
                        every: float = 0.2) -> Generator[Progress, None, Any]:
-    """Run ``fn()`` in a thread of its own, yielding ``record`` every ``every`` seconds
+    """Run ``fn()`` in another thread, yielding ``record`` every ``every`` seconds
     until it returns; return its value (or raise its exception).
 
     A long step that cannot yield itself (one ``dask.compute`` of many tasks) then keeps
@@ -80,24 +82,62 @@ def wait_with_progress(fn: Callable[[], Any], record: Progress, *,
     every : float
         Seconds between two records.
     """
-    box: dict[str, Any] = {}
-
-    def run() -> None:
-        try:
-            box["value"] = fn()
-        except BaseException as exc:  # handed to the generator's consumer
-            box["error"] = exc
-
-    thread = threading.Thread(target=run, name="psfspace-step", daemon=True)
-    thread.start()
+    future = _steps().submit(fn)
     while True:
-        thread.join(timeout=float(every))
-        if not thread.is_alive():
-            break
+        done, _ = wait([future], timeout=float(every))
+        if done:
+            return future.result()  # its value, or its exception raised here
         yield record
-    if "error" in box:
-        raise box["error"]
-    return box["value"]
+
+
+#: Threads for :func:`wait_with_progress`: reused from one step to the next (dask keeps a
+#: pool of workers per calling thread, and each new thread also costs its own memory
+#: arena); more than one, so that a step left running by a Cancel does not hold up the
+#: next run's. Daemon threads: a step left running never holds up the interpreter's exit.
+STEP_THREADS = 4
+
+
+class _StepThreads:
+    """A few daemon threads that run submitted calls, started as needed."""
+
+    def __init__(self, n: int):
+        self._n, self._queue = int(n), queue.SimpleQueue()
+        self._lock, self._idle, self._threads = threading.Lock(), 0, 0
+
+    def submit(self, fn: Callable[[], Any]) -> Future:
+        future: Future = Future()
+        with self._lock:
+            if self._idle <= 0 and self._threads < self._n:
+                self._threads += 1
+                threading.Thread(target=self._work, daemon=True,
+                                 name=f"psfspace-step-{self._threads}").start()
+            self._idle -= 1  # this call takes one idle thread (or waits for one)
+        self._queue.put((fn, future))
+        return future
+
+    def _work(self) -> None:
+        while True:
+            with self._lock:
+                self._idle += 1
+            fn, future = self._queue.get()
+            if not future.set_running_or_notify_cancel():
+                continue
+            try:
+                future.set_result(fn())
+            except BaseException as exc:  # handed to the caller by future.result()
+                future.set_exception(exc)
+
+
+_STEPS: _StepThreads | None = None
+_STEPS_LOCK = threading.Lock()
+
+
+def _steps() -> _StepThreads:
+    global _STEPS
+    with _STEPS_LOCK:
+        if _STEPS is None:
+            _STEPS = _StepThreads(STEP_THREADS)
+        return _STEPS
 
 
 __all__ = ["Progress", "ProgressCallback", "run_with_progress", "wait_with_progress"]
