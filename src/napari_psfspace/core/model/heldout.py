@@ -94,6 +94,12 @@ def beyond_noise(residual: float, floor: float) -> float:
     return float(np.sqrt(max(float(residual) ** 2 - float(floor) ** 2, 0.0)))
 
 
+def beyond_noise_each(residual: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    """:func:`beyond_noise` of each bead: residuals and floors (n,) give (n,)."""
+    r, f = np.asarray(residual, np.float64), np.asarray(floor, np.float64)
+    return np.sqrt(np.maximum(r ** 2 - f ** 2, 0.0))
+
+
 def median_beyond_noise(residual: np.ndarray, floor: np.ndarray) -> float:
     """:func:`beyond_noise` of beads' residuals and floors (n,), through their squares'
     medians: ``sqrt(median residual^2 - median floor^2)``."""

@@ -44,6 +44,7 @@ from scipy.optimize import nnls
 from ..common.validate import as_image, check_instance, check_int
 from ..model.heldout import (
     beyond_noise,
+    beyond_noise_each,
     heldout_residuals,
     median_beyond_noise,
     residuals_of,
@@ -202,13 +203,22 @@ def correction(at: np.ndarray, residual: np.ndarray, ridge: float) -> np.ndarray
     return (at.T @ alpha).T  # (I, J)
 
 
+def _centred(subspace: OperatorSubspace, points: np.ndarray) -> np.ndarray:
+    """Positions (row, column), pixels, scaled to the image and centred: -0.5 to 0.5."""
+    return np.asarray(points, np.float64) / np.asarray(subspace.shape, np.float64) - 0.5
+
+
+def _nodes(subspace: OperatorSubspace) -> np.ndarray:
+    """The grid's nodes (G, 2), pixels, in the order of the spatial basis's pixels."""
+    gy, gx = subspace.grid
+    return np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
 def affine_maps(subspace: OperatorSubspace) -> np.ndarray:
     """The maps ``1``, ``y`` and ``x`` over the field (coordinates scaled to the image,
     centred) expressed on the family's spatial basis, shape (3, J)."""
-    gy, gx = subspace.grid
-    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-    plane = np.column_stack([np.ones(len(nodes)),
-                             nodes / np.asarray(subspace.shape, np.float64) - 0.5])
+    at_nodes = _centred(subspace, _nodes(subspace))
+    plane = np.column_stack([np.ones(len(at_nodes)), at_nodes])
     return plane.T @ subspace.space.reshape(subspace.n_space, -1).T
 
 
@@ -218,10 +228,7 @@ def slope_frame(subspace: OperatorSubspace, centers: np.ndarray
     centred coordinates (row, column, scaled to the image: -0.5 to 0.5) of the beads at
     ``centers`` (P, 2) and of the grid's nodes (G, 2), and the spatial basis at the
     nodes (G, J)."""
-    gy, gx = subspace.grid
-    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-    size = np.asarray(subspace.shape, np.float64)
-    return (np.asarray(centers, np.float64) / size - 0.5, nodes / size - 0.5,
+    return (_centred(subspace, centers), _centred(subspace, _nodes(subspace)),
             subspace.space.reshape(subspace.n_space, -1).T)
 
 
@@ -519,7 +526,7 @@ def identify_operator(
                    "may be far from this image's (a condition the family did not learn, "
                    "another microscope, or beads that are not single points): click more "
                    "beads, or learn a family that covers this condition")
-    per_bead = np.sqrt(np.maximum(fit.residual ** 2 - fit.noise_floor ** 2, 0.0))
+    per_bead = beyond_noise_each(fit.residual, fit.noise_floor)
     worst = int(np.argmax(per_bead))
     if model_error <= bound and per_bead[worst] > WARN_BEAD_RATIO * bound:
         y, x = patches.centers[worst]
