@@ -133,20 +133,29 @@ def heldout_residuals(operator, patches) -> HeldoutResiduals:
     return residuals_of(models, patches)
 
 
+def _windowed(patches) -> tuple[np.ndarray, float]:
+    """The beads' windowed background-free patches (K, P, P) and the window's norm."""
+    win = bump_window(patches.size, patches.r, patches.r_ext)
+    return (patches.raw - patches.background) * win, float(np.linalg.norm(win))
+
+
+def noise_floors(patches) -> np.ndarray:
+    """Each bead's noise floor, shape (K,): the norm of its windowed noise over that of
+    its windowed patch (the residual a perfect model leaves; 1: the patch is all noise)."""
+    signal, win_norm = _windowed(patches)
+    norms = np.maximum(np.linalg.norm(signal.reshape(len(patches), -1), axis=1), 1e-300)
+    return np.asarray(patches.noise, dtype=np.float64) * win_norm / norms
+
+
 def residuals_of(models: np.ndarray, patches) -> HeldoutResiduals:
     """Residual of model PSFs (K, P, P), one per bead, on the beads' patches (as
     :func:`heldout_residuals`, given the PSFs instead of the operator)."""
-    size = patches.size
-    win = bump_window(size, patches.r, patches.r_ext)
-    signal = (patches.raw - patches.background) * win
+    signal, _ = _windowed(patches)
     res = np.empty(len(patches))
-    floor = np.empty(len(patches))
-    win_norm = float(np.linalg.norm(win))
     for k in range(len(patches)):
         model = models[k]
         p = signal[k]
         c = float(np.vdot(model, p) / max(np.vdot(model, model), 1e-300))
         pn = max(float(np.linalg.norm(p)), 1e-300)
         res[k] = float(np.linalg.norm(p - c * model)) / pn
-        floor[k] = patches.noise[k] * win_norm / pn
-    return HeldoutResiduals(patches.centers.copy(), res, floor)
+    return HeldoutResiduals(patches.centers.copy(), res, noise_floors(patches))

@@ -9,9 +9,9 @@ the blend ``w H_family + (1 - w) H_own`` of the family's operator and its own es
 split of :func:`~napari_psfspace.core.subspace.estimate.iter_estimate_subspace`; among
 the weights those beads cannot tell apart, the one nearest :func:`prior_weight`: the
 even blend where the image's beads determine its own field, leaning to the family where
-they do not; :func:`pick_weight`). ``w = 0`` is the single-image estimate itself, so the family is
-never kept where the image's held-out beads say its own estimate is better; ``w = 1`` is
-the paper's hard constraint.
+they do not or where each bead is mostly noise; :func:`pick_weight`). ``w = 0`` is the
+single-image estimate itself, so the family is never kept where the image's held-out
+beads say its own estimate is better; ``w = 1`` is the paper's hard constraint.
 Two estimates with partly independent errors do better blended than either alone (on
 the wide focus series of ``bench_family_oracle.py``, their mean beats both on most
 images).
@@ -31,7 +31,7 @@ import numpy as np
 from ..beads.patches import Patches
 from ..beads.window import radial_distance
 from ..model.fewbeads import FEW_BEADS, fit_few_beads
-from ..model.heldout import HeldoutResiduals, residuals_of
+from ..model.heldout import HeldoutResiduals, noise_floors, residuals_of
 from ..model.operator import ProductConvolution
 from ..model.patch_fit import fit_patches
 
@@ -49,10 +49,19 @@ WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: with the noise's share of the held-out residuals) helps faint stacks but made one
 #: image of a bright stack worse than its own estimate (bench/RESULTS.md).
 PRIOR_WEIGHT = 0.5
+#: Per-bead noise (the held-out beads' median noise floor: their windowed noise's norm
+#: over their windowed patch's) at and below which the prior weight is the share's
+#: alone, and at and above which it is the family's operator (1); linear between. Where
+#: one bead is mostly noise the image's own estimate is mostly noise too, whatever the
+#: empirical Bayes share says of its departure from the family's mean. Set on a photon
+#: sweep of both generators (bench/RESULTS.md, "the prior weight from the beads' noise");
+#: ranges from (0.2, 0.9) to (0.3, 0.8) made the same choices there.
+NOISE_FLOOR_RANGE = (0.25, 0.85)
 
 
-def prior_weight(share: float) -> float:
-    """The family's weight a blend leans to, from the image's share of its own field.
+def prior_weight(share: float, floor: float = 0.0) -> float:
+    """The family's weight a blend leans to, from the image's share of its own field
+    and its beads' noise.
 
     ``share`` (:meth:`~napari_psfspace.core.subspace.shrink.Fields.share`, in [0, 1]) is
     how much of its departure from the family's mean field the image's own beads
@@ -60,9 +69,18 @@ def prior_weight(share: float) -> float:
     noise). Where they determine it (bright or many beads, ``share`` 1) the even blend
     :data:`PRIOR_WEIGHT`; where they determine none of it (``share`` 0) its own estimate
     is mostly noise, and the family's operator (1); linear between.
+
+    ``floor`` (the median noise floor of the image's held-out beads, 0: noise-free, 1:
+    all noise) leans further to the family: the even blend at or below the low end of
+    :data:`NOISE_FLOOR_RANGE`, the family's operator at or above its high end. The
+    larger of the two weights is kept. Faint beads can carry departures from the
+    family's mean that are consistent over an image's beads, so that the share stays
+    high, but do not bring its PSFs closer to the truth (bench/RESULTS.md).
     """
     s = float(np.clip(share, 0.0, 1.0)) if np.isfinite(share) else 1.0
-    return 1.0 - (1.0 - PRIOR_WEIGHT) * s
+    lo, hi = NOISE_FLOOR_RANGE
+    f = float(np.clip((floor - lo) / (hi - lo), 0.0, 1.0)) if np.isfinite(floor) else 0.0
+    return max(1.0 - (1.0 - PRIOR_WEIGHT) * s, PRIOR_WEIGHT + (1.0 - PRIOR_WEIGHT) * f)
 
 
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
@@ -146,6 +164,9 @@ class Choice:
     reason : str
     by_weight : dict of float to float
         The mean held-out residual at each weight tried.
+    prior : float or None
+        The weight leant to among those the held-out beads cannot tell apart
+        (:func:`prior_weight`; None: not judged).
     """
 
     weight: float
@@ -154,6 +175,7 @@ class Choice:
     kept: HeldoutResiduals | None
     reason: str
     by_weight: dict
+    prior: float | None = None
 
     @property
     def model(self) -> str:
@@ -171,6 +193,8 @@ class Choice:
             out["n_heldout"] = int(len(self.family.residual))
         if self.by_weight:
             out["heldout_by_weight"] = {f"{w:g}": v for w, v in self.by_weight.items()}
+        if self.prior is not None:
+            out["prior_weight"] = float(self.prior)
         return out
 
 
@@ -182,7 +206,7 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
     ----------
     family : OperatorSubspace
         The family learnt without the held-out beads (its ``metadata["field_share"]``,
-        when there, sets each image's :func:`prior_weight`).
+        when there, and the held-out beads' noise set each image's :func:`prior_weight`).
     k : int
         The image's index in ``family``.
     own_operator : ProductConvolution or None
@@ -197,8 +221,8 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
     if held is None or len(held) == 0:
         return Choice(1.0, None, None, None, "no held-out beads: the family's operator", {})
     shares = family.metadata.get("field_share")
-    prior = prior_weight(shares[k]) if shares is not None and k < len(shares) else \
-        PRIOR_WEIGHT
+    share = shares[k] if shares is not None and k < len(shares) else 1.0
+    prior = prior_weight(share, float(np.median(noise_floors(held))))
     return choose_between(family.psfs_at(k, held.centers), own_operator, held, prior=prior)
 
 
@@ -225,10 +249,11 @@ def choose_between(family_psfs: np.ndarray, own_operator: ProductConvolution | N
         reason = (f"the image's own estimate: no family weight explains its held-out beads "
                   f"better beyond their scatter (best {best:g}: {by_weight[best]:.4f} "
                   f"against {by_weight[0.0]:.4f})")
-        return Choice(0.0, fam, own, own, reason, by_weight)
+        return Choice(0.0, fam, own, own, reason, by_weight, prior)
     reason = (f"family weight {best:g}: held-out residual {by_weight[best]:.4f} (the "
-              f"family's alone {by_weight[1.0]:.4f}, the image's own {by_weight[0.0]:.4f})")
-    return Choice(best, fam, own, res[best], reason, by_weight)
+              f"family's alone {by_weight[1.0]:.4f}, the image's own {by_weight[0.0]:.4f}; "
+              f"prior weight {prior:.2f})")
+    return Choice(best, fam, own, res[best], reason, by_weight, prior)
 
 
 def pick_weight(residuals: dict, prior: float = PRIOR_WEIGHT) -> tuple[float, bool]:
