@@ -8,12 +8,23 @@ them in parallel without copying it to other processes.
 
 from __future__ import annotations
 
+import contextlib
+import functools
+import inspect
 import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+
+#: Threads BLAS and LAPACK may use while the package's estimates run (None: as the
+#: process has them). The estimates' linear algebra is many small SVDs and
+#: eigendecompositions (patches, thin-plate kernels of a few hundred beads) run from
+#: several threads at once; OpenBLAS's own threads on top of them made learning 2x slower
+#: on 2 cores (bench/RESULTS.md, "BLAS threads"). ``PSFSPACE_BLAS_THREADS`` in the
+#: environment overrides it (0: leave BLAS as it is).
+BLAS_THREADS: int | None = 1
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
@@ -33,6 +44,47 @@ def dask_workers() -> int:
     from dask.system import CPU_COUNT
 
     return int(dask.config.get("num_workers", None) or CPU_COUNT)
+
+
+def _blas_limit():
+    """A context in which BLAS runs on :data:`BLAS_THREADS` threads (threadpoolctl; a
+    no-op where it is missing or no limit is asked)."""
+    n = BLAS_THREADS
+    env = os.environ.get("PSFSPACE_BLAS_THREADS", "").strip()
+    if env:
+        try:
+            n = int(env) or None
+        except ValueError:
+            raise ValueError(f"PSFSPACE_BLAS_THREADS must be a whole number of threads "
+                             f"(0: leave BLAS as it is), got {env!r}") from None
+    if n is None:
+        return contextlib.nullcontext()
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # pragma: no cover (a dependency; kept working without it)
+        return contextlib.nullcontext()
+    return threadpool_limits(limits=int(n), user_api="blas")
+
+
+def blas_threads(fn: Callable) -> Callable:
+    """Run ``fn`` (a function, or a generator function for its whole iteration) with
+    BLAS limited to :data:`BLAS_THREADS` threads, then give BLAS back its threads.
+
+    The limit is the process's (BLAS has no per-thread setting): other work running
+    meanwhile shares it. Nested calls keep the outer limit.
+    """
+    if inspect.isgeneratorfunction(fn):
+        @functools.wraps(fn)
+        def generator(*args, **kwargs):
+            with _blas_limit():
+                return (yield from fn(*args, **kwargs))
+        return generator
+
+    @functools.wraps(fn)
+    def function(*args, **kwargs):
+        with _blas_limit():
+            return fn(*args, **kwargs)
+    return function
 
 
 def _pool(workers: int) -> ThreadPoolExecutor:

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..beads.detect import COMPANION, HELDOUT, KEPT, Beads
 from ..common.progress import Progress, run_with_progress
+from ..common.threads import blas_threads
 from ..model.estimate import iter_estimate
 from ..model.heldout import morton_order
 from .noise import NoiseModel
@@ -59,6 +60,7 @@ def assign_folds(positions, shape, k: int = 5) -> np.ndarray:
     return fold
 
 
+@blas_threads
 def iter_crossfit(
     image,
     beads: Beads,

@@ -40,6 +40,7 @@ from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma, min_separation
+from ..common.threads import blas_threads
 from ..common.validate import as_image, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
@@ -305,6 +306,7 @@ def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
                               grid=operator.grid, metadata=meta)
 
 
+@blas_threads
 def iter_diagnose(
     image,
     *,

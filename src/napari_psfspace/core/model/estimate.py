@@ -24,6 +24,7 @@ from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma, min_separation
+from ..common.threads import blas_threads
 from ..common.validate import (
     as_image,
     check_grid_step,
@@ -75,6 +76,7 @@ class Estimation:
     info: dict = field(default_factory=dict)
 
 
+@blas_threads
 def iter_estimate(
     image,
     *,

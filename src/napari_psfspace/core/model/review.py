@@ -20,6 +20,7 @@ from ..beads.patches import extract_patches
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress
 from ..common.spacing import bead_border, centring_sigma, min_separation
+from ..common.threads import blas_threads
 from ..common.validate import as_image, check_psf_radius
 from .pca import learn_basis, min_beads_for
 
@@ -75,6 +76,7 @@ class PatchReview:
         return out
 
 
+@blas_threads
 def iter_patch_review(
     image,
     beads: Beads,

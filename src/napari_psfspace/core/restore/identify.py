@@ -41,6 +41,7 @@ import warnings
 import numpy as np
 from scipy.optimize import nnls
 
+from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
 from ..model.heldout import (
     beyond_noise,
@@ -417,6 +418,7 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
             "psf_spread": float(spread.mean()), "n_folds": int(n_f)}
 
 
+@blas_threads
 def identify_operator(
     image: np.ndarray,
     subspace: OperatorSubspace,

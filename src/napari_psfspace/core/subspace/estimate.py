@@ -42,7 +42,7 @@ import numpy as np
 from ..beads.patches import Patches
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress
-from ..common.threads import dask_workers
+from ..common.threads import blas_threads, dask_workers
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
@@ -308,6 +308,7 @@ def max_space(n_images: int, n_psf: int | None = None) -> int:
     return int(n_images) * int(n_psf or MAX_PSF)
 
 
+@blas_threads
 def iter_estimate_subspace(
     images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
     *,

@@ -22,6 +22,7 @@ from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads
 from ..beads.focus import best_focus_index
 from ..beads.window import radial_distance
 from ..common.progress import Progress, run_with_progress
+from ..common.threads import blas_threads
 from ..common.validate import check_grid_step, check_psf_radius
 from ..model.cone import Cone, reduce_cone
 from ..model.estimate import centre_beads, faint_beads
@@ -81,6 +82,7 @@ def as_stack(stack) -> np.ndarray:
     return out
 
 
+@blas_threads
 def iter_estimate_operator_3d(
     stack,
     *,
