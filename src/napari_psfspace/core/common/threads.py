@@ -21,8 +21,8 @@ import numpy as np
 #: Threads BLAS and LAPACK may use while the package's estimates run (None: as the
 #: process has them). The estimates' linear algebra is many small SVDs and
 #: eigendecompositions (patches, thin-plate kernels of a few hundred beads) run from
-#: several threads at once; OpenBLAS's own threads on top of them made learning 2x slower
-#: on 2 cores (bench/RESULTS.md, "BLAS threads"). ``PSFSPACE_BLAS_THREADS`` in the
+#: several threads at once; OpenBLAS's own threads on top of them made learning slower,
+#: not faster (bench/RESULTS.md, "BLAS threads"). ``PSFSPACE_BLAS_THREADS`` in the
 #: environment overrides it (0: leave BLAS as it is).
 BLAS_THREADS: int | None = 1
 
