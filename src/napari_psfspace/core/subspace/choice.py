@@ -55,7 +55,7 @@ PRIOR_WEIGHT = 0.5
 #: one bead is mostly noise the image's own estimate is mostly noise too, whatever the
 #: empirical Bayes share says of its departure from the family's mean. Set on a photon
 #: sweep of both generators (bench/RESULTS.md, "the prior weight from the beads' noise");
-#: ranges from (0.2, 0.9) to (0.3, 0.8) made the same choices there.
+#: ranges from (0.2, 0.9) to (0.3, 0.8) gave nearly the same errors there.
 NOISE_FLOOR_RANGE = (0.25, 0.85)
 
 
