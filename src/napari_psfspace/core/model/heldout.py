@@ -139,23 +139,27 @@ def _windowed(patches) -> tuple[np.ndarray, float]:
     return (patches.raw - patches.background) * win, float(np.linalg.norm(win))
 
 
+def _norms(signal: np.ndarray) -> np.ndarray:
+    return np.maximum(np.linalg.norm(signal.reshape(len(signal), -1), axis=1), 1e-300)
+
+
 def noise_floors(patches) -> np.ndarray:
     """Each bead's noise floor, shape (K,): the norm of its windowed noise over that of
     its windowed patch (the residual a perfect model leaves; 1: the patch is all noise)."""
     signal, win_norm = _windowed(patches)
-    norms = np.maximum(np.linalg.norm(signal.reshape(len(patches), -1), axis=1), 1e-300)
-    return np.asarray(patches.noise, dtype=np.float64) * win_norm / norms
+    return np.asarray(patches.noise, dtype=np.float64) * win_norm / _norms(signal)
 
 
 def residuals_of(models: np.ndarray, patches) -> HeldoutResiduals:
     """Residual of model PSFs (K, P, P), one per bead, on the beads' patches (as
     :func:`heldout_residuals`, given the PSFs instead of the operator)."""
-    signal, _ = _windowed(patches)
+    signal, win_norm = _windowed(patches)
+    norms = _norms(signal)
     res = np.empty(len(patches))
     for k in range(len(patches)):
         model = models[k]
         p = signal[k]
         c = float(np.vdot(model, p) / max(np.vdot(model, model), 1e-300))
-        pn = max(float(np.linalg.norm(p)), 1e-300)
-        res[k] = float(np.linalg.norm(p - c * model)) / pn
-    return HeldoutResiduals(patches.centers.copy(), res, noise_floors(patches))
+        res[k] = float(np.linalg.norm(p - c * model)) / norms[k]
+    floor = np.asarray(patches.noise, dtype=np.float64) * win_norm / norms
+    return HeldoutResiduals(patches.centers.copy(), res, floor)
