@@ -30,6 +30,14 @@ the best sub-pixel shift, on an ``n x n`` grid) of
 and the ratio ``family / alone``. Each stage's PSFs are built and normalised the same
 way (``assemble_operator`` on the family's basis, grid and cone), so a stage's step up
 is what that stage costs.
+
+``--shrink-oracle`` adds the oracle of the empirical Bayes shrink (:mod:`~napari_psfspace.
+core.subspace.shrink`): the family alone learnt with one fixed shrink ``c`` of every
+image's departure from the family's mean field (``c`` in 0, 0.25, ..., 1, everything
+else as learnt), and for each image the ``c`` whose operator the truth prefers
+(``shrink_oracle``, ``c_best``): how close a per-image choice of the shrink could bring
+the family alone, as against ``paper`` (the shrink the beads chose). The summary prints
+``paper / shrink_oracle`` and the best single ``c`` for the whole stack.
 """
 
 from __future__ import annotations
@@ -102,6 +110,7 @@ def stack_rows(args) -> list[dict]:
                                        amplitude=amplitude)
     cached = [Cached(t) for t in truths]
     r = int(np.median([t.psf_radius for t in truths]))
+    shrinks = shrink_oracle(images, cached, r, args.grid) if args.shrink_oracle else None
     t0 = time.perf_counter()
     sub = estimate_subspace(images, psf_radius=r)  # default: held-out choice on
     t_family = time.perf_counter() - t0
@@ -148,6 +157,8 @@ def stack_rows(args) -> list[dict]:
                 "space": grid_errors(_operator(sub, on_a), cached[k], n=args.grid),
                 "own_maps": grid_errors(_operator(sub, own_k), cached[k], n=args.grid),
             })
+        if shrinks is not None:
+            errs["shrink_oracle"] = np.array([min(e[k] for e in shrinks.values())])
         choice = (sub.metadata.get("operator_choice") or [{}] * args.k)[k]
         row = {"gen": args.generator, "k": k, "focus": conds[k].focus,
                "w": float(choice.get("family_weight", 1.0)),
@@ -156,6 +167,8 @@ def stack_rows(args) -> list[dict]:
                "I": sub.n_psf, "J": sub.n_space,
                **{key: float(np.mean(v)) for key, v in errs.items()}}
         row["ratio"] = row["family"] / row["alone"]
+        if shrinks is not None:
+            row["c_best"] = min(shrinks, key=lambda c: shrinks[c][k])
         rows.append(row)
         print(row, flush=True)
     rows.append({"gen": args.generator, "k": -1, "focus": float("nan"),
@@ -166,10 +179,42 @@ def stack_rows(args) -> list[dict]:
                  **{key: float(np.mean([r_[key] for r_ in rows]))
                     for key in ("alone", "family", "paper", "basis", "basis_cone", "space",
                                 "own_maps", "mix", "ratio")}})
+    if shrinks is not None:
+        rows[-1]["shrink_oracle"] = float(np.mean([r_["shrink_oracle"] for r_ in rows[:-1]]))
+        rows[-1]["c_best"] = float("nan")
+        mean = rows[-1]
+        single = {c: float(np.mean(e)) for c, e in shrinks.items()}
+        c1 = min(single, key=single.get)
+        print(f"shrink oracle: the family alone {mean['paper'] / mean['alone']:.3f} of alone, "
+              f"each image's best shrink {mean['shrink_oracle'] / mean['alone']:.3f} "
+              f"(family alone / oracle {mean['paper'] / mean['shrink_oracle']:.3f}); the best "
+              f"single shrink for the stack, {c1:g}: {single[c1] / mean['alone']:.3f}")
     print(f"time: family {t_family:.1f} s, {args.k} single estimates {t_alone:.1f} s "
           f"({t_family / t_alone:.2f}x); then building the family's {args.k} operators "
           f"{t_operators:.1f} s")
     return rows
+
+
+def shrink_oracle(images, cached, r, grid) -> dict:
+    """Each image's error (K,) of the family alone learnt with one fixed shrink ``c`` of
+    every image's departure from the family's mean field, for each ``c``."""
+    import functools
+
+    from napari_psfspace.core.subspace import estimate as subspace_estimate
+    from napari_psfspace.core.subspace import shrink
+
+    out = {}
+    try:
+        for c in (0.0, 0.25, 0.5, 0.75, 1.0):
+            subspace_estimate.shrunk_fields = functools.partial(shrink.shrunk_fields,
+                                                                factor=c)
+            fam = estimate_subspace(images, psf_radius=r, holdout=None)
+            out[c] = np.array([float(np.mean(grid_errors(fam.operator(k), cached[k],
+                                                         n=grid)))
+                               for k in range(len(images))])
+    finally:
+        subspace_estimate.shrunk_fields = shrink.shrunk_fields
+    return out
 
 
 def main():
@@ -186,6 +231,9 @@ def main():
     ap.add_argument("--no-oracle", action="store_true",
                     help="only alone, family, paper and mix (the oracle columns take the "
                          "truth's PSF at every grid node: slow with pyotf)")
+    ap.add_argument("--shrink-oracle", action="store_true",
+                    help="also the family alone at each image's best fixed shrink of its "
+                         "departure, chosen by the truth (5 more families)")
     args = ap.parse_args()
     _ = Optics  # the default optics: NA 1.3, 600 nm, 65 nm pixels
     rows = stack_rows(args)
@@ -194,7 +242,9 @@ def main():
                        ("inliers", "d"), ("I", "d"), ("J", "d"), ("alone", ".4f"),
                        ("family", ".4f"), ("paper", ".4f"),
                        ("basis", ".4f"), ("basis_cone", ".4f"), ("space", ".4f"),
-                       ("own_maps", ".4f"), ("mix", ".4f"), ("ratio", ".2f")]))
+                       ("own_maps", ".4f"), ("mix", ".4f"), ("ratio", ".2f")]
+                 + ([("shrink_oracle", ".4f"), ("c_best", ".2f")] if args.shrink_oracle
+                    else [])))
 
 
 if __name__ == "__main__":

@@ -97,3 +97,37 @@ def test_the_shrunk_fields_at_the_beads_are_those_at_the_nodes(noise):
         grid_field = fields.nodes[k].T.reshape(2, len(gy), len(gx))
         at = space_at(grid_field, (gy, gx), centers[k])
         assert np.abs(at - fields.beads[k]).max() < 5e-3
+
+
+def test_a_fixed_factor_gives_the_mean_at_zero_and_the_whole_departure_at_one():
+    centers, values = _stack(0.05, k=5)
+    (gy, gx), _ = grid_nodes(SHAPE, 32.0)
+    eb = shrunk_fields(centers, values, (gy, gx), SHAPE)
+    zero = shrunk_fields(centers, values, (gy, gx), SHAPE, factor=0.0)
+    one = shrunk_fields(centers, values, (gy, gx), SHAPE, factor=1.0)
+    half = shrunk_fields(centers, values, (gy, gx), SHAPE, factor=0.5)
+    # factor 0: every image's field is the family's mean, the same for all
+    for k in range(1, 5):
+        np.testing.assert_array_equal(zero.nodes[k], zero.nodes[0])
+    assert np.all(zero.shrink == 0.0) and np.all(one.shrink == 1.0)
+    # the fields are linear in the factor: mean + factor x departure
+    for k in range(5):
+        np.testing.assert_allclose(half.nodes[k], 0.5 * (zero.nodes[k] + one.nodes[k]),
+                                   rtol=0, atol=1e-12)
+        np.testing.assert_allclose(half.beads[k], 0.5 * (zero.beads[k] + one.beads[k]),
+                                   rtol=0, atol=1e-12)
+    # the empirical Bayes fields lie between the two, column by column
+    for k in range(5):
+        s = eb.shrink[k]
+        np.testing.assert_allclose(eb.nodes[k], zero.nodes[k] + s * (one.nodes[k]
+                                                                      - zero.nodes[k]),
+                                   rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(one.tau2, eb.tau2)
+
+
+@pytest.mark.parametrize("bad", [-0.1, 1.5, float("nan")])
+def test_a_factor_outside_zero_one_is_refused(bad):
+    centers, values = _stack(0.05, k=3)
+    (gy, gx), _ = grid_nodes(SHAPE, 32.0)
+    with pytest.raises(ValueError, match="`factor` must be None or a number in"):
+        shrunk_fields(centers, values, (gy, gx), SHAPE, factor=bad)

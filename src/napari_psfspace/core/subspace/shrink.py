@@ -85,7 +85,7 @@ def _spline(centers, values, shape, weights) -> ThinPlateSpline:
 
 def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
                   grid: tuple[np.ndarray, np.ndarray],
-                  shape: tuple[int, int]) -> Fields:
+                  shape: tuple[int, int], *, factor: float | None = None) -> Fields:
     """Every image's field of its beads' values, with the family's mean as the prior.
 
     Parameters
@@ -98,11 +98,18 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
         The coarse grid's node coordinates, pixels.
     shape : (int, int)
         Image shape, pixels.
+    factor : float in [0, 1], optional
+        One shrink for every image and column instead of the empirical Bayes
+        ``tau^2 / (tau^2 + v_k)``: 0 gives every image the family's mean field, 1 its
+        whole departure. For oracles and comparisons (``bench/bench_family_oracle.py
+        --shrink-oracle``); ``tau2`` is still the estimate's.
 
     Returns
     -------
     Fields
     """
+    if factor is not None and not (np.isfinite(factor) and 0.0 <= float(factor) <= 1.0):
+        raise ValueError(f"`factor` must be None or a number in [0, 1], got {factor!r}")
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     n_c = next(v.shape[1] for v in values if len(v))
@@ -154,6 +161,8 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
     for k in some:
         with np.errstate(invalid="ignore", divide="ignore"):
             s = np.where(np.isfinite(var[k]), tau2 / np.maximum(tau2 + var[k], 1e-300), 0.0)
+        if factor is not None:
+            s = np.full(n_c, float(factor))
         shrink[k] = s
         at, fit = dev_beads[k]
         out_nodes[k] = mu + dev_nodes[k] * s
