@@ -240,31 +240,36 @@ def test_five_beads_identify_the_operator_of_a_new_image(family):
         alone = np.mean(grid_errors(estimate_operator(image, psf_radius=r), truth, n=4))
         inner = truth.positions[(truth.positions.min(axis=1) > 2 * r)
                                 & (truth.positions.max(axis=1) < 384 - 2 * r)]
-        five = inner[rng.choice(len(inner), 5, replace=False)]
-        five = five + rng.normal(0, 0.5, five.shape)  # clicked, not centred
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            op = identify_operator(image, sub, beads=five)
-        info = op.metadata["identification"]
-        assert info["n_beads"] >= 4 and len(info["weights"]) == sub.n_images
-        assert info["choice"] is None  # too few beads to judge against the image's own
-        # the warning is issued exactly when the metadata holds one
-        assert (info["warning"] is not None) == any(
-            issubclass(w.category, IdentificationWarning) for w in caught)
-        assert 0 < info["psf_spread"] < 1 and info["n_folds"] == info["n_beads"]
-        ratios.append(np.mean(grid_errors(op, truth, n=4)) / alone)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", IdentificationWarning)
-            paper = identify_operator(image, sub, beads=five, prior=False)
-        assert np.all(np.asarray(paper.metadata["identification"]["weights"]) >= 0)
-        paper_ratios.append(np.mean(grid_errors(paper, truth, n=4)) / alone)
-    # issue 12: at most 1.5x the error of estimate_operator on all the beads; the
-    # paper's cone measured 1.10, 1.49, 0.74 here (noisy beads); issue 24: the family as
-    # a prior (weights free in sign as far as the beads' noise allows, Gamma corrected
-    # towards the beads) is no worse: measured 1.08, 1.50, 0.73; with the weights
-    # varying over the field (wide focus series: bench_identify_wide.py) 1.16, 1.47, 0.73
+        for _ in range(3):  # three sets of five clicks on each image
+            five = inner[rng.choice(len(inner), 5, replace=False)]
+            five = five + rng.normal(0, 0.5, five.shape)  # clicked, not centred
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always")
+                op = identify_operator(image, sub, beads=five)
+            info = op.metadata["identification"]
+            assert info["n_beads"] >= 4 and len(info["weights"]) == sub.n_images
+            assert info["choice"] is None  # too few beads to judge against the image's own
+            # the warning is issued exactly when the metadata holds one
+            assert (info["warning"] is not None) == any(
+                issubclass(w.category, IdentificationWarning) for w in caught)
+            assert 0 < info["psf_spread"] < 1 and info["n_folds"] == info["n_beads"]
+            ratios.append(np.mean(grid_errors(op, truth, n=4)) / alone)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", IdentificationWarning)
+                paper = identify_operator(image, sub, beads=five, prior=False)
+            assert np.all(np.asarray(paper.metadata["identification"]["weights"]) >= 0)
+            paper_ratios.append(np.mean(grid_errors(paper, truth, n=4)) / alone)
+    # issue 12: at most 1.5x the error of estimate_operator on all the beads
     assert np.mean(ratios) <= 1.5, ratios
-    assert np.mean(ratios) <= np.mean(paper_ratios) * 1.02, (ratios, paper_ratios)
+    # issue 24: the family as a prior (weights free in sign as far as the beads' noise
+    # allows, Gamma corrected towards the beads) is no worse than the paper's cone beyond
+    # the scatter of five noisy beads: the paired differences' mean within two standard
+    # errors. One set of clicks per image is too few to compare by: over 9 draws of this
+    # scene (3 families x 3 sets of clicks) the prior was 2 % worse than the cone on 3
+    # or 5 of them and better on others, the same on average (bench/RESULTS.md)
+    diff = np.asarray(ratios) - np.asarray(paper_ratios)
+    se = diff.std(ddof=1) / np.sqrt(len(diff))
+    assert diff.mean() <= 2 * se, (ratios, paper_ratios)
 
 
 def test_identification_warns_when_the_family_cannot_explain_the_beads(family):

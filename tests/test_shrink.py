@@ -131,3 +131,58 @@ def test_a_factor_outside_zero_one_is_refused(bad):
     (gy, gx), _ = grid_nodes(SHAPE, 32.0)
     with pytest.raises(ValueError, match="`factor` must be None or a number in"):
         shrunk_fields(centers, values, (gy, gx), SHAPE, factor=bad)
+
+
+def test_bead_weights_cap_only_the_outlying_beads():
+    from napari_psfspace.core.subspace.shrink import MIN_BEADS_ROBUST, bead_weights
+
+    rng = np.random.default_rng(3)
+    res = rng.normal(0, 0.01, (30, 8))
+    # Gaussian residuals on 8 columns pass 2 robust sd with probability about 1e-4
+    assert np.all(bead_weights(res) == 1.0)
+    res[5] *= 10.0  # one bead ten times as noisy: its rms is about 10 robust sd
+    w = bead_weights(res)
+    assert np.all(w[np.arange(30) != 5] == 1.0)
+    assert 0.01 < w[5] < 0.1  # (2 / ~10)^2
+    # its weighted squared rms is that of a bead at the scale
+    mad = 1.4826 * np.median(np.abs(res - np.median(res, axis=0)), axis=0)
+    u = np.sqrt(np.mean((res[5] / mad) ** 2))
+    assert w[5] * u ** 2 == pytest.approx(4.0, rel=1e-12)
+    # a column without spread is left out, not divided by zero
+    res[:, 0] = 0.0
+    assert np.all(np.isfinite(bead_weights(res)))
+    # too few beads to measure a spread by: all kept
+    assert np.all(bead_weights(res[:MIN_BEADS_ROBUST - 1] * 100) == 1.0)
+
+
+@pytest.mark.parametrize("seed", [5, 6])
+def test_an_outlying_bead_does_not_carry_its_image_s_field(monkeypatch, seed):
+    from napari_psfspace.core.subspace import shrink
+
+    centers, values = _stack(0.02, k=6, seed=seed)
+    bad = values[0].copy()
+    bad[7] += 0.5  # 25 times the beads' noise on both columns (a bead mis-normalised)
+    (gy, gx), nodes = grid_nodes(SHAPE, 32.0)
+    truth = _truth(0, nodes)
+    near = np.hypot(*(nodes - centers[0][7]).T) < 100  # the nodes it can pull
+
+    def error(vals):
+        f = shrunk_fields(centers, [vals] + values[1:], (gy, gx), SHAPE)
+        e2 = (f.nodes[0] - truth) ** 2
+        return np.sqrt(e2.mean()), np.sqrt(e2[near].mean()), f
+
+    clean, _, _ = error(values[0])
+    robust, robust_near, fields = error(bad)
+    # its standardized residual stays beyond 9 robust sd once its weight is cut
+    assert fields.weights[0][7] < 0.05
+    # the others keep theirs (Gaussian noise on 2 columns passes 2 robust sd with
+    # probability exp(-4), 2 %: one bead or two of 30 is cut a little)
+    assert np.delete(fields.weights[0], 7).mean() > 0.95
+    # what is left of it (a weight worth 2 robust sd) costs at most half the clean error
+    # (seed 5: the bead sits where few others do; 1.4x there)
+    assert robust < 1.6 * clean
+    # the same fields without the robust weights follow the outlier
+    monkeypatch.setattr(shrink, "ROBUST_SCALE", np.inf)
+    plain, plain_near, fields = error(bad)
+    assert np.all(fields.weights[0] == 1.0)
+    assert plain > 1.5 * robust and plain_near > 3 * robust_near

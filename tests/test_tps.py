@@ -96,6 +96,21 @@ def test_loo_residuals_equal_brute_force(eta, weighted):
     assert np.abs(sp.loo_residuals - brute).max() < 1e-8 * np.abs(brute).max()
 
 
+@pytest.mark.parametrize("weighted", [False, True])
+def test_standardized_residuals_sit_between_the_residual_and_the_loo_one(weighted):
+    pts, y, rng = _data(4)
+    w = rng.uniform(0.5, 2.0, M) if weighted else None
+    sp = ThinPlateSpline(pts, y, weights=w, smoothing=1e-2)
+    r, loo, z = sp.residuals[:, 0], sp.loo_residuals, sp.standardized_residuals
+    # r / sqrt(1 - S) is the geometric mean of r and r / (1 - S): z^2 = r * loo
+    np.testing.assert_allclose(z ** 2, r * loo, rtol=1e-12, atol=0)
+    assert np.all(np.sign(z) == np.sign(r))
+    assert np.all(np.abs(r) <= np.abs(z)) and np.all(np.abs(z) <= np.abs(loo))
+    # an interpolating spline leaves none
+    sp0 = ThinPlateSpline(pts, y, smoothing=0.0)
+    assert np.all(sp0.standardized_residuals == 0)
+
+
 def test_vector_values_get_their_own_smoothing():
     pts, y, rng = _data(6)
     noisy = _f(pts) + 0.5 * rng.standard_normal(M)  # much noisier column

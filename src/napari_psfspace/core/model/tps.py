@@ -247,6 +247,18 @@ class ThinPlateSpline:
             self._one_minus_leverage = 1.0 - node_lev[cell] * share[:, None]
 
     @property
+    def standardized_residuals(self) -> np.ndarray:
+        """In-sample residuals over ``sqrt(1 - S_mm)``, shape (M, K): of one variance at
+        every sample for noise of one variance, so that a sample the fit bends to (an
+        isolated one, high leverage) shows its misfit. Zero where the spline interpolates.
+        """
+        denom = self._one_minus_leverage
+        out = np.zeros_like(self.residuals)
+        ok = denom > 1e-12
+        out[ok] = self.residuals[ok] / np.sqrt(denom[ok])
+        return out if self._vector else out[:, 0]
+
+    @property
     def loo_residuals(self) -> np.ndarray:
         """Leave-one-out residuals ``y_m - f_{-m}(z_m)`` at the samples, shape (M, K).
 

@@ -298,6 +298,7 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
     }
     if pooled.fields is not None:  # each image's share of its own field (shrink.py)
         meta["field_share"] = [round(float(v), 4) for v in pooled.fields.share()]
+        meta["field_downweighted"] = [int(np.sum(w < 1.0)) for w in pooled.fields.weights]
     return OperatorSubspace(images, space_grid, (gy, gx), shape, gammas, cone,
                             grid_step=float(grid_step), metadata=meta)
 

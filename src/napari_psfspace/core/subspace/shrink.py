@@ -25,6 +25,13 @@ family's mean field (the mean over the images of their own thin-plate fields),
    field), the family's mean where they do not (faint or few beads).
 
 The paper's per-image thin-plate field is the special case ``tau^2 >> v_k``.
+
+Faint beads' values have heavy tails: a bead whose background fit took most of its flux
+is normalised by a small sum, and its values are then many times as noisy as its
+neighbours' (bench/RESULTS.md, "a bead's outlying values"). Each image's own field is
+therefore fitted twice: a bead whose standardized residual about the first fit is beyond
+:data:`ROBUST_SCALE` robust standard deviations keeps a weight that caps its share of the
+fit (:func:`bead_weights`), and the departure and its noise are those of the weighted fit.
 """
 
 from __future__ import annotations
@@ -41,6 +48,18 @@ from .result import space_at
 #: Fewest beads for an image's own field; below, the image's field is the family's mean
 #: plus a constant (the mean departure of its beads, shrunk as a field's is).
 MIN_BEADS_FIELD = 4
+#: Robust standard deviations (the standardized residuals' rms over the columns, each
+#: column scaled by its median absolute deviation over the image's beads) beyond which a
+#: bead's weight in its image's field is capped (:func:`bead_weights`). Gaussian noise
+#: passes 2 with probability exp(-4) on 2 columns and about 1e-4 on 8 (the family's
+#: fields have 2 I columns); 3 gave nearly the same fields on the faint stacks it was
+#: set on (bench/RESULTS.md).
+ROBUST_SCALE = 2.0
+#: Refits of an image's field with the robust weights, at most.
+ROBUST_PASSES = 3
+#: Fewest beads for the robust weights: below, the median absolute deviation of the
+#: residuals says too little of their spread, and every bead keeps its weight.
+MIN_BEADS_ROBUST = 8
 
 
 @dataclass
@@ -59,12 +78,16 @@ class Fields:
     tau2 : ndarray of shape (C,)
         The spread of the images' departures from the family's mean, per column (less
         their noise).
+    weights : list of ndarray of shape (n_k,), optional
+        Each bead's robust weight in its image's field (:func:`bead_weights`; 1: as
+        its Voronoi area alone).
     """
 
     nodes: list
     beads: list
     shrink: np.ndarray
     tau2: np.ndarray
+    weights: list | None = None
 
     def share(self) -> np.ndarray:
         """Each image's share of its own field, shape (K,): the shrink factors weighted
@@ -81,6 +104,54 @@ class Fields:
 def _spline(centers, values, shape, weights) -> ThinPlateSpline:
     return ThinPlateSpline(centers, values, weights=weights,
                            scale=0.5 * float(np.hypot(*shape)))
+
+
+def bead_weights(residuals: np.ndarray, scale: float | None = None) -> np.ndarray:
+    """Robust weights of beads from their residuals about a field.
+
+    Each column is scaled by ``1.4826`` times its median absolute deviation (a column
+    without spread is left out), and ``u`` is a bead's rms over the columns. A bead
+    with ``u <= scale`` keeps weight 1; beyond, ``(scale / u)^2``, so that its weighted
+    squared residual is no more than that of a bead at ``scale``.
+
+    Parameters
+    ----------
+    residuals : ndarray of shape (n, C)
+        The beads' residuals about a fit.
+    scale : float, optional
+        Robust standard deviations kept whole (default :data:`ROBUST_SCALE`).
+
+    Returns
+    -------
+    ndarray of shape (n,), in (0, 1]
+        All ones below :data:`MIN_BEADS_ROBUST` beads.
+    """
+    r = np.asarray(residuals, dtype=np.float64).reshape(len(residuals), -1)
+    if len(r) < MIN_BEADS_ROBUST:
+        return np.ones(len(r))
+    mad = 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    spread = mad > 1e-12 * max(float(np.abs(r).max()), 1e-300)
+    if not spread.any():
+        return np.ones(len(r))
+    u = np.sqrt(np.mean((r[:, spread] / mad[spread]) ** 2, axis=1))
+    t = ROBUST_SCALE if scale is None else float(scale)
+    return np.minimum(1.0, (t / np.maximum(u, 1e-300)) ** 2)
+
+
+def _robust_spline(centers, values, shape, areas) -> tuple[ThinPlateSpline, np.ndarray]:
+    """An image's own field with :func:`bead_weights` of its standardized residuals,
+    iterated (at most :data:`ROBUST_PASSES` refits, none where no bead is down-weighted:
+    a bead the first fit bends to shows its misfit once its weight is cut), and the
+    weights."""
+    fit = _spline(centers, values, shape, areas)
+    w = np.ones(len(centers))
+    for _ in range(ROBUST_PASSES):
+        new = bead_weights(np.asarray(fit.standardized_residuals).reshape(len(centers), -1))
+        if np.allclose(new, w, rtol=1e-3, atol=0):
+            break
+        w = new
+        fit = _spline(centers, values, shape, areas * w)
+    return fit, w
 
 
 def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
@@ -117,8 +188,10 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
     some = [k for k, c in enumerate(centers) if len(c)]
     areas = dict(zip(rich, map_threads(lambda k: voronoi_areas(centers[k], shape), rich),
                      strict=True))
-    splines = dict(zip(rich, map_threads(
-        lambda k: _spline(centers[k], values[k], shape, areas[k]), rich), strict=True))
+    fitted = dict(zip(rich, map_threads(
+        lambda k: _robust_spline(centers[k], values[k], shape, areas[k]), rich), strict=True))
+    splines = {k: f[0] for k, f in fitted.items()}
+    robust = {k: f[1] for k, f in fitted.items()}
     if rich:
         own = map_threads(lambda k: np.asarray(splines[k](nodes)).reshape(len(nodes), -1),
                           rich)
@@ -140,7 +213,8 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
             fit = np.tile(r.mean(axis=0), (n, 1))
             dof = np.ones(n_c)
             at_nodes = np.tile(r.mean(axis=0), (len(nodes), 1))
-        s2 = ((r - fit) ** 2).sum(axis=0) / np.maximum(n - dof, 1.0)
+        w = robust.get(k, np.ones(n))  # the field's robust weights (1: none)
+        s2 = (w[:, None] * (r - fit) ** 2).sum(axis=0) / np.maximum(w.sum() - dof, 1.0)
         if n <= 1:  # one bead: its noise cannot be measured; the family's mean
             s2 = np.full(n_c, np.inf)
         return at_nodes, (at, fit), s2 * dof / n
@@ -167,4 +241,5 @@ def shrunk_fields(centers: list[np.ndarray], values: list[np.ndarray],
         at, fit = dev_beads[k]
         out_nodes[k] = mu + dev_nodes[k] * s
         out_beads[k] = at + fit * s
-    return Fields(out_nodes, out_beads, shrink, tau2)
+    weights = [robust.get(k, np.ones(len(c))) for k, c in enumerate(centers)]
+    return Fields(out_nodes, out_beads, shrink, tau2, weights)
