@@ -57,6 +57,8 @@ MIN_BEADS_FIELD = 4
 ROBUST_SCALE = 2.0
 #: Refits of an image's field with the robust weights, at most.
 ROBUST_PASSES = 3
+#: No further refit once no bead's robust weight changes by this much.
+ROBUST_TOL = 0.05
 #: Fewest beads for the robust weights: below, the median absolute deviation of the
 #: residuals says too little of their spread, and every bead keeps its weight.
 MIN_BEADS_ROBUST = 8
@@ -147,7 +149,7 @@ def _robust_spline(centers, values, shape, areas) -> tuple[ThinPlateSpline, np.n
     w = np.ones(len(centers))
     for _ in range(ROBUST_PASSES):
         new = bead_weights(np.asarray(fit.standardized_residuals).reshape(len(centers), -1))
-        if np.allclose(new, w, rtol=1e-3, atol=0):
+        if np.max(np.abs(new - w)) < ROBUST_TOL:
             break
         w = new
         fit = _spline(centers, values, shape, areas * w)
