@@ -279,6 +279,29 @@ def test_faint_images_lean_to_the_family_where_their_held_out_beads_are_noise():
     assert ratio.mean() <= 0.75, ratio
 
 
+def test_beads_that_are_mostly_noise_turn_the_burden_of_proof():
+    from napari_psfspace.core.subspace.choice import pick_weight
+    # every blend ahead of the own estimate by less than the scatter, 0.5 ahead of the
+    # other blends beyond theirs (none): the own estimate stays where the beads can
+    # judge; where they are mostly noise, the best blend (the own is within its scatter)
+    res = _curve([0.002, 0.001, 0.0, 0.001, 0.002], sd=0.0)
+    for w in (0.25, 0.5, 0.75, 1.0):
+        res[w] = res[w] + 0.01 * (-1.0) ** np.arange(20)
+    assert pick_weight(res, prior=1.0)[0] == 0.0
+    assert pick_weight(res, prior=1.0, faint=True) == (0.5, True)
+    # a flat curve: the same
+    flat = _curve([0.0, 0.0, 0.0, 0.0, 0.0], sd=0.005)
+    assert pick_weight(flat, prior=1.0)[0] == 0.0
+    assert pick_weight(flat, prior=1.0, faint=True) == (1.0, True)
+    # the own estimate better than every other weight beyond the scatter: it stays
+    clear = _curve([0.0, 0.01, 0.02, 0.03, 0.05], sd=0.002)
+    assert pick_weight(clear, prior=1.0, faint=True)[0] == 0.0
+    # the own estimate better than the family alone beyond the scatter but not than
+    # 0.25 (paired scatter 2 sd / sqrt(20) = 0.0009 against 0.0005): 0.25
+    near = _curve([0.0, 0.0005, 0.02, 0.03, 0.05], sd=0.002)
+    assert pick_weight(near, prior=1.0, faint=True)[0] == 0.25
+
+
 def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
     from napari_psfspace.core.subspace.choice import pick_weight
     # the family alone better beyond the scatter: the family

@@ -19,7 +19,10 @@ images).
 An image keeps the family's operator where fewer than :data:`MIN_HELDOUT` of its beads
 are held out or fewer than :data:`MIN_BEADS_OWN` train its own estimate (too few to
 judge by; this is where the family is meant to help), and unless a blend explains its
-held-out beads better than its own estimate beyond their scatter.
+held-out beads better than its own estimate beyond their scatter. Where those beads are
+mostly noise (their median noise floor at the top of :data:`NOISE_FLOOR_RANGE` or above),
+the other way round: the weight nearest the prior unless they show the own estimate
+better beyond their scatter (:func:`pick_weight`'s ``faint``).
 """
 
 from __future__ import annotations
@@ -222,15 +225,19 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
         return Choice(1.0, None, None, None, "no held-out beads: the family's operator", {})
     shares = family.metadata.get("field_share")
     share = shares[k] if shares is not None and k < len(shares) else 1.0
-    prior = prior_weight(share, float(np.median(noise_floors(held))))
-    return choose_between(family.psfs_at(k, held.centers), own_operator, held, prior=prior)
+    floor = float(np.median(noise_floors(held)))
+    prior = prior_weight(share, floor)
+    return choose_between(family.psfs_at(k, held.centers), own_operator, held, prior=prior,
+                          faint=floor >= NOISE_FLOOR_RANGE[1])
 
 
 def choose_between(family_psfs: np.ndarray, own_operator: ProductConvolution | None,
-                   held: Patches, *, prior: float = PRIOR_WEIGHT) -> Choice:
+                   held: Patches, *, prior: float = PRIOR_WEIGHT,
+                   faint: bool = False) -> Choice:
     """The family's weight that best explains held-out beads, given the family's PSFs at
     them (``family_psfs``, (B, P, P)) and the image's own estimate from the other beads
-    (None: none possible); :func:`pick_weight` with ``prior``. See :func:`choose`."""
+    (None: none possible); :func:`pick_weight` with ``prior`` and ``faint``. See
+    :func:`choose`."""
     fam_psf = family_psfs
     fam = residuals_of(fam_psf, held)
     if own_operator is None:
@@ -244,7 +251,8 @@ def choose_between(family_psfs: np.ndarray, own_operator: ProductConvolution | N
                       {})
     res = {w: residuals_of(w * fam_psf + (1 - w) * own_psf, held) for w in WEIGHTS}
     by_weight = {w: float(np.mean(r.residual)) for w, r in res.items()}
-    best, beaten = pick_weight({w: r.residual for w, r in res.items()}, prior=prior)
+    best, beaten = pick_weight({w: r.residual for w, r in res.items()}, prior=prior,
+                               faint=faint)
     if not beaten:
         reason = (f"the image's own estimate: no family weight explains its held-out beads "
                   f"better beyond their scatter (best {best:g}: {by_weight[best]:.4f} "
@@ -256,7 +264,8 @@ def choose_between(family_psfs: np.ndarray, own_operator: ProductConvolution | N
     return Choice(best, fam, own, res[best], reason, by_weight, prior)
 
 
-def pick_weight(residuals: dict, prior: float = PRIOR_WEIGHT) -> tuple[float, bool]:
+def pick_weight(residuals: dict, prior: float = PRIOR_WEIGHT,
+                faint: bool = False) -> tuple[float, bool]:
     """The family's weight from each weight's per-bead held-out residuals.
 
     1. The best weight (least mean residual; ties: the family's side), and the weights
@@ -269,11 +278,23 @@ def pick_weight(residuals: dict, prior: float = PRIOR_WEIGHT) -> tuple[float, bo
        held-out beads' evidence. None: the own estimate stays.
     3. Of those, the one nearest ``prior``.
 
+    With ``faint`` (each held-out bead mostly noise: their median noise floor at or
+    above the top of :data:`NOISE_FLOOR_RANGE`) the burden of proof turns: such beads
+    cannot show a weight better than the own estimate, and the own estimate, learnt
+    from beads as noisy, is then mostly noise itself (the family pools every image's).
+    Step 2 is left out: of the weights the beads cannot tell from the best, the one
+    nearest ``prior``; the own estimate stays only where the beads show it better than
+    every other weight beyond their scatter.
+
     Parameters
     ----------
     residuals : dict of float to ndarray of shape (B,)
         Per-bead residuals at each weight of :data:`WEIGHTS` (the same beads, in the
         same order).
+    prior : float
+        The weight leant to (:func:`prior_weight`).
+    faint : bool
+        The beads are mostly noise (see above).
 
     Returns
     -------
@@ -292,7 +313,7 @@ def pick_weight(residuals: dict, prior: float = PRIOR_WEIGHT) -> tuple[float, bo
     best = min(residuals, key=lambda w: (means[w], -w))
     close = [w for w in residuals
              if w == best or means[w] - means[best] <= se(residuals[w] - residuals[best])]
-    if 0.0 not in residuals:
+    if 0.0 not in residuals or faint:
         return nearest(close), True
     beating = [w for w in close if w != 0.0
                and float(np.mean(residuals[w] - residuals[0.0]))
