@@ -28,10 +28,11 @@ The paper's per-image thin-plate field is the special case ``tau^2 >> v_k``.
 
 Faint beads' values have heavy tails: a bead whose background fit took most of its flux
 is normalised by a small sum, and its values are then many times as noisy as its
-neighbours' (bench/RESULTS.md, "a bead's outlying values"). Each image's own field is
-therefore fitted twice: a bead whose standardized residual about the first fit is beyond
-:data:`ROBUST_SCALE` robust standard deviations keeps a weight that caps its share of the
-fit (:func:`bead_weights`), and the departure and its noise are those of the weighted fit.
+neighbours' (bench/RESULTS.md, "Issue 24, sixth session: outlying beads in the family's
+fields"). Each image's own field is therefore refitted: a bead whose standardized
+residual about the fit is beyond :data:`ROBUST_SCALE` robust standard deviations keeps a
+weight that caps its share of it (:func:`bead_weights`; at most :data:`ROBUST_PASSES`
+refits), and the departure and its noise are those of the weighted fit.
 """
 
 from __future__ import annotations
