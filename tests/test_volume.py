@@ -222,7 +222,7 @@ def test_the_maps_follow_the_true_focal_shift_and_axial_width(estimated):
     ys, xs, maps = measure_maps(op, 3, 3)
     assert maps["focal_plane"].shape == (3, 3) and np.isfinite(maps["fwhm_axial"]).all()
     rows = measure_table(beads, est.patches.centers[inl], (0.15, 0.065, 0.065))
-    assert len(rows) == int(inl.sum()) and rows[0]["fwhm_axial_um"] is not None
+    assert len(rows) == int(inl.sum()) and rows[0]["fwhm_axial_nm"] is not None
 
 
 def test_measures_of_a_known_gaussian():
@@ -235,13 +235,13 @@ def test_measures_of_a_known_gaussian():
     sy = s0 * np.sqrt(1 + ((zz - z_row) / 3.0) ** 2)
     sx = s0 * np.sqrt(1 + ((zz - z_col) / 3.0) ** 2)
     psf = np.exp(-yy ** 2 / (2 * sy ** 2) - xx ** 2 / (2 * sx ** 2)) / (sy * sx)
-    m = psf_measures(psf, fit_radius=12)
+    m = psf_measures(psf)
     assert abs(m["astigmatic_split"] - 2.0) <= 0.3
     assert abs(m["focal_plane"] - 7.6) <= 0.3
     assert m["ellipticity"] <= 0.02  # midway between the line foci: the least confusion
     round_psf = np.exp(-(yy ** 2 + xx ** 2) / (2 * s0 ** 2)) * np.exp(
         -(zz - 7.0) ** 2 / (2 * 2.0 ** 2))
-    r = psf_measures(round_psf, fit_radius=12)
+    r = psf_measures(round_psf)
     fwhm = 2 * np.sqrt(2 * np.log(2))
     assert abs(r["fwhm_lateral"] / (fwhm * s0) - 1) <= 0.03
     assert abs(r["fwhm_axial"] / (fwhm * 2.0) - 1) <= 0.05

@@ -455,10 +455,10 @@ def _cmd_apply(args) -> int:
 
 
 def _cmd_estimate3d(args) -> int:
+    from .core.common.measures import NAMES, in_units
     from .core.common.progress import run_with_progress
     from .core.volume import iter_estimate_operator_3d
     from .core.volume.measures import (
-        NAMES,
         bead_measures,
         map_uncertainty,
         measure_maps,
@@ -492,12 +492,20 @@ def _cmd_estimate3d(args) -> int:
     _, _, maps = measure_maps(op, 4, 4)
     print(f"wrote {args.output}: {op.n_psf} 3D PSFs of {'x'.join(map(str, op.kernel_shape))} "
           f"voxels from {op.metadata['n_beads_used']} beads, bead plane {op.plane}")
-    units = {"fwhm_lateral": "px", "fwhm_row": "px", "fwhm_col": "px", "ellipticity": ""}
+    print("  measures (Gaussian fits with an offset, as napari-psf-analysis quotes them; "
+          + ("nm" if voxel else "px and planes: pass --pixel-size-nm and --z-step-nm for nm")
+          + "):")
     for name in NAMES:
-        m = maps[name]
-        unit = units.get(name, "planes")
-        print(f"  {name}: {np.nanmin(m):.3g} to {np.nanmax(m):.3g} {unit} over the field "
-              f"(+- {unc[name]:.2g} between the beads and the model)")
+        lo, lo_u = in_units({name: float(np.nanmin(maps[name]))}, voxel)
+        hi, _ = in_units({name: float(np.nanmax(maps[name]))}, voxel)
+        sd, _ = in_units({name: unc[name]}, voxel)
+        unit = f" {lo_u[name]}" if lo_u[name] else ""
+        what = "focal_plane (from the first plane)" if name == "focal_plane" else name
+        if not np.isfinite(lo[name]):
+            print(f"  {what}: not measurable over the field")
+            continue
+        print(f"  {what}: {lo[name]:.3g} to {hi[name]:.3g}{unit} over the field "
+              f"(+- {sd[name]:.2g} between the beads and the model)")
     held = op.metadata.get("heldout")
     if held and held.get("n_beads"):
         print(f"  held-out beads ({held['n_beads']}): residual {held['residual_median']:.3f}, "

@@ -1,10 +1,13 @@
-"""Best focus of a bead z-stack: the slice where the beads concentrate their light.
+"""Best focus of a bead z-stack: the slice where the beads are sharpest.
 
 Raw contrast (the standard deviation of a slice) prefers a defocused ring at high NA: a
-ring spreads the same photons over more bright pixels. What focus does is concentrate
-each bead's energy: :func:`focus_measure` is, per slice, the share of the beads' light
-(above each bead's local background) that falls within a small disk about their centres,
-summed over the beads found on the stack's maximum projection.
+ring spreads the same photons over more bright pixels. So does the light within a disk
+sized by the PSF radius: a ring of a few pixels falls inside a disk of ``r / 4`` when
+``r`` is 20. What focus does is raise each bead's peak: :func:`bead_peaks` is each
+bead's peak in each slice (the brightest 3 x 3 mean within 1.5 pixels of its centre,
+above the median of a ring about it, the same whatever the radius), and the best focus
+is the slice of the highest median of the beads' peaks, each bead scaled to its own
+highest (:func:`focus_measure`), so that a few bright beads do not decide alone.
 """
 
 from __future__ import annotations
@@ -14,9 +17,8 @@ from scipy import ndimage as ndi
 
 from ..common.errors import PsfSpaceError
 
-#: Slices whose beads keep less than this share of the most light any slice keeps within
-#: ``2 r`` of their centres are out of focus (their measure is 0).
-MIN_LIGHT_SHARE = 0.25
+#: A bead's peak is its brightest 3 x 3 mean within this many pixels of its centre.
+PEAK_REACH = 1.5
 
 
 def _stack(stack) -> np.ndarray:
@@ -31,9 +33,52 @@ def _stack(stack) -> np.ndarray:
     return arr
 
 
+def bead_peaks(stack, centers, psf_radius: float) -> np.ndarray:
+    """Each bead's peak on each slice, above its local background.
+
+    Parameters
+    ----------
+    stack : ndarray of shape (Z, M, N)
+    centers : array_like of shape (K, 2)
+        The beads' lateral centres (row, column), pixels.
+    psf_radius : float
+        The PSF radius in focus, pixels: the background is the median of the ring from
+        ``1.5 r`` to ``2 r`` about each bead (clipped at the slice's edges).
+
+    Returns
+    -------
+    ndarray of shape (K, Z), float64
+        The brightest 3 x 3 mean within :data:`PEAK_REACH` pixels of each centre, less
+        the ring's median.
+    """
+    arr = np.asarray(stack)
+    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    z, h, w = arr.shape
+    outer = int(np.ceil(2 * float(psf_radius)))
+    out = np.zeros((len(centers), z))
+    for k, (cy, cx) in enumerate(centers):
+        y, x = int(round(cy)), int(round(cx))
+        y0, y1, x0, x1 = max(y - outer, 0), min(y + outer + 1, h), max(x - outer, 0), \
+            min(x + outer + 1, w)
+        if y1 - y0 < 3 or x1 - x0 < 3:
+            continue
+        win = arr[:, y0:y1, x0:x1].astype(np.float64)
+        yy, xx = np.ogrid[y0 - cy:y1 - cy, x0 - cx:x1 - cx]
+        d2 = yy * yy + xx * xx
+        ring = (d2 > (1.5 * psf_radius) ** 2) & (d2 <= (2 * psf_radius) ** 2)
+        near = d2 <= PEAK_REACH ** 2
+        if not near.any():
+            near = d2 <= d2.min()
+        sm = ndi.uniform_filter(win, size=(1, 3, 3), mode="nearest")
+        bg = np.median(win[:, ring], axis=1) if ring.any() else np.median(
+            win.reshape(z, -1), axis=1)
+        out[k] = sm[:, near].max(axis=1) - bg
+    return out
+
+
 def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
                   ) -> np.ndarray:
-    """How concentrated the beads' light is in each slice, shape (Z,).
+    """How sharp the beads are in each slice, shape (Z,).
 
     Parameters
     ----------
@@ -41,16 +86,15 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
         A bead z-stack (the same field at each focus).
     psf_radius : float, optional
         The PSF radius in focus, pixels; default suggested from the maximum projection.
+        It sets the background ring only: the measure does not grow with it.
     n_beads : int
         At most this many beads (the brightest on the projection, away from its border).
 
     Returns
     -------
     ndarray of shape (Z,), float64
-        For each slice, the beads' light within ``max(1.5, r / 4)`` pixels of their
-        centres over their light within ``2 r`` (each above the median of the ring just
-        outside, per bead and slice), pooled over the beads. Slices that keep less than
-        :data:`MIN_LIGHT_SHARE` of the most light any slice keeps within ``2 r`` get 0.
+        The median over the beads of each bead's peak (:func:`bead_peaks`) over its
+        highest, in [0, 1] (negative peaks count as 0).
 
     Raises
     ------
@@ -64,40 +108,27 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
     proj = arr.max(axis=0)
     if float(proj.max()) == float(proj.min()):
         raise PsfSpaceError("`stack` is constant: there is no focus to measure.")
-    # the spots' visible radius: the focus is measured on isolated beads' cores
     r = float(psf_radius) if psf_radius else suggest_psf_radius(proj, wings=1.0)
     beads = detect_beads(proj, r)
-    z, h, w = arr.shape
-    outer = int(np.ceil(2 * r))
-    keep = np.all((beads.positions >= outer + 2)
-                  & (beads.positions <= np.array([h, w]) - outer - 3), axis=1)
-    pos = np.rint(beads.positions[keep]).astype(int)
-    if len(pos) == 0:
-        raise PsfSpaceError(f"No bead lies {outer + 2} px or more from the border of the "
-                            f"maximum projection: the focus cannot be measured with a PSF "
-                            f"radius of {r:g} px.")
-    pos = pos[np.argsort(-beads.amplitude[keep], kind="stable")][:n_beads]
-    yy, xx = np.mgrid[-outer - 2:outer + 3, -outer - 2:outer + 3]
-    dist = np.hypot(yy, xx)
-    core = dist <= max(1.5, r / 4)
-    inside = dist <= outer
-    ring = dist > outer
-    num = np.zeros(z)
-    den = np.zeros(z)
-    for y, x in pos:
-        win = arr[:, y - outer - 2:y + outer + 3, x - outer - 2:x + outer + 3].astype(np.float64)
-        win = ndi.uniform_filter(win, size=(1, 3, 3))  # the core's noise, a little
-        bg = np.median(win[:, ring], axis=1)
-        num += (win[:, core] - bg[:, None]).sum(axis=1)
-        den += (win[:, inside] - bg[:, None]).sum(axis=1)
-    # a slice whose beads keep little of their light within 2 r is far from focus; its
-    # ratio of two small, noisy sums means nothing
-    valid = den >= MIN_LIGHT_SHARE * den.max() if den.max() > 0 else np.zeros(z, bool)
-    return np.where(valid, np.clip(num, 0, None) / np.where(valid, den, 1), 0.0)
+    _, h, w = arr.shape
+    edge = int(np.ceil(PEAK_REACH)) + 2
+    keep = np.all((beads.positions >= edge) & (beads.positions <= np.array([h, w]) - edge - 1),
+                  axis=1)
+    if not keep.any():
+        raise PsfSpaceError(f"No bead lies {edge} px or more from the border of the maximum "
+                            "projection: the focus cannot be measured.")
+    order = np.argsort(-beads.amplitude[keep], kind="stable")[:n_beads]
+    peaks = np.clip(bead_peaks(arr, beads.positions[keep][order], r), 0.0, None)
+    top = peaks.max(axis=1, keepdims=True)
+    peaks = peaks[top[:, 0] > 0] / top[top[:, 0] > 0]
+    if len(peaks) == 0:
+        raise PsfSpaceError("No bead stands above its background on any slice: the focus "
+                            "cannot be measured.")
+    return np.median(peaks, axis=0)
 
 
 def best_focus_index(stack, *, psf_radius: float | None = None) -> int:
-    """Index of the slice in focus: the most concentrated beads (:func:`focus_measure`).
+    """Index of the slice in focus: the sharpest beads (:func:`focus_measure`).
 
     Falls back to the slice of highest contrast (standard deviation) when no bead can be
     measured on the stack's maximum projection.
@@ -111,4 +142,4 @@ def best_focus_index(stack, *, psf_radius: float | None = None) -> int:
         return int(np.argmax(arr.reshape(arr.shape[0], -1).astype(np.float32).std(axis=1)))
 
 
-__all__ = ["best_focus_index", "focus_measure"]
+__all__ = ["PEAK_REACH", "bead_peaks", "best_focus_index", "focus_measure"]

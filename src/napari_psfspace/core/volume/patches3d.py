@@ -115,28 +115,17 @@ def extract_patches_3d(stack: np.ndarray, centers: np.ndarray, psf_radius: float
 
 
 def bead_planes(stack: np.ndarray, centers: np.ndarray, psf_radius: float) -> np.ndarray:
-    """Each bead's plane of best focus: where the light within ``max(1.5, r / 4)``
-    pixels of its lateral centre, above the local background, is largest (a ring out of
-    focus is bright but spread: its centre is dark). Not a share of the bead's light: on
-    the planes far from focus, where the bead has almost none, a share is the noise's.
+    """Each bead's plane of best focus: where its peak above the local background is
+    highest (:func:`~napari_psfspace.core.beads.focus.bead_peaks`; a ring out of focus is
+    bright but spread, its centre dark, whatever the PSF radius).
 
     Returns
     -------
     ndarray of shape (K,), int
     """
-    centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
-    r = float(psf_radius)
-    outer = int(np.ceil(2 * r))
-    size = 2 * outer + 1
-    dist = radial_distance(size)
-    core = dist <= max(1.5, r / 4)
-    ring = (dist > 1.5 * r) & (dist <= 2 * r)
-    light = np.zeros((len(centers), stack.shape[0]))
-    for z in range(stack.shape[0]):
-        wins = resample_patches(np.asarray(stack[z], np.float64), centers, size)
-        bg = np.median(wins[:, ring], axis=1)[:, None, None]
-        light[:, z] = (wins - bg)[:, core].sum(axis=1)
-    return np.argmax(light, axis=1)
+    from ..beads.focus import bead_peaks
+
+    return np.argmax(bead_peaks(stack, centers, psf_radius), axis=1)
 
 
 __all__ = ["Patches3D", "bead_planes", "extract_patches_3d"]
