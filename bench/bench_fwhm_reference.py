@@ -176,9 +176,10 @@ def _half_width(profile: np.ndarray, step: float) -> float:
 
 
 def simulated_psf(generator: str, na: float, wl: float, dxy: float, dz: float, nz: int,
-                  q: int = 5, size: int = 33):
-    """A stack PSF sampled ``q`` times finer than the pixels and planes (each plane
-    normalised so that the focal plane sums to 1), and the true FWHM (µm)."""
+                  q: int = 5, size: int = 33, mismatch: bool = False):
+    """A stack PSF sampled ``q`` times finer than the pixels and planes, and the true
+    FWHM (µm). ``mismatch``: a refractive-index mismatch (pyotf: 0.15 waves rms of
+    primary spherical aberration; psfmodels: an oil objective focused 3 µm into water)."""
     n = q * size
     zf = (np.arange(q * (nz - 1) + 1) - q * (nz - 1) / 2) * dz / q  # µm, fine planes
     if generator == "pyotf":
@@ -187,12 +188,20 @@ def simulated_psf(generator: str, na: float, wl: float, dxy: float, dz: float, n
         ni = 1.52 if na > 1.33 else 1.33
         model = HanserPSF(wl=wl * 1000, na=na, ni=ni, res=dxy * 1000 / q, size=n,
                           zrange=list(zf * 1000), vec_corr="total", condition="sine")
+        if mismatch:
+            from pyotf.otf import apply_aberration
+
+            pcoefs = np.zeros(11)
+            pcoefs[10] = 2 * np.pi * 0.15  # Noll 11, radians rms
+            model = apply_aberration(model, None, pcoefs)
         fine = np.asarray(model.PSFi, float)
     else:
         import psfmodels as pm
 
-        fine = pm.vectorial_psf(zf, nx=n + 1, dxy=dxy / q, wvl=wl,
-                                params={"NA": na, "ni": 1.515, "ni0": 1.515, "ns": 1.515})
+        fine = pm.vectorial_psf(zf + (3.0 if mismatch else 0.0), nx=n + 1, dxy=dxy / q,
+                                pz=3.0 if mismatch else 0.0, wvl=wl,
+                                params={"NA": na, "ni": 1.515, "ni0": 1.515,
+                                        "ns": 1.33 if mismatch else 1.515})
         fine = np.asarray(fine, float)[:, :n, :n]
     kz, ky, kx = np.unravel_index(int(np.argmax(fine)), fine.shape)
     true = {"row": _half_width(fine[kz, :, kx], dxy / q),

@@ -185,6 +185,7 @@ def _bead_diameter_px(args, info) -> float:
 
 
 def _cmd_estimate(args) -> int:
+    from .core.common.measures import field_fwhm, fwhm_line
     from .core.common.progress import run_with_progress
     from .core.diagnosis.loop import iter_heldout_error
     from .core.model.estimate import iter_estimate
@@ -222,10 +223,12 @@ def _cmd_estimate(args) -> int:
     print(f"held-out error not measured: {held}" if isinstance(held, str) else held.line())
     for line in model_lines(meta, markdown=False):
         print(line)
+    print(fwhm_line(field_fwhm(op), info.pixel_size))
     return 0
 
 
 def _cmd_diagnose(args) -> int:
+    from .core.common.measures import field_fwhm, fwhm_line
     from .core.common.progress import run_with_progress
     from .core.diagnosis.loop import iter_diagnose
     from .io import check_output_file, check_output_folder
@@ -246,6 +249,7 @@ def _cmd_diagnose(args) -> int:
     print(summary_text(diag))
     for line in model_lines(diag.operator.metadata, markdown=False):
         print(line)
+    print(fwhm_line(field_fwhm(diag.operator), info.pixel_size))
     extra = {"source": str(args.image), "slice": args.slice}
     path = write_report(diag, args.report, image_name=Path(args.image).name,
                         pixel_size=info.pixel_size, extra=extra)

@@ -31,6 +31,7 @@ import numpy as np
 
 from . import __version__
 from .core.common.atomic import atomic_write
+from .core.common.measures import field_fwhm, fwhm_line, in_units
 from .core.common.mosaic import mosaic
 from .core.diagnosis import metric
 from .core.diagnosis.residuals import BeadResiduals
@@ -440,6 +441,7 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
         lines += ["", f"Held-out error {_num(d.error_after)} on {d.n_beads} beads; "
                       f"chi-square per degree of freedom {_num(d.chi2_after, '.3g')}."]
     lines += model_lines(d.operator.metadata)
+    lines += ["", fwhm_line(field_fwhm(d.operator), px) + "."]
     motion = d.operator.metadata.get("motion") or {}
     if motion and not motion.get("detected") and not motion.get("note"):
         lines += ["", "**Motion blur**: " + str(motion.get("reason", "not tested")) + "."]
@@ -538,6 +540,21 @@ def to_jsonable(obj: Any) -> Any:
     return obj
 
 
+def _fwhm_dict(op, pixel_size: float | None) -> dict:
+    """The model's lateral FWHM at the centre and the corners (Gaussian fits with an
+    offset), pixels and, where the pixel size is known, nm."""
+    out = {}
+    for place, m in field_fwhm(op).items():
+        row = {k: m[k] for k in ("row", "col", "fwhm_lateral", "fwhm_row", "fwhm_col",
+                                 "fwhm_major", "fwhm_minor", "ellipticity", "angle")}
+        if pixel_size:
+            nm, _ = in_units(m, (pixel_size, pixel_size))
+            row.update({f"{k}_nm": nm[k] for k in ("fwhm_lateral", "fwhm_row", "fwhm_col",
+                                                   "fwhm_major", "fwhm_minor")})
+        out[place] = row
+    return out
+
+
 def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | None = None,
                 extra: dict | None = None) -> dict:
     """The content of report.json (docs/report-format.md), JSON-safe."""
@@ -564,7 +581,8 @@ def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | Non
                   "field_model_reason": op.metadata.get("field_model_reason"),
                   "bead_correction": op.metadata.get("bead_correction"),
                   "denoise": op.metadata.get("denoise"),
-                  "motion": op.metadata.get("motion")},
+                  "motion": op.metadata.get("motion"),
+                  "fwhm": _fwhm_dict(op, pixel_size)},
         "figures": dict(FIGURES),
     }
     return to_jsonable(out)

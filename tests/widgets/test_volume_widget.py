@@ -57,8 +57,17 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     assert grid.translate[0] + (op.kernel_shape[0] // 2) * grid.scale[0] == \
         pytest.approx(op.plane * 0.2)
     assert PSF_SECTIONS in v.layers and PSF_SECTIONS_Y in v.layers
-    assert all(name in v.layers for _, name, _ in MAPS)
-    assert np.isfinite(v.layers[MAPS[0][1]].data).all()
+    # the maps in nm (the stack is calibrated), their unit in their names
+    assert all(f"{label} (nm)" in v.layers for _, label, _ in MAPS)
+    assert np.isfinite(v.layers[f"{MAPS[0][1]} (nm)"].data).all()
+    # the lateral FWHM where the optics put it: 1 to 1.6x the Airy disk's (the grid's
+    # PSFs carry the field's aberrations; a map in px would read 3-6 here)
+    from napari_psfspace.core.common.measures import diffraction_limit
+
+    limit = 1000 * diffraction_limit(series.optics.na, series.optics.wavelength)["lateral"]
+    lateral = v.layers["lateral FWHM (nm)"].data
+    assert 0.95 * limit <= lateral.min() and lateral.max() <= 1.6 * limit, (limit, lateral)
+    assert "lateral FWHM" in w.learn_result.value and " nm," in w.learn_result.value
     # deblur with the learnt model, twice: one layer
     w.iterations.value = 3
     for _ in range(2):

@@ -27,6 +27,7 @@ from magicgui.widgets import ComboBox, Container, FileEdit, Label, PushButton, S
 from napari.layers import Image
 from napari.utils.notifications import show_error
 
+from ..core.common.measures import in_units, psf_measures
 from ..core.common.progress import Progress
 from ..core.volume import iter_estimate_operator_3d, load_operator_3d
 from ..core.volume.deconvolve3d import iter_richardson_lucy_3d
@@ -44,11 +45,22 @@ PSF_SECTIONS = "3D PSF grid: sections (z down, x across)"
 PSF_SECTIONS_Y = "3D PSF grid: sections (z down, y across)"
 DEBLURRED_3D = "deblurred 3D"
 OPERATOR_3D_KEY = "psfspace_operator_3d"
-#: (measure, layer name, colormap) of the maps shown.
-MAPS = (("focal_plane", "focal shift (planes)", "coolwarm"),
-        ("fwhm_lateral", "lateral FWHM (px)", "viridis"),
-        ("fwhm_axial", "axial FWHM (planes)", "viridis"),
-        ("astigmatic_split", "astigmatic split (planes)", "PiYG"))
+#: (measure, layer name without its unit, colormap) of the maps shown; the unit (nm where
+#: the stack's voxel size is known, else px and planes) is added to the name.
+MAPS = (("focal_plane", "focal shift", "coolwarm"),
+        ("fwhm_lateral", "lateral FWHM", "viridis"),
+        ("fwhm_axial", "axial FWHM", "viridis"),
+        ("astigmatic_split", "astigmatic split", "PiYG"))
+
+
+def map_in_units(key: str, values: np.ndarray, plane: int, voxel) -> tuple[np.ndarray, str]:
+    """A measure map as shown: the focal shift from the bead plane; nm where ``voxel``
+    ``(dz, dy, dx)`` in µm is known, else px and planes. Returns the map and its unit."""
+    m = values.astype(np.float64) - (plane if key == "focal_plane" else 0.0)
+    if voxel is None:
+        return m.astype(np.float32), "px" if key == "fwhm_lateral" else "planes"
+    step = voxel[1] if key == "fwhm_lateral" else voxel[0]
+    return (m * step * 1000.0).astype(np.float32), "nm"
 
 
 def stack_of(layer) -> tuple[np.ndarray, tuple, tuple]:
@@ -69,7 +81,9 @@ def _learn(stack, voxel, **kwargs):
     yield Progress("views", 1.0, "PSF grid and maps")
     grid = psf_grid_3d(est.operator, 5)
     maps = measure_maps(est.operator, 8, 8)
-    return est, grid, maps
+    _, h, w = est.operator.shape
+    centre = psf_measures(est.operator.psf_at((h - 1) / 2, (w - 1) / 2))
+    return est, grid, maps, in_units(centre, voxel)
 
 
 class Volume3DWidget(Container):
@@ -86,7 +100,7 @@ class Volume3DWidget(Container):
         self.n_psf.tooltip = "Number of 3D kernels (0: chosen from the data)."
         self.learn = PushButton(text="Learn 3D PSF")
         self.learn_task = CoreTask(self.learn)
-        self.learn_result = result_text(5)
+        self.learn_result = result_text(6)
         self.model_file = FileEdit(mode="r", filter="*.npz", label="or model file")
         self.iterations = SpinBox(label="iterations", min=1, max=10000, value=50)
         self.deblur = PushButton(text="Deblur 3D")
@@ -124,7 +138,7 @@ class Volume3DWidget(Container):
                      n_psf=int(self.n_psf.value) or None)
 
         def on_result(got) -> None:
-            est, (_, _, volume, sections, sections_y), (_, _, maps) = got
+            est, (_, _, volume, sections, sections_y), (_, _, maps), (c, u) = got
             self.operator = op = est.operator
             self._show(op, volume, (sections, sections_y), maps, scale, translate)
             meta = op.metadata
@@ -133,7 +147,10 @@ class Volume3DWidget(Container):
                 f"{meta.get('n_beads_used', '?')} beads; bead plane {op.plane}\n"
                 f"field model: {meta.get('field_model', 'space-varying')}"
                 + (f" ({meta['field_model_reason']})" if meta.get("field_model_reason")
-                   else ""))
+                   else "")
+                + f"\nat the centre (Gaussian fits): lateral FWHM {c['fwhm_lateral']:.3g} "
+                  f"{u['fwhm_lateral']}, axial {c['fwhm_axial']:.3g} {u['fwhm_axial']}, "
+                  f"ellipticity {c['ellipticity']:.2f}")
             held = meta.get("heldout") or {}
             if held.get("n_beads"):
                 self.learn_result.value += (
@@ -167,10 +184,10 @@ class Volume3DWidget(Container):
                                          left + sections[1].shape[1] * s + gap),
                            "colormap": "magma"}, "image"),
         ]
-        for j, (key, name, cmap) in enumerate(MAPS):
-            m = maps[key].astype(np.float32)
-            if key == "focal_plane":
-                m = m - op.plane
+        voxel = None if np.allclose(scale, 1.0) else scale
+        for j, (key, label, cmap) in enumerate(MAPS):
+            m, unit = map_in_units(key, maps[key], op.plane, voxel)
+            name = f"{label} ({unit})"
             finite = m[np.isfinite(m)]
             lim = ((float(finite.min()), float(finite.max()) + 1e-6) if finite.size
                    else (0.0, 1.0))

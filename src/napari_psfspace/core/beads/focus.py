@@ -19,6 +19,9 @@ from ..common.errors import PsfSpaceError
 
 #: A bead's peak is its brightest 3 x 3 mean within this many pixels of its centre.
 PEAK_REACH = 1.5
+#: Detections whose highest peak is below this share of the bright beads' (the 90th
+#: percentile) do not vote: ring fragments, dust.
+MIN_PEAK_SHARE = 0.3
 
 
 def _stack(stack) -> np.ndarray:
@@ -94,7 +97,8 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
     -------
     ndarray of shape (Z,), float64
         The median over the beads of each bead's peak (:func:`bead_peaks`) over its
-        highest, in [0, 1] (negative peaks count as 0).
+        highest, in [0, 1] (negative peaks count as 0), over the beads whose highest
+        peak reaches :data:`MIN_PEAK_SHARE` of the bright beads'.
 
     Raises
     ------
@@ -119,8 +123,13 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
                             "projection: the focus cannot be measured.")
     order = np.argsort(-beads.amplitude[keep], kind="stable")[:n_beads]
     peaks = np.clip(bead_peaks(arr, beads.positions[keep][order], r), 0.0, None)
-    top = peaks.max(axis=1, keepdims=True)
-    peaks = peaks[top[:, 0] > 0] / top[top[:, 0] > 0]
+    top = peaks.max(axis=1)
+    # a detection on a defocused ring (a radius too small for the rings splits them on
+    # the projection) peaks at a few % of a bead in focus: only beads whose highest peak
+    # reaches MIN_PEAK_SHARE of the bright beads' vote
+    bright = top >= MIN_PEAK_SHARE * np.percentile(top, 90) if len(top) else top > 0
+    bright &= top > 0
+    peaks = peaks[bright] / top[bright, None]
     if len(peaks) == 0:
         raise PsfSpaceError("No bead stands above its background on any slice: the focus "
                             "cannot be measured.")
@@ -142,4 +151,4 @@ def best_focus_index(stack, *, psf_radius: float | None = None) -> int:
         return int(np.argmax(arr.reshape(arr.shape[0], -1).astype(np.float32).std(axis=1)))
 
 
-__all__ = ["PEAK_REACH", "bead_peaks", "best_focus_index", "focus_measure"]
+__all__ = ["MIN_PEAK_SHARE", "PEAK_REACH", "bead_peaks", "best_focus_index", "focus_measure"]

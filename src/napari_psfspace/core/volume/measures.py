@@ -17,16 +17,10 @@ from ..common.measures import NAMES, UNITS_PX, in_units, psf_measures
 MEASURES = (*NAMES, "astigmatic_split_limit")
 
 
-def _measure_into(out: dict[str, np.ndarray], index, psf, first_plane: int = 0) -> None:
+def _measure_into(out: dict[str, np.ndarray], index, psf) -> None:
     m = psf_measures(psf)
     for name in MEASURES:
         out[name][index] = m[name]
-    out["focal_plane"][index] += first_plane
-
-
-def _first_plane(operator) -> int:
-    """The stack plane of an operator's kernel plane 0 (the bead plane at ``K // 2``)."""
-    return int(operator.plane - operator.kernel_shape[0] // 2)
 
 
 def measure_maps(operator, n_rows: int = 8, n_cols: int = 8
@@ -54,7 +48,7 @@ def measure_maps(operator, n_rows: int = 8, n_cols: int = 8
     maps = {n: np.full((n_rows, n_cols), np.nan) for n in MEASURES}
     for i, y in enumerate(ys):
         for j, x in enumerate(xs):
-            _measure_into(maps, (i, j), operator.psf_at(y, x), _first_plane(operator))
+            _measure_into(maps, (i, j), operator.psf_at(y, x))  # on the stack's planes
     return ys, xs, maps
 
 
@@ -84,7 +78,7 @@ def model_measures(operator, centers: np.ndarray) -> dict[str, np.ndarray]:
     centers = np.asarray(centers, float).reshape(-1, 2)
     out = {n: np.full(len(centers), np.nan) for n in MEASURES}
     for k, (y, x) in enumerate(centers):
-        _measure_into(out, k, operator.psf_at(y, x), _first_plane(operator))
+        _measure_into(out, k, operator.psf_at(y, x))
     return out
 
 
