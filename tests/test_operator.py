@@ -501,3 +501,36 @@ def test_saved_file_is_plain_npz_without_pickle(tmp_path, rng):
     )
     with np.load(path, allow_pickle=False) as data:
         assert all(data[k].dtype != object for k in data.files)
+
+
+def test_a_killed_write_leaves_nothing_after_the_next(tmp_path):
+    """``kill -9`` while the model is being written (the writer sleeps inside the
+    temporary file): the destination is untouched, and the next write to the path
+    removes the dead writer's temporary file; a missing folder is named, not the
+    temporary file."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    target = tmp_path / "m.npz"
+    target.write_bytes(b"old")
+    code = ("import time, sys; from napari_psfspace.core.common.atomic import atomic_write; "
+            f"atomic_write({str(target)!r}, lambda fh: (fh.write(b'half'), fh.flush(), "
+            "print('in', flush=True), time.sleep(60)))")
+    for _ in range(3):  # each writer removes the one killed before it
+        proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE)
+        assert proc.stdout.readline().strip() == b"in"
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+        stale = [p.name for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
+        assert len(stale) == 1 and target.read_bytes() == b"old"
+    # a live writer's file is kept: this process's pid is alive
+    live = tmp_path / f".m.npz.{os.getppid()}.abc.tmp"
+    live.write_bytes(b"")
+    time.sleep(0.01)
+    _atomic.atomic_write(target, lambda fh: fh.write(b"new"))
+    assert target.read_bytes() == b"new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.npz", live.name])
+    with pytest.raises(FileNotFoundError, match="missing"):
+        _atomic.atomic_write(tmp_path / "missing" / "x.npz", lambda fh: fh.write(b"x"))

@@ -95,3 +95,48 @@ def test_check_psf_radius():
     assert check_psf_radius(31.5, (64, 100)) == 31.5
     with pytest.raises(ValueError, match=r"`psf_radius` = 32 .*too large.*\(64, 100\)"):
         check_psf_radius(32, (64, 100))
+
+
+def _beads_image():
+    import napari_psfspace as ps
+
+    image, _ = ps.simulate_beads((256, 256), n_beads=20, seed=0)
+    return image
+
+
+@pytest.mark.parametrize(("call", "names"), [
+    (lambda ps, img: ps.diagnose(img, psf_radius=8, folds=0), "`folds`"),
+    (lambda ps, img: ps.estimate_subspace(np.stack([img] * 3), psf_radius=8, client="x"),
+     "`client`"),
+    (lambda ps, img: ps.estimate_operator((img > np.percentile(img, 99)).astype(np.uint8),
+                                          psf_radius=8), "two values only"),
+    (lambda ps, img: ps.estimate_operator(np.full((64, 64), 65535, np.uint16),
+                                          psf_radius=8), "constant"),
+    (lambda ps, img: ps.simulate_beads((200000, 200000), 10), "GiB"),
+    (lambda ps, img: ps.simulate_beads((8, 8), 10), "`shape`"),
+    (lambda ps, img: ps.estimate_operator(np.stack([img, img]), psf_radius=8),
+     "estimate_operator_3d"),
+])
+def test_api_doors_name_what_is_wrong(call, names):
+    """Calls the issue's fuzz found answered by a numpy-internal error, an
+    AttributeError or a model: each now a ValueError naming the argument or the
+    reason, before any work (the 200000 x 200000 image is refused before allocating)."""
+    import napari_psfspace as ps
+
+    with pytest.raises(ValueError, match=names) as info:
+        call(ps, _beads_image())
+    assert "has not landed" not in str(info.value)
+
+
+def test_a_psf_outside_the_field_is_refused_as_on_the_command_line():
+    import napari_psfspace as ps
+    from napari_psfspace.core.simulation.optics import simulate_psf
+
+    op = ps.estimate_operator(_beads_image(), psf_radius=8)
+    h, w = op.shape
+    assert op.psf_at(h - 1, 0).shape[0] == op.psf_size  # the field's corner is in it
+    for y, x in ((1e9, 1e9), (-1, 0), (0, w - 0.5), (np.nan, 0)):
+        with pytest.raises(ValueError, match=r"`y`, `x`.*outside the model's field"):
+            op.psf_at(y, x)
+    with pytest.raises(ValueError, match="`shift`"):
+        simulate_psf(None, shift=(np.nan, 0))

@@ -357,9 +357,12 @@ def _cmd_psf(args) -> int:
     else:
         op = load_operator(args.model)
     y, x = args.at
-    h, w = op.shape
-    if not (0 <= y <= h - 1 and 0 <= x <= w - 1):
-        raise ValueError(f"--at {y} {x} lies outside the model's field of {h}x{w} pixels.")
+    from .core.model.psf_field import check_in_field
+
+    try:
+        check_in_field(y, x, op.shape)
+    except ValueError as exc:
+        raise ValueError(f"--at {y} {x}: {str(exc).split(' = ', 1)[-1]}") from None
     psf = op.psf_at(y, x)
     write_tiff(args.output, psf, pixel_size=op.metadata.get("pixel_size_um"),
                metadata={"row": y, "column": x})

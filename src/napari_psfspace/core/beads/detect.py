@@ -284,6 +284,13 @@ def detect_beads(
             f"`image` is constant (every pixel equals {float(img.min()):g}): no beads to "
             "detect. Check that the right image or slice was passed."
         )
+    lo, hi = float(img.min()), float(img.max())
+    if np.count_nonzero((img != lo) & (img != hi)) == 0:
+        raise NoBeadsError(
+            f"`image` holds two values only ({lo:g} and {hi:g}): a mask or a thresholded "
+            "image, not a bead image (a bead is a blurred spot with every level between "
+            "the background and its peak). Pass the raw image."
+        )
 
     integer = is_integer_valued(raw)
     pixel_sd = pixel_noise_sd(raw, integer=integer)

@@ -4,7 +4,9 @@ A file is written to a temporary file in the destination directory and moved
 onto the destination with :func:`os.replace` only once it has been written
 completely (and flushed to disk). If anything fails, the temporary file is
 removed and an existing file at the destination is left untouched, so users
-never end up with a half-written file.
+never end up with a half-written file. A writer killed outright (``kill -9``) cannot
+remove its temporary file: the name carries the writer's process id, and the next
+write to the same path removes those whose writer no longer runs.
 
 Two entry points are provided:
 
@@ -41,6 +43,36 @@ def _read_umask() -> int:
 _UMASK = _read_umask()
 
 
+def _prefix(path: str) -> str:
+    """The temporary files of ``path``: ``.<name>.<writer's pid>.<random>.tmp``."""
+    return "." + os.path.basename(path) + "."
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # it exists, and is another user's
+        return True
+    return True
+
+
+def _remove_stale(path: str) -> None:
+    """Remove the temporary files a killed writer of ``path`` left (its pid is in the
+    name and no longer runs); a live writer's, and files of other names, are kept."""
+    directory = os.path.dirname(os.path.abspath(path))
+    prefix = _prefix(path)
+    with contextlib.suppress(OSError):
+        for name in os.listdir(directory):
+            if not (name.startswith(prefix) and name.endswith(".tmp")):
+                continue
+            pid = name[len(prefix):].split(".", 1)[0]
+            if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
+                with contextlib.suppress(OSError):
+                    os.unlink(os.path.join(directory, name))
+
+
 @contextlib.contextmanager
 def atomic_open(
     path: str | os.PathLike[str], mode: str = "wb", **open_kwargs: Any
@@ -73,8 +105,11 @@ def atomic_open(
         raise ValueError(f"`mode` must be 'wb' or 'w', got {mode!r}")
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(f"cannot write {path}: the folder {directory} does not exist")
+    _remove_stale(path)
     fd, tmp_path = tempfile.mkstemp(
-        dir=directory, prefix="." + os.path.basename(path) + ".", suffix=".tmp"
+        dir=directory, prefix=_prefix(path) + f"{os.getpid()}.", suffix=".tmp"
     )
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:

@@ -40,10 +40,10 @@ def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
         best = int(np.argmax(arr.reshape(arr.shape[0], -1).astype(np.float32).std(axis=1)))
         raise ValueError(
             f"`{name}` must be a 2-D image (rows, columns), got a 3-D stack of shape {arr.shape}. "
-            f"3-D support has not landed yet: pass one slice, e.g. `{name}[{best}]` "
-            f"(slice {best} has the highest contrast; `napari_psfspace.best_focus_index` "
-            "finds the slice where the beads are in focus: at high NA a defocused ring "
-            "can have more contrast)."
+            f"Pass one slice, e.g. `{name}[{best}]` (slice {best} has the highest contrast; "
+            "`napari_psfspace.best_focus_index` finds the slice where the beads are in "
+            "focus), or learn a 3-D PSF from the whole bead stack with "
+            "`napari_psfspace.estimate_operator_3d` (`psfspace estimate3d`)."
         )
     if arr.ndim != 2:
         raise ValueError(
@@ -146,3 +146,48 @@ def check_instance(value, cls: type, name: str, hint: str = "") -> None:
         article = "an" if cls.__name__[0] in "AEIOU" else "a"
         raise TypeError(f"`{name}` must be {article} {cls.__name__}, got "
                         f"{type(value).__name__}.{(' ' + hint) if hint else ''}")
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux ``MemAvailable``; else the
+    free physical pages), or None where neither can be read."""
+    import os
+
+    try:
+        with open("/proc/meminfo", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return int(os.sysconf("SC_AVPHYS_PAGES")) * int(os.sysconf("SC_PAGE_SIZE"))
+    except (OSError, ValueError, AttributeError):
+        return None
+
+
+#: A computation may take at most this share of the memory available.
+MEMORY_SHARE = 0.8
+
+
+def check_shape(shape, name: str = "shape", *, minimum: int = 16) -> tuple[int, int]:
+    """Two whole numbers of pixels (H, W), each at least ``minimum``."""
+    try:
+        vals = tuple(shape)
+        ok = len(vals) == 2 and all(
+            not isinstance(v, (bool, np.bool_)) and float(v) == int(v) for v in vals)
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok or min(int(v) for v in vals) < minimum:
+        raise ValueError(f"`{name}` must be two whole numbers of pixels (H, W), each at "
+                         f"least {minimum}, got {shape!r}.")
+    return int(vals[0]), int(vals[1])
+
+
+def check_memory(nbytes: float, what: str) -> None:
+    """ValueError before any allocation when ``what`` needs more than
+    :data:`MEMORY_SHARE` of the memory available, saying both."""
+    avail = available_memory()
+    if avail is not None and nbytes > MEMORY_SHARE * avail:
+        raise ValueError(f"{what} needs about {nbytes / 2**30:.3g} GiB of memory; this "
+                         f"machine has {avail / 2**30:.3g} GiB available. Ask for less.")

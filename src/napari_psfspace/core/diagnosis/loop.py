@@ -339,6 +339,10 @@ def iter_diagnose(
     img = as_image(raw, dtype=np.float64)
     r = check_psf_radius(psf_radius, img.shape)
     bead_diameter = check_bead_diameter(bead_diameter, r)
+    if isinstance(folds, (bool, np.bool_)) or not isinstance(folds, (int, np.integer)) \
+            or folds < 2:
+        raise ValueError(f"`folds` must be a whole number >= 2 (cross-fitting folds), got "
+                         f"{folds!r}")
     names = list(REGISTRY) if effects is None else list(effects)
     unknown = [n for n in names if n not in REGISTRY]
     if unknown:

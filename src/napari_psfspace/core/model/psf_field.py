@@ -67,6 +67,19 @@ def interp_matrix(nodes: np.ndarray, n_pixels: int) -> scipy.sparse.csr_array:
 
 
 
+def check_in_field(y, x, shape) -> None:
+    """ValueError naming ``y``, ``x`` unless ``(y, x)`` is a finite position within a
+    field of ``shape`` (H, W) pixels (rows 0 to H - 1, columns 0 to W - 1)."""
+    h, w = shape
+    try:
+        fy, fx = float(y), float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"`y`, `x` must be numbers, got {y!r}, {x!r}") from None
+    if not (np.isfinite(fy) and np.isfinite(fx) and 0 <= fy <= h - 1 and 0 <= fx <= w - 1):
+        raise ValueError(f"`y`, `x` = ({fy:g}, {fx:g}) lies outside the model's field of "
+                         f"{h}x{w} pixels (rows 0 to {h - 1}, columns 0 to {w - 1})")
+
+
 class PsfField:
     """Basis patches ``h_i`` and coefficient maps ``alpha_i``: the PSF at any position.
 
@@ -282,12 +295,16 @@ class PsfField:
         Raises
         ------
         ValueError
-            If the un-normalised PSF sums to a non-positive value.
+            If ``(y, x)`` is not a finite position within the field (rows 0 to
+            ``H - 1``, columns 0 to ``W - 1``: beyond it the PSF would be an
+            extrapolation; the command line's ``psf --at`` refuses the same), or the
+            un-normalised PSF sums to a non-positive value.
         """
         if np.ndim(y) != 0 or np.ndim(x) != 0:
             raise ValueError(
                 f"`y` and `x` must be scalars, got shapes {np.shape(y)}, {np.shape(x)}"
             )
+        check_in_field(y, x, self._shape)
         alpha = self.coefficients_at(y, x)
         return self._combine(alpha, f"(y={float(y):g}, x={float(x):g})")
 

@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..common.validate import check_memory, check_shape
 from .aberrations import FieldAberrations, as_aberrations
 from .camera import as_range, camera
 from .optics import RENDER_RADIUS_FACTOR, Optics, field_psf_radius, psf_stack
@@ -206,7 +207,12 @@ def simulate_focus_series(
     optics = Optics() if optics is None else optics
     base = as_aberrations(aberrations)
     z = np.asarray(z_um, float).reshape(-1)
-    shape = (int(shape[0]), int(shape[1]))
+    shape = check_shape(shape)
+    if len(z) < 1 or not np.isfinite(z).all():
+        raise ValueError(f"`z_um` must hold at least one finite focus position, got {z_um!r}")
+    check_memory(np.dtype(dtype).itemsize * len(z) * shape[0] * shape[1]
+                 + 6 * 8.0 * shape[0] * shape[1],
+                 f"A stack of {len(z)} slices of {shape[0]} x {shape[1]}")
     radii = np.array([field_psf_radius(with_defocus(base, float(zk), optics), optics, shape)
                       for zk in z], int)
     rng = np.random.default_rng(seed)

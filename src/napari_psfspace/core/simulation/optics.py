@@ -373,7 +373,14 @@ def simulate_psf(
     """
     size = check_size(size)
     noll, coefs = _split_zernike(zernike)
-    return psf_stack(noll, coefs[None], np.asarray(shift, float)[None], optics, size)[0]
+    try:
+        sh = np.asarray(shift, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"`shift` must be two finite numbers (row, col), got {shift!r}") \
+            from None
+    if sh.shape != (2,) or not np.isfinite(sh).all():
+        raise ValueError(f"`shift` must be two finite numbers (row, col), got {shift!r}")
+    return psf_stack(noll, coefs[None], sh[None], optics, size)[0]
 
 
 # ---------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from ..common.validate import check_memory, check_shape
 from .aberrations import FieldAberrations, as_aberrations
 from .camera import as_range, camera, camera_adu, digitise
 from .effects import (
@@ -195,7 +196,9 @@ def simulate_beads(
     coefficients evaluated there) and sub-pixel offset, on a window of radius
     ``RENDER_RADIUS_FACTOR * psf_radius`` (clipped at the image border).
     """
-    shape = (int(shape[0]), int(shape[1]))
+    shape = check_shape(shape)
+    # the photon image, its noise and the camera's: about six float64 images
+    check_memory(6 * 8.0 * shape[0] * shape[1], f"A {shape[0]} x {shape[1]} image")
     n_beads = int(n_beads)
     if n_beads < 0:
         raise ValueError(f"n_beads must be >= 0, got {n_beads}")

@@ -332,6 +332,10 @@ def iter_estimate_subspace(
                          f"{len(items)}: learn one operator with estimate_operator instead")
     if not (np.isfinite(psf_radius) and psf_radius > 0):
         raise ValueError(f"`psf_radius` must be a positive number of pixels, got {psf_radius!r}")
+    if client is not None and not (callable(getattr(client, "compute", None))
+                                   and callable(getattr(client, "gather", None))):
+        raise ValueError(f"`client` must be a dask.distributed Client (with compute and "
+                         f"gather) or None, got {client!r}")
     for name, v in (("n_psf", n_psf), ("n_space", n_space)):
         if v is not None and (int(v) != v or v < 1):
             raise ValueError(f"`{name}` must be a positive integer or None, got {v!r}")

@@ -30,7 +30,7 @@ from numpy.typing import ArrayLike
 from ..model.operator_checks import as_real_array, normalise_metadata
 from ..model.operator_fft import check_dc, computation_dtype
 from ..model.operator_file import read_archive, software_string, write_archive
-from ..model.psf_field import interp_matrix, interp_weights
+from ..model.psf_field import check_in_field, interp_matrix, interp_weights
 
 #: Value of the ``"format"`` field of a 3D model file's JSON header.
 FORMAT_NAME = "napari-psfspace/product-convolution-3d"
@@ -193,6 +193,7 @@ class ProductConvolution3D:
             Plane ``z`` is the kernel's plane ``K // 2 + (z - plane)``; planes beyond
             the kernel are zero.
         """
+        check_in_field(y, x, self._shape[1:])
         kern = self.kernel_at(y, x)
         k, p, _ = kern.shape
         out = np.zeros((self._shape[0], p, p))
