@@ -301,6 +301,13 @@ def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
         return f"**{text}**" if markdown else text
 
     out = []
+    sat = meta.get("saturation") or {}
+    if sat.get("beads"):
+        out.append(bold("Saturation") + f": {sat['beads']} of {sat.get('detections', '?')} "
+                   f"detections have clipped pixels in their cores (level "
+                   f"{sat.get('level', float('nan')):g}, {sat.get('pixels', 0)} pixels); "
+                   f"{(meta.get('bead_counts') or {}).get('saturated', 0)} of them were left "
+                   "out as saturated. Diagnose tries the saturation effect on them.")
     if meta.get("field_model") == "shift-invariant":
         out.append(bold("The model is shift-invariant") + " (one PSF for the whole field): "
                    + str(meta.get("field_model_reason", "")))

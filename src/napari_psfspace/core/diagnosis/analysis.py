@@ -287,8 +287,10 @@ def analyse(
                                           th["elongated_beads"], d)
     top = float(img.max())
     cores = np.zeros(img.shape, bool)
-    iy = np.clip(np.round(res.positions[:, 0]).astype(int), 0, img.shape[0] - 1)
-    ix = np.clip(np.round(res.positions[:, 1]).astype(int), 0, img.shape[1] - 1)
+    # every detection's core: the beads left out as saturated are the ones that show it
+    every = res.positions if all_positions is None else np.asarray(all_positions, float)
+    iy = np.clip(np.round(every[:, 0]).astype(int), 0, img.shape[0] - 1)
+    ix = np.clip(np.round(every[:, 1]).astype(int), 0, img.shape[1] - 1)
     cores[iy, ix] = True
     cores = ndi.binary_dilation(cores, iterations=max(1, int(psf_radius / 3)))
     n_top = int(np.count_nonzero((img >= top) & cores))

@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..beads.centering import refine_centers
-from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept
+from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept, saturation_record
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma, min_separation
@@ -466,7 +466,8 @@ def iter_diagnose(
                "explore": explore, "n_psf": n_psf, "smoothing": smoothing,
                "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
                "bead_diameter": bead_diameter, "remove_motion": remove_motion,
-               "effects": names}
+               "effects": names,
+               "saturation": saturation_record(raw, beads, r, None)}
     return Diagnosis(steps=steps, error_before=total["error_before"],
                      error_after=total["error_after"], chi2_before=total["chi2_before"],
                      chi2_after=total["chi2_after"], noise_floor=total["noise_floor"],

@@ -76,6 +76,26 @@ class Verdict:
                 "hints": list(self.hints)}
 
 
+def saturation_sentence(diagnosis) -> str:
+    """One sentence when detections have clipped pixels in their cores: how many, the
+    level, and what became of the saturation effect; empty otherwise."""
+    d = diagnosis
+    rec = (d.options or {}).get("saturation") or {}
+    n = int(rec.get("beads") or 0)
+    if n == 0:
+        return ""
+    tried = [s for s in d.steps if s.effect == "saturation"]
+    if any(s.accepted for s in tried):
+        fate = "the saturation effect was added"
+    elif tried:
+        fate = "the saturation effect was tried and not kept"
+    else:
+        fate = "the saturation effect was not tried"
+    return (f"Saturation: {n} of {rec.get('detections', '?')} detections have clipped "
+            f"pixels in their cores (level {rec.get('level', float('nan')):g}, "
+            f"{rec.get('pixels', 0)} pixels); {fate}.")
+
+
 def verdict(diagnosis) -> Verdict:
     """The verdict of a :class:`~napari_psfspace.core.diagnosis.loop.Diagnosis`."""
     from .effects import REGISTRY
@@ -127,6 +147,9 @@ def verdict(diagnosis) -> Verdict:
                     f"{err:.4g} is {ratio:.3g} times the noise floor {floor:.4g}, after "
                     f"testing {what}. Do not use it before looking at its PSFs and the "
                     "worst residual patches.")
+    sat = saturation_sentence(d)
+    if sat:
+        headline += " " + sat
     hints = []
     if level in ("partly explained", "not explained"):
         model = d.operator.metadata or {}
@@ -146,4 +169,4 @@ def verdict(diagnosis) -> Verdict:
     return Verdict(level, float(ratio), headline, tried, unanswered, hints)
 
 
-__all__ = ["EXPLAINED_RATIO", "UNEXPLAINED_RATIO", "Verdict", "verdict"]
+__all__ = ["EXPLAINED_RATIO", "UNEXPLAINED_RATIO", "Verdict", "saturation_sentence", "verdict"]

@@ -17,7 +17,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..beads.centering import refine_centers
-from ..beads.detect import FAINT, OUTLIER, Beads, NoBeadsError, detect_beads, flag_unusable
+from ..beads.detect import (
+    FAINT,
+    OUTLIER,
+    Beads,
+    NoBeadsError,
+    detect_beads,
+    flag_unusable,
+    saturation_record,
+)
 from ..beads.patches import Patches, extract_patches
 from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
@@ -179,6 +187,7 @@ def iter_estimate(
         "image_shape": list(shape),
         "image_dtype": str(raw.dtype),
         "bead_counts": beads.counts(),
+        "saturation": saturation_record(raw, beads, r, saturation),
         "hot_pixels": hot_pixel_record(beads.hot_pixels),
         "n_beads_used": int(basis.inliers.sum()),
         "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
