@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads
+from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads, saturation_record
 from ..beads.focus import best_focus_index
 from ..beads.window import radial_distance
 from ..common.progress import Progress, run_with_progress
@@ -161,6 +161,7 @@ def iter_estimate_operator_3d(
         "smoothing": [float(s) for s in spline.smoothing],
         "threshold": threshold, "grid_step": grid_step, "image_shape": [depth, h, w],
         "image_dtype": str(np.asarray(stack).dtype), "bead_counts": beads.counts(),
+        "saturation": saturation_record(np.asarray(stack).max(axis=0), beads, r, None),
     }
     op = ProductConvolution3D(basis.basis, coefficients, shape=(depth, h, w), grid=(gy, gx),
                               plane=plane, voxel_size=voxel_size, metadata=meta)
