@@ -168,6 +168,13 @@ def _image_and_radius(args):
         r = suggest_psf_radius(image)
         print(f"no --psf-radius given: using {r:g} px, measured from the image "
               "(see suggest_psf_radius)", file=sys.stderr)
+        if args.slice is not None:  # a slice of a stack: against the slice in focus
+            from .core.beads.scale import radius_against_focus
+            from .io import read_stack
+
+            why = radius_against_focus(read_stack(args.image)[0], args.slice, r)
+            if why:
+                print(why, file=sys.stderr)
     return image, info, r
 
 

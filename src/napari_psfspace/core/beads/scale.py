@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..common.errors import PsfSpaceError
 from ..common.validate import as_image
 from .spikes import (
     QUANTISATION_VARIANCE,
@@ -432,6 +433,11 @@ def _spot_radius(win: np.ndarray, own: np.ndarray, energy: float) -> int | None:
     return int(np.searchsorted(enclosed, energy * enclosed[-1]))
 
 
+#: Spots whose energy radius exceeds this many times the median spot's do not set the
+#: radius (the defocused slices of the measured stacks: ``bench/RESULTS.md``).
+MAX_OVER_MEDIAN = 2.5
+
+
 def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
                        max_radius: float | None = None, wings: float = WINGS) -> float:
     """Suggest the PSF radius ``r`` (pixels) for a model learnt from an image's spots.
@@ -445,8 +451,9 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
     :data:`SEARCH_SCALES` scales of it; a spot's radius is where the energy reaches
     ``energy`` of the total within the signal's extent (the profile above 3 noise sd of a
     ring median). The radius must bound the widest PSFs of the field, so the 75th
-    percentile over the spots (robust to a few aggregates), plus one pixel, is the
-    spots' *visible radius*.
+    percentile over the spots, plus one pixel, is the spots' *visible radius*; spots
+    wider than :data:`MAX_OVER_MEDIAN` times the median spot (aggregates, dust,
+    structure) do not count.
 
     The model is learnt from all the beads at once and still sees the wings below one
     bead's noise, so the suggestion is ``wings`` times the visible radius
@@ -516,6 +523,10 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
     if not radii:
         raise NoBeadsError("Could not measure the width of any bright spot: give "
                            "`psf_radius` yourself.")
+    radii = np.asarray(radii, float)
+    # a spot far wider than the median spot is an aggregate, dust or structure, not a
+    # bead: on a defocused slice of few beads one such spot set the radius (RESULTS.md)
+    radii = radii[radii <= MAX_OVER_MEDIAN * np.median(radii)]
     visible = float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
     if not wings > 1.0:
         return visible
@@ -544,5 +555,56 @@ def _wider_radius(image, visible: float, wings: float, rmax: int) -> float:
     return visible
 
 
-__all__ = ["KEEP_FRACTION", "LOW_COUNT_SD", "WINGS", "SpotScale", "characteristic_scale",
-           "detection_image", "spot_scale", "suggest_psf_radius"]
+#: A slice's suggested radius beyond this factor of the in-focus slice's is explained.
+SLICE_RATIO = 1.5
+
+
+def radius_against_focus(stack, index: int, radius: float, *, focus: int | None = None,
+                         focus_radius: float | None = None) -> str:
+    """Why a slice's radius departs from the in-focus slice's by more than
+    :data:`SLICE_RATIO`, in one sentence; empty when it does not (or is the focus).
+
+    Parameters
+    ----------
+    stack : ndarray of shape (Z, M, N)
+    index : int
+        The slice the radius is for.
+    radius : float
+        Its suggested radius, pixels.
+    focus, focus_radius : optional
+        The best-focus slice and its suggested radius, where already known.
+    """
+    from .detect import detect_beads
+    from .focus import best_focus_index
+
+    arr = np.asarray(stack)
+    focus = best_focus_index(arr) if focus is None else int(focus)
+    if focus == index:
+        return ""
+    try:
+        r_focus = suggest_psf_radius(arr[focus]) if focus_radius is None else focus_radius
+    except PsfSpaceError:
+        return ""
+    ratio = float(radius) / r_focus
+    if 1 / SLICE_RATIO <= ratio <= SLICE_RATIO:
+        return ""
+
+    def count(image, r):
+        try:
+            b = detect_beads(image, r)
+            return int(np.count_nonzero(b.kept)), len(b)
+        except PsfSpaceError:
+            return 0, 0
+
+    kept, found = count(arr[index], radius)
+    kept_f, found_f = count(arr[focus], r_focus)
+    return (f"slice {index} is {abs(index - focus)} slice(s) from the best focus (slice "
+            f"{focus}, radius {r_focus:g} px, {kept_f} of {found_f} beads kept): its "
+            f"beads are {'wider' if ratio > 1 else 'narrower'} there, {ratio:.2f}x "
+            f"({radius:g} px, {kept} of {found} beads kept); pass --psf-radius to choose "
+            "another.")
+
+
+__all__ = ["KEEP_FRACTION", "LOW_COUNT_SD", "MAX_OVER_MEDIAN", "SLICE_RATIO",
+           "WINGS", "SpotScale", "characteristic_scale", "detection_image",
+           "radius_against_focus", "spot_scale", "suggest_psf_radius"]
