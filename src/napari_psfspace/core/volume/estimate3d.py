@@ -35,6 +35,10 @@ from .operator3d import ProductConvolution3D
 from .patches3d import Patches3D, bead_planes, extract_patches_3d
 
 
+#: Fewest kept beads whose median plane of best focus sets the bead plane.
+MIN_PLANE_VOTES = 5
+
+
 @dataclass
 class Estimation3D:
     """What :func:`iter_estimate_operator_3d` produced.
@@ -114,7 +118,10 @@ def iter_estimate_operator_3d(
     yield Progress("centre", 0.3, f"{len(kept)} beads centred laterally")
 
     own = bead_planes(vol, beads.positions[kept], r)
-    plane = int(np.round(np.median(own)))
+    # the beads' median plane of best focus; a handful of beads cannot outvote the noise
+    # of one whose peak has two maxima (an index mismatch): the stack's best focus,
+    # from every detection, then
+    plane = int(np.round(np.median(own))) if len(own) >= MIN_PLANE_VOTES else int(focus)
     if z_radius is None:
         z_radius = max(plane, depth - 1 - plane)
     if int(z_radius) != z_radius or z_radius < 1:
