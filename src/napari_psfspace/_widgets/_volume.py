@@ -189,8 +189,12 @@ class Volume3DWidget(Container):
             m, unit = map_in_units(key, maps[key], op.plane, voxel)
             name = f"{label} ({unit})"
             finite = m[np.isfinite(m)]
-            lim = ((float(finite.min()), float(finite.max()) + 1e-6) if finite.size
+            lim = ((float(finite.min()), float(finite.max())) if finite.size
                    else (0.0, 1.0))
+            if lim[1] - lim[0] < 1e-3 * max(abs(lim[0]), abs(lim[1]), 1.0):
+                # a flat map (one PSF for the field): its value mid-bar, not 0-1000
+                pad = 0.05 * max(abs(lim[0]), 1.0)
+                lim = (lim[0] - pad, lim[1] + pad)
             if key in ("focal_plane", "astigmatic_split") and finite.size:
                 top = max(abs(lim[0]), abs(lim[1]), 1e-6)
                 lim = (-top, top)
