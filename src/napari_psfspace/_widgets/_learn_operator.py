@@ -18,6 +18,7 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_info
 
+from ..core.common.measures import field_fwhm, fwhm_line
 from ..core.diagnosis.loop import iter_heldout_error
 from ..core.diagnosis.metric import line as heldout_line
 from ..core.model.estimate import iter_estimate
@@ -174,7 +175,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
             self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
             self._viewer.reset_view()
             self.show_psf.enabled = True
-            self.result.value = self._describe(est)
+            self.result.value = self._describe(est, self.radius.pixel_size)
             if path is not None:
                 est.operator.save(path)
                 show_info(f"Model saved to {path}")
@@ -183,7 +184,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.task.run(gen, on_result)
 
     @staticmethod
-    def _describe(est) -> str:
+    def _describe(est, pixel_size: float | None = None) -> str:
         meta = est.operator.metadata
         text = (f"basis of I = {meta['n_psf']} PSFs from {meta['n_beads_used']} beads\n"
                 f"{est.beads.summary()}")
@@ -194,7 +195,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
             text += f"\nheld-out error not measured: {h}"
         for line in model_lines(meta, markdown=False):
             text += f"\n{line}"
-        return text
+        return text + "\n" + fwhm_line(field_fwhm(est.operator), pixel_size)
 
     def psf_here(self, *_) -> None:
         """Show the PSF at (y, x) as a layer (File > Save Layer... writes a TIFF); the

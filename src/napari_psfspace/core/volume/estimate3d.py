@@ -34,7 +34,6 @@ from .heldout3d import FOLDS, Heldout3D, heldout_error_3d
 from .operator3d import ProductConvolution3D
 from .patches3d import Patches3D, bead_planes, extract_patches_3d
 
-
 #: Fewest kept beads whose median plane of best focus sets the bead plane.
 MIN_PLANE_VOTES = 5
 
