@@ -285,7 +285,8 @@ def detect_beads(
             "detect. Check that the right image or slice was passed."
         )
     lo, hi = float(img.min()), float(img.max())
-    if np.count_nonzero((img != lo) & (img != hi)) == 0:
+    sub = img[::7, ::7]  # a bead image shows a third level at once; a mask never does
+    if not np.any((sub != lo) & (sub != hi)) and not np.any((img != lo) & (img != hi)):
         raise NoBeadsError(
             f"`image` holds two values only ({lo:g} and {hi:g}): a mask or a thresholded "
             "image, not a bead image (a bead is a blurred spot with every level between "

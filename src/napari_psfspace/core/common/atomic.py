@@ -23,6 +23,7 @@ Examples
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from collections.abc import Callable, Iterator
@@ -106,7 +107,8 @@ def atomic_open(
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
-        raise FileNotFoundError(f"cannot write {path}: the folder {directory} does not exist")
+        raise FileNotFoundError(errno.ENOENT, f"cannot write {path}: the folder {directory} "
+                                "does not exist", directory)
     _remove_stale(path)
     fd, tmp_path = tempfile.mkstemp(
         dir=directory, prefix=_prefix(path) + f"{os.getpid()}.", suffix=".tmp"
