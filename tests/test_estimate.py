@@ -146,7 +146,7 @@ def test_nans():
 
 @pytest.mark.parametrize("shape", [(50,), (3, 64, 64), (2, 3, 64, 64)])
 def test_wrong_dimensions(shape):
-    msg = "pass one slice" if len(shape) == 3 else "2-D image"
+    msg = "Pass one slice.*estimate_operator_3d" if len(shape) == 3 else "2-D image"
     with pytest.raises(ValueError, match=msg):
         ps.estimate_operator(np.zeros(shape, np.float32), psf_radius=4)
 
