@@ -1,6 +1,7 @@
 """Bad calls at every door: the command line and the public API, each given wrong values.
 
-Every call runs in a forked child (the imports shared, a time limit each) and ends as:
+Every call runs in a child of a fork server (the imports shared, no thread state
+inherited, a time limit each) and ends as:
 
 * ``refused``: the command line exits 2 with one line naming what is wrong; the API
   raises a ValueError or TypeError whose message names the argument;
@@ -80,7 +81,10 @@ def _child(conn, kind, payload):
 
 
 def run(kind, payload, limit: float):
-    ctx = mp.get_context("fork")
+    # a fork server started before any computation: a child forked from a process whose
+    # BLAS and worker threads have run can deadlock (the first run of this bench: 34 legal
+    # calls "ran on" past a minute); the server's imports are shared, its threads never ran
+    ctx = mp.get_context("forkserver")
     a, b = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(b, kind, payload))
     proc.start()
@@ -226,6 +230,7 @@ def main() -> None:
     ap.add_argument("--limit", type=float, default=60.0, help="seconds a call may take")
     ap.add_argument("--kills", type=int, default=20)
     args = ap.parse_args()
+    mp.set_forkserver_preload(["napari_psfspace", "napari_psfspace.cli", "bench_doors"])
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)

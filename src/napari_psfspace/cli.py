@@ -518,8 +518,9 @@ def _cmd_estimate3d(args) -> int:
         if not np.isfinite(lo[name]):
             print(f"  {what}: not measurable over the field")
             continue
-        print(f"  {what}: {lo[name]:.3g} to {hi[name]:.3g}{unit} over the field "
-              f"(+- {sd[name]:.2g} between the beads and the model)")
+        spread = (f"+- {sd[name]:.2g} between the beads and the model"
+                  if np.isfinite(sd[name]) else "fewer than 3 beads to compare with the model")
+        print(f"  {what}: {lo[name]:.3g} to {hi[name]:.3g}{unit} over the field ({spread})")
     held = op.metadata.get("heldout")
     if held and held.get("n_beads"):
         print(f"  held-out beads ({held['n_beads']}): residual {held['residual_median']:.3f}, "

@@ -33,6 +33,9 @@ def _stack(stack) -> np.ndarray:
                          f"{arr.shape}.")
     if arr.dtype.kind not in "biuf":
         raise ValueError(f"`stack` must be a real array, got dtype {arr.dtype}.")
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
+        raise ValueError(f"`stack` contains {int((~np.isfinite(arr)).sum())} NaN or infinite "
+                         "value(s); expected only finite values.")
     return arr
 
 

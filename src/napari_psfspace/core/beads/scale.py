@@ -486,8 +486,12 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
     """
     from scipy.spatial import cKDTree
 
+    from ..common.validate import check_int, check_positive
     from .detect import NoBeadsError
 
+    n_beads = check_int(n_beads, "n_beads", minimum=1)
+    if not 0 < check_positive(energy, "energy") < 1:
+        raise ValueError(f"`energy` must be a fraction in (0, 1), got {energy!r}.")
     img, _, _, _ = _prepare(image)
     h, w = img.shape
     rmax = int(max_radius or max(6, min(h, w) // 8))

@@ -130,9 +130,14 @@ def iter_estimate(
     r = check_psf_radius(psf_radius, shape)
     grid_step = check_grid_step(grid_step, np.shape(image)[-2:])
     saturation = check_saturation(saturation)
-    if n_psf is not None and not isinstance(n_psf, str) and (int(n_psf) != n_psf or n_psf < 1):
-        raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
-                         f"got {n_psf!r}.")
+    if n_psf is not None and not isinstance(n_psf, str):
+        try:
+            bad = isinstance(n_psf, (bool, np.bool_)) or int(n_psf) != n_psf or n_psf < 1
+        except (TypeError, ValueError, OverflowError):
+            bad = True
+        if bad:
+            raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
+                             f"got {n_psf!r}.")
     fixed_n = n_psf if isinstance(n_psf, (int, np.integer)) else None
     if smoothing is not None:
         check_positive(smoothing, "smoothing", allow_zero=True)

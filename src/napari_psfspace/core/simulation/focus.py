@@ -212,7 +212,7 @@ def simulate_focus_series(
         raise ValueError(f"`z_um` must hold at least one finite focus position, got {z_um!r}")
     check_memory(np.dtype(dtype).itemsize * len(z) * shape[0] * shape[1]
                  + 6 * 8.0 * shape[0] * shape[1],
-                 f"A stack of {len(z)} slices of {shape[0]} x {shape[1]}")
+                 f"`z_um`, `shape`: a stack of {len(z)} slices of {shape[0]} x {shape[1]}")
     radii = np.array([field_psf_radius(with_defocus(base, float(zk), optics), optics, shape)
                       for zk in z], int)
     rng = np.random.default_rng(seed)

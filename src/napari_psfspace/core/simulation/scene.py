@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..common.validate import check_memory, check_shape
+from ..common.validate import check_int, check_memory, check_shape
 from .aberrations import FieldAberrations, as_aberrations
 from .camera import as_range, camera, camera_adu, digitise
 from .effects import (
@@ -198,10 +198,11 @@ def simulate_beads(
     """
     shape = check_shape(shape)
     # the photon image, its noise and the camera's: about six float64 images
-    check_memory(6 * 8.0 * shape[0] * shape[1], f"A {shape[0]} x {shape[1]} image")
-    n_beads = int(n_beads)
-    if n_beads < 0:
-        raise ValueError(f"n_beads must be >= 0, got {n_beads}")
+    check_memory(6 * 8.0 * shape[0] * shape[1], f"`shape` {shape}: a {shape[0]} x {shape[1]} "
+                 "image")
+    n_beads = check_int(n_beads, "n_beads", minimum=0)
+    if seed is not None and not isinstance(seed, np.random.Generator):
+        check_int(seed, "seed", minimum=0)
     optics = Optics() if optics is None else optics
     aberrations = as_aberrations(aberrations)
     amp_range = as_range(amplitude, "amplitude")

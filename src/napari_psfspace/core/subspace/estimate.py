@@ -330,7 +330,11 @@ def iter_estimate_subspace(
     if len(items) < 2:
         raise ValueError(f"`images` must hold at least 2 images to learn a family, got "
                          f"{len(items)}: learn one operator with estimate_operator instead")
-    if not (np.isfinite(psf_radius) and psf_radius > 0):
+    try:
+        ok = np.isfinite(float(psf_radius)) and float(psf_radius) > 0
+    except (TypeError, ValueError):
+        ok = False
+    if not ok:
         raise ValueError(f"`psf_radius` must be a positive number of pixels, got {psf_radius!r}")
     if client is not None and not (callable(getattr(client, "compute", None))
                                    and callable(getattr(client, "gather", None))):
