@@ -200,6 +200,17 @@ def api_calls() -> list[tuple]:
     each(ps.deblur, {"image": img, "operator": op}, "max_iter", [-1, 0, np.nan, "x"])
     each(ps.best_focus_index, {}, "stack", [img, "x", np.zeros((3, 4, 4)),
                                             np.full((3, 32, 32), np.nan)])
+    zs, _ = ps.simulate_focus_series((128, 128), 4, (-0.4, 0.0, 0.4), seed=0)
+    for name in ("psf_radius", "z_radius", "threshold", "grid_step"):
+        each(ps.estimate_operator_3d, {"stack": zs, "psf_radius": 10.0}, name,
+             [np.nan, -1, 0, 1e12, "x", [1, 2]])
+    each(ps.simulate_focus_series, {"shape": (64, 64), "n_beads": 2}, "z_um",
+         [[np.nan], [], "x", np.full(100000, 0.1)])
+    op3 = ps.estimate_operator_3d(zs, psf_radius=10.0)
+    each(ps.richardson_lucy_3d, {"stack": zs, "operator": op3}, "n_iter",
+         [-1, 0, np.nan, "x", 2.5])
+    each(ps.richardson_lucy_3d, {"operator": op3}, "stack",
+         [zs[0], np.full_like(zs, np.nan, dtype=float), "x"])
     for bad_img in (np.zeros(5), np.full((64, 64), np.nan), "x", np.zeros((2, 3, 4, 5)),
                     (img > img.mean()).astype(np.uint8), np.full((64, 64), 7.0)):
         calls.append((ps.estimate_operator, {"image": bad_img, "psf_radius": r}, None))
@@ -229,6 +240,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--limit", type=float, default=60.0, help="seconds a call may take")
     ap.add_argument("--kills", type=int, default=20)
+    ap.add_argument("--doors", nargs="+", default=["cli", "api"])
     args = ap.parse_args()
     mp.set_forkserver_preload(["napari_psfspace", "napari_psfspace.cli", "bench_doors"])
     t0 = time.perf_counter()
@@ -236,7 +248,10 @@ def main() -> None:
         tmp = Path(d)
         f = _files(tmp)
         rows, findings = [], []
-        for kind, calls in (("cli", cli_calls(tmp, f)), ("api", api_calls())):
+        for kind, make in (("cli", lambda: cli_calls(tmp, f)), ("api", api_calls)):
+            if kind not in args.doors:
+                continue
+            calls = make()
             counts: dict[str, int] = {}
             for c in calls:
                 res, detail = run(kind, c, args.limit)

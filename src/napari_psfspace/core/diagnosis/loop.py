@@ -41,7 +41,7 @@ from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma, min_separation
 from ..common.threads import blas_threads
-from ..common.validate import as_image, check_psf_radius
+from ..common.validate import as_image, check_positive, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
 from .analysis import Analysis, analyse
@@ -306,6 +306,14 @@ def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
                               grid=operator.grid, metadata=meta)
 
 
+def check_float(value, name: str) -> float:
+    """``float(value)``, or a ValueError naming ``name``."""
+    try:
+        return float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number, got {value!r}") from None
+
+
 @blas_threads
 def iter_diagnose(
     image,
@@ -339,6 +347,15 @@ def iter_diagnose(
     img = as_image(raw, dtype=np.float64)
     r = check_psf_radius(psf_radius, img.shape)
     bead_diameter = check_bead_diameter(bead_diameter, r)
+    if gain is not None:
+        check_positive(gain, "gain")
+    if offset is not None and not np.isfinite(check_float(offset, "offset")):
+        raise ValueError(f"`offset` must be a finite number of ADU, got {offset!r}")
+    if read_noise is not None:
+        check_positive(read_noise, "read_noise", allow_zero=True)
+    if gain is None and (offset is not None or read_noise is not None):
+        raise ValueError("`offset` and `read_noise` describe the camera with `gain`: give "
+                         "`gain` too, or none of them (the noise model is then measured)")
     if isinstance(folds, (bool, np.bool_)) or not isinstance(folds, (int, np.integer)) \
             or folds < 2:
         raise ValueError(f"`folds` must be a whole number >= 2 (cross-fitting folds), got "

@@ -96,6 +96,10 @@ def defocus_zernike(z_um: float, optics: Optics, *, index: float | None = None
     return coefs, float(np.sqrt(np.sum(left**2 * weight)))
 
 
+#: The most focus positions a simulated series takes (each slice's PSF field is computed).
+MAX_SLICES = 1000
+
+
 @dataclass
 class FocusSeries:
     """What :func:`simulate_focus_series` rendered.
@@ -206,10 +210,14 @@ def simulate_focus_series(
     """
     optics = Optics() if optics is None else optics
     base = as_aberrations(aberrations)
-    z = np.asarray(z_um, float).reshape(-1)
+    try:
+        z = np.asarray(z_um, float).reshape(-1)
+    except (TypeError, ValueError):
+        raise ValueError(f"`z_um` must be focus positions in µm, got {z_um!r}") from None
     shape = check_shape(shape)
-    if len(z) < 1 or not np.isfinite(z).all():
-        raise ValueError(f"`z_um` must hold at least one finite focus position, got {z_um!r}")
+    if not 1 <= len(z) <= MAX_SLICES or not np.isfinite(z).all():
+        raise ValueError(f"`z_um` must hold 1 to {MAX_SLICES} finite focus positions, got "
+                         f"{len(z)}" + ("" if np.isfinite(z).all() else " with NaN"))
     check_memory(np.dtype(dtype).itemsize * len(z) * shape[0] * shape[1]
                  + 6 * 8.0 * shape[0] * shape[1],
                  f"`z_um`, `shape`: a stack of {len(z)} slices of {shape[0]} x {shape[1]}")

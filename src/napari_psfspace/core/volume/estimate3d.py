@@ -23,7 +23,7 @@ from ..beads.focus import best_focus_index
 from ..beads.window import radial_distance
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import blas_threads
-from ..common.validate import check_grid_step, check_psf_radius
+from ..common.validate import check_grid_step, check_int, check_psf_radius
 from ..model.cone import Cone, reduce_cone
 from ..model.estimate import centre_beads, faint_beads
 from ..model.field import coarse_grid
@@ -123,9 +123,8 @@ def iter_estimate_operator_3d(
     plane = int(np.round(np.median(own))) if len(own) >= MIN_PLANE_VOTES else int(focus)
     if z_radius is None:
         z_radius = max(plane, depth - 1 - plane)
-    if int(z_radius) != z_radius or z_radius < 1:
-        raise ValueError(f"`z_radius` must be a whole number of planes >= 1, got {z_radius!r}")
-    z_radius = int(z_radius)
+    # planes beyond the stack hold nothing: at most depth - 1 on each side
+    z_radius = check_int(z_radius, "z_radius", minimum=1, maximum=max(depth - 1, 1))
     patches = extract_patches_3d(vol, beads.positions[kept], r, plane=plane, z_radius=z_radius)
     usable = patches.flux > 0
     faint, _ = faint_beads(np.where(usable, patches.flux, 0.0))
