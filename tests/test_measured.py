@@ -222,8 +222,8 @@ def test_every_slice_estimates_or_stops_with_a_message(shared_data):
 
 
 def test_the_suggested_radius_follows_focus_or_says_why(shared_data):
-    """Every eighth slice of the SP8 stack, every sixth of the astigmatic one (sources:
-    ../shared/data/README.md).
+    """Every twelfth slice of the SP8 stack from its focus, every eighth of the
+    astigmatic one (sources: ../shared/data/README.md; every slice: bench/RESULTS.md).
     A spot far wider than the others (an aggregate, dust) set a defocused SP8 slice's
     radius at 62 px against 20 in focus, with 9 beads left; the astigmatic stack's slice
     24 at 39 against 12. Now the confocal stack's radius stays within 1.5x of its focus
@@ -238,8 +238,8 @@ def test_the_suggested_radius_follows_focus_or_says_why(shared_data):
     from napari_psfspace.core.common.errors import PsfSpaceError
 
     for rel, strict, step in (
-            ("sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif", True, 8),
-            ("astigmatic_beads/psfextractor_astigmatism_zyx_uint8.tif", False, 6)):
+            ("sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif", True, 12),
+            ("astigmatic_beads/psfextractor_astigmatism_zyx_uint8.tif", False, 8)):
         stack = tifffile.imread(shared_data / rel)
         focus = best_focus_index(stack)
         r_focus = suggest_psf_radius(stack[focus])
