@@ -39,8 +39,7 @@ from napari_psfspace.core.volume import iter_estimate_operator_3d
 from napari_psfspace.core.volume.measures import bead_measures, model_measures
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-#: (path under ../shared/data, PSF radius in µm or None for pixels, radius in px,
-#: voxel (dz, dy, dx) µm or None when the file does not say).
+#: (path under ../shared/data, PSF radius in px); the voxel size is the file's.
 MEASURED = (
     ("sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif", 22),
     ("astigmatic_beads/psfextractor_astigmatism_zyx_uint8.tif", 16),
@@ -102,7 +101,7 @@ def _phys(m: dict, vox) -> dict:
             "lateral": m["fwhm_lateral"] * vox[1], "axial": m["fwhm_axial"] * vox[0]}
 
 
-def measured(radius_scale: float = 1.0) -> list[dict]:
+def measured() -> list[dict]:
     from napari_psfspace.io import read_stack
 
     rows = []

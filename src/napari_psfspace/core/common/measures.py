@@ -55,7 +55,6 @@ NAMES = ("focal_plane", *LATERAL, "fwhm_axial", "astigmatic_split")
 UNITS_PX = {"focal_plane": "planes", "fwhm_axial": "planes", "astigmatic_split": "planes",
             "ellipticity": "", "astigmatic_split_limit": "planes",
             **{n: "px" for n in LATERAL if n != "ellipticity"}}
-UNITS_NM = {n: ("" if u == "" else "nm") for n, u in UNITS_PX.items()}
 
 
 def lateral_measures(plane, *, centre: tuple[float, float] | None = None,
@@ -230,15 +229,6 @@ def psf_measures(psf) -> dict[str, float]:
     return out
 
 
-def psf_measures_2d(psf) -> dict[str, float]:
-    """The lateral measures of one 2-D PSF (pixels): :func:`lateral_measures` of the
-    whole PSF."""
-    arr = np.asarray(psf, dtype=np.float64)
-    if arr.ndim != 2:
-        raise ValueError(f"`psf` must be a 2-D PSF (P, Q), got shape {arr.shape}.")
-    return lateral_measures(arr)
-
-
 def in_units(measures: dict[str, float], voxel_size) -> tuple[dict[str, float],
                                                                 dict[str, str]]:
     """Measures in nm where the voxel size is known, and the unit of each.
@@ -246,7 +236,7 @@ def in_units(measures: dict[str, float], voxel_size) -> tuple[dict[str, float],
     Parameters
     ----------
     measures : dict
-        From :func:`psf_measures` or :func:`psf_measures_2d` (pixels and planes).
+        From :func:`psf_measures` or :func:`lateral_measures` (pixels and planes).
     voxel_size : tuple of float or None
         ``(dz, dy, dx)`` or ``(dy, dx)`` in µm; None keeps pixels and planes.
 
@@ -352,6 +342,6 @@ def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = N
     return text
 
 
-__all__ = ["FIELD_POINTS", "LATERAL", "MIN_PEAK_SHARE", "NAMES", "UNITS_NM", "UNITS_PX",
+__all__ = ["FIELD_POINTS", "LATERAL", "MIN_PEAK_SHARE", "NAMES", "UNITS_PX",
            "diffraction_limit", "field_fwhm", "focal_plane", "fwhm_line", "in_units",
-           "lateral_measures", "peak_profile", "psf_measures", "psf_measures_2d"]
+           "lateral_measures", "peak_profile", "psf_measures"]
