@@ -43,8 +43,10 @@ from _common import table
 BAD = ["-1", "0", "nan", "inf", "1e12", "abc", ""]
 
 
-def _child(conn, kind, payload):
-    """Run one call; send back (outcome, detail)."""
+def _child(conn, kind, payload, cwd):
+    """Run one call in ``cwd`` (a bad value taken for a file name lands there); send
+    back (outcome, detail)."""
+    os.chdir(cwd)
     out, err = io.StringIO(), io.StringIO()
     try:
         if kind == "cli":
@@ -80,13 +82,13 @@ def _child(conn, kind, payload):
     conn.close()
 
 
-def run(kind, payload, limit: float):
+def run(kind, payload, limit: float, cwd: Path):
     # a fork server started before any computation: a child forked from a process whose
     # BLAS and worker threads have run can deadlock (the first run of this bench: 34 legal
     # calls "ran on" past a minute); the server's imports are shared, its threads never ran
     ctx = mp.get_context("forkserver")
     a, b = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_child, args=(b, kind, payload))
+    proc = ctx.Process(target=_child, args=(b, kind, payload, str(cwd)))
     proc.start()
     b.close()
     if a.poll(limit):
@@ -247,6 +249,7 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
         f = _files(tmp)
+        (tmp / "cwd").mkdir()
         rows, findings = [], []
         for kind, make in (("cli", lambda: cli_calls(tmp, f)), ("api", api_calls)):
             if kind not in args.doors:
@@ -254,7 +257,7 @@ def main() -> None:
             calls = make()
             counts: dict[str, int] = {}
             for c in calls:
-                res, detail = run(kind, c, args.limit)
+                res, detail = run(kind, c, args.limit, tmp / "cwd")
                 counts[res] = counts.get(res, 0) + 1
                 if res not in ("refused", "accepted"):
                     what = " ".join(c) if kind == "cli" else (
