@@ -29,6 +29,10 @@ def optics_type(generator: str):
         from independent import PyotfOptics
 
         return PyotfOptics
+    if generator == "psfmodels":
+        from independent import PsfmodelsOptics
+
+        return PsfmodelsOptics
     from napari_psfspace.core.simulation.optics import Optics
 
     return Optics
@@ -36,6 +40,6 @@ def optics_type(generator: str):
 
 def add_generator_argument(parser) -> None:
     """``--generator {ours,pyotf}``: whose optics code computes the PSFs."""
-    parser.add_argument("--generator", choices=("ours", "pyotf"), default="ours",
+    parser.add_argument("--generator", choices=("ours", "pyotf", "psfmodels"), default="ours",
                         help="the optics code of the PSFs: the project's simulator, or "
                              "pyotf (bench/independent.py; pip install -e '.[bench]')")

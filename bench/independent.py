@@ -108,6 +108,85 @@ class PyotfOptics(Optics):
         return np.maximum(out, 0.0)
 
 
+#: psfmodels' stand-ins for the field's Zernike terms (its Gibson-Lanni model takes no
+#: Zernike phase): the defocus (Noll 4) becomes the focus position, by the paraxial
+#: ``z = 2 sqrt(3) c lambda / (n (1 - cos alpha))``; the primary spherical (Noll 11)
+#: becomes the depth of the beads in water under an oil objective, SPHERICAL_PER_UM waves
+#: rms a µm (about what the mismatch gives at NA 1.3); astigmatism, coma and trefoil have
+#: no stand-in and are left out. Sample index of the mismatch:
+SPHERICAL_PER_UM = 0.15
+SAMPLE_INDEX = 1.33
+
+
+@dataclass(frozen=True)
+class PsfmodelsOptics(Optics):
+    """Optics whose PSFs psfmodels computes (the vectorial Gibson-Lanni model of an oil
+    objective imaging beads in water): the field's defocus and spherical aberration as a
+    focus position and a depth that vary over the field; see :data:`SPHERICAL_PER_UM`.
+
+    Parameters
+    ----------
+    na, wavelength, pixel_size
+        As :class:`~napari_psfspace.core.simulation.optics.Optics` (µm).
+    immersion : float
+        Refractive index of the immersion oil (and the coverslip).
+    oversample : int
+        Odd sub-sampling of each camera pixel (pixel integration).
+    """
+
+    immersion: float = 1.515
+    oversample: int = 3
+
+    def psf_stack(self, noll, coefs, shifts, size, *, diameters=None, drift=None):
+        """Pixel-integrated PSFs, shape (B, size, size), each the fraction of unit energy
+        in each pixel (as the simulator's ``_psf_stack``)."""
+        import psfmodels as pm
+
+        q = int(self.oversample)
+        coefs = np.atleast_2d(np.asarray(coefs, float))
+        shifts = np.asarray(shifts, float).reshape(-1, 2)
+        noll = list(noll)
+        na = min(self.na, 0.999 * self.immersion)
+        cos_a = np.sqrt(1 - (na / self.immersion) ** 2)
+        pad = max(8, size // 4)
+        if drift is not None:
+            pad += int(np.ceil(np.hypot(*drift) / 2))
+        if diameters is not None and len(diameters):
+            pad += int(np.ceil(np.max(diameters) / self.pixel_size / 2))
+        span = size + 2 * pad
+        span += 1 - span % 2
+        n = q * span
+        params = {"NA": na, "ni": self.immersion, "ni0": self.immersion,
+                  "ns": SAMPLE_INDEX}
+        ky = sfft.fftfreq(n)[:, None]
+        kx = sfft.fftfreq(n)[None, :]
+        out = np.empty((len(coefs), size, size))
+        for b in range(len(coefs)):
+            c = dict(zip(noll, coefs[b], strict=True))
+            depth = max(0.0, c.get(11, 0.0) / SPHERICAL_PER_UM)
+            z = (2 * np.sqrt(3) * c.get(4, 0.0) * self.wavelength
+                 / (self.immersion * (1 - cos_a)))
+            inten = np.asarray(pm.vectorial_psf([depth + z], nx=n, dxy=self.pixel_size / q,
+                                                pz=depth, wvl=self.wavelength, params=params,
+                                                normalize=False), float)[0]
+            # unit energy: the in-focus PSF's total on a grid twice as wide
+            total = float(np.asarray(pm.vectorial_psf(
+                [depth], nx=2 * n + 1, dxy=self.pixel_size / q, pz=depth,
+                wvl=self.wavelength, params=params, normalize=False), float)[0].sum())
+            spec = sfft.fft2(sfft.ifftshift(inten))
+            spec *= np.exp(-2j * np.pi * (ky * shifts[b, 0] * q + kx * shifts[b, 1] * q))
+            if drift is not None:
+                spec *= np.sinc(ky * drift[0] * q + kx * drift[1] * q)
+            if diameters is not None:
+                k_um = np.hypot(ky, kx) / (self.pixel_size / q)
+                spec *= sphere_transfer(k_um, float(diameters[b]))
+            fine = sfft.fftshift(sfft.ifft2(spec).real)
+            binned = fine.reshape(span, q, span, q).sum(axis=(1, 3))
+            cc, h = span // 2, size // 2
+            out[b] = binned[cc - h:cc + h + 1, cc - h:cc + h + 1] / total
+        return np.maximum(out, 0.0)
+
+
 def _demo() -> None:
     from napari_psfspace.core.simulation import FieldAberrations, simulate_psf
 

@@ -146,3 +146,78 @@ def test_cone_project_and_angle():
     inside = rng.uniform(0.1, 1.0, (5, len(g))) @ g
     assert np.abs(cone.angle(inside)).max() < 1e-6  # measured 0 (arccos(1))
     assert np.abs(cone.project(inside) - inside).max() < 1e-12
+
+
+# --- where the field needs the cone (issue 45) ---------------------------------------
+
+def _gaussian_basis(p=21):
+    """Two basis images: a Gaussian and a wider one minus it (a zero-sum ring)."""
+    yy, xx = np.mgrid[:p, :p] - p // 2
+    g1 = np.exp(-(yy ** 2 + xx ** 2) / (2 * 1.5 ** 2))
+    g2 = np.exp(-(yy ** 2 + xx ** 2) / (2 * 3.0 ** 2))
+    g1, g2 = g1 / g1.sum(), g2 / g2.sum()
+    return np.stack([g1, g2 - g1])
+
+
+def test_negative_share_is_the_negative_mass_over_the_positive():
+    from napari_psfspace.core.model.cone import negative_share
+
+    h = _gaussian_basis()
+    # 1 * g1 + 0.5 (g2 - g1) = 0.5 g1 + 0.5 g2 >= 0; 1 * g1 - 1 * (g2 - g1) = 2 g1 - g2
+    share = negative_share(np.array([[1.0, 0.5], [1.0, -1.0]]), h)
+    v = 2 * h[0] - (h[0] + h[1])
+    assert share[0] == 0.0
+    assert share[1] == pytest.approx(-v[v < 0].sum() / v[v > 0].sum(), rel=1e-12)
+
+
+def test_only_implausible_nodes_are_projected():
+    """A field of coefficients that leaves the beads' range at some nodes: "where-needed"
+    projects exactly the nodes whose PSF has a negative lobe beyond the beads' own and
+    leaves every other node as "none" has it; "cone" moves the others too."""
+    from napari_psfspace.core.model.cone import implausible, negative_share
+    from napari_psfspace.core.model.field import assemble_operator
+
+    h = _gaussian_basis()
+    beta = np.column_stack([np.ones(5), np.linspace(0.0, 0.8, 5)])  # plausible beads
+    shape = (128, 128)
+
+    def field(nodes):  # the second coefficient runs from -1.5 to 1.5 across the columns
+        return np.column_stack([np.ones(len(nodes)), 3 * nodes[:, 1] / shape[1] - 1.5])
+
+    ops = {c: assemble_operator(h, beta, field, shape, grid_step=32, constraint=c)[0]
+           for c in ("none", "where-needed", "cone")}
+    maps = {c: op.coefficients.reshape(2, -1).T for c, op in ops.items()}
+    bad = implausible(maps["none"], h, beta)
+    assert 0 < bad.sum() < len(bad)
+    np.testing.assert_allclose(maps["where-needed"][~bad], maps["none"][~bad], atol=1e-12)
+    assert not np.allclose(maps["where-needed"][bad], maps["none"][bad])
+    assert negative_share(maps["where-needed"], h).max() <= (
+        1.5 * negative_share(beta, h).max() + 0.02 + 1e-9)
+    assert not np.allclose(maps["cone"][~bad], maps["none"][~bad])
+
+
+def test_the_held_out_beads_choose_the_cone_only_where_it_helps():
+    from napari_psfspace.core.model.field import choose_constraint
+
+    h = _gaussian_basis()
+    rng = np.random.default_rng(0)
+    beta = np.column_stack([np.ones(30), rng.uniform(0.0, 0.8, 30)])
+    # predictions off the beads' own but inside their hull (shrunk to its middle): the
+    # cone moves nothing, a tie, and the lighter rule is kept
+    inside = beta.copy()
+    inside[:, 1] = 0.4 + 0.9 * (beta[:, 1] - 0.4)
+    chosen, scores = choose_constraint(beta, inside, h)
+    assert scores["where-needed"] > 0
+    assert chosen == "where-needed" and scores["where-needed"] == pytest.approx(scores["cone"])
+    # a wild extrapolation (a deep negative lobe) is projected by either rule alike
+    wild = beta.copy()
+    wild[:, 1] = -3.0
+    chosen, scores = choose_constraint(beta, wild, h)
+    assert chosen == "where-needed" and scores["where-needed"] == pytest.approx(scores["cone"])
+    # beads from 0.2 to 0.8 predicted 0.3 low: below 0.2 the predictions leave the
+    # beads' hull while their PSFs stay plausible; the cone takes them back toward the
+    # beads, and the held-out beads choose it
+    beta[:, 1] = rng.uniform(0.2, 0.8, 30)
+    low = beta - np.array([0.0, 0.3])
+    chosen, scores = choose_constraint(beta, low, h)
+    assert chosen == "cone" and scores["cone"] < 0.9 * scores["where-needed"]

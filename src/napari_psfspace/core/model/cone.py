@@ -121,6 +121,54 @@ class Cone:
         return np.arccos(np.clip(cos, -1.0, 1.0))
 
 
+#: A node's PSF is implausible where its negative mass, as a share of its positive mass,
+#: exceeds NEGATIVE_MARGIN times the largest share among the beads' own PSFs (their
+#: noise and the basis' truncation give every bead some), and at least NEGATIVE_FLOOR.
+NEGATIVE_MARGIN = 1.5
+NEGATIVE_FLOOR = 0.02
+
+
+def negative_share(coefficients: np.ndarray, psfs: np.ndarray, *, chunk: int = 512
+                   ) -> np.ndarray:
+    """Negative mass over positive mass of each PSF ``coefficients @ psfs``.
+
+    Parameters
+    ----------
+    coefficients : ndarray of shape (N, I)
+    psfs : ndarray of shape (I, ...)
+        The basis images.
+
+    Returns
+    -------
+    ndarray of shape (N,), >= 0
+    """
+    a = np.asarray(coefficients, dtype=np.float64).reshape(len(coefficients), -1)
+    h = np.asarray(psfs, dtype=np.float64).reshape(len(psfs), -1)
+    out = np.empty(len(a))
+    for i in range(0, len(a), chunk):
+        v = a[i:i + chunk] @ h
+        pos = np.clip(v, 0, None).sum(axis=1)
+        out[i:i + chunk] = -np.clip(v, None, 0).sum(axis=1) / np.maximum(pos, 1e-300)
+    return out
+
+
+def implausible(coefficients: np.ndarray, psfs: np.ndarray, beta: np.ndarray) -> np.ndarray:
+    """Which of ``coefficients`` (N, I) give PSFs with more negative mass than the beads'
+    own (``beta``, (M, I)) allow: bool (N,). See :data:`NEGATIVE_MARGIN`."""
+    limit = max(NEGATIVE_MARGIN * float(negative_share(beta, psfs).max(initial=0.0)),
+                NEGATIVE_FLOOR)
+    return negative_share(coefficients, psfs) > limit
+
+
+def full_cone(coefficients: np.ndarray) -> Cone:
+    """The conic hull of every observed coefficient vector (rows, unit norm): no
+    generator dropped."""
+    b = np.asarray(coefficients, dtype=np.float64)
+    if b.ndim != 2 or len(b) == 0:
+        raise ValueError(f"`coefficients` must have shape (M, I) with M > 0, got {b.shape}.")
+    return Cone(b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300))
+
+
 def reduce_cone(
     coefficients: np.ndarray,
     *,

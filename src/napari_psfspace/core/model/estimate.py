@@ -198,6 +198,7 @@ def iter_estimate(
         "bead_positions": patches.centers[basis.inliers].round(3).tolist(),
         "left_out": left_out_record(beads, reasons),
         "cone_generators": int(len(cone.generators)),
+        "field_constraint": op.metadata.get("field_constraint"),
         "heldout": heldout.summary() if heldout is not None else None,
         "denoise": ({"passband": denoised.get("passband"),
                      "basis_noise": denoised.get("noise_rel")} if denoised else None),

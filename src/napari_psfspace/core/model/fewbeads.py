@@ -239,8 +239,10 @@ def fit_few_beads(
         chosen = cands[0]
     kind, size = chosen
     basis, beta, field_at = _model(psf, pos, kind, size, mask, scale)
+    # the paper's cone: a few beads' held-out predictions cannot judge where it is needed
     op, cone = assemble_operator(basis, beta, field_at, shape, grid_step=grid_step,
-                                 metadata=metadata, basis_filter=basis_filter)
+                                 metadata=metadata, basis_filter=basis_filter,
+                                 constraint="cone")
     reason = _reason(n, chosen, loo, n_psf)
     return FewBeadsFit(op, kind, size, reason, basis, beta, cone, loo,
                        residuals.get(chosen))

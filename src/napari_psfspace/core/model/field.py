@@ -13,7 +13,13 @@ from collections.abc import Callable
 import numpy as np
 
 from ..beads.patches import Patches
-from .cone import Cone, reduce_cone
+from .cone import Cone, full_cone, implausible, reduce_cone
+
+#: Default of :func:`assemble_operator`'s ``constraint``: the paper kept every node in a
+#: cone of at most 20 generators; on wide strongly aberrated fields that cone cost
+#: 20-40 % of the field error, and the field needs it only where its PSFs turn
+#: implausible (``bench/bench_caps.py``).
+CONSTRAINT = "where-needed"
 from .operator import ProductConvolution
 from .pca import PsfBasis
 from .psf_field import interp_weights
@@ -37,6 +43,7 @@ def fit_field(
     metadata: dict | None = None,
     basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
     refit: Callable[[np.ndarray], np.ndarray] | None = None,
+    constraint: str | None = None,
 ) -> tuple[ProductConvolution, Cone, ThinPlateSpline]:
     """Interpolate the PSF coefficients over the field and build the operator.
 
@@ -62,6 +69,10 @@ def fit_field(
         ``refit(a) -> h``: new basis images (I, P, P) given the fitted field at the
         inlier beads, shape (K_in, I) (e.g.
         :func:`~napari_psfspace.core.model.denoise.refit_basis` against the raw patches).
+    constraint : {"where-needed", "cone", "none"}, optional
+        As :func:`assemble_operator`'s. Default: chosen by the beads held out one at a
+        time (:func:`choose_constraint`), between "where-needed" and the paper's "cone";
+        the choice and both held-out errors go to ``metadata["field_constraint"]``.
 
     Returns
     -------
@@ -73,9 +84,59 @@ def fit_field(
     spline = ThinPlateSpline(centers, beta, weights=weights, smoothing=smoothing,
                              scale=0.5 * float(np.hypot(*shape)))
     images = basis.basis if refit is None else refit(spline(centers).reshape(len(centers), -1))
+    if constraint is None:
+        psfs = images if basis_filter is None else basis_filter(images)
+        loo = np.asarray(spline.loo_residuals).reshape(beta.shape)
+        constraint, scores = choose_constraint(beta, beta - loo, psfs)
+        metadata = {**(metadata or {}), "field_constraint": {"chosen": constraint, **scores}}
     op, cone = assemble_operator(images, beta, spline, shape, grid_step=grid_step,
-                                 metadata=metadata, basis_filter=basis_filter)
+                                 metadata=metadata, basis_filter=basis_filter,
+                                 constraint=constraint)
     return op, cone, spline
+
+
+def choose_constraint(beta: np.ndarray, predicted: np.ndarray, psfs: np.ndarray
+                      ) -> tuple[str, dict[str, float]]:
+    """Where to keep the field in the cone, as the held-out beads say.
+
+    Parameters
+    ----------
+    beta : ndarray of shape (M, I)
+        The beads' coefficients.
+    predicted : ndarray of shape (M, I)
+        Each bead's coefficients as the field predicts them without it (leave-one-out).
+    psfs : ndarray of shape (I, P, P)
+        The basis images (for the PSFs' negative mass).
+
+    Returns
+    -------
+    constraint : {"where-needed", "cone"}
+        "cone" (the paper's reduced cone everywhere) only where it brings the held-out
+        beads' predictions closer to their coefficients: the field is never worse than
+        the paper's on them.
+    scores : dict
+        Mean squared error of the held-out predictions under each (``"where-needed"``,
+        ``"cone"``).
+    """
+    beta = np.asarray(beta, dtype=np.float64)
+    pred = np.asarray(predicted, dtype=np.float64)
+    sums = np.asarray(psfs, dtype=np.float64).reshape(len(psfs), -1).sum(axis=1)
+
+    def err(c):
+        tot = c @ sums
+        ok = np.abs(tot) > 1e-12
+        c = np.where(ok[:, None], c / np.where(ok, tot, 1.0)[:, None], c)
+        ref = beta / (beta @ sums)[:, None]
+        return float(np.mean(np.sum((c - ref) ** 2, axis=1)))
+
+    where = pred.copy()
+    bad = implausible(pred, psfs, beta)
+    if bad.any():
+        where[bad] = full_cone(beta).project(pred[bad])
+    scores = {"where-needed": err(where), "cone": err(reduce_cone(beta).project(pred))}
+    # equal up to rounding (nothing projected differently): the lighter rule
+    better = scores["cone"] < scores["where-needed"] * (1 - 1e-9) - 1e-300
+    return ("cone" if better else "where-needed"), scores
 
 
 def assemble_operator(
@@ -89,6 +150,7 @@ def assemble_operator(
     basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
     cone: Cone | None = None,
     at: np.ndarray | None = None,
+    constraint: str | None = None,
 ) -> tuple[ProductConvolution, Cone]:
     """The operator of a basis and a coefficient field, kept inside the cone.
 
@@ -110,23 +172,38 @@ def assemble_operator(
         nodes around them are kept in the cone (the projection is the costly step), and
         the operator is right only there. For judging a model on a few beads.
 
+    constraint : {"where-needed", "cone", "none"}, optional
+        Where the field is kept in the cone. "where-needed" (default, or
+        :data:`CONSTRAINT`): only at nodes whose PSF has more negative mass than the
+        beads' own allow (:func:`~.cone.implausible`), onto the hull of every bead's
+        coefficients; "cone": every node, onto ``cone`` or the reduced cone of at most
+        20 generators (the paper's rule); "none": nowhere.
+
     Returns
     -------
     operator, cone
     """
+    constraint = CONSTRAINT if constraint is None else constraint
+    if constraint not in ("where-needed", "cone", "none"):
+        raise ValueError(f"`constraint` must be 'where-needed', 'cone' or 'none', got "
+                         f"{constraint!r}.")
     gy, gx = coarse_grid(shape, grid_step)
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     coarse = np.asarray(field(nodes), dtype=np.float64).reshape(len(nodes), -1)  # (G, I)
-    cone = reduce_cone(beta) if cone is None else cone
+    psfs = basis if basis_filter is None else basis_filter(basis)
+    if cone is None:
+        cone = reduce_cone(beta) if constraint == "cone" else full_cone(beta)
     if at is None:
-        coarse = cone.project(coarse)
+        near = np.arange(len(coarse))
     else:
         pts = np.asarray(at, dtype=np.float64).reshape(-1, 2)
         j0, j1, _ = interp_weights(gy, pts[:, 0])
         k0, k1, _ = interp_weights(gx, pts[:, 1])
         near = np.unique(np.concatenate([j * len(gx) + k for j in (j0, j1) for k in (k0, k1)]))
+    if constraint == "where-needed":
+        near = near[implausible(coarse[near], psfs, beta)]
+    if constraint != "none" and len(near):
         coarse[near] = cone.project(coarse[near])
-    psfs = basis if basis_filter is None else basis_filter(basis)
     sums = psfs.sum(axis=(1, 2))  # (I,)
     total = coarse @ sums
     bad = total <= 1e-12 * np.abs(coarse).sum(axis=1).clip(1e-300)

@@ -123,7 +123,7 @@ class OperatorSubspace:
         coarse = self.maps(g).reshape(self.n_psf, -1).T  # (G, I), nodes row-major
         op, _ = assemble_operator(self.basis, self.cone.generators, lambda nodes: coarse,
                                   self.shape, grid_step=self.grid_step, metadata=metadata,
-                                  cone=self.cone)
+                                  cone=self.cone, constraint="cone")
         return op
 
     def psfs_at(self, k: int, points: np.ndarray) -> np.ndarray:
@@ -139,7 +139,8 @@ class OperatorSubspace:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         coarse = self.maps(gamma).reshape(self.n_psf, -1).T
         op, _ = assemble_operator(self.basis, self.cone.generators, lambda nodes: coarse,
-                                  self.shape, grid_step=self.grid_step, cone=self.cone, at=pts)
+                                  self.shape, grid_step=self.grid_step, cone=self.cone, at=pts,
+                                  constraint="cone")
         return np.array([op.psf_at(y, x) for y, x in pts]).reshape(
             len(pts), *self.basis.shape[1:])
 
