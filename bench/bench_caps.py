@@ -14,8 +14,8 @@ Each scene is estimated three ways, the scene and everything else the same:
 * ``now``: the same, with no cap on the basis but what the beads support (the defaults).
 
 Scenes (``core/simulation/family.random_scene``): ``wide``: 2048 x 2048, 400 beads,
-strong field aberrations, NA 1.3; ``standard``: the family's own draw (512 x 512). The
-optics code: the project's simulator, pyotf or psfmodels (``bench/independent.py``;
+strong field aberrations, NA 1.3, bright (:data:`SCENES`); ``standard``: the family's
+own draw (512 x 512). The optics code: the project's simulator, pyotf or psfmodels (``bench/independent.py``;
 psfmodels renders the field's defocus and spherical parts only). Error: the mean over an
 8 x 8 grid of the aligned relative l2 error against the true PSFs
 (``simulation.metrics.grid_errors``); ``edges``: a grid reaching half a patch from the
@@ -35,8 +35,12 @@ from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
 
+#: wide: bright (a peak of 2,000-20,000 photons over 5-50, 16 bits), so that the noise is
+#: not what limits the field (the issue's premise: a noise-free render erred as much);
+#: the family's faint draws are the standard scenes'
 SCENES = {"wide": {"shape": (2048, 2048), "n_beads": 400, "aberrations": "strong",
-                   "na": 1.3},
+                   "na": 1.3, "peak_photons": (2000.0, 20000.0), "background": (5.0, 50.0),
+                   "bits": 16},
           "standard": {}}
 VARIANTS = {"paper": ("cone", 12), "cone": (None, 12), "now": (None, None)}
 

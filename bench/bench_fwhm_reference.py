@@ -172,8 +172,9 @@ def measured() -> list[dict]:
 
             grid = measure_maps(est.operator)[2]["astigmatic_split"]
             b, m = beads["astigmatic_split"], model["astigmatic_split"]
-            q = lambda a: "median {:+.2f} (10-90 %: {:+.2f} to {:+.2f})".format(
-                *np.nanpercentile(a, [50, 10, 90]))
+            def q(a):
+                return "median {:+.2f} (10-90 %: {:+.2f} to {:+.2f})".format(
+                    *np.nanpercentile(a, [50, 10, 90]))
             print(f"  astigmatic split (planes of {vox[0]:g} {unit}): per bead {q(b)}; "
                   f"map at the beads {q(m)}; 8 x 8 map {np.nanmin(grid):+.2f} to "
                   f"{np.nanmax(grid):+.2f}, |split| >= 2 at {int(np.sum(np.abs(grid) >= 2))}"

@@ -29,8 +29,8 @@ tools microscopists already use:
   (a descent from focus over the widths smoothed across 3 planes), refined by a parabola
   through the squared widths within :data:`LINE_FOCUS_REACH` planes of it (the
   Gaussian-beam law ``w^2 = w0^2 (1 + ((z - c) / d)^2)`` about its waist). The split is
-  ``z_col - z_row`` (planes). One parabola over every plane fitted reads a split 30-50 %
-  short (the widths rise unevenly about each line focus; the pyotf oracle in
+  ``z_col - z_row`` (planes). One parabola over every plane fitted reads a split short
+  (the widths rise unevenly about each line focus; the pyotf oracle in
   ``bench/bench_fwhm_reference.py --sets astigmatism``), and the widths beyond the line
   foci can dip again where a 2-D fit catches a side lobe: hence the nearest minimum. A
   line focus at the end of the planes fitted is beyond what the stack shows: the split
@@ -52,8 +52,8 @@ from .gaussfit import FWHM_PER_SIGMA, fit_gaussian_1d, fit_gaussian_2d
 CORE = 1.3
 #: The planes fitted for the line foci keep at least this share of the focal peak.
 MIN_PEAK_SHARE = 0.3
-#: Planes either side of a line focus through which its parabola is fitted (3: within
-#: 0.06 µm of the pyotf oracle's split at NA 0.85-1.3, where 1 and 2 scatter more).
+#: Planes either side of a line focus through which its parabola is fitted (fewer scatter
+#: more against the pyotf oracle: ``bench/bench_fwhm_reference.py --sets astigmatism``).
 LINE_FOCUS_REACH = 3
 #: The lateral measures, in the order of the tables (pixels, but ``ellipticity``).
 LATERAL = ("fwhm_lateral", "fwhm_row", "fwhm_col", "fwhm_major", "fwhm_minor", "ellipticity")

@@ -14,17 +14,17 @@ import numpy as np
 
 from ..beads.patches import Patches
 from .cone import Cone, full_cone, implausible, reduce_cone
-
-#: Default of :func:`assemble_operator`'s ``constraint``: the paper kept every node in a
-#: cone of at most 20 generators; on wide strongly aberrated fields that cone cost
-#: 20-40 % of the field error, and the field needs it only where its PSFs turn
-#: implausible (``bench/bench_caps.py``).
-CONSTRAINT = "where-needed"
 from .operator import ProductConvolution
 from .pca import PsfBasis
 from .psf_field import interp_weights
 from .tps import ThinPlateSpline
 from .voronoi import voronoi_areas
+
+#: Default of :func:`assemble_operator`'s ``constraint``: the paper kept every node in a
+#: cone of at most 20 generators; on wide strongly aberrated fields that cone cost much of
+#: the field error, and the field needs it only where its PSFs turn implausible
+#: (``bench/bench_caps.py``; the figures in ``bench/RESULTS.md``).
+CONSTRAINT = "where-needed"
 
 
 def coarse_grid(shape: tuple[int, int], step: float) -> tuple[np.ndarray, np.ndarray]:

@@ -179,7 +179,7 @@ def learn_basis(
     max_psf : int, optional
         Upper bound of the automatic basis size. Default: none but what the beads
         support (``(K - 2) // 2`` inliers' worth). The paper capped it at 12; on wide
-        strongly aberrated fields the held-out error still fell past 20
+        strongly aberrated fields the held-out error still fell beyond it
         (``bench/bench_caps.py``).
     weights : ndarray of shape (K,), optional
         Weight of each patch in the SVD (its row is scaled by ``sqrt(weights)``).
