@@ -15,9 +15,9 @@ Each scene is estimated three ways, the scene and everything else the same:
 
 Scenes (``core/simulation/family.random_scene``): ``wide``: 2048 x 2048, 400 beads,
 strong field aberrations, NA 1.3, bright (:data:`SCENES`); ``standard``: the family's
-own draw (512 x 512). The optics code: the project's simulator, pyotf or psfmodels (``bench/independent.py``;
-psfmodels renders the field's defocus and spherical parts only). Error: the mean over an
-8 x 8 grid of the aligned relative l2 error against the true PSFs
+own draw (512 x 512). The optics code: the project's simulator, pyotf or psfmodels
+(``bench/independent.py``; psfmodels renders the field's defocus and spherical parts
+only). Error: the mean over an 8 x 8 grid of the aligned relative l2 error against the true PSFs
 (``simulation.metrics.grid_errors``); ``edges``: a grid reaching half a patch from the
 border.
 """
