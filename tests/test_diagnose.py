@@ -13,19 +13,24 @@ from napari_psfspace.core.diagnosis.loop import diagnose
 
 
 def test_effect_free_image_adds_nothing():
+    from napari_psfspace import estimate_operator
+    from napari_psfspace.core.restore.deconvolve import model_error_of
+    from napari_psfspace.core.simulation.metrics import grid_errors
+
     image, truth = simulate_beads((640, 640), 70, aberrations="moderate", seed=0)
     d = diagnose(image, psf_radius=truth.psf_radius)
-    # measured (768^2, seeds 0-2): candidates tried (basis size, field smoothing), none kept
-    assert d.added == []
-    assert d.error_after == d.error_before
+    plain = estimate_operator(image, psf_radius=truth.psf_radius)
+    # no effect of the image is added; the model's own capacity (basis size, field
+    # smoothing) may grow where the held-out beads show it predicts better (since the
+    # cone binds only where needed, less smoothing is kept here), and then the truth
+    # must not read it worse than the plain model
+    assert set(d.added) <= {"basis_size", "field_smoothing"}
+    assert d.error_after <= d.error_before
+    assert np.mean(grid_errors(d.operator, truth, n=8)) <= np.mean(grid_errors(plain, truth, n=8))
     assert d.steps[0].effect is None
     assert_figures_chain(d)
     # the refined operator carries its measured error, as the Model step's does: a
     # deblur with it weighs and compresses as with the plain model (it took it for exact)
-    from napari_psfspace import estimate_operator
-    from napari_psfspace.core.restore.deconvolve import model_error_of
-
-    plain = estimate_operator(image, psf_radius=truth.psf_radius)
     assert model_error_of(d.operator) == pytest.approx(model_error_of(plain), rel=0.05)
     assert model_error_of(d.operator) > 0
 
