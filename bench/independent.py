@@ -34,6 +34,27 @@ from napari_psfspace.core.simulation import sphere_transfer
 from napari_psfspace.core.simulation.optics import Optics
 
 
+def _shift_and_bin(inten, total, shift, q, size, drift, diameter, pixel_size):
+    """A PSF on a fine grid (``q`` samples a pixel, square, odd) shifted by ``shift``
+    pixels, smeared by ``drift`` and blurred by a bead of ``diameter`` µm in Fourier
+    space, summed over each pixel and cut to ``size``, as a fraction of ``total``."""
+    n = inten.shape[0]
+    span = n // q
+    ky = sfft.fftfreq(n)[:, None]
+    kx = sfft.fftfreq(n)[None, :]
+    spec = sfft.fft2(sfft.ifftshift(inten))
+    # cycles per fine sample
+    spec *= np.exp(-2j * np.pi * (ky * shift[0] * q + kx * shift[1] * q))
+    if drift is not None:
+        spec *= np.sinc(ky * drift[0] * q + kx * drift[1] * q)
+    if diameter is not None:
+        spec *= sphere_transfer(np.hypot(ky, kx) / (pixel_size / q), diameter)
+    fine = sfft.fftshift(sfft.ifft2(spec).real)
+    binned = fine.reshape(span, q, span, q).sum(axis=(1, 3))
+    c, h = span // 2, size // 2
+    return binned[c - h:c + h + 1, c - h:c + h + 1] / total
+
+
 @dataclass(frozen=True)
 class PyotfOptics(Optics):
     """Optics whose PSFs pyotf computes (Hanser's pupil model, vectorial correction).
@@ -81,8 +102,6 @@ class PyotfOptics(Optics):
                           res=self.pixel_size * 1000.0 / q, size=n, zrange=[0.0],
                           vec_corr=self.vec_corr, condition="sine")
         jmax = max(noll) if len(noll) else 1
-        ky = sfft.fftfreq(n)[:, None]
-        kx = sfft.fftfreq(n)[None, :]
         out = np.empty((len(coefs), size, size))
         for b in range(len(coefs)):
             pcoefs = np.zeros(jmax)
@@ -90,21 +109,9 @@ class PyotfOptics(Optics):
                 pcoefs[j - 1] = 2 * np.pi * c  # pyotf: radians, Noll order, rms-normalised
             m = apply_aberration(model, None, pcoefs) if len(noll) else model
             inten = np.asarray(m.PSFi, float).reshape(-1, n, n)[0]
-            total = inten.sum()
-            spec = sfft.fft2(sfft.ifftshift(inten))
-            # the sub-pixel shift (and a smear, a bead's size) in Fourier space, on the
-            # fine grid (cycles per fine sample)
-            spec *= np.exp(-2j * np.pi * (ky * shifts[b, 0] * q + kx * shifts[b, 1] * q))
-            if drift is not None:
-                spec *= np.sinc(ky * drift[0] * q + kx * drift[1] * q)
-            if diameters is not None:
-                k_um = np.hypot(ky, kx) / (self.pixel_size / q)
-                spec *= sphere_transfer(k_um, float(diameters[b]))
-            fine = sfft.fftshift(sfft.ifft2(spec).real)
-            binned = fine.reshape(span, q, span, q).sum(axis=(1, 3))
-            c = span // 2
-            h = size // 2
-            out[b] = binned[c - h:c + h + 1, c - h:c + h + 1] / total
+            out[b] = _shift_and_bin(inten, inten.sum(), shifts[b], q, size, drift,
+                                    None if diameters is None else float(diameters[b]),
+                                    self.pixel_size)
         return np.maximum(out, 0.0)
 
 
@@ -158,8 +165,6 @@ class PsfmodelsOptics(Optics):
         n = q * span
         params = {"NA": na, "ni": self.immersion, "ni0": self.immersion,
                   "ns": SAMPLE_INDEX}
-        ky = sfft.fftfreq(n)[:, None]
-        kx = sfft.fftfreq(n)[None, :]
         out = np.empty((len(coefs), size, size))
         for b in range(len(coefs)):
             c = dict(zip(noll, coefs[b], strict=True))
@@ -173,17 +178,9 @@ class PsfmodelsOptics(Optics):
             total = float(np.asarray(pm.vectorial_psf(
                 [depth], nx=2 * n + 1, dxy=self.pixel_size / q, pz=depth,
                 wvl=self.wavelength, params=params, normalize=False), float)[0].sum())
-            spec = sfft.fft2(sfft.ifftshift(inten))
-            spec *= np.exp(-2j * np.pi * (ky * shifts[b, 0] * q + kx * shifts[b, 1] * q))
-            if drift is not None:
-                spec *= np.sinc(ky * drift[0] * q + kx * drift[1] * q)
-            if diameters is not None:
-                k_um = np.hypot(ky, kx) / (self.pixel_size / q)
-                spec *= sphere_transfer(k_um, float(diameters[b]))
-            fine = sfft.fftshift(sfft.ifft2(spec).real)
-            binned = fine.reshape(span, q, span, q).sum(axis=(1, 3))
-            cc, h = span // 2, size // 2
-            out[b] = binned[cc - h:cc + h + 1, cc - h:cc + h + 1] / total
+            out[b] = _shift_and_bin(inten, total, shifts[b], q, size, drift,
+                                    None if diameters is None else float(diameters[b]),
+                                    self.pixel_size)
         return np.maximum(out, 0.0)
 
 
