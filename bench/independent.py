@@ -34,6 +34,19 @@ from napari_psfspace.core.simulation import sphere_transfer
 from napari_psfspace.core.simulation.optics import Optics
 
 
+def _padded_span(size, drift, diameters, pixel_size) -> int:
+    """Pixels across the grid a PSF of ``size`` is computed on: a half window wider on
+    each side (and more for a smear or a large bead), so that the periodic wings of an
+    FFT propagation stay away from the window; odd, the centre on a pixel."""
+    pad = max(8, size // 4)
+    if drift is not None:
+        pad += int(np.ceil(np.hypot(*drift) / 2))
+    if diameters is not None and len(diameters):
+        pad += int(np.ceil(np.max(diameters) / pixel_size / 2))
+    span = size + 2 * pad
+    return span + 1 - span % 2
+
+
 def _shift_and_bin(inten, total, shift, q, size, drift, diameter, pixel_size):
     """A PSF on a fine grid (``q`` samples a pixel, square, odd) shifted by ``shift``
     pixels, smeared by ``drift`` and blurred by a bead of ``diameter`` µm in Fourier
@@ -84,14 +97,7 @@ class PyotfOptics(Optics):
         q = int(self.oversample)
         coefs = np.atleast_2d(np.asarray(coefs, float))
         shifts = np.asarray(shifts, float).reshape(-1, 2)
-        # a grid a half window wider on each side (and more for a smear or a large bead),
-        # so that the periodic wings of pyotf's FFT propagation stay away from the window
-        pad = max(8, size // 4)
-        if drift is not None:
-            pad += int(np.ceil(np.hypot(*drift) / 2))
-        if diameters is not None and len(diameters):
-            pad += int(np.ceil(np.max(diameters) / self.pixel_size / 2))
-        span = size + 2 * pad
+        span = _padded_span(size, drift, diameters, self.pixel_size)
         # pyotf samples the pupil at 1 / (grid extent): at least 16 samples across its
         # radius, or aberrated pupils alias
         span = max(span, int(np.ceil(16.0 / (self.cutoff * self.pixel_size))))
@@ -155,13 +161,7 @@ class PsfmodelsOptics(Optics):
         noll = list(noll)
         na = min(self.na, 0.999 * self.immersion)
         cos_a = np.sqrt(1 - (na / self.immersion) ** 2)
-        pad = max(8, size // 4)
-        if drift is not None:
-            pad += int(np.ceil(np.hypot(*drift) / 2))
-        if diameters is not None and len(diameters):
-            pad += int(np.ceil(np.max(diameters) / self.pixel_size / 2))
-        span = size + 2 * pad
-        span += 1 - span % 2
+        span = _padded_span(size, drift, diameters, self.pixel_size)
         n = q * span
         params = {"NA": na, "ni": self.immersion, "ni0": self.immersion,
                   "ns": SAMPLE_INDEX}
