@@ -17,7 +17,7 @@ from napari_psfspace.core.beads.detect import (
 from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # blob standard deviation, pixels
-R = 5.0  # psf_radius: border = ceil(1.2 r) + 2 = 8 px, min_separation = 2 r = 10 px
+R = 5.0  # psf_radius: border = ceil(1.2 r) + 2 = 8 px; a neighbour judged by its light
 
 
 def _image(centers, *, shape=(256, 256), flux=3000.0, noise=1.0, seed=0):
@@ -54,7 +54,7 @@ def test_border_and_neighbour_status():
     planted = np.array([
         [100.0, 100.0],  # isolated -> kept
         [4.2, 150.0],  # 4.2 px from the top border (< 8) -> border
-        [180.0, 60.0],  # pair 6 px apart (< 2 r = 10) -> both neighbour
+        [180.0, 60.0],  # equal pair 6 px apart: each adds most of the other's light
         [180.0, 66.0],
     ])
     beads = detect_beads(_image(planted, seed=2), R)

@@ -29,7 +29,8 @@ def monomials(size: int, order: int = 2) -> np.ndarray:
     return np.stack([c.ravel() for c in cols], axis=1)
 
 
-def fit_background(patches: np.ndarray, r: float, *, order: int = 2) -> np.ndarray:
+def fit_background(patches: np.ndarray, r: float, *, order: int = 2,
+                   observed: np.ndarray | None = None) -> np.ndarray:
     """Fit and return the polynomial background of each patch.
 
     Parameters
@@ -40,6 +41,11 @@ def fit_background(patches: np.ndarray, r: float, *, order: int = 2) -> np.ndarr
         Radius in pixels beyond which a patch holds background only.
     order : int
         Polynomial order (2 in the paper).
+    observed : ndarray of shape (K, P, P), bool, optional
+        The pixels that lie in the image (a bead near the border: its patch reaches
+        past the edge). The background is fitted on the observed pixels beyond ``r``
+        only, by a lower order where they are too few for ``order`` (order 0 at least:
+        their median). Default: all.
 
     Returns
     -------
@@ -64,4 +70,23 @@ def fit_background(patches: np.ndarray, r: float, *, order: int = 2) -> np.ndarr
     pinv = np.linalg.pinv(design[outside])  # (n_monomials, n_outside)
     flat = patches.reshape(k, p * p)
     coef = flat[:, outside] @ pinv.T  # (K, n_monomials)
-    return (coef @ design.T).reshape(k, p, p).astype(patches.dtype, copy=False)
+    out = (coef @ design.T).reshape(k, p, p)
+    if observed is not None:
+        seen = np.asarray(observed, bool).reshape(k, p * p)
+        for i in np.flatnonzero(~seen[:, outside].all(axis=1)):
+            use = outside & seen[i]
+            n = int(np.count_nonzero(use))
+            for o in range(order, -1, -1):  # the highest order the pixels support
+                m = (o + 1) * (o + 2) // 2
+                if n >= 2 * m or o == 0:
+                    break
+            if n == 0:  # nothing beyond r in the image: the patch's own lowest level
+                out[i] = np.min(flat[i, seen[i]]) if seen[i].any() else 0.0
+                continue
+            if o == 0:
+                out[i] = np.median(flat[i, use])
+                continue
+            d = design[:, :m]
+            c, *_ = np.linalg.lstsq(d[use], flat[i, use], rcond=None)
+            out[i] = (d @ c).reshape(p, p)
+    return out.astype(patches.dtype, copy=False)

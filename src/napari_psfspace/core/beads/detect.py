@@ -2,7 +2,9 @@
 
 Paper, Appendix A: beads are the maxima of the Laplacian of a smoothed image above a
 threshold; beads closer than ``r`` to the border or ``2 r`` to another bead are
-rejected, so every kept patch holds one isolated PSF.
+rejected, so every kept patch holds one isolated PSF. Here a neighbour is judged by the
+light it adds to the patch (:mod:`~napari_psfspace.core.beads.overlap`), not by a fixed
+distance.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from ..common import spacing
 from ..common.errors import PsfSpaceError
 from ..common.threads import filter_by_rows
 from ..common.validate import as_image, check_positive, check_psf_radius
+from .overlap import NEIGHBOUR_SHARE, patch_shares
 from .scale import block_mean, characteristic_scale, detection_image, spot_scale
 from .spikes import (
     find_spikes,
@@ -205,6 +208,7 @@ def detect_beads(
     border: float | None = None,
     min_separation: float | None = None,
     neighbour_ratio: float = NEIGHBOUR_RATIO,
+    neighbour_share: float | None = NEIGHBOUR_SHARE,
     hot_pixels: bool = True,
 ) -> Beads:
     """Find beads and flag those that cannot give a clean, isolated PSF patch.
@@ -234,10 +238,15 @@ def detect_beads(
         the image with room for sub-pixel re-sampling.
     min_separation : float, optional
         A bead closer than this to another detection at least ``neighbour_ratio`` as
-        bright is rejected. Default ``2 r``.
+        bright is rejected (the paper's rule, ``2 r``). Default: none, the energy rule
+        only (``neighbour_share``).
     neighbour_ratio : float
         A detection fainter than this fraction of a bead's peak does not spoil it
         (:data:`NEIGHBOUR_RATIO`; 0: every detection does).
+    neighbour_share : float or None
+        A bead whose neighbours add at least this share of the energy in its patch is
+        rejected (:data:`~napari_psfspace.core.beads.overlap.NEIGHBOUR_SHARE`; None: the
+        fixed ``min_separation`` only).
     hot_pixels : bool
         Find pixels narrower than the optics can form (hot pixels, cosmic rays,
         :func:`~napari_psfspace.core.beads.spikes.find_spikes`), inpaint them before
@@ -274,8 +283,6 @@ def detect_beads(
     sigma = spacing.centring_sigma(r) if sigma is None else check_positive(sigma, "sigma")
     if border is None:
         border = spacing.bead_border(r)
-    if min_separation is None:
-        min_separation = spacing.min_separation(r)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
 
@@ -374,7 +381,8 @@ def detect_beads(
     beads = Beads(peaks.astype(np.float64), strength, amplitude=amplitude,
                   hot_pixels=spikes if hot_pixels else None)
     flag_unusable(beads, img, r, saturation=saturation, border=border,
-                  min_separation=min_separation, neighbour_ratio=neighbour_ratio)
+                  min_separation=min_separation, neighbour_ratio=neighbour_ratio,
+                  neighbour_share=neighbour_share)
     return beads
 
 
@@ -619,19 +627,24 @@ def flag_unusable(
     *,
     saturation: float | None,
     border: float,
-    min_separation: float,
+    min_separation: float | None = None,
     neighbour_ratio: float = NEIGHBOUR_RATIO,
+    neighbour_share: float | None = NEIGHBOUR_SHARE,
 ) -> Beads:
     """Set the status of beads that are saturated, at the border or crowded (in place).
 
     Only beads whose status is ``kept`` are re-examined, so statuses set by a user
-    (e.g. a rejected outlier) are preserved. Neighbours are counted among all
-    detections, whatever their status: a rejected bead still spoils its neighbour;
-    only detections found to be background structure (status "structure", removed from
-    the image) are not counted, and, with ``neighbour_ratio`` > 0, detections whose peak
-    amplitude is below that fraction of the bead's (a faint speck beside a bright bead
-    changes its patch by less than the noise). Beads of unknown amplitude (added by
-    hand) are always counted.
+    (e.g. a rejected outlier) are preserved. A bead is crowded (status "neighbour") when
+    the other detections together add at least ``neighbour_share`` of the energy in its
+    patch (:func:`~napari_psfspace.core.beads.overlap.neighbour_shares`, with the PSF's
+    radial profile measured on the image's brightest detections), or, with
+    ``min_separation``, when one lies closer than that (the paper's fixed rule). Neighbours
+    are counted among all detections, whatever their status: a rejected bead still
+    spoils its neighbour; only detections found to be background structure (status
+    "structure", removed from the image) are not counted, and detections whose peak
+    amplitude is below ``neighbour_ratio`` of the bead's (a faint speck beside a bright
+    bead changes its patch by less than the noise). Beads of unknown amplitude (added by
+    hand) count as bright as the bead.
 
     Returns
     -------
@@ -656,12 +669,24 @@ def flag_unusable(
     beads.status[keep & at_border] = BORDER
     keep &= ~at_border
     real = np.flatnonzero(beads.status != STRUCTURE)
-    if len(real) > 1 and keep.any():
+    if len(real) < 2 or not keep.any():
+        return beads
+    amp = beads.amplitude
+    todo = np.flatnonzero(keep)
+    crowded = np.zeros(len(todo), bool)
+    if neighbour_share is None and min_separation is None:
+        min_separation = spacing.min_separation(psf_radius)
+    if neighbour_share is not None:
+        share = patch_shares(image, pos, todo, real, psf_radius,
+                             neighbour_ratio=neighbour_ratio)
+        if share is not None:
+            crowded |= share >= neighbour_share
+        elif min_separation is None:  # no light to measure a profile on: the fixed rule
+            min_separation = spacing.min_separation(psf_radius)
+    if min_separation is not None:
         tree = cKDTree(pos[real])
-        amp = beads.amplitude
-        todo = np.flatnonzero(keep)
         lists = tree.query_ball_point(pos[todo], np.nextafter(min_separation, 0))
-        for i, found in zip(todo, lists, strict=True):
+        for j, (i, found) in enumerate(zip(todo, lists, strict=True)):
             near = real[np.asarray(found, dtype=np.intp)]
             near = near[near != i]
             if len(near) == 0:
@@ -670,7 +695,8 @@ def flag_unusable(
                 a = amp[near]
                 if not np.any(~np.isfinite(a) | (a >= neighbour_ratio * amp[i])):
                     continue
-            beads.status[i] = NEIGHBOUR
+            crowded[j] = True
+    beads.status[todo[crowded]] = NEIGHBOUR
     return beads
 
 

@@ -107,6 +107,22 @@ def resample_patches(image: np.ndarray, centers: np.ndarray, size: int) -> np.nd
     return out
 
 
+def observed_mask(centers: np.ndarray, size: int, shape: tuple[int, int]) -> np.ndarray:
+    """Which pixels of each re-sampled patch lie in the image, shape (K, size, size), bool.
+
+    Pixel ``(i, j)`` of patch ``k`` samples the image at ``centers[k] + (i, j) - size // 2``;
+    it is observed when that point lies on an image pixel (rows ``-0.5`` to ``M - 0.5``).
+    """
+    c = np.asarray(centers, np.float64).reshape(-1, 2)
+    off = np.arange(size) - size // 2
+    rows = c[:, 0, None] + off[None, :]
+    cols = c[:, 1, None] + off[None, :]
+    h, w = shape
+    in_r = (rows >= -0.5) & (rows < h - 0.5)
+    in_c = (cols >= -0.5) & (cols < w - 0.5)
+    return in_r[:, :, None] & in_c[:, None, :]
+
+
 def extract_patches(
     image,
     centers,
@@ -135,7 +151,10 @@ def extract_patches(
     -------
     Patches
         Patches of size ``P = 2 ceil(r_ext) + 1``. A patch whose background-free sum
-        is not positive keeps ``psf`` at zero and ``flux <= 0``; callers drop it.
+        is not positive keeps ``psf`` at zero and ``flux <= 0``; callers drop it. A bead
+        whose patch reaches past the image's edge (centre at least ``r`` in: its PSF
+        lies in the image) has its background fitted on the pixels in the image, and
+        ``raw`` equal to it beyond the edge (no light there).
     """
     img = as_image(image)
     r = check_psf_radius(psf_radius, img.shape)
@@ -145,11 +164,19 @@ def extract_patches(
     r_ext = r_ext_factor * r
     size = patch_size(r, r_ext_factor)
     raw = resample_patches(img, centers, size)
-    bg = fit_background(raw, r, order=background_order)
+    seen = observed_mask(centers, size, img.shape)
+    partial = not seen.all()
+    bg = fit_background(raw, r, order=background_order, observed=seen if partial else None)
+    if partial:  # beyond the edge: no light measured, the background's level
+        raw = np.where(seen, raw, bg)
     signal = raw - bg
     outside = radial_distance(size) > r
     resid = signal[:, outside]
     noise = 1.4826 * np.median(np.abs(resid - np.median(resid, axis=1, keepdims=True)), axis=1)
+    for k in np.flatnonzero(~seen[:, outside].all(axis=1)) if partial else ():
+        resid = signal[k][outside & seen[k]]  # the pixels in the image only
+        noise[k] = (1.4826 * np.median(np.abs(resid - np.median(resid))) if len(resid)
+                    else 0.0)
     windowed = signal * bump_window(size, r, r_ext)
     flux = windowed.sum(axis=(1, 2))
     psf = np.zeros_like(windowed)

@@ -14,7 +14,10 @@ import numpy as np
 def bead_border(psf_radius: float) -> float:
     """Least distance (pixels) from a usable bead's centre to the image's edge:
     ``ceil(1.2 r) + 2`` (its windowed patch, a little wider than ``r``, and the pixels its
-    sub-pixel centring moves it by)."""
+    sub-pixel centring moves it by). A patch reaching past the edge can be extracted
+    (:func:`~napari_psfspace.core.beads.patches.extract_patches` masks the part beyond it),
+    but the loop's measured sets read such beads differently (bench/RESULTS.md, issue 45),
+    so the rule stays until that is understood."""
     return float(np.ceil(1.2 * psf_radius) + 2)
 
 

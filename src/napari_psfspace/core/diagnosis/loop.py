@@ -39,7 +39,7 @@ from ..beads.centering import refine_centers
 from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept, saturation_record
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
-from ..common.spacing import bead_border, centring_sigma, min_separation
+from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_positive, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
@@ -210,8 +210,7 @@ def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.
                                            sigma=centring_sigma(psf_radius),
                                            half=int(np.ceil(psf_radius)))
     flag_unusable(beads, img, psf_radius, saturation=None,
-                  border=bead_border(psf_radius),
-                  min_separation=min_separation(psf_radius))
+                  border=bead_border(psf_radius))
     return beads
 
 

@@ -31,7 +31,7 @@ from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress
-from ..common.spacing import bead_border, centring_sigma, min_separation
+from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
 from ..common.validate import (
     as_image,
@@ -231,8 +231,7 @@ def find_usable_beads(raw: np.ndarray, img: np.ndarray, r: float, *, beads: Bead
     img = beads.clean_image(img)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
-    flag_unusable(beads, img, r, saturation=saturation, border=bead_border(r),
-                  min_separation=min_separation(r))
+    flag_unusable(beads, img, r, saturation=saturation, border=bead_border(r))
     return beads, img
 
 
@@ -253,8 +252,7 @@ def centre_beads(img: np.ndarray, beads: Beads, r: float) -> np.ndarray:
         )
     beads.positions[kept] = refine_centers(img, beads.positions[kept],
                                            sigma=centring_sigma(r), half=int(np.ceil(r)))
-    flag_unusable(beads, img, r, saturation=None, border=bead_border(r),
-                  min_separation=min_separation(r))
+    flag_unusable(beads, img, r, saturation=None, border=bead_border(r))
     return np.flatnonzero(beads.kept)
 
 

@@ -15,7 +15,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..beads.centering import gather_windows, refine_centers
-from ..beads.detect import BORDER, KEPT, Beads
+from ..beads.detect import BORDER, KEPT, NEIGHBOUR_RATIO, STRUCTURE, Beads
+from ..beads.overlap import NEIGHBOUR_SHARE, patch_shares
 from ..beads.patches import extract_patches
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress
@@ -148,9 +149,15 @@ def iter_patch_review(
     outlier = np.nan_to_num(zscore, nan=0.0) > z_threshold
 
     neighbour = np.zeros(len(index), bool)
-    if len(pos) > 1:
-        dist, _ = cKDTree(pos).query(pos[index], k=2)
-        neighbour = dist[:, 1] < min_separation(r)
+    if len(pos) > 1:  # the estimate's rule: the light the others add to the patch
+        real = np.flatnonzero(beads.status != STRUCTURE)
+        share = patch_shares(img, pos, index, real, r,
+                             neighbour_ratio=NEIGHBOUR_RATIO)
+        if share is not None:
+            neighbour = share >= NEIGHBOUR_SHARE
+        else:
+            dist, _ = cKDTree(pos).query(pos[index], k=2)
+            neighbour = dist[:, 1] < min_separation(r)
     saturated = np.zeros(len(index), bool)
     if saturation is not None:
         core = gather_windows(raw, pos[index], max(1, int(round(r / 3))))

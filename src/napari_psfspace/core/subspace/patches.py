@@ -16,7 +16,7 @@ import numpy as np
 from ..beads.centering import refine_centers
 from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches, extract_patches
-from ..common.spacing import bead_border, centring_sigma, min_separation
+from ..common.spacing import bead_border, centring_sigma
 from ..common.validate import as_image
 from ..model.estimate import faint_beads
 
@@ -110,8 +110,7 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     if len(kept):
         beads.positions[kept] = refine_centers(img, beads.positions[kept],
                                                sigma=centring_sigma(r), half=int(np.ceil(r)))
-        flag_unusable(beads, img, r, saturation=None, border=bead_border(r),
-                      min_separation=min_separation(r))
+        flag_unusable(beads, img, r, saturation=None, border=bead_border(r))
         kept = np.flatnonzero(beads.kept)
     if len(kept) == 0:
         return ImagePatches(int(index), img.shape, None, beads.summary())

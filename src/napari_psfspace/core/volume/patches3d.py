@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..beads.background import fit_background
-from ..beads.patches import R_EXT_FACTOR, patch_size, resample_patches
+from ..beads.patches import R_EXT_FACTOR, observed_mask, patch_size, resample_patches
 from ..beads.window import bump_window, radial_distance
 
 
@@ -94,17 +94,22 @@ def extract_patches_3d(stack: np.ndarray, centers: np.ndarray, psf_radius: float
     planes = np.arange(plane - z_radius, plane + z_radius + 1)
     window = bump_window(size, r, r_ext)
     outside = radial_distance(size) > r
+    seen = observed_mask(centers, size, stack.shape[-2:])
+    whole = bool(seen.all())
     signal = np.zeros((len(centers), len(planes), size, size))
     resid = []
     for j, z in enumerate(planes):
         if not 0 <= z < stack.shape[0]:
             continue
         raw = resample_patches(np.asarray(stack[z], np.float64), centers, size)
-        clean = raw - fit_background(raw, r)
+        clean = raw - fit_background(raw, r, observed=None if whole else seen)
+        if not whole:  # beyond the image's edge: no light measured
+            clean[~seen] = 0.0
         signal[:, j] = clean * window
-        resid.append(clean[:, outside])
+        resid.append(np.where(seen, clean, np.nan)[:, outside])
     res = np.concatenate(resid, axis=1)
-    noise = 1.4826 * np.median(np.abs(res - np.median(res, axis=1, keepdims=True)), axis=1)
+    mid = np.nanmedian(res, axis=1, keepdims=True)
+    noise = 1.4826 * np.nanmedian(np.abs(res - mid), axis=1)
     sums = signal.sum(axis=(2, 3))  # (K, Zp)
     top = np.sort(sums, axis=1)[:, -min(3, sums.shape[1]):]
     flux = top.mean(axis=1)

@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 from ...beads.centering import gather_windows, refine_centers
 from ...beads.detect import BORDER, FAINT, KEPT, NEIGHBOUR, OUTLIER, STRUCTURE, Beads, flag_unusable
 from ...beads.window import radial_distance
-from ...common.spacing import bead_border, centring_sigma, min_separation
+from ...common.spacing import bead_border, centring_sigma
 from ..noise import NoiseModel
 from ..residuals import fourier_shift
 from .base import Context, Effect
@@ -227,7 +227,6 @@ class BackgroundStructure(Effect):
         kept = new.kept
         new.positions[kept] = refine_centers(image, new.positions[kept], sigma=centring_sigma(r),
                                              half=int(np.ceil(r)))
-        flag_unusable(new, image, r, saturation=None, border=bead_border(r),
-                      min_separation=min_separation(r))
+        flag_unusable(new, image, r, saturation=None, border=bead_border(r))
         return ctx.with_effect(self.name, params, image=image, beads=new,
                                noise=ctx.renoised(image))
