@@ -12,6 +12,10 @@ import numpy as np
 
 from .window import radial_distance
 
+#: Highest order of the background of a patch cut by the image's edge: a quadratic fitted
+#: on one side of the bead extrapolates under it.
+PARTIAL_ORDER = 1
+
 
 def monomials(size: int, order: int = 2) -> np.ndarray:
     """Monomials ``x**a * y**b`` with ``a + b <= order`` on a patch, coordinates in [-1, 1].
@@ -44,8 +48,8 @@ def fit_background(patches: np.ndarray, r: float, *, order: int = 2,
     observed : ndarray of shape (K, P, P), bool, optional
         The pixels that lie in the image (a bead near the border: its patch reaches
         past the edge). The background is fitted on the observed pixels beyond ``r``
-        only, by a lower order where they are too few for ``order`` (order 0 at least:
-        their median). Default: all.
+        only, at most a plane (:data:`PARTIAL_ORDER`) and a lower order where they are
+        too few (order 0 at least: their median). Default: all.
 
     Returns
     -------
@@ -76,7 +80,8 @@ def fit_background(patches: np.ndarray, r: float, *, order: int = 2,
         for i in np.flatnonzero(~seen[:, outside].all(axis=1)):
             use = outside & seen[i]
             n = int(np.count_nonzero(use))
-            for o in range(order, -1, -1):  # the highest order the pixels support
+            # a ring cut by the edge pins a curvature on one side only: at most a plane
+            for o in range(min(order, PARTIAL_ORDER), -1, -1):
                 m = (o + 1) * (o + 2) // 2
                 if n >= 2 * m or o == 0:
                     break

@@ -15,6 +15,8 @@ stands on one side of a few of them only).
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from .centering import gather_windows
@@ -203,5 +205,59 @@ def patch_shares(image: np.ndarray, positions: np.ndarray, which: np.ndarray,
     return neighbour_shares(pos, flux, which, counted, shares, neighbour_ratio=neighbour_ratio)
 
 
-__all__ = ["NEIGHBOUR_SHARE", "core_flux", "disk_shares", "neighbour_shares", "patch_shares",
-           "radial_profile"]
+@dataclass
+class NeighbourLight:
+    """A model of the detections' light: each an isotropic PSF (the image's median
+    radial profile) times its flux, so that a patch can have its neighbours' light taken
+    out before its background is fitted (:func:`~napari_psfspace.core.beads.patches.
+    extract_patches`).
+
+    Attributes
+    ----------
+    positions : ndarray of shape (N, 2)
+        The detections (row, column), pixels.
+    flux : ndarray of shape (N,)
+        Each one's light within ``1.2 r``, image units (0: not modelled).
+    profile : ndarray of shape (L,)
+        :func:`radial_profile`: unit light within ``1.2 r``, ring ``k`` at ``k`` pixels.
+    """
+
+    positions: np.ndarray
+    flux: np.ndarray
+    profile: np.ndarray
+
+    def around(self, center: np.ndarray, points: np.ndarray) -> np.ndarray:
+        """The light at ``points`` (M, 2) of the detections near ``center`` but not at it
+        (within 1.5 px: the bead itself), shape (M,)."""
+        reach = len(self.profile) - 1
+        extent = float(np.max(np.hypot(*(points - center).T))) if len(points) else 0.0
+        d = np.hypot(*(self.positions - center).T)
+        near = np.flatnonzero((d > 1.5) & (d < reach + extent) & (self.flux > 0))
+        out = np.zeros(len(points))
+        grid = np.arange(len(self.profile))
+        for n in near:
+            rho = np.hypot(*(points - self.positions[n]).T)
+            out += self.flux[n] * np.interp(rho, grid, self.profile, right=0.0)
+        return out
+
+
+def neighbour_light(image: np.ndarray, positions: np.ndarray, psf_radius: float
+                    ) -> NeighbourLight:
+    """The :class:`NeighbourLight` of the given detections, measured on ``image``: the
+    profile of the brightest, each one's light its :func:`core_flux` over the share of
+    the profile's light in the core."""
+    pos = np.asarray(positions, np.float64).reshape(-1, 2)
+    flux = core_flux(image, pos, psf_radius)
+    profile = radial_profile(image, pos, psf_radius, amplitude=flux)
+    half = max(2, int(np.ceil(psf_radius)))
+    d = np.arange(-half, half + 1)
+    rho = np.hypot(d[:, None], d[None, :])
+    core = rho <= max(1.5, psf_radius / 3.0)
+    share = float(np.interp(rho[core], np.arange(len(profile)), profile, right=0.0).sum())
+    total = np.where(np.isfinite(flux) & (flux > 0), flux / share, 0.0) if share > 0 \
+        else np.zeros(len(pos))
+    return NeighbourLight(pos, total, profile)
+
+
+__all__ = ["NEIGHBOUR_SHARE", "NeighbourLight", "core_flux", "disk_shares", "neighbour_light",
+           "neighbour_shares", "patch_shares", "radial_profile"]

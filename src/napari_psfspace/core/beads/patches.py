@@ -130,6 +130,7 @@ def extract_patches(
     *,
     r_ext_factor: float = R_EXT_FACTOR,
     background_order: int = 2,
+    neighbours=None,
 ) -> Patches:
     """Centred, background-free, windowed, sum-normalised PSF patches.
 
@@ -146,6 +147,11 @@ def extract_patches(
         Window outer radius ``r_ext = r_ext_factor * r`` (paper: 1.2).
     background_order : int
         Order of the background polynomial (paper: 2).
+    neighbours : NeighbourLight, optional
+        A model of the other detections' light
+        (:func:`~napari_psfspace.core.beads.overlap.neighbour_light`), taken out of each
+        patch before its background is fitted: a bead kept beside a neighbour adding a
+        few percent of its light (the neighbour rule) keeps little of it.
 
     Returns
     -------
@@ -164,6 +170,11 @@ def extract_patches(
     r_ext = r_ext_factor * r
     size = patch_size(r, r_ext_factor)
     raw = resample_patches(img, centers, size)
+    if neighbours is not None:
+        off = np.arange(size, dtype=np.float64) - size // 2
+        grid = np.stack(np.meshgrid(off, off, indexing="ij"), -1).reshape(-1, 2)
+        for k, c in enumerate(centers):
+            raw[k] -= neighbours.around(c, c + grid).reshape(size, size)
     seen = observed_mask(centers, size, img.shape)
     partial = not seen.all()
     bg = fit_background(raw, r, order=background_order, observed=seen if partial else None)

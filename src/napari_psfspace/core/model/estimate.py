@@ -20,12 +20,14 @@ from ..beads.centering import refine_centers
 from ..beads.detect import (
     FAINT,
     OUTLIER,
+    STRUCTURE,
     Beads,
     NoBeadsError,
     detect_beads,
     flag_unusable,
     saturation_record,
 )
+from ..beads.overlap import neighbour_light
 from ..beads.patches import Patches, extract_patches
 from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
@@ -256,6 +258,16 @@ def centre_beads(img: np.ndarray, beads: Beads, r: float) -> np.ndarray:
     return np.flatnonzero(beads.kept)
 
 
+def kept_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float) -> Patches:
+    """The patches of the beads ``kept`` (indices into ``beads``), the other detections'
+    modelled light taken out (:func:`~napari_psfspace.core.beads.overlap.neighbour_light`;
+    background structure excepted): every path that learns from an image's beads (the
+    estimate, the family's) cuts the same patches."""
+    light = (neighbour_light(img, beads.positions[beads.status != STRUCTURE], r)
+             if SUBTRACT_NEIGHBOURS else None)
+    return extract_patches(img, beads.positions[kept], r, neighbours=light)
+
+
 def usable_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float, *,
                    patch_filter=None) -> tuple[np.ndarray, Patches, dict[int, str]]:
     """Step 3: the kept beads' patches (background removed, windowed, sum 1), faint
@@ -269,7 +281,7 @@ def usable_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float, *,
     reasons : dict
         Bead index -> why it was left out, beyond its status.
     """
-    patches = extract_patches(img, beads.positions[kept], r)
+    patches = kept_patches(img, beads, kept, r)
     reasons: dict[int, str] = {}
     faint, why_faint = faint_beads(patches.flux)
     if faint.any():
@@ -370,6 +382,8 @@ def basis_record(basis: PsfBasis, n_psf, spline, smoothing, few) -> dict:
 #: A bead two and a half sd below the median of a log-normal brightness spread of sd 1 (the
 #: widest of the scene family) still has 8 % of it.
 FAINT_RATIO = 0.05
+#: Take the other detections' modelled light out of each patch (issue 45).
+SUBTRACT_NEIGHBOURS = True
 
 #: Why a detection of each status is not used, for :func:`left_out_record`.
 STATUS_REASONS = {

@@ -15,10 +15,10 @@ import numpy as np
 
 from ..beads.centering import refine_centers
 from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
-from ..beads.patches import Patches, extract_patches
+from ..beads.patches import Patches
 from ..common.spacing import bead_border, centring_sigma
 from ..common.validate import as_image
-from ..model.estimate import faint_beads
+from ..model.estimate import faint_beads, kept_patches
 
 
 @dataclass
@@ -114,7 +114,7 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
         kept = np.flatnonzero(beads.kept)
     if len(kept) == 0:
         return ImagePatches(int(index), img.shape, None, beads.summary())
-    patches = extract_patches(img, beads.positions[kept], r)
+    patches = kept_patches(img, beads, kept, r)
     # as estimate_operator: a detection too faint to shape the PSF is left out, so that
     # an image's beads (and its held-out split) are those of its own estimate
     faint, _ = faint_beads(patches.flux)
