@@ -248,6 +248,11 @@ def fit_beads(
     excl = np.zeros_like(data, dtype=bool)
     if pixel_mask is not None:
         excl = gather_windows(np.asarray(pixel_mask, dtype=bool), base, half)
+    off = np.arange(-half, half + 1)
+    rows, cols_ = base[:, 0, None] + off, base[:, 1, None] + off  # (K, p): past the edge,
+    past = ((rows < 0) | (rows > img.shape[0] - 1))[:, :, None] \
+        | ((cols_ < 0) | (cols_ > img.shape[1] - 1))[:, None, :]  # a window repeats its edge
+    excl = excl | past
     u = np.linspace(-1.0, 1.0, p)
     yy, xx = np.meshgrid(u, u, indexing="ij")
     n_bg = 1 if background == "constant" else 3
