@@ -31,6 +31,11 @@ PATCH_FACTOR = 1.2
 PROFILE_FACTOR = 2.2
 #: At most this many detections (the brightest) give the profile.
 PROFILE_BEADS = 64
+#: Only neighbours closer than this many PSF radii have their light taken out of a
+#: patch: their light reaches the bead's own support. Farther ones reach only the ring
+#: the background is fitted on, where the isotropic model's error costs about what it
+#: removes (bench/RESULTS.md, issue 45).
+SUBTRACT_DISTANCE = 2.0
 
 
 def radial_profile(image: np.ndarray, positions: np.ndarray, psf_radius: float, *,
@@ -220,17 +225,23 @@ class NeighbourLight:
         Each one's light within ``1.2 r``, image units (0: not modelled).
     profile : ndarray of shape (L,)
         :func:`radial_profile`: unit light within ``1.2 r``, ring ``k`` at ``k`` pixels.
+    max_distance : float or None
+        Only the detections closer than this to a patch's centre are modelled (pixels;
+        None: all whose light reaches the patch).
     """
 
     positions: np.ndarray
     flux: np.ndarray
     profile: np.ndarray
+    max_distance: float | None = None  # only detections closer than this (pixels)
 
     def around(self, center: np.ndarray, points: np.ndarray) -> np.ndarray:
         """The light at ``points`` (M, 2) of the detections near ``center`` but not at it
         (within 1.5 px: the bead itself), shape (M,)."""
         reach = len(self.profile) - 1
         extent = float(np.max(np.hypot(*(points - center).T))) if len(points) else 0.0
+        if self.max_distance is not None:
+            extent = min(extent, self.max_distance - reach)
         d = np.hypot(*(self.positions - center).T)
         near = np.flatnonzero((d > 1.5) & (d < reach + extent) & (self.flux > 0))
         out = np.zeros(len(points))
@@ -245,7 +256,7 @@ def neighbour_light(image: np.ndarray, positions: np.ndarray, psf_radius: float
                     ) -> NeighbourLight:
     """The :class:`NeighbourLight` of the given detections, measured on ``image``: the
     profile of the brightest, each one's light its :func:`core_flux` over the share of
-    the profile's light in the core."""
+    the profile's light in the core; those within :data:`SUBTRACT_DISTANCE` radii."""
     pos = np.asarray(positions, np.float64).reshape(-1, 2)
     flux = core_flux(image, pos, psf_radius)
     profile = radial_profile(image, pos, psf_radius, amplitude=flux)
@@ -256,7 +267,7 @@ def neighbour_light(image: np.ndarray, positions: np.ndarray, psf_radius: float
     share = float(np.interp(rho[core], np.arange(len(profile)), profile, right=0.0).sum())
     total = np.where(np.isfinite(flux) & (flux > 0), flux / share, 0.0) if share > 0 \
         else np.zeros(len(pos))
-    return NeighbourLight(pos, total, profile)
+    return NeighbourLight(pos, total, profile, SUBTRACT_DISTANCE * float(psf_radius))
 
 
 __all__ = ["NEIGHBOUR_SHARE", "NeighbourLight", "core_flux", "disk_shares", "neighbour_light",
