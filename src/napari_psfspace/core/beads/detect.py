@@ -641,10 +641,9 @@ def flag_unusable(
     ``min_separation``, when one lies closer than that (the paper's fixed rule). Neighbours
     are counted among all detections, whatever their status: a rejected bead still
     spoils its neighbour; only detections found to be background structure (status
-    "structure", removed from the image) are not counted, and detections whose peak
-    amplitude is below ``neighbour_ratio`` of the bead's (a faint speck beside a bright
-    bead changes its patch by less than the noise). Beads of unknown amplitude (added by
-    hand) count as bright as the bead.
+    "structure", removed from the image) are not counted, and detections fainter than
+    ``neighbour_ratio`` of the bead (core flux; peak amplitude for the fixed rule: a
+    faint speck beside a bright bead changes its patch by less than the noise).
 
     Returns
     -------

@@ -4,13 +4,17 @@ The paper (Appendix A) rejects a bead closer than ``2 r`` to another, whatever t
 brightness and shapes; in a crowded field that drops most beads, while a faint bead
 ``1.8 r`` away adds a percent of the patch's energy, less than its noise. Here a bead is
 crowded when its neighbours together add at least :data:`NEIGHBOUR_SHARE` of the energy
-in its patch (the disk of radius ``1.2 r``): for each other detection, its peak over the
-bead's times the share of a PSF's energy that falls in a disk whose centre lies ``d``
-away, over the share in the disk about its own centre.
+in its patch (the disk of radius ``1.2 r``): for each other detection, its core flux
+over the bead's times the share of a PSF's energy that falls in a disk whose centre lies
+``d`` away, over the share in the disk about its own centre.
 
 The PSF's radial profile is the image's own: the median, over the brightest detections,
-of their background-free radial profiles out to ``2.2 r`` (the median: a neighbour
-stands on one side of a few of them only).
+of their background-free radial profiles out to ``r`` (the median: a neighbour stands on
+one side of a few of them only; the background: the ring beyond ``2 r``).
+
+A kept bead's neighbours within ``2 r`` still add some light: :func:`neighbour_light`
+models it (the profile times each one's flux), and
+:func:`~napari_psfspace.core.beads.patches.extract_patches` takes it out.
 """
 
 from __future__ import annotations
@@ -26,8 +30,8 @@ from .centering import gather_windows
 NEIGHBOUR_SHARE = 0.05
 #: Radius of the patch whose energy is shared, in PSF radii (the window's ``r_ext``).
 PATCH_FACTOR = 1.2
-#: The profile is measured out to this many PSF radii; the ring beyond ``2 r`` gives its
-#: background, so light between ``r`` and ``2 r`` (the tails, rings) is counted.
+#: The windows the profile is measured in reach this many PSF radii; the ring beyond
+#: ``2 r`` gives each one's background level.
 PROFILE_FACTOR = 2.2
 #: At most this many detections (the brightest) give the profile.
 PROFILE_BEADS = 64
@@ -54,15 +58,17 @@ def radial_profile(image: np.ndarray, positions: np.ndarray, psf_radius: float, 
 
     Returns
     -------
-    ndarray of shape (ceil(2.2 r) + 1,)
+    ndarray of shape (floor(r) + 2,)
         Mean intensity in unit-wide rings (ring ``k``: distances in ``[k - 0.5, k +
         0.5)``) of a PSF of unit energy within ``1.2 r``, never negative; zeros when
-        there is no detection.
+        there is no detection. Beyond ``r`` the PSF is lost in the noise (the radius's
+        definition): what a crowded field's outer rings hold is others' light.
     """
     r = float(psf_radius)
     half = int(np.ceil(PROFILE_FACTOR * r))
+    keep = int(np.floor(r)) + 1
     pos = np.asarray(positions, np.float64).reshape(-1, 2)
-    out = np.zeros(half + 1)
+    out = np.zeros(keep + 1)
     if len(pos) == 0:
         return out
     if amplitude is not None:
@@ -88,10 +94,8 @@ def radial_profile(image: np.ndarray, positions: np.ndarray, psf_radius: float, 
     if not good.any():
         return out
     prof = np.median(prof[good] / energy[good, None], axis=0)
-    # beyond r the PSF is lost in the noise (the radius's definition); what a crowded
-    # field's rings hold there is others' light (every bead has a neighbour in them)
-    prof[np.arange(half + 1) > r] = 0.0
-    return np.clip(prof, 0.0, None)
+    out[:keep] = np.clip(prof[:keep], 0.0, None)  # and a dark ring: it falls to 0 there
+    return out
 
 
 def disk_shares(profile: np.ndarray, psf_radius: float) -> np.ndarray:
@@ -134,9 +138,9 @@ def neighbour_shares(positions: np.ndarray, amplitude: np.ndarray, which: np.nda
     ----------
     positions : ndarray of shape (K, 2)
     amplitude : ndarray of shape (K,)
-        Peak amplitudes; a non-finite one (a bead added by hand) counts as bright as the
-        bead it neighbours; a bead of non-positive amplitude is crowded by any neighbour
-        in reach (share ``inf``).
+        Brightness (core fluxes, :func:`core_flux`); a non-finite one counts as bright as
+        the bead it neighbours; a bead of non-positive brightness is crowded by any
+        neighbour in reach (share ``inf``).
     which : ndarray of int
         The beads judged.
     counted : ndarray of int
@@ -144,7 +148,7 @@ def neighbour_shares(positions: np.ndarray, amplitude: np.ndarray, which: np.nda
     shares : ndarray
         :func:`disk_shares`.
     neighbour_ratio : float
-        A detection fainter than this fraction of the bead's peak does not count.
+        A detection fainter than this fraction of the bead does not count.
     """
     from scipy.spatial import cKDTree
 
