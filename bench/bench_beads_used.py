@@ -2,6 +2,7 @@
 
     python bench/bench_beads_used.py [--generator ours pyotf psfmodels] [--seeds 20 21]
                                      [--rules 2r energy] [--wide] [--min-separation 1]
+    python bench/bench_beads_used.py --measured
 
 A bead a person would pick (the issue's definition), from the scene's truth: its centre
 at least ``r`` (the scene's PSF radius) from the image's edge, and its neighbours adding
@@ -134,6 +135,31 @@ def count(generator: str, seed: int, wide: bool, min_separation: float | None = 
     return rows
 
 
+#: ``--measured``: slices of the measured stacks, the PSF radius 0.5 um
+MEASURED = (("sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif", (20, 32, 44)),
+            ("astigmatic_beads/psfextractor_astigmatism_zyx_uint8.tif", (28, 33, 38)))
+
+
+def measured(data) -> None:
+    """Beads detected and used on slices of the measured stacks (no truth: the counts)."""
+    from napari_psfspace.io import read_image
+
+    rows = []
+    for path, slices in MEASURED:
+        for z in slices:
+            img, info = read_image(data / path, index=z)
+            op = estimate_operator(img, psf_radius=0.5 / info.pixel_size)
+            counts = op.metadata["bead_counts"]
+            rows.append({"set": path.split("/")[0], "slice": z,
+                         "detected": int(sum(counts.values())),
+                         "used": int(op.metadata["n_beads_used"]),
+                         "neighbour": int(counts.get("neighbour", 0)),
+                         "border": int(counts.get("border", 0))})
+            print(rows[-1], flush=True)
+    print(table(rows, [("set", "s"), ("slice", "d"), ("detected", "d"), ("used", "d"),
+                       ("neighbour", "d"), ("border", "d")]))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--generator", nargs="+", default=["ours", "pyotf", "psfmodels"])
@@ -144,7 +170,14 @@ def main() -> None:
                          "draws 2.5: well-separated beads); 1.0 gives crowded fields")
     ap.add_argument("--rules", nargs="+", default=["default"],
                     choices=["default", "2r", "energy"])
+    ap.add_argument("--measured", action="store_true",
+                    help="beads detected and used on slices of ../shared/data's stacks")
     args = ap.parse_args()
+    if args.measured:
+        from pathlib import Path
+
+        measured(Path(__file__).resolve().parents[2] / "shared" / "data")
+        return
     rows = []
     for gen in args.generator:
         for seed in args.seeds:
