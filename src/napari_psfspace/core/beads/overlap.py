@@ -206,7 +206,8 @@ def patch_shares(image: np.ndarray, positions: np.ndarray, which: np.ndarray,
     pos = np.asarray(positions, np.float64).reshape(-1, 2)
     flux = np.full(len(pos), np.nan)
     flux[counted] = core_flux(image, pos[counted], psf_radius)
-    flux[which] = core_flux(image, pos[which], psf_radius)
+    rest = np.setdiff1d(which, counted)  # judged but not counted (each bead once)
+    flux[rest] = core_flux(image, pos[rest], psf_radius)
     profile = radial_profile(image, pos[counted], psf_radius, amplitude=flux[counted])
     shares = disk_shares(profile, psf_radius)
     if not np.any(shares > 0):
