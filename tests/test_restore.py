@@ -287,10 +287,15 @@ def test_identification_warns_when_the_family_cannot_explain_the_beads(family):
         op = identify_operator(image[0], sub, beads=inner)
     info = op.metadata["identification"]
     assert info["model_error"] > info["warning_bound"] and "bound" in info["warning"]
-    # within the range, from every bead: no warning, and a small spread
-    near = identify_operator(family[2][0], sub)
-    assert near.metadata["identification"]["warning"] is None
-    assert near.metadata["identification"]["psf_spread"] < info["psf_spread"]
+    # and says where more beads would help
+    assert "least determined around" in info["warning"]
+    # within the range, from every bead: a far smaller miss (at the family's bound
+    # there: without held-out figures it is a fixed 0.1) and a small spread
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        near = identify_operator(family[2][0], sub).metadata["identification"]
+    assert near["model_error"] < info["model_error"] / 3
+    assert near["psf_spread"] < info["psf_spread"] / 3
 
 
 def test_one_clicked_bead_the_family_cannot_explain_is_named(family):
@@ -323,12 +328,12 @@ def test_one_clicked_bead_the_family_cannot_explain_is_named(family):
     with pytest.warns(IdentificationWarning, match="does not explain the clicked bead at"):
         op = identify_operator(pasted, sub, beads=np.vstack([inner[1:5], pair]))
     info = op.metadata["identification"]
-    errors = np.asarray(info["bead_model_errors"])
+    # each bead judged left out: the posterior bends towards any bead it is given
+    errors = np.asarray(info["cv_bead_model_errors"])
     worst = int(np.argmax(errors))
     assert np.hypot(*(np.asarray(info["positions"][worst]) - pair)) < 1.5
-    # measured: the pair 0.54 (bound 0.1), the median 0.063
     assert info["model_error"] <= info["warning_bound"] < errors[worst] / WARN_BEAD_RATIO
-    assert max(real["bead_model_errors"]) <= WARN_BEAD_RATIO * real["warning_bound"]
+    assert max(real["cv_bead_model_errors"]) <= WARN_BEAD_RATIO * real["warning_bound"]
 
 
 def test_many_beads_identify_no_worse_than_the_image_alone(family):
@@ -455,73 +460,3 @@ def test_row_helpers_cover_every_row_once_in_order():
     by_rows_many([(lambda x: x.__iadd__(1), (a,)), (lambda x: x.__iadd__(2), (b,))], 2)
     assert (a == 1).all() and (b == 2).all()
 
-
-def test_the_affine_correction_recovers_an_affine_change_of_the_maps_from_5_beads():
-    from napari_psfspace.core.restore.identify import AFFINE_RIDGE, affine_correction
-
-    rng = np.random.default_rng(3)
-    n_j, n_i, n_g = 9, 4, 64
-    space = np.linalg.qr(rng.normal(size=(n_g, n_j)))[0].T  # (J, G) orthonormal rows
-    nodes = rng.uniform(0, 1, size=(n_g, 2))
-    plane = np.column_stack([np.ones(n_g), nodes - 0.5])
-    affine = plane.T @ space.T  # (3, J)
-    b = rng.normal(size=(n_i, 3))
-    at = space.T[rng.choice(n_g, 5, replace=False)]  # 5 beads at nodes: (5, J)
-    residual = at @ (b @ affine).T  # (5, I): an affine change seen at the beads
-    got = affine_correction(at, residual, affine)
-    # the beads' values are met to the ridge's bias (relative AFFINE_RIDGE x the
-    # normal matrix's conditioning), far below the change itself
-    fit = at @ got.T
-    assert np.linalg.norm(fit - residual) < 100 * AFFINE_RIDGE * np.linalg.norm(residual)
-    # fewer than 4 beads: no affine change is determined, none is made
-    assert not affine_correction(at[:3], residual[:3], affine).any()
-
-
-def test_weights_that_vary_over_the_field_are_recovered_where_fixed_ones_cannot_be(
-        monkeypatch):
-    """A tilted focus mixes the learnt conditions differently across the field: the
-    coefficients ``sum_k (lambda_k + mu_k . x) Gamma_k a(x)``. With slopes the
-    identification finds them from 12 noise-free beads, to its ridges' bias; with
-    weights fixed over the field it cannot, and its corrections only partly make up
-    for it."""
-    import napari_psfspace.core.restore.identify as identify
-
-    rng = np.random.default_rng(4)
-    g = np.linspace(-0.5, 0.5, 9)
-    nodes = np.stack(np.meshgrid(g, g, indexing="ij"), axis=-1).reshape(-1, 2)
-
-    def monomials(x):  # the spatial basis: 1, y, x, y^2, y x, x^2 (J = 6)
-        y, z = x.T
-        return np.column_stack([np.ones(len(x)), y, z, y * y, y * z, z * z])
-
-    n_k, n_i = 4, 3
-    gammas = np.zeros((n_k, n_i, 6))
-    gammas[:, :, :3] = rng.normal(size=(n_k, n_i, 3))  # affine maps: x . a(x) stays in span
-    gammas[:, 0, 0] += 3.0  # a dominant first coefficient, as a PSF's mean has
-    lam = np.array([0.4, 0.3, 0.2, 0.1])
-    mu = np.array([[0.3, -0.3, 0.0, 0.0], [0.0, 0.2, -0.2, 0.0]])  # (2, K): d/dy, d/dx
-
-    def coefficients(x):
-        weights = lam + x @ mu  # (n, K)
-        return np.einsum("nk,kij,nj->ni", weights, gammas, monomials(x))
-
-    beads = rng.uniform(-0.45, 0.45, size=(12, 2))
-    c, at = coefficients(beads), monomials(beads)
-    truth = coefficients(nodes)
-    frame = (beads, nodes, monomials(nodes))
-
-    def error(gamma):
-        return np.linalg.norm(monomials(nodes) @ gamma.T - truth) / np.linalg.norm(truth)
-
-    # amplitudes fixed: free ones take up part of a slope (a brighter bead on one side
-    # looks like a weight growing that way); the wide series' figures have them free
-    same = {"amplitude_range": (1.0, 1.0)}
-    fixed, *_ = identify.identify_gamma(c, at, gammas, **same)
-    sloped, *_ = identify.identify_gamma(c, at, gammas, slopes=frame, **same)
-    # measured 0.017 against 0.046: the slopes' ridge biases them towards 0
-    assert error(sloped) < 0.5 * error(fixed)
-    # without that ridge only the weights' (WEIGHT_RIDGE) and the correction's remain:
-    # measured 0.0035
-    monkeypatch.setattr(identify, "SLOPE_RIDGE", 1e-6)
-    exact, *_ = identify.identify_gamma(c, at, gammas, slopes=frame, **same)
-    assert error(exact) < 0.01

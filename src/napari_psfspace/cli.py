@@ -283,10 +283,6 @@ def _cmd_learn(args) -> int:
     if len(loaders) < 2:
         raise ValueError(f"learn needs at least 2 images (conditions), got {len(loaders)}: "
                          "pass several TIFFs, a folder, or a stack (with --slices)")
-    most = max_space(len(loaders), args.n_psf)
-    if args.n_space is not None and args.n_space > most:
-        raise ValueError(f"--n-space {args.n_space} is more spatial maps than {len(loaders)} "
-                         f"images give: at most {most}")
     r = args.psf_radius
     if r is None:
         _, info = read_image(loaders[0].args[0], index=loaders[0].args[1])
@@ -311,6 +307,10 @@ def _cmd_learn(args) -> int:
                 raise ValueError("no --psf-radius given and none could be measured on the "
                                  "middle images (no bright spot stands out of the noise): "
                                  "give --psf-radius")
+    most = max_space(len(loaders), args.n_psf, psf_radius=r)
+    if args.n_space is not None and args.n_space > most:
+        raise ValueError(f"--n-space {args.n_space} is more spatial maps than {len(loaders)} "
+                         f"images give: at most {most}")
     client = None
     if args.scheduler:
         try:

@@ -21,6 +21,14 @@ def bead_border(psf_radius: float) -> float:
     return float(np.ceil(1.2 * psf_radius) + 2)
 
 
+def partial_border(psf_radius: float) -> float:
+    """Least distance (pixels) from the centre of a bead used with a partial patch to the
+    image's edge: ``r``, so that its PSF lies in the image and only the window's tail
+    (background, masked) reaches past the edge. Used for the beads a user clicks to
+    identify an operator (a few beads, each worth keeping)."""
+    return float(psf_radius)
+
+
 def min_separation(psf_radius: float) -> float:
     """Least distance (pixels) between two usable beads: ``2 r`` (their PSFs do not
     overlap)."""
@@ -33,4 +41,4 @@ def centring_sigma(psf_radius: float) -> float:
     return max(1.0, float(psf_radius) / 4.0)
 
 
-__all__ = ["bead_border", "centring_sigma", "min_separation"]
+__all__ = ["bead_border", "centring_sigma", "min_separation", "partial_border"]

@@ -21,17 +21,17 @@ each step exactly:
 ``P >= J`` beads should identify ``Gamma`` (each bead gives ``I`` equations); with fewer,
 the cone alone keeps it plausible.
 
-By default (``prior=True``) the family is a prior rather than a hard constraint: on
-wide focus series the cone's ``Gamma`` is far from the truth even identified from all
-the image's beads (a condition between those learnt is rarely a non-negative mix of
-them). The weights of the ``Gamma_k`` are then left free in sign and vary over the
-field as a plane (a tilted focus puts each part of the field under another condition),
-and the ``Gamma`` is corrected towards the beads by kernel ridge regression with the
-family's spatial kernel (:func:`identify_gamma`; each measured by
-``bench/bench_identify_wide.py``). :func:`resample` says how sure it is (the spread of
-the PSFs when beads are left out), and a warning (:class:`IdentificationWarning`,
+By default (``prior=True``) the family is a Gaussian prior rather than a hard constraint
+(:mod:`.posterior`): a condition between those learnt is rarely a non-negative mix of
+them, and one outside them is none. The family's fields give the prior's mean and
+covariance (conditions continuous: any mix of the learnt ones, beyond their range too,
+weights varying over the field, and fields the family never showed); the clicked beads
+give the likelihood; the scales of each part are those of highest evidence. The
+operator is the posterior mean field, reported with its spread (the posterior standard
+deviation of the PSF over the field), and a warning (:class:`IdentificationWarning`,
 ``metadata["identification"]["warning"]``) says when the operator misses the clicked
-beads (or one of them) beyond their noise.
+beads (or one of them) beyond their noise, or when they leave part of the field
+undetermined, and where more beads would help.
 """
 
 from __future__ import annotations
@@ -41,8 +41,11 @@ import warnings
 import numpy as np
 from scipy.optimize import nnls
 
+from ..common.spacing import partial_border
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
+from ..model.cone import Cone, full_cone
+from ..model.field import assemble_operator
 from ..model.heldout import (
     beyond_noise,
     beyond_noise_each,
@@ -55,6 +58,7 @@ from ..model.operator import ProductConvolution
 from ..subspace.choice import Choice, blend, choose_between, own_estimate
 from ..subspace.patches import image_patches
 from ..subspace.result import OperatorSubspace, space_at
+from .posterior import FieldPrior, Posterior, family_prior, posterior_field
 
 #: Default range of the beads' amplitudes relative to the family's (patches are
 #: normalised to unit flux, so 1 is a bead whose flux was measured exactly).
@@ -70,9 +74,7 @@ def _coefficients(psf: np.ndarray, basis: np.ndarray) -> np.ndarray:
 
 def solve_identification(c: np.ndarray, v: np.ndarray, *,
                          amplitude_range: tuple[float, float] = AMPLITUDE_RANGE,
-                         max_iter: int = 100, tol: float = 1e-8,
-                         prior: np.ndarray | None = None, sd: np.ndarray | None = None,
-                         n_slopes: int = 0
+                         max_iter: int = 100, tol: float = 1e-8
                          ) -> tuple[np.ndarray, np.ndarray, list[float]]:
     """Problem (9) in the cone's weights.
 
@@ -87,20 +89,6 @@ def solve_identification(c: np.ndarray, v: np.ndarray, *,
     max_iter, tol
         Alternations at most; stop when the objective changes by less than ``tol``
         relatively.
-    prior : ndarray of shape (K,), optional
-        Weights free in sign instead, with a Gaussian prior centred on ``prior`` (the
-        cone's solution) of standard deviation its rms: the beads' coefficients, each
-        weighted by its noise ``sd``, move the weights away from the cone as far as
-        their noise allows (bright beads: the span of the ``Gamma_k``; faint beads: the
-        cone).
-    sd : ndarray of shape (P,), optional
-        Noise standard deviation of each bead's coefficients (default 1: then the prior
-        is only the small :data:`WEIGHT_RIDGE`).
-    n_slopes : int
-        With ``prior``: the last ``n_slopes`` of the ``K`` weights are slopes of the
-        weights over the field (:func:`identify_gamma`), centred on 0 with the ridge
-        :data:`SLOPE_RIDGE`; the others are the weights proper.
-
     Returns
     -------
     weights : ndarray of shape (K,)
@@ -119,20 +107,7 @@ def solve_identification(c: np.ndarray, v: np.ndarray, *,
     lam = np.zeros(n_k)
     for _ in range(int(max_iter)):
         m_mat = (g[None, :, None] * v).reshape(n_k, n_p * n_i).T  # (P I, K)
-        if prior is None:
-            lam, _ = nnls(m_mat, c.ravel(), maxiter=50 * n_k)
-        else:
-            w = np.repeat(1.0 / np.asarray(sd, np.float64) ** 2, n_i) if sd is not None \
-                else np.ones(n_p * n_i)
-            normal = m_mat.T @ (w[:, None] * m_mat)
-            mean_diag = max(float(np.trace(normal)) / n_k, 1e-300)
-            n_w = n_k - int(n_slopes)
-            eps = WEIGHT_RIDGE * mean_diag
-            if sd is not None:
-                eps = max(eps, 1.0 / max(float(np.mean(prior[:n_w] ** 2)), 1e-300))
-            reg = np.full(n_k, eps)
-            reg[n_w:] = SLOPE_RIDGE * mean_diag
-            lam = np.linalg.solve(normal + np.diag(reg), m_mat.T @ (w * c.ravel()) + reg * prior)
+        lam, _ = nnls(m_mat, c.ravel(), maxiter=50 * n_k)
         m = np.tensordot(lam, v, axes=1)  # (P, I)
         mm = (m * m).sum(axis=1)
         g = np.where(mm > 0, (m * c).sum(axis=1) / np.maximum(mm, 1e-300), 1.0).clip(a, b)
@@ -143,16 +118,6 @@ def solve_identification(c: np.ndarray, v: np.ndarray, *,
     return lam, g, history
 
 
-#: Ridge of the correction of the family's ``Gamma`` towards the beads, relative to the
-#: mean squared norm of the spatial basis at the beads (:func:`correction`). Chosen on
-#: wide focus series, bright and faint beads (``bench/bench_identify_wide.py``): a
-#: decade either way of the plateau it sits on. Leaving beads out does not choose it
-#: reliably from 5 beads, so it is fixed.
-CORRECTION_RIDGE = 0.1
-#: Tikhonov weight that keeps the weights of the ``Gamma_k`` near the cone's solution
-#: where the beads leave them undetermined (more images than equations), relative to
-#: the mean diagonal of the normal matrix.
-WEIGHT_RIDGE = 1e-3
 #: Folds of the resampling over the beads (leave-one-bead-out below this count).
 N_FOLDS = 5
 #: The warning's bound on the identified operator's error on the clicked beads, beyond
@@ -192,136 +157,100 @@ def warn_bound(subspace: OperatorSubspace) -> float:
     return WARN_MODEL_ERROR if ref is None else max(WARN_FLOOR, WARN_RATIO * ref)
 
 
-def correction(at: np.ndarray, residual: np.ndarray, ridge: float) -> np.ndarray:
-    """The smallest change of ``Gamma`` (I, J) that explains the beads' residual
-    coefficients (P, I) at their spatial basis values ``at`` (P, J), with ridge ``ridge``:
-    kernel ridge regression with the family's own spatial kernel ``a(x) . a(y)`` (a
-    Gaussian prior on ``Gamma`` centred on the family's)."""
-    if not np.isfinite(ridge):
-        return np.zeros((residual.shape[1], at.shape[1]))
-    k = at @ at.T  # (P, P)
-    alpha = np.linalg.solve(k + ridge * np.eye(len(k)), residual)  # (P, I)
-    return (at.T @ alpha).T  # (I, J)
-
-
-def _centred(subspace: OperatorSubspace, points: np.ndarray) -> np.ndarray:
-    """Positions (row, column), pixels, scaled to the image and centred: -0.5 to 0.5."""
-    return np.asarray(points, np.float64) / np.asarray(subspace.shape, np.float64) - 0.5
-
-
-def _nodes(subspace: OperatorSubspace) -> np.ndarray:
-    """The grid's nodes (G, 2), pixels, in the order of the spatial basis's pixels."""
-    gy, gx = subspace.grid
-    return np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-
-
-def affine_maps(subspace: OperatorSubspace) -> np.ndarray:
-    """The maps ``1``, ``y`` and ``x`` over the field (coordinates scaled to the image,
-    centred) expressed on the family's spatial basis, shape (3, J)."""
-    at_nodes = _centred(subspace, _nodes(subspace))
-    plane = np.column_stack([np.ones(len(at_nodes)), at_nodes])
-    return plane.T @ subspace.space.reshape(subspace.n_space, -1).T
-
-
-def slope_frame(subspace: OperatorSubspace, centers: np.ndarray
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """What :func:`identify_gamma` needs for weights that vary over the field: the
-    centred coordinates (row, column, scaled to the image: -0.5 to 0.5) of the beads at
-    ``centers`` (P, 2) and of the grid's nodes (G, 2), and the spatial basis at the
-    nodes (G, J)."""
-    return (_centred(subspace, centers), _centred(subspace, _nodes(subspace)),
-            subspace.space.reshape(subspace.n_space, -1).T)
-
-
-def affine_correction(at: np.ndarray, residual: np.ndarray, affine: np.ndarray,
-                      sd: np.ndarray | None = None) -> np.ndarray:
-    """The change of ``Gamma`` (I, J) whose maps are affine over the field (``affine``,
-    (3, J), :func:`affine_maps`) that best explains the beads' residual coefficients
-    (P, I) at ``at`` (P, J): weighted least squares, each bead by its noise ``sd`` (P,),
-    with a ridge of :data:`AFFINE_RIDGE`; zero below 4 beads."""
-    if len(at) < 4:
-        return np.zeros((residual.shape[1], affine.shape[1]))
-    x = at @ affine.T  # (P, 3): the affine maps at the beads
-    w = np.ones(len(x)) if sd is None else 1.0 / np.maximum(np.asarray(sd, float), 1e-300) ** 2
-    normal = x.T @ (w[:, None] * x)
-    ridge = AFFINE_RIDGE * max(float(np.trace(normal)) / 3.0, 1e-300)
-    b = np.linalg.solve(normal + ridge * np.eye(3), x.T @ (w[:, None] * residual))  # (3, I)
-    return b.T @ affine
-
-
-#: Ridge of the affine correction, relative to the mean diagonal of its normal matrix.
-AFFINE_RIDGE = 1e-3
-
-
 def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
-                   prior: bool = True, sd: np.ndarray | None = None,
-                   amplitude_range=AMPLITUDE_RANGE,
-                   max_iter: int = 100,
-                   affine: np.ndarray | None = None,
-                   slopes: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+                   amplitude_range=AMPLITUDE_RANGE, max_iter: int = 100
                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list]:
-    """``Gamma`` (I, J) of the beads' coefficients ``c`` (P, I) at ``at`` (P, J).
-
-    ``prior=False``: the paper's problem (9), ``Gamma`` in the cone of the ``Gamma_k``.
-    ``prior=True``: the family as a prior: the weights of the ``Gamma_k`` free in sign
-    (a condition between those learnt is rarely a non-negative mix of them; kept near
-    the cone's solution by :data:`WEIGHT_RIDGE` where undetermined; with ``slopes``
-    (:func:`slope_frame`), the weights vary over the field as a plane, its slopes kept
-    near 0 by :data:`SLOPE_RIDGE`: a tilted focus puts one part of the field under one
-    learnt condition and another part under another), then, with
-    ``affine`` (:func:`affine_maps`), the :func:`affine_correction` (a focus shift and a
-    tilt of the slide move the whole field; a few beads determine an affine change
-    where they do not determine a free one), then the kernel ridge :func:`correction`
-    towards the beads. The operator's PSFs are still kept in the cone of observed PSFs
-    when it is built.
+    """The paper's problem (9): ``Gamma`` (I, J) in the cone of the ``Gamma_k`` that
+    explains the beads' coefficients ``c`` (P, I) at their spatial basis values ``at``
+    (P, J).
 
     Returns
     -------
     gamma : ndarray of shape (I, J)
-        With ``slopes``, the one whose coefficients are nearest those of the weights
-        varying over the field, at the grid's nodes.
     weights : ndarray of shape (K,)
-        The weights at the centre of the field.
     amplitudes : ndarray of shape (P,)
     objective : list of float
     """
     v = np.einsum("pj,kij->kpi", at, gammas)  # (K, P, I)
     lam, g, history = solve_identification(c, v, amplitude_range=amplitude_range,
                                            max_iter=max_iter)
-    gamma = None
-    if prior and slopes is not None:
-        at_beads, at_nodes, space_nodes = slopes
-        n_k = len(gammas)
-        v3 = np.concatenate([v, v * at_beads[None, :, 0, None], v * at_beads[None, :, 1, None]])
-        w3, g, more = solve_identification(c, v3, amplitude_range=amplitude_range,
-                                           max_iter=max_iter, sd=sd, n_slopes=2 * n_k,
-                                           prior=np.concatenate([lam, np.zeros(2 * n_k)]))
-        history = history + more
-        lam = w3[:n_k]
-        field = lam + at_nodes @ w3[n_k:].reshape(2, n_k)  # (G, K): the weights at the nodes
-        coef = np.einsum("gk,kij,gj->gi", field, gammas, space_nodes)  # (G, I)
-        gamma = np.linalg.lstsq(space_nodes, coef, rcond=None)[0].T
-    elif prior:
-        lam, g, more = solve_identification(c, v, amplitude_range=amplitude_range,
-                                            max_iter=max_iter, prior=lam, sd=sd)
-        history = history + more
-    if gamma is None:
-        gamma = np.tensordot(lam, gammas, axes=1)
-    if prior and affine is not None:
-        gamma = gamma + affine_correction(at, c / g[:, None] - at @ gamma.T, affine, sd)
-    if prior:
-        scale = float(np.mean((at * at).sum(axis=1))) or 1.0
-        gamma = gamma + correction(at, c / g[:, None] - at @ gamma.T,
-                                   CORRECTION_RIDGE * scale)
-    return gamma, lam, g, history
+    return np.tensordot(lam, gammas, axes=1), lam, g, history
 
 
-#: Ridge of the slopes of the ``Gamma_k``'s weights over the field (:func:`identify_gamma`),
-#: relative to the mean diagonal of the normal matrix. Chosen on wide focus series from 5
-#: beads (``bench/bench_identify_wide.py``), at the upper end of a plateau spanning a
-#: decade, where 5 random beads of a narrow faint family lose nothing against the
-#: weights without slopes (``tests/test_restore.py``); figures in bench/RESULTS.md.
-SLOPE_RIDGE = 0.01
+#: Most bead coefficients (beads x I) the posterior is computed from; beyond, a subset of
+#: the beads spread over the field (with that many beads the image's own estimate is
+#: judged against it anyway, :func:`judge_against_own`).
+MAX_OBSERVATIONS = 2400
+#: Most beads the prior's scales are chosen from (a subset spread over the field).
+MAX_EVIDENCE_BEADS = 8
+
+
+def spread_subset(centers: np.ndarray, n: int) -> np.ndarray:
+    """Indices of at most ``n`` of ``centers`` (P, 2) spread over the field: farthest
+    points, from the one nearest their mean."""
+    pts = np.asarray(centers, np.float64).reshape(-1, 2)
+    if len(pts) <= n:
+        return np.arange(len(pts))
+    picks = [int(np.argmin(np.hypot(*(pts - pts.mean(axis=0)).T)))]
+    d = np.hypot(*(pts - pts[picks[0]]).T)
+    while len(picks) < n:
+        nxt = int(np.argmax(d))
+        picks.append(nxt)
+        d = np.minimum(d, np.hypot(*(pts - pts[nxt]).T))
+    return np.sort(np.array(picks))
+
+
+def posterior_of(subspace: OperatorSubspace, c: np.ndarray, centers: np.ndarray,
+                 sd: np.ndarray, *, amplitude_range=AMPLITUDE_RANGE,
+                 prior: FieldPrior | None = None,
+                 log_scales: np.ndarray | None = None) -> Posterior:
+    """The posterior of the field of beads' coefficients ``c`` (P, I) at ``centers``
+    (P, 2) with noise ``sd`` (P,) under the family's prior (:func:`~.posterior.
+    posterior_field`), its scales chosen on at most :data:`MAX_EVIDENCE_BEADS` beads and
+    the field on at most :data:`MAX_OBSERVATIONS` coefficients."""
+    prior = family_prior(subspace) if prior is None else prior
+    kw = {"amplitude_range": amplitude_range, "psfs": subspace.basis}
+    if log_scales is None and len(c) > MAX_EVIDENCE_BEADS:
+        keep = spread_subset(centers, MAX_EVIDENCE_BEADS)
+        log_scales = posterior_field(prior, c[keep], centers[keep], sd[keep],
+                                     **kw).log_scales
+    keep = spread_subset(centers, max(1, MAX_OBSERVATIONS // c.shape[1]))
+    return posterior_field(prior, c[keep], centers[keep], sd[keep], log_scales=log_scales,
+                           **kw)
+
+
+def field_operator(subspace: OperatorSubspace, field: np.ndarray, c: np.ndarray, *,
+                   at: np.ndarray | None = None) -> ProductConvolution:
+    """The operator of a coefficient field (G, I) at the family's nodes, its PSFs kept in
+    the cone of the family's observed PSFs and the clicked beads' (``c``, (P, I));
+    ``at``: only right at these positions (as :func:`~..model.field.assemble_operator`)."""
+    gens = np.vstack([subspace.cone.generators, full_cone(c).generators])
+    op, _ = assemble_operator(subspace.basis, gens, lambda nodes: field, subspace.shape,
+                              grid_step=subspace.grid_step, cone=Cone(gens), at=at,
+                              constraint="cone")
+    return op
+
+
+def _identify(subspace, c, centers, sd, *, prior: bool, amplitude_range, max_iter,
+              at=None, field_prior=None, log_scales=None):
+    """The operator identified from beads (the posterior's, or the paper's cone), with
+    the posterior (None for the paper's) and the cone's ``(gamma, weights, amplitudes,
+    objective)``."""
+    if not prior:
+        space = space_at(subspace.space, subspace.grid, centers)
+        found = identify_gamma(c, space, subspace.gammas, amplitude_range=amplitude_range,
+                               max_iter=max_iter)
+        if at is None:
+            return subspace.operator_from(found[0], project=False), None, found
+        field = subspace.maps(found[0]).reshape(subspace.n_psf, -1).T
+        op, _ = assemble_operator(subspace.basis, subspace.cone.generators,
+                                  lambda nodes: field, subspace.shape,
+                                  grid_step=subspace.grid_step, cone=subspace.cone, at=at,
+                                  constraint="cone")
+        return op, None, found
+    post = posterior_of(subspace, c, centers, sd, amplitude_range=amplitude_range,
+                        prior=field_prior, log_scales=log_scales)
+    return field_operator(subspace, post.mean, c, at=at), post, None
 
 
 #: Fewest usable beads at which the identified operator is judged against the image's own
@@ -334,10 +263,10 @@ SLOPE_RIDGE = 0.01
 MIN_BEADS_JUDGED = 15
 
 
-def judge_against_own(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
-                      *, prior: bool = True, sd: np.ndarray | None = None,
-                      amplitude_range=AMPLITUDE_RANGE, max_iter: int = 100
-                      ) -> Choice | None:
+def judge_against_own(patches, c: np.ndarray, subspace: OperatorSubspace, *,
+                      prior: bool = True, sd: np.ndarray | None = None,
+                      amplitude_range=AMPLITUDE_RANGE, max_iter: int = 100,
+                      log_scales: np.ndarray | None = None) -> Choice | None:
     """The family's weight against the image's own estimate, on held-out beads.
 
     About a fifth of the beads, spread over the field, are held out; the operator
@@ -351,29 +280,37 @@ def judge_against_own(patches, c: np.ndarray, at: np.ndarray, subspace: Operator
     mask = split_holdout(patches.centers, subspace.shape)
     if not mask.any() or mask.all():
         return None
-    gam, *_ = identify_gamma(c[~mask], at[~mask], subspace.gammas, prior=prior,
-                             sd=None if sd is None else sd[~mask],
-                             amplitude_range=amplitude_range, max_iter=max_iter,
-                             affine=affine_maps(subspace),
-                             slopes=slope_frame(subspace, patches.centers[~mask]))
     held = patches.subset(mask)
+    op, *_ = _identify(subspace, c[~mask], patches.centers[~mask], _noise(sd, c)[~mask],
+                       prior=prior, amplitude_range=amplitude_range, max_iter=max_iter,
+                       at=held.centers, log_scales=log_scales)
     own = own_estimate(patches.subset(~mask), subspace.shape, grid_step=subspace.grid_step,
                        n_image=len(c))
-    return choose_between(subspace.psfs_of(gam, held.centers), own, held)
+    return choose_between(_psfs(op, held.centers), own, held)
+
+
+def _noise(sd: np.ndarray | None, c: np.ndarray) -> np.ndarray:
+    return np.ones(len(c)) if sd is None else np.asarray(sd, np.float64)
+
+
+def _psfs(op: ProductConvolution, points: np.ndarray) -> np.ndarray:
+    return np.array([op.psf_at(y, x) for y, x in np.asarray(points).reshape(-1, 2)])
 
 
 class IdentificationWarning(UserWarning):
-    """The family does not explain the beads an operator was identified from."""
+    """The family does not explain the beads an operator was identified from, or they
+    leave part of the field undetermined."""
 
 
-def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace, *,
+def resample(patches, c: np.ndarray, subspace: OperatorSubspace, *,
              prior: bool = True, sd: np.ndarray | None = None,
              amplitude_range=AMPLITUDE_RANGE, max_iter: int = 100, n_folds: int = N_FOLDS,
-             n_grid: int = 4) -> dict:
-    """How sure an identification is, by leaving beads out.
+             n_grid: int = 4, log_scales: np.ndarray | None = None) -> dict:
+    """How the identification does on beads it did not see.
 
     Each fold of the beads (one bead each below ``n_folds`` beads) is predicted by the
-    operator identified from the others.
+    operator identified from the others (with the prior's scales ``log_scales``, those
+    chosen from every bead, when given).
 
     Returns
     -------
@@ -381,32 +318,35 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
         ``cv_residual_median`` and ``cv_noise_floor_median`` (the left-out beads'
         relative residuals and their noise), ``cv_model_error`` (``sqrt(median
         residual^2 - median floor^2)``: the error of the operator on beads it did not
-        see, beyond their noise; None below 3 beads), ``psf_spread`` (the jackknife
-        standard deviation of the PSFs over the folds at an ``n_grid x n_grid`` grid of
-        the field, relative to their norm, averaged; None below 3 beads), ``n_folds``.
+        see, beyond their noise; None below 3 beads), ``cv_bead_model_errors`` (each
+        bead's, when left out), ``jackknife_spread`` (the
+        jackknife standard deviation of the PSFs over the folds at an ``n_grid x
+        n_grid`` grid of the field, relative to their norm, averaged; None below 3
+        beads), ``n_folds``.
     """
     n_p = len(c)
     if n_p < 3:
         return {"cv_residual_median": None, "cv_noise_floor_median": None,
-                "cv_model_error": None, "psf_spread": None, "n_folds": 0}
+                "cv_model_error": None, "cv_bead_model_errors": None,
+                "jackknife_spread": None, "n_folds": 0}
     folds = np.arange(n_p) % min(int(n_folds), n_p)
     h, w = subspace.shape
     grid = np.stack(np.meshgrid((np.arange(n_grid) + 0.5) * h / n_grid,
                                 (np.arange(n_grid) + 0.5) * w / n_grid, indexing="ij"),
                     axis=-1).reshape(-1, 2)
     res, floor, psfs = np.empty(n_p), np.empty(n_p), []
-    affine = affine_maps(subspace)
+    sd = _noise(sd, c)
+    field_prior = family_prior(subspace) if prior else None
     for f in np.unique(folds):
         out = folds == f
-        gam, *_ = identify_gamma(c[~out], at[~out], subspace.gammas, prior=prior,
-                                 sd=None if sd is None else sd[~out],
-                                 amplitude_range=amplitude_range, max_iter=max_iter,
-                                 affine=affine,
-                                 slopes=slope_frame(subspace, patches.centers[~out]))
         left = patches.subset(out)
-        r = residuals_of(subspace.psfs_of(gam, left.centers), left)
+        op, *_ = _identify(subspace, c[~out], patches.centers[~out], sd[~out], prior=prior,
+                           amplitude_range=amplitude_range, max_iter=max_iter,
+                           at=np.vstack([left.centers, grid]), field_prior=field_prior,
+                           log_scales=log_scales)
+        r = residuals_of(_psfs(op, left.centers), left)
         res[out], floor[out] = r.residual, r.noise_floor
-        psfs.append(subspace.psfs_of(gam, grid))
+        psfs.append(_psfs(op, grid))
     psfs = np.array(psfs)  # (F, G, P, P)
     n_f = len(psfs)
     dev = psfs - psfs.mean(axis=0)
@@ -415,7 +355,59 @@ def resample(patches, c: np.ndarray, at: np.ndarray, subspace: OperatorSubspace,
     return {"cv_residual_median": float(np.median(res)),
             "cv_noise_floor_median": float(np.median(floor)),
             "cv_model_error": median_beyond_noise(res, floor),
-            "psf_spread": float(spread.mean()), "n_folds": int(n_f)}
+            "cv_bead_model_errors": beyond_noise_each(res, floor).tolist(),
+            "jackknife_spread": float(spread.mean()), "n_folds": int(n_f)}
+
+
+def miss_warning(model_error: float, per_bead: np.ndarray, centers: np.ndarray,
+                 bound: float) -> str | None:
+    """Why the family does not explain the clicked beads (None: it does): their median
+    error beyond the noise above ``bound``, or one bead's above :data:`WARN_BEAD_RATIO`
+    times it."""
+    if model_error > bound:
+        return (f"the family does not explain the clicked beads: its operator misses them "
+                f"by {model_error:.2f} of their PSF beyond their noise (bound {bound:.2g}, "
+                "from the family's error on its own held-out beads); it may be far from "
+                "this image's (a condition the family did not learn, another microscope, "
+                "or beads that are not single points): click more beads, or learn a "
+                "family that covers this condition")
+    worst = int(np.argmax(per_bead))
+    if per_bead[worst] > WARN_BEAD_RATIO * bound:
+        y, x = centers[worst]
+        return (f"the family does not explain the clicked bead at ({y:.0f}, {x:.0f}): its "
+                f"operator misses it by {per_bead[worst]:.2f} of its PSF beyond its noise "
+                f"({per_bead[worst] / bound:.1f}x the bound {bound:.2g}); the operator may "
+                "be far from this image's around it (a condition the family did not learn "
+                "there, or not a single bead): click more beads around it, or learn a "
+                "family that covers this condition")
+    return None
+
+
+#: The warning's bound on the posterior spread of the PSF (its mean over the field: on
+#: wide focus series, within a third of the field error it predicts,
+#: ``bench/bench_identify_wide.py``), in units of :func:`warn_bound` (the family's error
+#: on its own held-out beads).
+SPREAD_RATIO = 3.0
+
+
+def least_determined(spread: np.ndarray, nodes: np.ndarray) -> str:
+    """Where the posterior spread of the PSF (G,) is largest among the nodes (G, 2)."""
+    y, x = nodes[int(np.argmax(spread))]
+    return (f"the PSF is least determined around ({y:.0f}, {x:.0f}), off by up to "
+            f"{float(np.max(spread)):.2f} of its norm: click beads there")
+
+
+def spread_warning(spread: np.ndarray, nodes: np.ndarray, bound: float) -> str | None:
+    """Why the clicked beads leave the operator undetermined (None: they do not): the
+    mean posterior spread of the PSF (G,) at the nodes (G, 2) above
+    :data:`SPREAD_RATIO` times ``bound``."""
+    mean = float(np.mean(spread))
+    if mean <= SPREAD_RATIO * bound:
+        return None
+    return (f"the clicked beads leave the operator undetermined: its PSF may be off by "
+            f"{mean:.2f} of its norm on average over the field (bound "
+            f"{SPREAD_RATIO * bound:.2g}, {SPREAD_RATIO:g}x the family's error on its own "
+            "held-out beads)")
 
 
 @blas_threads
@@ -494,7 +486,8 @@ def identify_operator(
     if not (np.isfinite(r) and r > 0):
         raise ValueError(f"`psf_radius` must be a positive number of pixels (the family "
                          f"does not record one), got {psf_radius!r}")
-    found = image_patches(image, r, threshold=threshold, positions=beads)
+    found = image_patches(image, r, threshold=threshold, positions=beads,
+                          border=partial_border(r))
     if found.patches is None:
         raise ValueError(f"no usable bead in `image` to identify its operator: "
                          f"{found.summary}")
@@ -505,52 +498,56 @@ def identify_operator(
                          f"the family's PSFs are {size} px: use the family's radius "
                          f"({subspace.metadata.get('psf_radius')})")
     c = _coefficients(patches.psf, subspace.basis)  # (P, I)
-    at = space_at(subspace.space, subspace.grid, patches.centers)  # (P, J)
     sd = patches.noise / patches.flux  # per-pixel noise of the sum-1 patches
-    gamma, lam, g, history = identify_gamma(c, at, subspace.gammas, prior=prior, sd=sd,
-                                            amplitude_range=amplitude_range,
-                                            max_iter=max_iter, affine=affine_maps(subspace),
-                                            slopes=slope_frame(subspace, patches.centers))
-    if not prior and not lam.any():
-        raise ValueError("the beads' PSFs lie outside the family's cone (every weight is "
-                         "0): is this image from the same microscope and PSF radius?")
-    op = subspace.operator_from(gamma, project=False)
+    op, post, paper = _identify(subspace, c, patches.centers, sd, prior=prior,
+                                amplitude_range=amplitude_range, max_iter=max_iter)
+    if paper is not None:
+        gamma, lam, g, history = paper
+        if not lam.any():
+            raise ValueError("the beads' PSFs lie outside the family's cone (every weight "
+                             "is 0): is this image from the same microscope and PSF radius?")
     fit = heldout_residuals(op, patches)  # on the beads it was identified from
-    sure = resample(patches, c, at, subspace, prior=prior, sd=sd,
-                    amplitude_range=amplitude_range, max_iter=max_iter)
+    sure = resample(patches, c, subspace, prior=prior, sd=sd,
+                    amplitude_range=amplitude_range, max_iter=max_iter,
+                    log_scales=None if post is None else post.log_scales)
     model_error = median_beyond_noise(fit.residual, fit.noise_floor)
-    warning = None
     bound = warn_bound(subspace)
-    if model_error > bound:
-        warning = (f"the family does not explain the clicked beads: its operator misses "
-                   f"them by {model_error:.2f} of their PSF beyond their noise (bound "
-                   f"{bound:.2g}, from the family's error on its own held-out beads); it "
-                   "may be far from this image's (a condition the family did not learn, "
-                   "another microscope, or beads that are not single points): click more "
-                   "beads, or learn a family that covers this condition")
     per_bead = beyond_noise_each(fit.residual, fit.noise_floor)
-    worst = int(np.argmax(per_bead))
-    if model_error <= bound and per_bead[worst] > WARN_BEAD_RATIO * bound:
-        y, x = patches.centers[worst]
-        warning = (f"the family does not explain the clicked bead at ({y:.0f}, {x:.0f}): "
-                   f"its operator misses it by {per_bead[worst]:.2f} of its PSF beyond its "
-                   f"noise ({per_bead[worst] / bound:.1f}x the bound {bound:.2g}); the "
-                   "operator may be far from this image's around it (a condition the "
-                   "family did not learn there, or not a single bead): click more beads "
-                   "around it, or learn a family that covers this condition")
+    # one bead the others cannot predict: the posterior bends towards any bead it is
+    # given, so each is judged left out (the paper's cone cannot bend: as fitted)
+    judged = per_bead if post is None or sure["cv_bead_model_errors"] is None else \
+        np.asarray(sure["cv_bead_model_errors"])
+    warning = miss_warning(model_error, judged, patches.centers, bound)
+    if post is not None:
+        nodes = family_prior(subspace).nodes
+        gamma = np.linalg.lstsq(subspace.space.reshape(subspace.n_space, -1).T, post.mean,
+                                rcond=None)[0].T
+        lam, g, history = post.weights, post.amplitudes, []
+        where = nodes[int(np.argmax(post.spread))]
+        spread = {"psf_spread": float(np.mean(post.spread)),
+                  "psf_spread_max": float(np.max(post.spread)),
+                  "psf_spread_where": where.tolist(), "scales": post.scales}
+        warning = warning or spread_warning(post.spread, nodes, bound)
+        if warning:  # where more beads would help
+            warning = f"{warning}; {least_determined(post.spread, nodes)}"
+    else:
+        spread = {"psf_spread": sure["jackknife_spread"], "psf_spread_max": None,
+                  "psf_spread_where": None, "scales": None}
     meta = {"identification": {
         "model_error": model_error,
         "residual_median": float(np.median(fit.residual)),
         "noise_floor_median": float(np.median(fit.noise_floor)),
-        **sure, "warning": warning, "warning_bound": bound, "prior": bool(prior),
+        **sure, **spread, "warning": warning, "warning_bound": bound,
+        "prior": bool(prior),
         "bead_model_errors": per_bead.tolist(),
         "gamma": gamma.tolist(), "weights": lam.tolist(),
         "positions": patches.centers.tolist(), "amplitudes": g.tolist(),
         "objective": history, "n_beads": int(len(c)), "n_space": subspace.n_space,
         "enough_beads": bool(len(c) >= subspace.n_space), "beads_table": found.summary}}
     # many beads: no worse than the image's own estimate from them (held-out judgement)
-    choice = judge_against_own(patches, c, at, subspace, prior=prior, sd=sd,
-                               amplitude_range=amplitude_range, max_iter=max_iter)
+    choice = judge_against_own(patches, c, subspace, prior=prior, sd=sd,
+                               amplitude_range=amplitude_range, max_iter=max_iter,
+                               log_scales=None if post is None else post.log_scales)
     meta["identification"]["choice"] = None if choice is None else choice.to_dict()
     if choice is not None and choice.weight < 1.0:
         own = own_estimate(patches, subspace.shape, grid_step=subspace.grid_step)

@@ -39,7 +39,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..beads.patches import Patches
+from ..beads.patches import R_EXT_FACTOR, Patches, patch_size
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress
 from ..common.threads import blas_threads, dask_workers
@@ -58,8 +58,9 @@ from .sizes import white_rank
 
 #: Largest ``J`` the rule may choose.
 MAX_SPACE = 16
-#: Largest ``I`` chosen from the data.
-MAX_PSF = 12
+#: ``I`` the field basis's principal components are counted for when ``I`` is not
+#: given (:func:`pool`; the basis itself is bounded only by the beads).
+FIELD_PSF = 12
 #: Fewest beads for an image's own thin-plate map; below, its map is constant.
 MIN_BEADS_TPS = 4
 #: Principal components of the pooled patches whose fields (:mod:`.shrink`) the PSF
@@ -215,7 +216,7 @@ def pool(used: list[ImagePatches], n_psf, denoise: bool,
     basis = learn_basis(learn, int(n_psf) if n_psf is not None else "rule", support=support,
                         weights=weights, svd="gram",
                         components=FIELD_COMPONENTS * (int(n_psf) if n_psf is not None
-                                                       else MAX_PSF) if denoise else 0)
+                                                       else FIELD_PSF) if denoise else 0)
     out = _Pooled(psf, owner, sd, weights, window, support, basis)
     if denoise and basis.components is not None and len(basis.components) >= basis.n_psf:
         shape = used[0].shape
@@ -303,10 +304,15 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
                             grid_step=float(grid_step), metadata=meta)
 
 
-def max_space(n_images: int, n_psf: int | None = None) -> int:
+def max_space(n_images: int, n_psf: int | None = None, *,
+              psf_radius: float | None = None) -> int | None:
     """The most spatial maps ``J`` a family of ``n_images`` images can have: one per map
-    ``alpha_ik``, ``K x I`` (``I`` at most :data:`MAX_PSF` unless given)."""
-    return int(n_images) * int(n_psf or MAX_PSF)
+    ``alpha_ik``, ``K x I``. Without ``I`` (chosen from the beads), ``I`` is at most the
+    pixels of a patch's window (``psf_radius`` given), else None (no bound known)."""
+    if n_psf is None and psf_radius is not None:
+        size = patch_size(float(psf_radius))
+        n_psf = int(np.count_nonzero(radial_distance(size) < R_EXT_FACTOR * float(psf_radius)))
+    return None if n_psf is None else int(n_images) * int(n_psf)
 
 
 @blas_threads
@@ -344,9 +350,9 @@ def iter_estimate_subspace(
         if v is not None and (int(v) != v or v < 1):
             raise ValueError(f"`{name}` must be a positive integer or None, got {v!r}")
     most = max_space(len(items), n_psf)
-    if n_space is not None and n_space > most:
+    if n_space is not None and most is not None and n_space > most:
         raise ValueError(f"`n_space` = {n_space} is more spatial maps than {len(items)} images "
-                         f"of at most {int(n_psf or MAX_PSF)} PSFs give: at most {most}")
+                         f"of {int(n_psf)} PSFs give: at most {most}")
     options = {"n_psf": n_psf, "n_space": n_space, "grid_step": grid_step, "refine": refine,
                "denoise": denoise}
     import dask
@@ -387,17 +393,21 @@ def iter_estimate_subspace(
             f"`n_psf` = {n_psf} needs at least {min_beads_for(int(n_psf))} usable beads over "
             f"all images, got {n_total}: lower `n_psf` or use more beads")
 
-    # I and J (unless both are set): cross-validated on every image's beads
-    # I: the rank rule on the patches whitened by their noise; J: the rule on the maps
+    # I: the rank rule on the patches whitened by their noise, bounded only by what the
+    # beads support (no cap: bench/RESULTS.md, issue 45); J: the rule on the maps
     sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
     if n_psf is None:
         first = used[0].patches
         n_psf = min(white_rank(np.concatenate([f.patches.psf for f in used]),
                                np.concatenate([f.patches.noise / f.patches.flux for f in used]),
                                bump_window(first.size, first.r, first.r_ext)),
-                    MAX_PSF, max(1, (sum(f.n_beads for f in used) - 2) // 2))
+                    max(1, (sum(f.n_beads for f in used) - 2) // 2))
         sizes_meta["psf_size_by"] = "whitened rule"
         options["n_psf"] = n_psf
+        if n_space is not None and n_space > len(found) * n_psf:
+            raise ValueError(f"`n_space` = {n_space} is more spatial maps than {len(found)} "
+                             f"images of {n_psf} PSFs (chosen from the beads) give: at most "
+                             f"{len(found) * n_psf}")
     if n_space is None:
         sizes_meta["space_size_by"] = "rule"
     heldout = None

@@ -70,7 +70,8 @@ def given_beads(image: np.ndarray, positions, detected: Beads | None) -> Beads:
 def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: float, *,
                   index: int = 0, threshold: float = 8.0,
                   saturation: float | None = None,
-                  positions: np.ndarray | None = None) -> ImagePatches:
+                  positions: np.ndarray | None = None,
+                  border: float | None = None) -> ImagePatches:
     """The usable bead patches of one image (read here when given as a loader).
 
     Parameters
@@ -110,7 +111,8 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     if len(kept):
         beads.positions[kept] = refine_centers(img, beads.positions[kept],
                                                sigma=centring_sigma(r), half=int(np.ceil(r)))
-        flag_unusable(beads, img, r, saturation=None, border=bead_border(r))
+        flag_unusable(beads, img, r, saturation=None,
+                      border=bead_border(r) if border is None else float(border))
         kept = np.flatnonzero(beads.kept)
     if len(kept) == 0:
         return ImagePatches(int(index), img.shape, None, beads.summary())
