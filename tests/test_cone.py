@@ -221,3 +221,27 @@ def test_the_held_out_beads_choose_the_cone_only_where_it_helps():
     low = beta - np.array([0.0, 0.3])
     chosen, scores = choose_constraint(beta, low, h)
     assert chosen == "cone" and scores["cone"] < 0.9 * scores["where-needed"]
+
+
+def test_keep_in_cone_projects_what_each_rule_says():
+    """The rule the 3D field uses (issue 45): "where-needed" moves only the implausible
+    coefficients, onto the hull of every bead; "cone" all, onto the reduced cone;
+    "none" nothing."""
+    from napari_psfspace.core.model.cone import implausible
+    from napari_psfspace.core.model.field import keep_in_cone
+
+    h = _gaussian_basis()
+    rng = np.random.default_rng(1)
+    beta = np.column_stack([np.ones(30), rng.uniform(0.0, 0.8, 30)])
+    coarse = np.column_stack([np.ones(40), np.linspace(-3.0, 1.5, 40)])
+    bad = implausible(coarse, h, beta)
+    assert 0 < bad.sum() < len(bad)
+    none, _ = keep_in_cone(coarse, beta, h, "none")
+    np.testing.assert_array_equal(none, coarse)
+    where, cone = keep_in_cone(coarse, beta, h, "where-needed")
+    np.testing.assert_array_equal(where[~bad], coarse[~bad])
+    np.testing.assert_allclose(where[bad], cone.project(coarse[bad]))
+    assert len(cone.generators) == len(beta)  # every bead's
+    every, reduced = keep_in_cone(coarse, beta, h, "cone")
+    np.testing.assert_allclose(every, reduced.project(coarse))
+    assert not np.allclose(every[~bad], coarse[~bad])

@@ -55,8 +55,9 @@ def test_a_field_on_the_span_is_recovered_from_a_few_noise_free_beads():
     c = bilinear(prior.grid, beads) @ truth
     post = posterior_field(prior, c, beads, np.full(6, 1e-6), amplitude_range=(1.0, 1.0))
     err = np.linalg.norm(post.mean - truth) / np.linalg.norm(truth - prior.mean)
-    # 18 equations, 5 weights: the span is determined; the evidence finds it (the other
-X
+    # 18 equations, 5 weights: the span is determined and the evidence finds it (the
+    # other parts' scales fall to their floor; measured error 2e-9). With the scales a
+    # half of the truth's, the spread test below reads 2.7: both can fail
     assert err < 0.1
     assert post.scales["span"] > 10 * max(post.scales["affine"], post.scales["smooth"])
 

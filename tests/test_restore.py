@@ -460,3 +460,37 @@ def test_row_helpers_cover_every_row_once_in_order():
     by_rows_many([(lambda x: x.__iadd__(1), (a,)), (lambda x: x.__iadd__(2), (b,))], 2)
     assert (a == 1).all() and (b == 2).all()
 
+
+
+def test_clicked_beads_near_the_border_are_kept_with_a_masked_patch(family):
+    """Issue 45: a clicked bead whose centre lies between ``r`` and the estimate's border
+    rule (``ceil(1.2 r) + 2``) from the edge is kept for the identification (its PSF lies
+    in the image; only the window's tail, background, is masked), where the estimate's
+    rule drops it."""
+    from napari_psfspace.core.common.spacing import bead_border, partial_border
+    from napari_psfspace.core.subspace.patches import image_patches
+
+    sub, r, _, _ = family
+    image, truths, _ = simulate_stack(1, (384, 384), 24, seed=7, amplitude=(2e4, 3e4),
+                                      border=float(r))
+    pos = truths[0].positions
+    edge = np.minimum(pos, 383 - pos).min(axis=1)
+    near = (edge >= r + 1) & (edge < bead_border(r) - 1)
+    assert near.any()  # the scene has such beads (seeded)
+    clicked = pos[near]
+    kept = image_patches(image[0], r, positions=clicked, border=partial_border(r))
+    dropped = image_patches(image[0], r, positions=clicked)
+    assert kept.n_beads >= 1 and dropped.n_beads < kept.n_beads
+    # and the patch is the bead's: against the truth's PSF there, windowed as patches
+    # are, within its noise (each patch's relative noise: its per-pixel noise over its
+    # flux, times the window's root sum of squares, over the PSF's norm)
+    from napari_psfspace.core.beads.window import bump_window
+
+    p = kept.patches
+    win = bump_window(p.size, p.r, p.r_ext)
+    truth = np.array([truths[0].psf_at(y, x, p.size) for y, x in p.centers]) * win
+    truth /= truth.sum(axis=(1, 2), keepdims=True)
+    norm = np.linalg.norm(truth, axis=(1, 2))
+    err = np.linalg.norm(p.psf - truth, axis=(1, 2)) / norm
+    noise = p.noise / p.flux * np.sqrt((win ** 2).sum()) / norm
+    assert np.all(err < 3 * noise + 0.02), (err, noise)

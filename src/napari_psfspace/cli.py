@@ -420,8 +420,8 @@ def _cmd_deblur(args) -> int:
               f"{sub.n_space}{'' if ident['enough_beads'] else ': fewer beads than J'}) "
               f"in {time.perf_counter() - t0:.1f} s; error on them beyond the noise "
               f"{ident['model_error']:.3f}"
-              + ("" if spread is None else f", PSF spread when beads are left out "
-                                           f"{spread:.3f}"), file=sys.stderr)
+              + ("" if spread is None else f", PSF spread {spread:.3f} (relative, mean "
+                                           "over the field)"), file=sys.stderr)
         if ident.get("warning"):
             print(f"WARNING: {ident['warning']}", file=sys.stderr)
     else:

@@ -139,6 +139,23 @@ def choose_constraint(beta: np.ndarray, predicted: np.ndarray, psfs: np.ndarray
     return ("cone" if better else "where-needed"), scores
 
 
+def keep_in_cone(coarse: np.ndarray, beta: np.ndarray, psfs: np.ndarray,
+                 constraint: str) -> tuple[np.ndarray, Cone]:
+    """Coefficients (G, I) kept in the cone of the beads' ``beta`` (M, I) as
+    ``constraint`` says ("where-needed": only those whose PSF, ``coarse @ psfs``, has
+    more negative mass than the beads' own allow, onto the hull of every bead; "cone":
+    all, onto the paper's reduced cone; "none": none), and that cone."""
+    out = np.array(coarse, dtype=np.float64)
+    cone = reduce_cone(beta) if constraint == "cone" else full_cone(beta)
+    if constraint == "cone":
+        out = cone.project(out)
+    elif constraint == "where-needed":
+        bad = implausible(out, psfs, beta)
+        if bad.any():
+            out[bad] = cone.project(out[bad])
+    return out, cone
+
+
 def assemble_operator(
     basis: np.ndarray,
     beta: np.ndarray,

@@ -432,7 +432,8 @@ def identify_operator(
         The family of operators (:func:`~napari_psfspace.core.subspace.estimate_subspace`).
     beads : ndarray of shape (N, 2), optional
         Bead positions (row, column), pixels, e.g. a Points layer's; they are centred
-        sub-pixel and checked (border, neighbours, saturation). Default: detected.
+        sub-pixel and checked (neighbours, saturation; a bead at least ``r`` from the
+        edge is kept, its patch masked beyond it). Default: detected.
     psf_radius : float, optional
         Patch radius, pixels; default the family's (it must give the family's patch
         size).
@@ -443,28 +444,35 @@ def identify_operator(
     max_iter : int
         Alternations at most.
     prior : bool
-        The family as a prior (default; see the module's notes) rather than the paper's
-        hard constraint (``False``: ``Gamma`` in the cone of the ``Gamma_k``).
+        The family as a Gaussian prior (default; see the module's notes): the operator
+        is the posterior mean field given the beads (:mod:`.posterior`). ``False``: the
+        paper's hard constraint, ``Gamma`` in the cone of the ``Gamma_k``.
 
     Returns
     -------
     ProductConvolution
-        Its PSFs sum to 1 and lie in the family's cone (or, blended with the image's own
-        estimate, between the two). ``metadata["identification"]``
-        holds ``gamma`` (I, J), the cone ``weights`` (K,), the beads' ``positions`` and
-        ``amplitudes``, the ``objective`` history, ``n_beads``, and how well the
-        operator fits those beads: the median relative residual of their patches, its
-        noise floor, and ``model_error = sqrt(median residual^2 - median floor^2)``, the
-        relative error of the operator beyond the noise (which
-        :func:`~napari_psfspace.core.restore.deconvolve.deblur` allows for); how sure it
-        is (:func:`resample`: ``psf_spread``, ``cv_model_error``, ...); ``warning``
-        (None, or why: the family does not explain the beads, ``model_error`` above
-        ``warning_bound``, :func:`warn_bound`, or one of them, by more than
-        :data:`WARN_BEAD_RATIO` times that bound; an :class:`IdentificationWarning` is
-        issued too) and ``prior``; ``choice`` (None below :data:`MIN_BEADS_JUDGED`
-        beads; else the held-out judgement against the image's own estimate,
-        :func:`judge_against_own`: ``family_weight`` < 1 blends the own estimate in,
-        ``gamma`` stays the identified one).
+        Its PSFs sum to 1 and lie in the cone of the family's observed PSFs and the
+        beads' (or, blended with the image's own estimate, between the two).
+        ``metadata["identification"]`` holds ``gamma`` (I, J: the field on the family's
+        spatial basis), ``weights`` (K,: the posterior mean of the weights of the
+        family's conditions, or the cone's), ``scales`` (the prior's, of highest
+        evidence), the beads' ``positions`` and ``amplitudes``, ``n_beads``, and how well
+        the operator fits those beads: the median relative residual of their patches,
+        its noise floor, and ``model_error = sqrt(median residual^2 - median
+        floor^2)``, the relative error of the operator beyond the noise (which
+        :func:`~napari_psfspace.core.restore.deconvolve.deblur` allows for); its spread
+        (``psf_spread``: the posterior standard deviation of the PSF relative to its
+        norm, mean over the field; ``psf_spread_max`` and ``psf_spread_where``, the node
+        where it is largest); how it does on beads left out (:func:`resample`:
+        ``cv_model_error``, ``cv_bead_model_errors``, ...); ``warning`` (None, or why:
+        the family does not explain the beads, ``model_error`` above
+        ``warning_bound``, :func:`warn_bound`, or one of them, left out, by more than
+        :data:`WARN_BEAD_RATIO` times that bound, or they leave the operator
+        undetermined, :func:`spread_warning`; each says where more beads would help; an
+        :class:`IdentificationWarning` is issued too) and ``prior``; ``choice`` (None
+        below :data:`MIN_BEADS_JUDGED` beads; else the held-out judgement against the
+        image's own estimate, :func:`judge_against_own`: ``family_weight`` < 1 blends
+        the own estimate in, ``gamma`` stays the identified one).
 
     Raises
     ------

@@ -26,7 +26,7 @@ from ..common.threads import blas_threads
 from ..common.validate import check_grid_step, check_int, check_psf_radius
 from ..model.cone import Cone, reduce_cone
 from ..model.estimate import centre_beads, faint_beads
-from ..model.field import coarse_grid
+from ..model.field import choose_constraint, coarse_grid, keep_in_cone
 from ..model.pca import PsfBasis, learn_basis, min_beads_for
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
@@ -154,8 +154,13 @@ def iter_estimate_operator_3d(
                              smoothing=smoothing, scale=0.5 * float(np.hypot(h, w)))
     gy, gx = coarse_grid((h, w), grid_step)
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-    cone = reduce_cone(beta)
-    coarse = cone.project(np.asarray(spline(nodes), np.float64).reshape(len(nodes), -1))
+    # where the field is kept in the cone: chosen by the beads held out one at a time,
+    # as for one image (the paper's reduced cone everywhere only where it predicts them
+    # better)
+    loo = np.asarray(spline.loo_residuals).reshape(beta.shape)
+    constraint, scores = choose_constraint(beta, beta - loo, basis.basis)
+    coarse, cone = keep_in_cone(np.asarray(spline(nodes), np.float64).reshape(len(nodes), -1),
+                                beta, basis.basis, constraint)
     coefficients = coarse.T.reshape(basis.n_psf, len(gy), len(gx))
     shift = own[basis.inliers] - plane
     meta = {
@@ -164,6 +169,7 @@ def iter_estimate_operator_3d(
         "bead_positions": centers.round(3).tolist(),
         "bead_focal_shift_planes": shift.astype(int).tolist(),
         "smoothing": [float(s) for s in spline.smoothing],
+        "field_constraint": {"chosen": constraint, **scores},
         "threshold": threshold, "grid_step": grid_step, "image_shape": [depth, h, w],
         "image_dtype": str(np.asarray(stack).dtype), "bead_counts": beads.counts(),
         "saturation": saturation_record(np.asarray(stack).max(axis=0), beads, r, None),

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..beads.window import bump_window, radial_distance
 from ..diagnosis.noise import noise_model
-from ..model.cone import reduce_cone
+from ..model.field import keep_in_cone
 from ..model.heldout import morton_order
 from ..model.pca import learn_basis, min_beads_for
 from ..model.tps import ThinPlateSpline
@@ -107,6 +107,9 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     if int(folds) != folds or folds < 2:
         raise ValueError(f"`folds` must be an integer >= 2, got {folds!r}")
     patches = estimation.patches.subset(estimation.basis.inliers)
+    # the estimate's rule for the cone (chosen on all its beads), in every fold
+    constraint = (estimation.operator.metadata.get("field_constraint") or {}).get(
+        "chosen", "cone")
     n = len(patches)
     n_psf = int(estimation.operator.n_psf)
     h, w = np.shape(stack)[1:]
@@ -134,9 +137,9 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
         spline = ThinPlateSpline(centers, basis.coefficients,
                                  weights=voronoi_areas(centers, (h, w)),
                                  smoothing=smoothing, scale=0.5 * float(np.hypot(h, w)))
-        cone = reduce_cone(basis.coefficients)
-        coef = cone.project(np.asarray(spline(patches.centers[test]), np.float64)
-                            .reshape(int(test.sum()), -1))
+        coef, _ = keep_in_cone(np.asarray(spline(patches.centers[test]), np.float64)
+                               .reshape(int(test.sum()), -1), basis.coefficients,
+                               basis.basis, constraint)
         models = np.tensordot(coef, basis.basis, axes=(1, 0))  # (k, Zp, P, P)
         mean = patches.psf[train].mean(axis=0)
         for k, j in enumerate(np.flatnonzero(test)):
