@@ -161,6 +161,7 @@ def measured(data: Path) -> list[dict]:
         model = {n: np.array([psf_measures(op.psf_at(y, x))[n]
                               for y, x in est.patches.centers[inl]]) for n in NAMES}
         scale = {"focal_plane": dz, "fwhm_lateral": dy, "fwhm_row": dy, "fwhm_col": dy,
+                 "fwhm_major": dy, "fwhm_minor": dy,
                  "fwhm_axial": dz, "ellipticity": 1.0, "astigmatic_split": dz}
         for n in NAMES:
             b, m = beads[n] * scale[n], model[n] * scale[n]
