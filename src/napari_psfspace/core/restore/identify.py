@@ -58,7 +58,7 @@ from ..model.operator import ProductConvolution
 from ..subspace.choice import Choice, blend, choose_between, own_estimate
 from ..subspace.patches import image_patches
 from ..subspace.result import OperatorSubspace, space_at
-from .posterior import FieldPrior, Posterior, family_prior, posterior_field
+from .posterior import FieldPrior, Posterior, bilinear, family_prior, posterior_field
 
 #: Default range of the beads' amplitudes relative to the family's (patches are
 #: normalised to unit flux, so 1 is a bead whose flux was measured exactly).
@@ -530,7 +530,12 @@ def identify_operator(
         nodes = family_prior(subspace).nodes
         gamma = np.linalg.lstsq(subspace.space.reshape(subspace.n_space, -1).T, post.mean,
                                 rcond=None)[0].T
-        lam, g, history = post.weights, post.amplitudes, []
+        # every bead's amplitude against the field (the posterior may use a subset)
+        at_beads = bilinear(subspace.grid, patches.centers) @ post.mean
+        mm = (at_beads * at_beads).sum(axis=1)
+        g = np.where(mm > 0, (at_beads * c).sum(axis=1) / np.maximum(mm, 1e-300),
+                     1.0).clip(*amplitude_range)
+        lam, history = post.weights, []
         where = nodes[int(np.argmax(post.spread))]
         spread = {"psf_spread": float(np.mean(post.spread)),
                   "psf_spread_max": float(np.max(post.spread)),
