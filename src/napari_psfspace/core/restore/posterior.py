@@ -4,11 +4,12 @@ A family of operators (:class:`~napari_psfspace.core.subspace.OperatorSubspace`)
 coefficient field ``F_k(x)`` (``I`` numbers at each node ``x`` of the coarse grid) of
 each of ``K`` images. The field of a new image is modelled as a Gaussian process
 
-    F(x) = m(x) + sum_k w_k f_k(x) + D(x),
+    F(x) = m(x) + sum_k (w_k + v_k . sqrt(12) u) f_k(x) + D(x),
 
 - ``m`` the family's mean field and ``f_k = (F_k - m) / sqrt(K - 1)`` its deviations:
   ``w ~ N(0, s^2)`` puts the image anywhere on the (continuous) span of the conditions
-  learnt, beyond their range too;
+  learnt, beyond their range too; ``v ~ N(0, t^2)`` lets the mix vary over the field as
+  a plane (a tilted focus puts each part of the field under another condition);
 - ``D`` a field the family never showed: ``D ~ GP(0, C (t_a^2 k_a + t_s^2 k_s))``, with
   ``C`` (I, I) the family's covariance of the coefficients over conditions and nodes
   (plus a twentieth of its mean variance in every direction, so that no direction of
@@ -18,7 +19,7 @@ each of ``K`` images. The field of a new image is modelled as a Gaussian process
 
 Each clicked bead ``p`` gives its coefficients ``c_p = g_p F(x_p) + e_p``, ``e_p`` white
 with the per-pixel noise of its sum-1 patch, ``g_p`` its amplitude. The scales
-``s, t_a, t_s`` are those of highest evidence (type-II maximum likelihood): the beads
+``s, t, t_a, t_s`` are those of highest evidence (type-II maximum likelihood): the beads
 say how far the image lies from the family. The operator is the posterior mean field;
 its spread (the posterior standard deviation of the PSF at each node, relative to the
 PSF's norm) says where the beads leave it undetermined.
@@ -273,8 +274,11 @@ def _spread(prior: FieldPrior, cross: np.ndarray, factor, scale: np.ndarray,
             mean: np.ndarray, psfs: np.ndarray | None) -> np.ndarray:
     """Posterior sd of the PSF at each node over its norm (G,)."""
     n_g, n_i = mean.shape
-    gram = np.eye(n_i) if psfs is None else (
-        lambda h: h @ h.T)(np.asarray(psfs, np.float64).reshape(n_i, -1))
+    if psfs is None:
+        gram = np.eye(n_i)
+    else:
+        h = np.asarray(psfs, np.float64).reshape(n_i, -1)
+        gram = h @ h.T
     # prior variance at each node: span + kernels (k_a(u, u) = 1 + 12 |u|^2, k_s = 1)
     u = prior.scaled(prior.nodes)
     span = prior.span.transpose(1, 0, 2)  # (G, K, I)
