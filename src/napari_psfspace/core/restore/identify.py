@@ -44,7 +44,7 @@ from scipy.optimize import nnls
 from ..common.spacing import partial_border
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
-from ..model.cone import Cone, full_cone
+from ..model.cone import Cone, reduce_cone
 from ..model.field import assemble_operator
 from ..model.heldout import (
     beyond_noise,
@@ -180,7 +180,7 @@ def identify_gamma(c: np.ndarray, at: np.ndarray, gammas: np.ndarray, *,
 #: Most bead coefficients (beads x I) the posterior is computed from; beyond, a subset of
 #: the beads spread over the field (with that many beads the image's own estimate is
 #: judged against it anyway, :func:`judge_against_own`).
-MAX_OBSERVATIONS = 2400
+MAX_OBSERVATIONS = 600
 #: Most beads the prior's scales are chosen from (a subset spread over the field).
 MAX_EVIDENCE_BEADS = 8
 
@@ -203,7 +203,7 @@ def spread_subset(centers: np.ndarray, n: int) -> np.ndarray:
 def posterior_of(subspace: OperatorSubspace, c: np.ndarray, centers: np.ndarray,
                  sd: np.ndarray, *, amplitude_range=AMPLITUDE_RANGE,
                  prior: FieldPrior | None = None,
-                 log_scales: np.ndarray | None = None) -> Posterior:
+                 log_scales: np.ndarray | None = None, spread: bool = True) -> Posterior:
     """The posterior of the field of beads' coefficients ``c`` (P, I) at ``centers``
     (P, 2) with noise ``sd`` (P,) under the family's prior (:func:`~.posterior.
     posterior_field`), its scales chosen on at most :data:`MAX_EVIDENCE_BEADS` beads and
@@ -216,15 +216,16 @@ def posterior_of(subspace: OperatorSubspace, c: np.ndarray, centers: np.ndarray,
                                      **kw).log_scales
     keep = spread_subset(centers, max(1, MAX_OBSERVATIONS // c.shape[1]))
     return posterior_field(prior, c[keep], centers[keep], sd[keep], log_scales=log_scales,
-                           **kw)
+                           spread=spread, **kw)
 
 
 def field_operator(subspace: OperatorSubspace, field: np.ndarray, c: np.ndarray, *,
                    at: np.ndarray | None = None) -> ProductConvolution:
     """The operator of a coefficient field (G, I) at the family's nodes, its PSFs kept in
-    the cone of the family's observed PSFs and the clicked beads' (``c``, (P, I));
+    the cone of the family's observed PSFs and the clicked beads' (``c``, (P, I), their
+    reduced cone: at most 20 more generators);
     ``at``: only right at these positions (as :func:`~..model.field.assemble_operator`)."""
-    gens = np.vstack([subspace.cone.generators, full_cone(c).generators])
+    gens = np.vstack([subspace.cone.generators, reduce_cone(c).generators])
     op, _ = assemble_operator(subspace.basis, gens, lambda nodes: field, subspace.shape,
                               grid_step=subspace.grid_step, cone=Cone(gens), at=at,
                               constraint="cone")
@@ -249,7 +250,7 @@ def _identify(subspace, c, centers, sd, *, prior: bool, amplitude_range, max_ite
                                   constraint="cone")
         return op, None, found
     post = posterior_of(subspace, c, centers, sd, amplitude_range=amplitude_range,
-                        prior=field_prior, log_scales=log_scales)
+                        prior=field_prior, log_scales=log_scales, spread=at is None)
     return field_operator(subspace, post.mean, c, at=at), post, None
 
 

@@ -54,7 +54,7 @@ from .choice import Choice, choose, own_estimate
 from .patches import ImagePatches, image_patches
 from .result import OperatorSubspace, space_at
 from .shrink import Fields, shrunk_fields
-from .sizes import white_rank
+from .sizes import RULE_TRUSTED, confirmed_size, white_rank
 
 #: Largest ``J`` the rule may choose.
 MAX_SPACE = 16
@@ -393,16 +393,26 @@ def iter_estimate_subspace(
             f"`n_psf` = {n_psf} needs at least {min_beads_for(int(n_psf))} usable beads over "
             f"all images, got {n_total}: lower `n_psf` or use more beads")
 
-    # I: the rank rule on the patches whitened by their noise, bounded only by what the
-    # beads support (no cap: bench/RESULTS.md, issue 45); J: the rule on the maps
+    # I: the rank rule on the patches whitened by their noise, bounded by what the beads
+    # support; beyond RULE_TRUSTED only as far as held-out beads confirm (bench/RESULTS.md,
+    # issue 45); J: the rule on the maps
     sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
     if n_psf is None:
         first = used[0].patches
+        window = bump_window(first.size, first.r, first.r_ext)
         n_psf = min(white_rank(np.concatenate([f.patches.psf for f in used]),
                                np.concatenate([f.patches.noise / f.patches.flux for f in used]),
-                               bump_window(first.size, first.r, first.r_ext)),
+                               window),
                     max(1, (sum(f.n_beads for f in used) - 2) // 2))
         sizes_meta["psf_size_by"] = "whitened rule"
+        if n_psf > RULE_TRUSTED:  # beyond it, as far as the held-out beads confirm
+            held = confirmed_size([f.patches.psf for f in used],
+                                  [f.patches.centers for f in used],
+                                  radial_distance(first.size) < first.r_ext, n_psf,
+                                  min_beads=MIN_BEADS_TPS)
+            sizes_meta["psf_size_rule"] = int(n_psf)
+            n_psf = max(RULE_TRUSTED, min(n_psf, held))
+            sizes_meta["psf_size_by"] = "whitened rule, beyond 12 as held-out beads confirm"
         options["n_psf"] = n_psf
         if n_space is not None and n_space > len(found) * n_psf:
             raise ValueError(f"`n_space` = {n_space} is more spatial maps than {len(found)} "

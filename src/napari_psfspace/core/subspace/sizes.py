@@ -53,3 +53,47 @@ def white_rank(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray, *,
     x = psf[:, sel] / (sd[:, None] * window[sel])
     s = np.linalg.svd(x, compute_uv=False)
     return rank_by_threshold(s, x.shape)[0]
+
+
+#: Basis size the whitened rule is trusted up to; beyond it, only as far as held-out
+#: beads confirm (:func:`confirmed_size`). On a measured 8-bit stack the rule asked for
+#: over a hundred PSFs, noise the whitening did not model (bench/RESULTS.md, issue 45).
+RULE_TRUSTED = 12
+
+
+def confirmed_size(psf: list[np.ndarray], centers: list[np.ndarray], support: np.ndarray,
+                   n_max: int, *, min_beads: int = 4) -> int:
+    """The basis size the held-out beads support, at most ``n_max``.
+
+    The pooled patches' principal directions (each patch l2-normalised); for each image
+    with at least ``min_beads`` beads, each bead is predicted from the others by the
+    image's own thin-plate field of its coefficients
+    (:func:`~napari_psfspace.core.model.pca.heldout_basis_errors`); the smallest size
+    within 1 % of the lowest mean error over every such bead. ``n_max`` where no image
+    has enough beads.
+
+    Parameters
+    ----------
+    psf : list of ndarray, each of shape (N_k, P, P)
+        Each image's sum-1 patches.
+    centers : list of ndarray, each of shape (N_k, 2)
+        Their positions.
+    support : ndarray of shape (P, P), bool
+        The window's support.
+    n_max : int
+    """
+    from ..model.pca import heldout_basis_errors
+
+    x = np.concatenate([p[:, support] for p in psf])
+    xn = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-300)
+    vt = np.linalg.svd(xn, full_matrices=False)[2][:int(n_max)]
+    errors = []
+    for p, c in zip(psf, centers, strict=True):
+        if len(p) >= min_beads:
+            xi = p[:, support]
+            scale = float((xi ** 2).sum(axis=1).mean())  # back to one scale for all
+            errors.append(heldout_basis_errors(xi, vt, c, per_bead=True) * scale)
+    if not errors:
+        return int(n_max)
+    curve = np.concatenate(errors).mean(axis=0)
+    return int(np.flatnonzero(curve <= 1.01 * curve.min())[0]) + 1
