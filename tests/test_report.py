@@ -136,7 +136,16 @@ def test_each_step_starts_where_the_last_kept_one_ended(hot):
     diagnosis's final error is the last kept step's."""
     d, _, _ = hot
     current = (d.steps[0].error_after, d.steps[0].chi2_after)
+    pre = [s for s in d.steps if s.stage == "before the fit"]
+    assert [s.effect for s in pre] == ["hot_pixels"] and pre[0].accepted
+    # masking before the fit: the image as recorded is its before, the baseline its after
+    assert (pre[0].error_after, pre[0].chi2_after) == current
+    assert pre[0].error_before > pre[0].error_after
+    assert pre[0].statistic["before"] == len(d.hot_pixels) > 0
+    assert pre[0].statistic["after"] == 0
     for s in d.steps[1:]:
+        if s.stage == "before the fit":
+            continue
         assert (s.error_before, s.chi2_before) == current
         if s.accepted:
             current = (s.error_after, s.chi2_after)

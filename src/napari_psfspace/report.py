@@ -53,7 +53,7 @@ FIGURES = {
                                   "final model",
 }
 #: Columns of :func:`steps_table`.
-STEP_COLUMNS = ("effect", "evidence", "tests", "held-out error", "chi2/dof",
+STEP_COLUMNS = ("effect", "stage", "evidence", "tests", "own test", "held-out error", "chi2/dof",
                 "paired error drop", "p", "paired excess chi2 drop", "p (chi2)",
                 "photometric drop", "decision")
 #: Largest |normalised residual| (noise sd) shown in the patch mosaics.
@@ -226,8 +226,9 @@ def steps_table(diagnosis) -> list[list[str]]:
     rows = []
     for s in diagnosis.steps:
         if s.effect is None:
-            rows.append(["baseline", "", ", ".join(s.tests) or "-", _num(s.error_before),
-                         _num(s.chi2_before, ".3g"), "", "", "", "", "", "plain model"])
+            rows.append(["baseline", "", "", ", ".join(s.tests) or "-", "",
+                         _num(s.error_before), _num(s.chi2_before, ".3g"), "", "", "", "", "",
+                         "plain model"])
             continue
         cmp = (s.params or {}).get("_comparison") or {}
         chi2_drop = cmp.get("chi2_improvement")
@@ -238,7 +239,8 @@ def steps_table(diagnosis) -> list[list[str]]:
             drop = cmp.get("note", "not compared")
         else:
             drop = f"{_num(100 * s.improvement, '.1f')} % ({n} beads)"
-        rows.append([s.effect, _num(s.evidence, ".2f"), ", ".join(s.tests) or "-",
+        rows.append([s.effect, s.stage, _num(s.evidence, ".2f"), ", ".join(s.tests) or "-",
+                     own_test_text(s.statistic),
                      f"{_num(s.error_before)} -> {_num(s.error_after)}",
                      f"{_num(s.chi2_before, '.3g')} -> {_num(s.chi2_after, '.3g')}",
                      drop,
@@ -248,8 +250,25 @@ def steps_table(diagnosis) -> list[list[str]]:
                      (f"{_num(100 * cmp['photometric_improvement'], '.1f')} % "
                       f"(p {_num(cmp['photometric_p_no_drop'], '.3g')})")
                      if "photometric_improvement" in cmp else "",
-                     "kept" if s.accepted else "rejected"])
+                     _decision(s)])
     return rows
+
+
+def own_test_text(stat: dict | None) -> str:
+    """A step's own test before -> after, with its threshold ("" without one)."""
+    if not stat:
+        return ""
+    after = "not read" if stat.get("after") is None else _num(stat["after"], ".3g")
+    return (f"{stat['test']} {_num(stat['before'], '.3g')} -> {after} "
+            f"(threshold {_num(stat['threshold'], '.3g')})")
+
+
+def _decision(s) -> str:
+    if s.effect == "motion" and not s.accepted:
+        return "found, kept in the model (remove_motion to divide it out)"
+    if s.effect == "motion":
+        return "divided out of the final operator"
+    return "kept" if s.accepted else "rejected"
 
 
 def summary_text(diagnosis) -> str:
@@ -397,12 +416,15 @@ def _tests_section(analysis, when: str) -> list[str]:
 
 
 def _effect_descriptions(diagnosis) -> dict[str, str]:
+    from .core.diagnosis.corrections import CORRECTIONS
     from .core.diagnosis.effects import REGISTRY
 
     out = {}
     for s in diagnosis.steps:
         if s.effect and s.effect in REGISTRY:
             out[s.effect] = REGISTRY[s.effect].description
+        elif s.effect in CORRECTIONS:
+            out[s.effect] = CORRECTIONS[s.effect]
     return out
 
 

@@ -45,7 +45,7 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     d = w.diagnosis
     assert d is not None
     table = w.table.to_dataframe()
-    assert list(table.columns)[:2] == ["effect", "evidence"]
+    assert list(table.columns)[:3] == ["effect", "stage", "evidence"]
     assert len(table) == len(d.steps)
     effects = table["effect"].tolist()
     assert effects[0] == "baseline"

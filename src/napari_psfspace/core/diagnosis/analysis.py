@@ -282,7 +282,7 @@ def analyse(
     d = secondary_peaks(res, psf_radius)
     tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),
                                           th["secondary_peaks"], d)
-    d = elongated_beads(res)
+    d = elongated_beads(res, psf_radius=psf_radius)
     tests["elongated_beads"] = TestResult("elongated_beads", float(d["count"]),
                                           th["elongated_beads"], d)
     top = float(img.max())

@@ -18,9 +18,14 @@ from .statistics import spearman_z
 #: A bead counts as stretched (a merged companion) beyond this many sd of its
 #: elongation against its neighbours' (:func:`elongated_beads`).
 ELONGATION_Z = 6.0
-#: ... and stretched by more than this fraction of the PSF's variance along one axis
-#: (still beads of the scene family reach 0.28 from the model's own error).
+#: ... and stretched by more than this fraction of the PSF core's variance along one
+#: axis (:data:`CORE_FRACTION`): the variance over the whole patch grows with the wings
+#: that aberrations and diffraction rings carry, and hid the stretch of doublets whose
+#: cores it doubles (bench/RESULTS.md, companions).
 MIN_STRETCH = 0.3
+#: The core whose second moment sets the PSF's variance: within this fraction of the
+#: PSF radius of the centre.
+CORE_FRACTION = 0.5
 
 
 def bead_covariates(res: BeadResiduals, shape, all_positions=None) -> dict[str, np.ndarray]:
@@ -221,17 +226,21 @@ def bead_elongation(res: BeadResiduals) -> tuple[np.ndarray, np.ndarray]:
     return coef_out, se_out
 
 
-def _psf_variance(res: BeadResiduals) -> np.ndarray:
+def _psf_variance(res: BeadResiduals, within: float | None = None) -> np.ndarray:
     """Each bead's model PSF variance per axis (second moment of its positive part about
-    the patch centre, over 2), shape (K,), pixels squared."""
+    the patch centre, over 2, within ``within`` px of it: None, the whole patch), shape
+    (K,), pixels squared."""
     sig = np.clip(res.model - res.background[:, None, None], 0.0, None)
     p = sig.shape[-1]
     r2 = radial_distance(p) ** 2
+    if within is not None:
+        sig = sig * (r2 <= within ** 2)
     total = sig.sum(axis=(1, 2))
     return (sig * r2).sum(axis=(1, 2)) / np.maximum(total, 1e-300) / 2.0
 
 
-def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
+def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
+                    psf_radius: float | None = None) -> dict:
     """Beads stretched far more than their neighbours (a merged companion 1-3 px away).
 
     Each bead's elongation (:func:`bead_elongation`) minus its nearest neighbours'
@@ -239,7 +248,8 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
     the field, cancel), in units of its noise and of the scatter from bead to bead
     beyond it (``tau``, set so that the median bead scores the median of a chi-square
     of 2 dof); beads beyond ``k`` and stretched by more than :data:`MIN_STRETCH` of the
-    PSF's variance are counted.
+    variance of the PSF's core (within :data:`CORE_FRACTION` of ``psf_radius``, at least
+    1.5 px; None: the whole patch) are counted.
     """
     e, se = bead_elongation(res)
     ok = np.all(np.isfinite(se), axis=1) & (res.amplitude > 0)
@@ -268,7 +278,8 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z) -> dict:
     # and a stretch no model error makes: the model's error is heavy-tailed from bead to
     # bead in bright or sparse fields, where still beads reach large z with a small
     # stretch; a merged companion stretches a bead by much more (bench/bench_diagnose.py)
-    var = _psf_variance(res)[idx]
+    var = _psf_variance(res, None if psf_radius is None
+                        else max(1.5, CORE_FRACTION * psf_radius))[idx]
     stretch = 4.0 * np.hypot(e[idx, 0], e[idx, 1]) / np.maximum(var, 1e-12)
     hits = idx[(z > k) & (stretch > MIN_STRETCH)]
     out.update(count=int(len(hits)), beads=hits.tolist(), tau=float(np.sqrt(tau2)),

@@ -192,7 +192,11 @@ def compare(before: CrossFit, after: CrossFit, noise: NoiseModel, n_boot: int = 
     se_model = float((noise.checks or {}).get("gain_relative_error", 0.0) or 0.0)
     chi2_noise = CHI2_EXCESS_Z * float(np.hypot(se_noise, se_model))
     cimp, cp = drop(c0, c1, floor=chi2_noise, excess=True)
+    # the paired difference's standard error: how far the after can sit above the
+    # before by the beads' scatter alone (a correction's "not worse")
+    se = float(np.std(e1 - e0, ddof=1) / np.sqrt(len(common)))
     out = {**shown, "improvement": imp, "p_no_drop": min(p, p_log), "p_mean": p,
+           "error_se": se,
            "p_log_ratio": p_log, "median_ratio": float(np.exp(np.median(lr))),
            "chi2_improvement": cimp,
            "chi2_p_no_drop": cp, "n_beads": int(len(common))}

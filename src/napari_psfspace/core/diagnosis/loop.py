@@ -31,7 +31,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Generator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -47,10 +47,12 @@ from ..model.operator import ProductConvolution
 from .analysis import Analysis, analyse
 from .bead_tests import bead_flux
 from .comparison import compare, paired_errors
+from .corrections import hot_pixel_step, motion_step, spike_count
 from .crossfit import CrossFit, iter_crossfit
 from .effects import REGISTRY, Context, Effect
 from .metric import HeldoutError
 from .noise import NoiseModel, noise_model
+from .steps import Step, statistic
 from .photometry import (
     fit_throughput,
     throughput_map,
@@ -61,50 +63,6 @@ from .photometry import (
 MIN_BEADS = 5
 #: Tests whose significance means a residual common to the beads is left unexplained.
 EXPLAIN_TESTS = ("mean_residual", "coherent_residual")
-
-
-@dataclass
-class Step:
-    """One candidate effect tried by the loop (or the baseline, ``effect=None``).
-
-    ``error_before`` / ``error_after`` and ``chi2_before`` / ``chi2_after`` are those of
-    the model before and after the step on the same beads (the plain model's
-    informative beads that both judge, :func:`~.comparison.paired_beads`), and
-    ``improvement`` is ``1 - error_after / error_before`` on them: one quantity. A step
-    starts where the last kept one ended (on the same beads, the same figure). NaN
-    ``improvement``: fewer than :data:`~.comparison.MIN_PAIRED` beads to compare.
-    """
-
-    effect: str | None
-    evidence: float
-    tests: list[str]
-    error_before: float
-    error_after: float
-    chi2_before: float
-    chi2_after: float
-    improvement: float
-    p_no_drop: float
-    accepted: bool
-    params: dict = field(default_factory=dict)
-
-    @property
-    def n_beads(self) -> int:
-        """The beads the step's figures are means over."""
-        p = self.params or {}
-        return int(p.get("_comparison", {}).get("n_beads", p.get("n_beads", 0)))
-
-    def to_dict(self) -> dict:
-        def short(v):
-            if isinstance(v, list) and len(v) > 20:
-                return f"<{len(v)} values>"
-            return v
-
-        return {"effect": self.effect, "evidence": self.evidence, "tests": self.tests,
-                "error_before": self.error_before, "error_after": self.error_after,
-                "chi2_dof_before": self.chi2_before, "chi2_dof_after": self.chi2_after,
-                "improvement": self.improvement, "p_no_drop": self.p_no_drop,
-                "accepted": self.accepted,
-                "params": {k: short(v) for k, v in self.params.items()}}
 
 
 @dataclass
@@ -268,6 +226,16 @@ def accept_effect(cmp: dict, noise_kind: str, evidence: float, *, min_improvemen
                 and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
 
 
+def _own_statistic(eff: Effect, before: Analysis, after: Analysis) -> dict | None:
+    """The effect's strongest own test (:attr:`Effect.tests`) before and after it."""
+    names = [t for t in eff.tests if t in before.tests]
+    if not names:
+        return None
+    t = max(names, key=lambda n: before.tests[n].evidence)
+    b, a = before.tests[t], after.tests.get(t)
+    return statistic(t, b.strength, None if a is None else a.strength, b.threshold)
+
+
 def _evident(eff: Effect, an: Analysis) -> list[str]:
     """The effect's own residual tests that are significant."""
     return [t for t in eff.tests if t in an.tests and an.tests[t].significant]
@@ -372,6 +340,7 @@ def iter_diagnose(
                      "without it (leave-one-bead-out)")
         folds = n_kept
     hot = spike_mask(img.shape, beads.hot_pixels)
+    recorded = img
     img = beads.clean_image(img)
     noise, noise_source = noise_model_with_source(raw, gain, offset, read_noise, mask=hot)
     model = {k: v for k, v in (("n_psf", n_psf), ("smoothing", smoothing)) if v is not None}
@@ -413,6 +382,19 @@ def iter_diagnose(
     yield Progress("baseline", 0.2, f"{held.line()}; chi2/dof {held.chi2_dof:.3g}")
     if _baseline_only:
         return held
+    if hot.any():  # the masking at detection, as a step: the image as recorded before
+        raw_ctx = replace(ctx, image=recorded, pixel_mask=np.zeros_like(hot))
+        raw_cf, raw_an = yield from evaluate(raw_ctx, "hot pixels", 0.15)
+        step = hot_pixel_step(raw_cf, cf, noise, reference, informative=informative,
+                              spikes_before=len(beads.hot_pixels),
+                              spikes_after=spike_count(img, raw))
+        steps.append(step)
+        if not step.accepted:  # the recorded image it is
+            ctx, cf, an = raw_ctx, raw_cf, raw_an
+            first_cf, first_an = cf, an
+        yield Progress("hot pixels", 0.2, f"{step.params['count']} hot pixel(s): error "
+                       f"{step.error_before:.4g} -> {step.error_after:.4g}, "
+                       f"{'masked' if step.accepted else 'left'}")
     tried: set[str] = set()
     for k in range(max_steps):
         chosen = next_effect(candidates, tried, ctx, cf, an, explore)
@@ -452,7 +434,8 @@ def iter_diagnose(
                           chi2_before=cmp["chi2_before"], chi2_after=cmp["chi2_after"],
                           improvement=float(cmp["improvement"]), p_no_drop=cmp["p_no_drop"],
                           accepted=ok,
-                          params={**new_ctx.params.get(eff.name, params), "_comparison": cmp}))
+                          params={**new_ctx.params.get(eff.name, params), "_comparison": cmp},
+                          statistic=_own_statistic(eff, an, new_an)))
         if ok:
             ctx, cf, an = new_ctx, new_cf, new_an
             if cf.model_meta:
@@ -472,10 +455,16 @@ def iter_diagnose(
                                            holdout=0.2, bead_diameter=bead_diameter,
                                            remove_motion=remove_motion,
                                            **ctx.estimate_kwargs), "final", 0.95)
-    added = [s.effect for s in steps if s.effect and s.accepted]
     total = paired_errors(first_cf, cf, ctx.noise, reference, informative=informative)
+    motion = est.operator.metadata.get("motion") or {}
+    if motion.get("detected"):  # a smear common to every bead, as a step of its own
+        steps.append(motion_step(motion, bool(remove_motion), total["error_after"],
+                                 total["chi2_after"], total["n_beads"]))
+    added = [s.effect for s in steps if s.effect and s.accepted]
     op = final_operator(est.operator, ctx, cf, added, total)
     yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
+    masked = None if any(s.effect == "hot_pixels" and not s.accepted for s in steps) \
+        else beads.hot_pixels
     options = {"folds": folds, "leave_one_bead_out": folds == n_kept,
                "min_improvement": min_improvement,
                "evident_improvement": evident_improvement, "max_p": max_p,
@@ -489,7 +478,7 @@ def iter_diagnose(
                      chi2_after=total["chi2_after"], noise_floor=total["noise_floor"],
                      operator=op, context=ctx, analysis_before=first_an, analysis_after=an,
                      crossfit_before=first_cf, crossfit_after=cf, noise_source=noise_source,
-                     options=options, masked_pixels=beads.hot_pixels,
+                     options=options, masked_pixels=masked,
                      n_beads=total["n_beads"], heldout=held)
 
 
