@@ -1,7 +1,12 @@
 """Power curves: how often diagnose names an effect the estimator is not told about.
 
-    python bench/bench_power.py [--scenes 20] [--cases all] [--strengths issue|sweep]
-                                [--workers 2]
+    python bench/bench_power.py [--scenes 20] [--first 0] [--cases issue|eight|all]
+                                [--strengths issue|sweep] [--generator ours|pyotf|psfmodels]
+                                [--no-oracle] [--workers 2]
+
+``--cases eight`` is issue 46's list: effect-free scenes (false alarms), column offsets,
+saturation, vignetting, hot pixels, a defocus gradient, motion, companions and a
+compressive response, each at its default strength.
 
 Scenes are drawn by :func:`~napari_psfspace.core.simulation.family.random_scene` in the setting of
 issue 9's foreign-simulator cases (1024 x 1024, 150 beads, moderate aberrations, 100 nm
@@ -79,6 +84,11 @@ CASES = {
     "motion": ("motion", [3.0], [3.0, 5.0, 8.0], _drift),
     "column offsets": ("fixed_pattern", [4.0], [2.0, 4.0, 8.0],
                        lambda s, seed: {"column_offsets": s}),
+    "row offsets": ("fixed_pattern", [4.0], [2.0, 4.0, 8.0],
+                    lambda s, seed: {"row_offsets": s}),
+    # clipped at this fraction of the brightest pixel of the scene without it (the level
+    # is set in run(), where the scene is known)
+    "saturation": ("saturation", [0.6], [0.8, 0.6, 0.4], lambda s, seed: {}),
     "hot pixels": ("outlier_pixels", [1e-3], [1e-4, 1e-3],
                    lambda s, seed: {"hot_pixels": (s, (1.0, 5.0))}),
     "background structure": ("background_structure", [30.0], [10.0, 30.0, 100.0],
@@ -134,30 +144,40 @@ def _oracle(image, truth, p, name) -> bool:
 
 
 def _optics_type(generator: str):
-    if generator == "pyotf":
-        from independent import PyotfOptics
+    if generator in ("pyotf", "psfmodels"):
+        from _common import optics_type
 
-        return PyotfOptics
+        return optics_type(generator)
     from napari_psfspace.core.simulation.optics import Optics
 
     return Optics
 
 
+#: Names under which a case's effect counts as named (hot pixels: masked before the fit,
+#: or by the loop's outlier effect).
+ALSO_NAMED = {"outlier_pixels": ("hot_pixels",)}
+
+
 def run(job) -> dict:
-    case, strength, seed, generator = job
+    case, strength, seed, generator, oracle = job
     name, _, _, make = CASES[case]
     row = {"case": case, "strength": str(strength), "seed": seed}
     optics_type = _optics_type(generator)
-    image, truth, p = random_scene(seed, effects=make(strength, seed), optics_type=optics_type,
-                                   **SETTING)
+    effects = make(strength, seed)
+    if case == "saturation":  # a level the brightest beads of this scene pass
+        clean, _, _ = random_scene(seed, optics_type=optics_type, **SETTING)
+        effects = {"saturation": float(strength) * float(clean.max())}
+    image, truth, p = random_scene(seed, effects=effects, optics_type=optics_type, **SETTING)
     t0 = time.perf_counter()
     try:
         d = diagnose(image, psf_radius=truth.psf_radius)
     except ValueError as err:
         return {**row, "refused": True, "note": str(err)[:80]}
     added = d.added
-    present = {"saturation"} if int((image >= p["full_scale"]).sum()) else set()
-    others = [e for e in added if e not in MODEL_SETTINGS and e != name and e not in present]
+    present = ({"saturation"} if int((image >= p["full_scale"]).sum()) or case == "saturation"
+               else set())
+    others = [e for e in added if e not in MODEL_SETTINGS and e != name and e not in present
+              and e not in ALSO_NAMED.get(name, ())]
     steps = {s.effect: s for s in d.steps if s.effect}
     row.update(refused=False, added=", ".join(added) or "-", other=bool(others),
                floor_ratio=d.error_before / max(d.noise_floor, 1e-12),
@@ -199,9 +219,10 @@ def run(job) -> dict:
         row["named"] = bool(changed) or follows
         row["dropped"] = follows and (bool(changed) or not added)
     else:
-        row["named"] = name in added
-        row["dropped"] = row["named"] and steps[name].accepted
-        if name in ("nonlinearity", "neighbours"):
+        names = [name, *ALSO_NAMED.get(name, ())]
+        row["named"] = any(n in added for n in names)
+        row["dropped"] = row["named"]
+        if name in ("nonlinearity", "neighbours") and oracle:
             row["visible"] = _oracle(image, truth, p, name)
     return row
 
@@ -211,20 +232,27 @@ def main():
     ap.add_argument("--scenes", type=int, default=20)
     ap.add_argument("--first", type=int, default=0, help="first seed")
     ap.add_argument("--cases", default="issue",
-                    help="'issue' (issue 9's five), 'all', or comma-separated names")
+                    help="'issue' (issue 9's five), 'eight' (issue 46's eight effects and "
+                         "effect-free scenes), 'all', or comma-separated names")
+    ap.add_argument("--no-oracle", action="store_true",
+                    help="skip the oracles that count the compressive response's and the "
+                         "companions' visible scenes (each a second diagnosis)")
     ap.add_argument("--strengths", choices=("issue", "sweep"), default="issue")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--verbose", action="store_true", help="one line per scene")
     ap.add_argument("--json", help="also write the per-scene rows to this file")
-    ap.add_argument("--generator", choices=("ours", "pyotf"), default="ours",
-                    help="the optics code of the PSFs: the project's simulator, or pyotf "
-                         "(bench/independent.py; pip install -e '.[bench]')")
+    ap.add_argument("--generator", choices=("ours", "pyotf", "psfmodels"), default="ours",
+                    help="the optics code of the PSFs: the project's simulator, pyotf or "
+                         "psfmodels (bench/independent.py; pip install -e '.[bench]')")
     args = ap.parse_args()
+    eight = ["none", "column offsets", "saturation", "vignetting", "hot pixels",
+             "defocus gradient", "motion", "companions 1-3 px", "compressive response"]
     issue = ["vignetting", "defocus gradient", "compressive response",
              "companions 1-3 px", "motion"]
-    cases = (issue if args.cases == "issue" else list(CASES) if args.cases == "all"
+    cases = (issue if args.cases == "issue" else eight if args.cases == "eight"
+             else list(CASES) if args.cases == "all"
              else [c.strip() for c in args.cases.split(",")])
-    jobs = [(c, s, seed, args.generator) for c in cases
+    jobs = [(c, s, seed, args.generator, not args.no_oracle) for c in cases
             for s in CASES[c][1 if args.strengths == "issue" else 2]
             for seed in range(args.first, args.first + args.scenes)]
     rows = []

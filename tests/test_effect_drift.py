@@ -9,8 +9,8 @@ longer along the drift by its variance (d^2 / 12 for a uniform motion of length 
 import numpy as np
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 from napari_psfspace.core.diagnosis.loop import diagnose
+from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 from napari_psfspace.core.simulation.optics import Optics
 
 

@@ -268,6 +268,8 @@ def _decision(s) -> str:
         return "found, kept in the model (remove_motion to divide it out)"
     if s.effect == "motion":
         return "divided out of the final operator"
+    if s.accepted and (s.params or {}).get("_kept_by"):
+        return "kept (its own test no longer significant, held-out error not worse)"
     return "kept" if s.accepted else "rejected"
 
 

@@ -24,7 +24,12 @@
    noise model (a fallback: no shot noise measured). Repeat with the next candidate
    until none has evidence left; while a residual common to the beads remains far
    above the noise, candidates with weaker evidence (above ``explore`` times their
-   threshold) are tried as well, under the same rule.
+   threshold) are tried as well, under the same rule. An effect with a test of its own
+   that reads its correction (:attr:`~.effects.base.Effect.own_evidence`: a detector
+   response, camera line offsets, outlier pixels, bead size) is also kept when that
+   test goes from significant to not and the held-out error is not worse by more than
+   one standard error of the paired difference (no held-out error can see such an
+   effect when the learnt PSF absorbs it).
 5. Estimate the final operator on all beads with the effects kept.
 """
 
@@ -44,6 +49,13 @@ from ..common.threads import blas_threads
 from ..common.validate import as_image, check_positive, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
+from .acceptance import (
+    accept_effect,
+    evident_tests,
+    kept_by_own_test,
+    next_effect,
+    own_statistic,
+)
 from .analysis import Analysis, analyse
 from .bead_tests import bead_flux
 from .comparison import compare, paired_errors
@@ -52,17 +64,16 @@ from .crossfit import CrossFit, iter_crossfit
 from .effects import REGISTRY, Context, Effect
 from .metric import HeldoutError
 from .noise import NoiseModel, noise_model
-from .steps import Step, statistic
 from .photometry import (
     fit_throughput,
     throughput_map,
 )
+from .steps import Step
 
 #: Fewest usable beads a diagnosis runs on; below ``2 folds`` beads it holds out one bead
 #: at a time (leave-one-bead-out).
 MIN_BEADS = 5
-#: Tests whose significance means a residual common to the beads is left unexplained.
-EXPLAIN_TESTS = ("mean_residual", "coherent_residual")
+
 
 
 @dataclass
@@ -188,57 +199,6 @@ def forward(gen, stage: str, fraction: float):
         except StopIteration as done:
             return done.value
         yield Progress(stage, fraction, p.message)
-
-
-def next_effect(candidates: list[Effect], tried: set[str], ctx: Context, cf: CrossFit,
-                an: Analysis, explore: float) -> tuple[float, Effect] | None:
-    """The effect to try next, with its evidence: significant evidence first; while a
-    residual common to the beads remains far above the noise (mean or coherent residual
-    significant, error > 1.5 x floor), weaker evidence (> ``explore``) is followed too
-    (the acceptance rule decides). None when no untried effect qualifies."""
-    ranked = sorted(((e.evidence(an), e) for e in candidates
-                     if e.name not in tried and e.applicable(ctx)), key=lambda t: -t[0])
-    cur = cf.summary()
-    unexplained = (cur["error"] > 1.5 * cur["noise_floor"]
-                   and any(an.tests[t].significant for t in EXPLAIN_TESTS if t in an.tests))
-    floor = 1.0 if not (explore and unexplained) else min(1.0, explore)
-    ranked = [(ev, e) for ev, e in ranked if ev > floor]
-    return ranked[0] if ranked else None
-
-
-def accept_effect(cmp: dict, noise_kind: str, evidence: float, *, min_improvement: float,
-                  evident_improvement: float, max_p: float) -> bool:
-    """Keep an effect: one held-out metric of the comparison drops (by the improvement
-    needed, with ``p <= max_p / 2``) and none gets worse by ``min_improvement``.
-
-    An assumed noise model (a fallback) makes the chi-square only indicative (the report
-    says so): it does not decide (an effect could "explain" a constant-variance model's
-    missing shot noise in bright cores). An effect its own test calls significant
-    (evidence > 1) needs only ``evident_improvement`` (the effect is often a small part of
-    a model's error, ``bench/bench_diagnose.py``); one only explored needs the full one.
-    """
-    metrics = [m for m in ("", "chi2_", "photometric_") if f"{m}improvement" in cmp]
-    if noise_kind not in ("photon transfer", "camera"):
-        metrics = [m for m in metrics if m != "chi2_"]
-    need = min(min_improvement, evident_improvement) if evidence > 1.0 else min_improvement
-    return bool(any(cmp[f"{m}improvement"] >= need and cmp[f"{m}p_no_drop"] <= max_p / 2
-                    for m in metrics)
-                and all(cmp[f"{m}improvement"] > -min_improvement for m in metrics))
-
-
-def _own_statistic(eff: Effect, before: Analysis, after: Analysis) -> dict | None:
-    """The effect's strongest own test (:attr:`Effect.tests`) before and after it."""
-    names = [t for t in eff.tests if t in before.tests]
-    if not names:
-        return None
-    t = max(names, key=lambda n: before.tests[n].evidence)
-    b, a = before.tests[t], after.tests.get(t)
-    return statistic(t, b.strength, None if a is None else a.strength, b.threshold)
-
-
-def _evident(eff: Effect, an: Analysis) -> list[str]:
-    """The effect's own residual tests that are significant."""
-    return [t for t in eff.tests if t in an.tests and an.tests[t].significant]
 
 
 def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
@@ -409,7 +369,7 @@ def iter_diagnose(
                                                  min(0.9, 0.2 + 0.1 * k))
         except ValueError as exc:  # e.g. too few beads left to learn from: not kept
             s0 = paired_errors(cf, cf, ctx.noise, reference, informative=informative)
-            steps.append(Step(effect=eff.name, evidence=float(ev), tests=_evident(eff, an),
+            steps.append(Step(effect=eff.name, evidence=float(ev), tests=evident_tests(eff, an),
                               error_before=s0["error_before"], error_after=s0["error_before"],
                               chi2_before=s0["chi2_before"], chi2_after=s0["chi2_before"],
                               improvement=float("nan"), p_no_drop=1.0, accepted=False,
@@ -424,18 +384,23 @@ def iter_diagnose(
                        flux=flux, reference=reference, informative=informative)
         ok = accept_effect(cmp, new_ctx.noise.kind, ev, min_improvement=min_improvement,
                            evident_improvement=evident_improvement, max_p=max_p)
+        own = own_statistic(eff, an, new_an)
+        by_own = not ok and kept_by_own_test(eff, own, cmp, new_ctx.noise.kind,
+                                             min_improvement=min_improvement)
+        ok = ok or by_own
         # the step's figures are the decision's: the model before and after it on the
         # same beads (the plain model's informative beads both judge), so that before,
         # after and the drop are one quantity and each step starts where the last kept
         # one ended
         err0, err1 = cmp["error_before"], cmp["error_after"]
-        steps.append(Step(effect=eff.name, evidence=float(ev), tests=_evident(eff, an),
+        steps.append(Step(effect=eff.name, evidence=float(ev), tests=evident_tests(eff, an),
                           error_before=err0, error_after=err1,
                           chi2_before=cmp["chi2_before"], chi2_after=cmp["chi2_after"],
                           improvement=float(cmp["improvement"]), p_no_drop=cmp["p_no_drop"],
                           accepted=ok,
-                          params={**new_ctx.params.get(eff.name, params), "_comparison": cmp},
-                          statistic=_own_statistic(eff, an, new_an)))
+                          params={**new_ctx.params.get(eff.name, params), "_comparison": cmp,
+                                  **({"_kept_by": "its own test"} if by_own else {})},
+                          statistic=own))
         if ok:
             ctx, cf, an = new_ctx, new_cf, new_an
             if cf.model_meta:

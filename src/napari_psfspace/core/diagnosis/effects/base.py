@@ -101,11 +101,19 @@ class Effect:
         One line for reports: what it is, in a microscopist's words.
     tests : tuple of str
         Names of the analysis tests that are evidence for it.
+    own_evidence : bool
+        See the attribute's comment.
     """
 
     name: ClassVar[str] = ""
     description: ClassVar[str] = ""
     tests: ClassVar[tuple[str, ...]] = ()
+    #: The effect has a test of its own that reads its correction: it may be kept when
+    #: that test goes from significant to not while the held-out error is not worse
+    #: (a physical effect of few parameters whose correction no held-out error need
+    #: show: a compressive response goes into the learnt PSF, a camera pattern sits
+    #: in the background).
+    own_evidence: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)

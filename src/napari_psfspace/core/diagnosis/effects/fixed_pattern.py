@@ -27,6 +27,7 @@ class FixedPattern(Effect):
     name = "fixed_pattern"
     description = "fixed-pattern row / column offsets of the camera (subtracted)"
     tests = ("row_pattern", "column_pattern")
+    own_evidence = True
 
     def fit(self, ctx: Context, analysis) -> dict:
         free = bead_free_mask(ctx.image.shape, ctx.beads.positions, ctx.psf_radius)

@@ -87,6 +87,7 @@ class Nonlinearity(Effect):
     description = ("nonlinear detector response (bright pixels compressed; the image is "
                    "linearised)")
     tests = ("core_vs_amplitude",)
+    own_evidence = True
 
     def fit(self, ctx: Context, analysis) -> dict:
         res = analysis.residuals

@@ -15,6 +15,7 @@ class OutlierPixels(Effect):
     name = "outlier_pixels"
     description = "hot pixels / outlier pixels (masked, inpainted with the local median)"
     tests = ("pixel_outliers",)
+    own_evidence = True
 
     def fit(self, ctx: Context, analysis) -> dict:
         found = outlier_pixels(ctx.image, ctx.noise)
