@@ -183,3 +183,17 @@ def test_the_line_focus_of_an_astigmatic_lens_is_reported_with_the_alternative()
     d = abs(m["angle_deg"] - 45.0) % 180  # Z5's axes lie at +-45 deg
     assert min(d, 180 - d) <= 8 or min(abs(d - 90), 180 - abs(d - 90)) <= 8
     assert "astigmatic lens" in m["reason"] and "z-stack" in m["reason"]
+
+
+@pytest.mark.parametrize("angle", [33.3, 147.1])
+def test_the_direction_to_a_fraction_of_a_degree(angle):
+    # off the search's 2-degree grid (nearest 34 and 148: 0.7 and 0.9 deg off); the
+    # zero line refined to a tenth of a degree reads 0.2 and 0.1 deg off (seeds 0-1)
+    a = np.deg2rad(angle)
+    image, truth = ps.simulate_beads((640, 640), 70, aberrations="moderate", optics=OPTICS,
+                                     seed=0, effects={"drift": (5 * np.sin(a), 5 * np.cos(a))})
+    m = _estimate(image, truth, holdout=None).operator.metadata["motion"]
+    assert m["detected"], m["reason"]
+    d = abs(m["angle_deg"] - angle) % 180
+    assert min(d, 180 - d) <= 0.5
+    assert m["length_px"] == pytest.approx(5.0, rel=0.05)

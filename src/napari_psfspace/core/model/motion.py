@@ -476,6 +476,9 @@ def detect_motion(
         return Motion(False, None, None, ratio, z, checks, float(band), float(min_visible),
                       f"a dip in the beads' spectrum at {t0:.3g} cycles/px, {ang:.0f} deg, "
                       f"but {why}: not motion blur")
+    # the direction to a tenth of a degree (the length stays the grid's: the line's
+    # lowest frequency moved it off the truth on smears whose zero the aberrations shift)
+    ang = _refine_line(s_all, ring_mean[ring], n, ang, t0, width, band)[0]
     length = 1.0 / t0  # to a bin, 1 / n cycles/px (n >= 64): ~2 % at 3 px
     return Motion(True, float(length), float(ang), ratio, z, checks, float(band),
                   float(min_visible),
@@ -483,6 +486,47 @@ def detect_motion(
                   f"{ang:.0f} deg from the columns (a straight zero line in their spectrum at "
                   f"{t0:.3g} cycles/px, {ratio:.2f} of its flanks, z = {z:.0f}). "
                   + ALTERNATIVE)
+
+
+#: The zero line found on the search's grid (:data:`ANGLE_STEP`, one frequency bin) is
+#: refined within this many degrees and this fraction of its frequency ...
+REFINE_ANGLE = 2.5
+REFINE_FREQUENCY = 0.15
+#: ... in steps of this many degrees and this fraction of its frequency.
+REFINE_STEPS = (0.1, 0.0025)
+
+
+def _refine_line(power: np.ndarray, ring_mean: np.ndarray, n: int, angle: float, t0: float,
+                 width: float, band: float) -> tuple[float, float]:
+    """The zero line ``k.u = t`` of a smear, to a tenth of a degree and a fraction of a
+    frequency bin: the line, among those near ``(angle, t0)``, along which the beads'
+    mean power (over its mean over directions at each radius, ``ring_mean``, so that the
+    optics' fall with frequency does not pull it outwards) is lowest, sampled by
+    bilinear interpolation over ``|k.u_perp| < width`` inside the band. A smear's
+    transfer vanishes on the whole line, so a line tilted or shifted off it rises on
+    both sides: the minimum is the smear's direction and ``1 / length``."""
+    from scipy import ndimage as ndi
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rel = sfft.fftshift(np.where(ring_mean > 0, power / ring_mean, np.nan))
+    rel = np.nan_to_num(rel, nan=np.nanmax(rel) if np.isfinite(rel).any() else 0.0)
+    s = np.linspace(-width, width, 41)
+    ts = t0 * (1.0 + np.arange(-REFINE_FREQUENCY, REFINE_FREQUENCY + 1e-9, REFINE_STEPS[1]))
+    best = (np.inf, angle, t0)
+    for ang in angle + np.arange(-REFINE_ANGLE, REFINE_ANGLE + 1e-9, REFINE_STEPS[0]):
+        a = np.deg2rad(ang)
+        ky = ts[:, None] * np.sin(a) - s[None, :] * np.cos(a)
+        kx = ts[:, None] * np.cos(a) + s[None, :] * np.sin(a)
+        inside = np.hypot(ky, kx) <= band
+        vals = ndi.map_coordinates(rel, [ky.ravel() * n + n // 2, kx.ravel() * n + n // 2],
+                                   order=1, mode="nearest").reshape(ky.shape)
+        vals = np.log(np.maximum(vals, 1e-6))
+        mean = np.where(inside, vals, 0.0).sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
+        mean[inside.sum(axis=1) < 5] = np.inf
+        i = int(np.argmin(mean))
+        if mean[i] < best[0]:
+            best = (float(mean[i]), float(ang) % 180.0, float(ts[i]))
+    return best[1], best[2]
 
 
 def remove_motion(stack: np.ndarray, length: float, angle_deg: float, *,
