@@ -26,7 +26,7 @@
    above the noise, candidates with weaker evidence (above ``explore`` times their
    threshold) are tried as well, under the same rule. An effect with a test of its own
    that reads its correction (:attr:`~.effects.base.Effect.own_evidence`: a detector
-   response, camera line offsets, outlier pixels, bead size) is also kept when that
+   response, camera line offsets, outlier pixels) is also kept when that
    test goes from significant to not and the held-out error is not worse by more than
    one standard error of the paired difference (no held-out error can see such an
    effect when the learnt PSF absorbs it).

@@ -112,7 +112,9 @@ class Effect:
     #: that test goes from significant to not while the held-out error is not worse
     #: (a physical effect of few parameters whose correction no held-out error need
     #: show: a compressive response goes into the learnt PSF, a camera pattern sits
-    #: in the background).
+    #: in the background). Not the bead size: its bead-width test is the compressive
+    #: response's too (bright beads look wider either way), and on its own test it took
+    #: the response's place (bench/RESULTS.md, issue 46).
     own_evidence: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):

@@ -150,7 +150,6 @@ class BeadSize(Effect):
     description = ("beads of different sizes (each bead's image is the PSF blurred by its "
                    "own sphere; diameters from the brightness, ~ flux^(1/3))")
     tests = ("bead_width",)
-    own_evidence = True
     n_grid: ClassVar[int] = 6
     max_fraction: ClassVar[float] = 0.5
     folds: ClassVar[int] = 5
