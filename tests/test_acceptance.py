@@ -46,3 +46,31 @@ def test_not_kept(why, eff, own, cmp):
 def test_an_assumed_noise_model_does_not_judge_the_chi_square():
     # a fallback noise model: the chi-square is only indicative, as in accept_effect
     assert _kept(RESPONSE, QUIET, _cmp(chi2=-0.28), kind="constant")
+
+
+def test_an_effect_with_its_own_test_is_not_explored():
+    """While a residual common to the beads is left, weaker evidence is followed too,
+    but not for an effect whose own test reads it: that test must be significant."""
+    from napari_psfspace.core.diagnosis.acceptance import next_effect
+    from napari_psfspace.core.diagnosis.analysis import Analysis, TestResult
+
+    class Fits:  # a cross-fit far above its noise floor
+        def summary(self):
+            return {"error": 0.05, "noise_floor": 0.01}
+
+    class Ctx:
+        applied = ()
+
+    def analysis(core_z):
+        return Analysis({"mean_residual": TestResult("mean_residual", 30.0, 5.0),
+                         "core_vs_amplitude": TestResult("core_vs_amplitude", core_z, 3.0,
+                                                         two_sided=True),
+                         "trend_radius": TestResult("trend_radius", 2.0, 4.0,
+                                                    two_sided=True)})
+
+    effects = [REGISTRY["nonlinearity"](), REGISTRY["field_smoothing"]()]
+    # evidence 0.6 for the response (own test) and 0.5 for the field: only the field
+    chosen = next_effect(effects, set(), Ctx(), Fits(), analysis(1.8), explore=0.4)
+    assert chosen is not None and chosen[1].name == "field_smoothing"
+    chosen = next_effect(effects, set(), Ctx(), Fits(), analysis(3.3), explore=0.4)
+    assert chosen[1].name == "nonlinearity"

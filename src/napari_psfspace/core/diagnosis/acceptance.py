@@ -24,14 +24,18 @@ def next_effect(candidates: list[Effect], tried: set[str], ctx: Context, cf: Cro
     """The effect to try next, with its evidence: significant evidence first; while a
     residual common to the beads remains far above the noise (mean or coherent residual
     significant, error > 1.5 x floor), weaker evidence (> ``explore``) is followed too
-    (the acceptance rule decides). None when no untried effect qualifies."""
+    (the acceptance rule decides), except for an effect with a test of its own
+    (:attr:`~.effects.base.Effect.own_evidence`), tried only when that test is
+    significant. None when no untried effect qualifies."""
     ranked = sorted(((e.evidence(an), e) for e in candidates
                      if e.name not in tried and e.applicable(ctx)), key=lambda t: -t[0])
     cur = cf.summary()
     unexplained = (cur["error"] > 1.5 * cur["noise_floor"]
                    and any(an.tests[t].significant for t in EXPLAIN_TESTS if t in an.tests))
     floor = 1.0 if not (explore and unexplained) else min(1.0, explore)
-    ranked = [(ev, e) for ev, e in ranked if ev > floor]
+    # an effect whose own test reads it is tried on that test only: explored, a response
+    # "explained" a model's misfit on an effect-free scene (bench/RESULTS.md, issue 46)
+    ranked = [(ev, e) for ev, e in ranked if ev > (1.0 if e.own_evidence else floor)]
     return ranked[0] if ranked else None
 
 
