@@ -456,7 +456,7 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
                       f"chi-square per degree of freedom {_num(d.chi2_before, '.3g')} -> "
                       f"{_num(d.chi2_after, '.3g')}."]
     else:
-        tried = [s.effect for s in d.steps if s.effect]
+        tried = [s.effect for s in d.steps if s.effect and s.stage == "effect"]
         sig = [t.name for t in d.analysis_before.significant()]
         if tried:
             why = (f"{len(tried)} candidate(s) tried ({', '.join(tried)}), none lowered the "

@@ -103,7 +103,8 @@ def verdict(diagnosis) -> Verdict:
     d = diagnosis
     err, floor = float(d.error_after), float(d.noise_floor)
     ratio = err / floor if np.isfinite(err) and np.isfinite(floor) and floor > 0 else np.nan
-    tried = [s.effect for s in d.steps if s.effect]
+    # candidate effects of the loop (corrections before and after the fit are steps too)
+    tried = [s.effect for s in d.steps if s.effect and s.stage == "effect"]
     answered = {t for name in REGISTRY for t in REGISTRY[name].tests}
     kept_tests = {t for s in d.steps if s.effect and s.accepted for t in s.tests}
     unanswered = []
