@@ -110,12 +110,20 @@ def _ring_profile(values: np.ndarray, ring: np.ndarray) -> np.ndarray:
 
 def divide_transfer(stack: np.ndarray, transfer, extent: float, *,
                     reference: np.ndarray | None = None, noise: np.ndarray | None = None,
-                    max_gain: float = MAX_GAIN) -> tuple[np.ndarray, float, float]:
+                    max_gain: float | None = MAX_GAIN) -> tuple[np.ndarray, float, float]:
     """Divide a known blur's transfer function out of images, where there is signal.
 
-    The gain at frequency ``k`` is ``w(k) / T(k) + (1 - w(k))``, with ``w`` the share of
-    the reference's ring power above its noise (see :func:`remove_sphere`) and
-    ``|1 / T|`` capped at ``max_gain``.
+    With a number for ``max_gain``, the gain at frequency ``k`` is
+    ``w(k) / T(k) + (1 - w(k))``, with ``w`` the share of the reference's ring power
+    above its noise (see :func:`remove_sphere`) and ``|1 / T|`` capped at ``max_gain``.
+
+    With ``max_gain=None`` the cap is set by the signal, cell by cell: the gain is
+    ``(T Q + N) / (T^2 Q + N)``, with ``Q`` the unblurred signal power of the ring
+    (fitted to the reference's power above its noise, ``T^2 Q``) and ``N`` the noise
+    power. Where ``T^2 Q >> N`` it is ``1 / T``; where the blurred signal sinks into the
+    noise (at a zero of ``T``, or beyond the optics' cutoff) it goes to 1, and the image
+    is left as it is. Its largest value, about ``sqrt(Q / N) / 2``, grows with the
+    signal: a fixed cap limits the result even without noise.
 
     Parameters
     ----------
@@ -125,15 +133,17 @@ def divide_transfer(stack: np.ndarray, transfer, extent: float, *,
         (arrays of an rfft grid); ``T(0, 0) = 1``.
     extent : float
         The blur's extent in pixels (sets the padding against wrap-around).
-    reference, noise, max_gain
+    reference, noise
         As in :func:`remove_sphere`.
+    max_gain : float or None
+        The fixed cap on ``|1 / T|``, or None for the cap set by the signal.
 
     Returns
     -------
     out : ndarray of shape (I, P, P)
     band : float
-        Highest frequency (cycles / px) where at least half the reference's power is
-        signal.
+        Highest frequency (cycles / px) where at least half the reference's power
+        (unblurred, with ``max_gain=None``) is signal.
     max_gain_applied : float
     """
     stack = np.asarray(stack, dtype=np.float64)
@@ -153,22 +163,51 @@ def divide_transfer(stack: np.ndarray, transfer, extent: float, *,
         noise_power = _ring_profile(np.abs(spec[k + 1]) ** 2, ring)
     else:
         noise_power = float(np.median(power[freq > 0.5])) if np.any(freq > 0.5) else 0.0
-    profile = np.clip(1.0 - noise_power / np.maximum(ring_power, 1e-300), 0.0, 1.0)
-    profile[0] = 1.0
-    # once the signal has sunk into the noise it stays there (the optics' cutoff): what
-    # rises above it further out is not the beads' (re-sampling, window), leave it alone
-    profile = np.minimum.accumulate(profile)
-    w = profile[ring]
+    noise_power = np.broadcast_to(np.asarray(noise_power, float), ring_power.shape)
     fy = sfft.fftfreq(n)[:, None] * np.ones((1, freq.shape[1]))
     fx = np.ones((n, 1)) * sfft.rfftfreq(n)[None, :]
     t = np.asarray(transfer(fy, fx), dtype=np.float64)
-    inv = np.sign(t) / np.maximum(np.abs(t), 1.0 / max_gain)
-    inv = np.where(t == 0, max_gain, inv)
-    gain = w * inv + (1.0 - w)
+    if max_gain is None:
+        gain, profile = _signal_gain(power, noise_power, ring, t)
+    else:
+        profile = np.clip(1.0 - noise_power / np.maximum(ring_power, 1e-300), 0.0, 1.0)
+        profile[0] = 1.0
+        # once the signal has sunk into the noise it stays there (the optics' cutoff):
+        # what rises above it further out is not the beads' (re-sampling, window)
+        profile = np.minimum.accumulate(profile)
+        w = profile[ring]
+        inv = np.sign(t) / np.maximum(np.abs(t), 1.0 / max_gain)
+        inv = np.where(t == 0, max_gain, inv)
+        gain = w * inv + (1.0 - w)
     out = sfft.irfft2(spec[:k] * gain, s=(n, n), axes=(1, 2))[:, pad:pad + p, pad:pad + p]
-    signal = freq[w >= 0.5]
+    signal = freq[profile[ring] >= 0.5]
     band = float(signal.max()) if signal.size else 0.0
     return out, band, float(np.abs(gain).max())
+
+
+def _signal_gain(power, noise_power, ring, t):
+    """The gain ``(T Q + N) / (T^2 Q + N)`` of :func:`divide_transfer` with the cap set
+    by the signal, and the share ``Q / (Q + N)`` of each ring. ``Q`` per ring is the
+    least-squares fit of ``T^2 Q`` to the reference's power above its noise; once that
+    share has fallen to nothing it stays there (the optics' cutoff: what rises further
+    out is re-sampling and window, not the beads')."""
+    weights = np.ones_like(power)
+    n = ring.shape[0]
+    weights[:, 1:-1 if n % 2 == 0 else None] = 2.0  # the rfft half-plane counts twice
+    t2 = t * t
+    above = np.maximum(power - noise_power[ring], 0.0)
+    num = np.bincount(ring.ravel(), weights=(above * t2 * weights).ravel(),
+                      minlength=len(noise_power))
+    den = np.bincount(ring.ravel(), weights=(t2 * t2 * weights).ravel(),
+                      minlength=len(noise_power))
+    s = num / np.maximum(den, 1e-300)
+    nz = np.maximum(noise_power, 1e-12 * max(float(s.max()), 1e-300))
+    share = s / (s + nz)
+    share[0] = 1.0
+    share = np.minimum.accumulate(share)
+    s = share / np.maximum(1.0 - share, 1e-12) * nz
+    sk, nk = s[ring], nz[ring]
+    return (t * sk + nk) / (t2 * sk + nk), share
 
 
 def remove_sphere(stack: np.ndarray, diameter: float, *, reference: np.ndarray | None = None,

@@ -36,6 +36,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from .denoise import patch_noise
+from .motion_fit import fit_line, refine_line
 
 #: Fewest beads tested: two halves estimate the noise and four quarters must agree (with
 #: 10-12 beads of low signal, a quarter of 2-3 beads read a zero by chance: 1 false
@@ -476,10 +477,12 @@ def detect_motion(
         return Motion(False, None, None, ratio, z, checks, float(band), float(min_visible),
                       f"a dip in the beads' spectrum at {t0:.3g} cycles/px, {ang:.0f} deg, "
                       f"but {why}: not motion blur")
-    # the direction to a tenth of a degree (the length stays the grid's: the line's
-    # lowest frequency moved it off the truth on smears whose zero the aberrations shift)
-    ang = _refine_line(s_all, ring_mean[ring], n, ang, t0, width, band)[0]
-    length = 1.0 / t0  # to a bin, 1 / n cycles/px (n >= 64): ~2 % at 3 px
+    # the direction to a tenth of a degree (the line's lowest frequency is not the
+    # length: it moved off the truth on smears whose zero the aberrations shift), then
+    # the length from the sinc^2 over the whole band
+    ang_line = refine_line(s_all, ring_mean[ring], n, ang, t0, width, band)[0]
+    ang, length = fit_line(s_all, var_map, n, ang_line, t0, band)
+    checks.update(length_grid_px=float(1.0 / t0), angle_line_deg=float(ang_line))
     return Motion(True, float(length), float(ang), ratio, z, checks, float(band),
                   float(min_visible),
                   f"every bead is smeared by {length:.2g} px along "
@@ -488,56 +491,16 @@ def detect_motion(
                   + ALTERNATIVE)
 
 
-#: The zero line found on the search's grid (:data:`ANGLE_STEP`, one frequency bin) is
-#: refined within this many degrees and this fraction of its frequency ...
-REFINE_ANGLE = 2.5
-REFINE_FREQUENCY = 0.15
-#: ... in steps of this many degrees and this fraction of its frequency.
-REFINE_STEPS = (0.1, 0.0025)
-
-
-def _refine_line(power: np.ndarray, ring_mean: np.ndarray, n: int, angle: float, t0: float,
-                 width: float, band: float) -> tuple[float, float]:
-    """The zero line ``k.u = t`` of a smear, to a tenth of a degree and a fraction of a
-    frequency bin: the line, among those near ``(angle, t0)``, along which the beads'
-    mean power (over its mean over directions at each radius, ``ring_mean``, so that the
-    optics' fall with frequency does not pull it outwards) is lowest, sampled by
-    bilinear interpolation over ``|k.u_perp| < width`` inside the band. A smear's
-    transfer vanishes on the whole line, so a line tilted or shifted off it rises on
-    both sides: the minimum is the smear's direction and ``1 / length``."""
-    from scipy import ndimage as ndi
-
-    with np.errstate(invalid="ignore", divide="ignore"):
-        rel = sfft.fftshift(np.where(ring_mean > 0, power / ring_mean, np.nan))
-    rel = np.nan_to_num(rel, nan=np.nanmax(rel) if np.isfinite(rel).any() else 0.0)
-    s = np.linspace(-width, width, 41)
-    ts = t0 * (1.0 + np.arange(-REFINE_FREQUENCY, REFINE_FREQUENCY + 1e-9, REFINE_STEPS[1]))
-    best = (np.inf, angle, t0)
-    for ang in angle + np.arange(-REFINE_ANGLE, REFINE_ANGLE + 1e-9, REFINE_STEPS[0]):
-        a = np.deg2rad(ang)
-        ky = ts[:, None] * np.sin(a) - s[None, :] * np.cos(a)
-        kx = ts[:, None] * np.cos(a) + s[None, :] * np.sin(a)
-        inside = np.hypot(ky, kx) <= band
-        vals = ndi.map_coordinates(rel, [ky.ravel() * n + n // 2, kx.ravel() * n + n // 2],
-                                   order=1, mode="nearest").reshape(ky.shape)
-        vals = np.log(np.maximum(vals, 1e-6))
-        mean = np.where(inside, vals, 0.0).sum(axis=1) / np.maximum(inside.sum(axis=1), 1)
-        mean[inside.sum(axis=1) < 5] = np.inf
-        i = int(np.argmin(mean))
-        if mean[i] < best[0]:
-            best = (float(mean[i]), float(ang) % 180.0, float(ts[i]))
-    return best[1], best[2]
-
-
 def remove_motion(stack: np.ndarray, length: float, angle_deg: float, *,
                   reference: np.ndarray | None = None, noise: np.ndarray | None = None
                   ) -> tuple[np.ndarray, dict]:
     """Divide a smear of ``length`` px along ``angle_deg`` out of PSF images.
 
-    Where the reference stands above its noise the gain is ``1 / T`` (capped at
-    :data:`~napari_psfspace.core.beads.sphere.MAX_GAIN`); near the smear's zero lines, and
-    where there is noise alone, the images are left as they are: what the smear removed
-    there is not restored.
+    Where the reference's smeared signal stands above its noise the gain is ``1 / T``;
+    near the smear's zero lines, and where there is noise alone, the images are left as
+    they are: what the smear removed there is not restored. Between the two the cap is
+    set by the signal (``max_gain=None`` of
+    :func:`~napari_psfspace.core.beads.sphere.divide_transfer`), not a fixed number.
 
     Parameters
     ----------
@@ -558,8 +521,9 @@ def remove_motion(stack: np.ndarray, length: float, angle_deg: float, *,
 
     out, band, gain = divide_transfer(
         stack, lambda fy, fx: motion_transfer(fy, fx, length, angle_deg), float(length),
-        reference=reference, noise=noise)
+        reference=reference, noise=noise, max_gain=None)
     return out, {"length_px": float(length), "angle_deg": float(angle_deg),
                  "band_px": band, "max_gain_applied": gain,
                  "method": "the smear's transfer sinc(L k.u) divided out where the beads' "
-                           "signal stands above the noise (Wiener-type, capped)"}
+                           "signal stands above the noise (Wiener-type, the cap set "
+                           "by the signal)"}
