@@ -34,7 +34,11 @@ Per case and strength it prints the share of diagnosed scenes where
   whatever the tests say, so that some held-out error can show it at all; the other
   effects are counted visible), and ``named_of_visible`` the share named among them.
 
-Scenes diagnose refuses (too few usable beads) are counted apart. ``floor_ratio`` is
+Scenes diagnose refuses (too few usable beads) are counted apart. With ``--field``:
+``field_drop``, the median over the named scenes of ``1 - final / plain`` field error
+(``grid_errors`` 6 x 6 against the truth; plain: the estimator without the diagnosis,
+and for hot pixels without its own masking of them), and ``own_below``: of the named effect's kept steps whose own test reads the
+correction, how many read it below its threshold. ``floor_ratio`` is
 the median held-out error over its noise floor before any effect: near 1 the scene's
 noise hides any effect (invisible in principle at that signal).
 """
@@ -158,8 +162,17 @@ def _optics_type(generator: str):
 ALSO_NAMED = {"outlier_pixels": ("hot_pixels",)}
 
 
+def _own_below(steps, names) -> bool | None:
+    """The named effect's kept step read its own test below its threshold afterwards
+    (None where no kept step of these names has a test that reads the correction)."""
+    reads = [s.statistic.get("significant_after") for s in steps
+             if s.effect in names and s.accepted and s.statistic]
+    reads = [r for r in reads if r is not None]
+    return (not any(reads)) if reads else None
+
+
 def run(job) -> dict:
-    case, strength, seed, generator, oracle = job
+    case, strength, seed, generator, oracle, field = job
     name, _, _, make = CASES[case]
     row = {"case": case, "strength": str(strength), "seed": seed}
     optics_type = _optics_type(generator)
@@ -179,6 +192,20 @@ def run(job) -> dict:
     others = [e for e in added if e not in MODEL_SETTINGS and e != name and e not in present
               and e not in ALSO_NAMED.get(name, ())]
     steps = {s.effect: s for s in d.steps if s.effect}
+    if field and added:
+        # the operator the estimator gives without the diagnosis, against the truth
+        from napari_psfspace.core.beads.detect import detect_beads
+        from napari_psfspace.core.common.progress import run_with_progress
+        from napari_psfspace.core.model.estimate import iter_estimate
+
+        beads = None
+        if name == "outlier_pixels":  # the estimator masks spikes itself: here it must not
+            beads = detect_beads(image, truth.psf_radius)
+            beads.hot_pixels = np.zeros((0, 2), int)
+        plain = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius,
+                                                beads=beads)).operator
+        row["truth_plain"] = float(np.mean(grid_errors(plain, truth, n=6)))
+        row["own_below"] = _own_below(d.steps, [name, *ALSO_NAMED.get(name, ())])
     row.update(refused=False, added=", ".join(added) or "-", other=bool(others),
                floor_ratio=d.error_before / max(d.noise_floor, 1e-12),
                truth_final=float(np.mean(grid_errors(d.operator, truth, n=6))),
@@ -237,6 +264,9 @@ def main():
     ap.add_argument("--no-oracle", action="store_true",
                     help="skip the oracles that count the compressive response's and the "
                          "companions' visible scenes (each a second diagnosis)")
+    ap.add_argument("--field", action="store_true",
+                    help="also the field error of the plain estimate (grid_errors, 6 x 6) "
+                         "where something was added: the drop the kept steps bring")
     ap.add_argument("--strengths", choices=("issue", "sweep"), default="issue")
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--verbose", action="store_true", help="one line per scene")
@@ -252,7 +282,7 @@ def main():
     cases = (issue if args.cases == "issue" else eight if args.cases == "eight"
              else list(CASES) if args.cases == "all"
              else [c.strip() for c in args.cases.split(",")])
-    jobs = [(c, s, seed, args.generator, not args.no_oracle) for c in cases
+    jobs = [(c, s, seed, args.generator, not args.no_oracle, args.field) for c in cases
             for s in CASES[c][1 if args.strengths == "issue" else 2]
             for seed in range(args.first, args.first + args.scenes)]
     rows = []
@@ -269,7 +299,7 @@ def main():
                  for r in rows]
         print(table(shown, [("case", "s"), ("strength", "s"), ("seed", "d"), ("added", "s"),
                             ("named", "s"), ("dropped", "s"), ("floor_ratio", ".2f"),
-                            ("truth_final", ".4f"), ("truth_clean", ".4f"),
+                            ("truth_final", ".4f"), ("truth_clean", ".4f"), ("truth_plain", ".4f"),
                             ("seconds", ".1f")]))
         print()
     out = []
@@ -290,10 +320,16 @@ def main():
                         if done else None,
                         "truth_final": float(np.median([r["truth_final"] for r in done]))
                         if done else None})
+            kept = [r for r in done if r["named"] and "truth_plain" in r]
+            out[-1]["field_drop"] = (float(np.median([1 - r["truth_final"] / r["truth_plain"]
+                                                      for r in kept])) if kept else None)
+            reads = [r["own_below"] for r in kept if r.get("own_below") is not None]
+            out[-1]["own_below"] = f"{sum(reads)} of {len(reads)}" if reads else "-"
     print(table(out, [("case", "s"), ("effect", "s"), ("strength", "s"), ("scenes", "d"),
                       ("refused", "d"), ("named", ".2f"), ("named_dropped", ".2f"),
                       ("visible", "d"), ("named_of_visible", ".2f"),
-                      ("other", ".2f"), ("floor_ratio", ".2f"), ("truth_final", ".4f")]))
+                      ("other", ".2f"), ("floor_ratio", ".2f"), ("truth_final", ".4f"),
+                      *([("field_drop", ".2f"), ("own_below", "s")] if args.field else [])]))
 
 
 if __name__ == "__main__":
