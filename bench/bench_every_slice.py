@@ -99,8 +99,11 @@ def main() -> None:
                             im, psf_radius=r))
                         row.update(diagnose=kind, diagnose_s=t)
                         if kind == "model":
+                            v = d.verdict
                             row.update(added=d.added, error_before=d.error_before,
-                                       error_after=d.error_after, floor=d.noise_floor)
+                                       error_after=d.error_after, floor=d.noise_floor,
+                                       verdict=v.level, verdict_ratio=v.ratio,
+                                       headline=v.headline)
                         else:
                             row["diagnose_msg"] = d
                 for key in ("estimate", "diagnose"):
@@ -126,7 +129,30 @@ def main() -> None:
     for r in bad:
         print(r["file"], r["slice"], r.get("estimate_msg", r.get("diagnose_msg")))
     print(f"\n{len(bad)} slice(s) with an uncaught exception; rows in {out}")
-    _ = np  # (numpy used by the readers' arrays)
+    # what the diagnosis added and its verdict, per file (the verdict's level follows the
+    # held-out error over the noise floor: the ratios beside it let a reader check it)
+    verdicts = []
+    for name in dict.fromkeys(r["file"] for r in rows):
+        done = [r for r in rows if r["file"] == name and "verdict" in r]
+        if not done:
+            continue
+        added: dict[str, int] = {}
+        for r in done:
+            for e in r["added"] or ["-"]:
+                added[e] = added.get(e, 0) + 1
+        for level in ("explained", "partly explained", "not explained"):
+            rs = [r for r in done if r["verdict"] == level]
+            if rs:
+                ratios = [r["verdict_ratio"] for r in rs]
+                verdicts.append({"file": name, "verdict": level, "slices": len(rs),
+                                 "ratio_min": float(np.nanmin(ratios)),
+                                 "ratio_max": float(np.nanmax(ratios))})
+        verdicts.append({"file": name, "verdict": "added: " + ", ".join(
+            f"{k} {v}" for k, v in added.items()), "slices": len(done)})
+    if verdicts:
+        print()
+        print(table(verdicts, [("file", "s"), ("verdict", "s"), ("slices", "d"),
+                               ("ratio_min", ".2f"), ("ratio_max", ".2f")]))
 
 
 if __name__ == "__main__":

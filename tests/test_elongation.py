@@ -96,3 +96,35 @@ def test_companions_found_under_wide_wings():
     assert len(core & set(owners.tolist())) >= 0.5 * len(owners)
     assert len(core - set(owners.tolist())) <= 2
     assert len(whole & set(owners.tolist())) <= 2
+
+
+def test_round_beads_leave_out_the_doublets_and_few_single_beads():
+    from napari_psfspace.core.diagnosis.bead_tests import ROUND_Z, round_beads
+
+    # a score beyond 3 is a chi-square of 2 dof beyond 9: exp(-4.5) ~ 1.1 % of single
+    # beads (1.7 of 150 expected, 6 is beyond 3 sd of that count)
+    for seed in range(3):
+        res, _ = _residuals(0.0, seed=seed)
+        assert np.count_nonzero(~round_beads(res)) <= 6
+    res, owners = _residuals(0.1, seed=0)
+    out = set(np.flatnonzero(~round_beads(res, k=ROUND_Z)).tolist())
+    assert len(out & set(owners.tolist())) >= 0.8 * len(owners)
+    assert len(out - set(owners.tolist())) <= 6
+
+
+def test_the_response_trend_is_read_on_round_beads():
+    """Doublets fitted as single beads are brighter and flatter in the core than their
+    neighbours, as a compressive response makes the brightest beads: on all beads the
+    core-versus-brightness trend reads them, on the round beads it does not."""
+    from napari_psfspace.core.beads.window import radial_distance
+    from napari_psfspace.core.diagnosis.bead_tests import core_residuals, core_trend, round_beads
+
+    # a fifth of the beads with a companion: seeds 0-3 read 3.9, 3.9, 2.1, 2.0 on all
+    # beads and 0.8, 1.2, 0.2, 0.6 on the round ones (the test's threshold is 3)
+    for seed in (0, 1):
+        res, _ = _residuals(0.2, seed=seed)
+        core = radial_distance(res.data.shape[-1]) <= 1.5
+        amp, rel = core_residuals(res, core)
+        z_all = core_trend(amp, rel, res.positions)[1]
+        z_round = core_trend(np.where(round_beads(res), amp, np.nan), rel, res.positions)[1]
+        assert abs(z_round) < 3.0 < abs(z_all)

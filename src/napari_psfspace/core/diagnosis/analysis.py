@@ -69,6 +69,7 @@ from .bead_tests import (
     core_residuals,
     core_trend,
     elongated_beads,
+    round_beads,
     secondary_peaks,
 )
 from .noise import NoiseModel
@@ -210,9 +211,13 @@ def analyse(
     p = nres.shape[-1]
     core = radial_distance(p) <= max(1.5, psf_radius / 4)
     amp, core_rel = core_residuals(res, core)
-    rho, z = core_trend(amp, core_rel, res.positions)
+    # on the round beads: a merged companion flattens its bead's core as it brightens it
+    round_ = round_beads(res, psf_radius=psf_radius)
+    rho, z = core_trend(np.where(round_, amp, np.nan), core_rel, res.positions)
     tests["core_vs_amplitude"] = TestResult("core_vs_amplitude", z, th["core_vs_amplitude"],
-                                            {"rho": rho}, two_sided=True)
+                                            {"rho": rho, "left_out_elongated":
+                                             int(np.count_nonzero(~round_))},
+                                            two_sided=True)
     # beads of different sizes: the bigger beads are brighter *and* wider than the model;
     # brightness from the model-free patch flux (a poor model's amplitudes are not)
     width = bead_width(res)

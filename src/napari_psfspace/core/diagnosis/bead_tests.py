@@ -23,6 +23,9 @@ ELONGATION_Z = 6.0
 #: that aberrations and diffraction rings carry, and hid the stretch of doublets whose
 #: cores it doubles (bench/RESULTS.md, companions).
 MIN_STRETCH = 0.3
+#: Beads whose elongation score exceeds this are left out of the response's trend
+#: (:func:`round_beads`).
+ROUND_Z = 3.0
 #: The core whose second moment sets the PSF's variance: within this fraction of the
 #: PSF radius of the centre.
 CORE_FRACTION = 0.5
@@ -239,23 +242,25 @@ def _psf_variance(res: BeadResiduals, within: float | None = None) -> np.ndarray
     return (sig * r2).sum(axis=(1, 2)) / np.maximum(total, 1e-300) / 2.0
 
 
-def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
-                    psf_radius: float | None = None) -> dict:
-    """Beads stretched far more than their neighbours (a merged companion 1-3 px away).
+def elongation_scores(res: BeadResiduals, *, psf_radius: float | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Each bead's elongation against its neighbours' (:func:`elongated_beads`).
 
-    Each bead's elongation (:func:`bead_elongation`) minus its nearest neighbours'
-    (:func:`local_contrast`: the field's own astigmatism, and the model's error over
-    the field, cancel), in units of its noise and of the scatter from bead to bead
-    beyond it (``tau``, set so that the median bead scores the median of a chi-square
-    of 2 dof); beads beyond ``k`` and stretched by more than :data:`MIN_STRETCH` of the
-    variance of the PSF's core (within :data:`CORE_FRACTION` of ``psf_radius``, at least
-    1.5 px; None: the whole patch) are counted.
+    Returns
+    -------
+    beads : ndarray of shape (J,), int
+        The beads scored (finite elongation, positive amplitude; none with fewer than 12).
+    z : ndarray of shape (J,)
+        Their elongation contrast in units of its noise and of the scatter beyond it.
+    stretch : ndarray of shape (J,)
+        Their stretch over the variance of the PSF's core.
+    tau : float
+        The bead-to-bead scatter beyond the noise.
     """
     e, se = bead_elongation(res)
     ok = np.all(np.isfinite(se), axis=1) & (res.amplitude > 0)
-    out = {"count": 0, "beads": [], "tau": 0.0, "max_z": 0.0}
     if ok.sum() < 12:
-        return out
+        return np.zeros(0, int), np.zeros(0), np.zeros(0), 0.0
     idx = np.flatnonzero(ok)
     c = np.column_stack([local_contrast(e[ok, j], res.positions[ok]) for j in (0, 1)])
     s2 = se[ok] ** 2
@@ -266,8 +271,8 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
         return np.sum(c ** 2 / (s2 + tau2), axis=1)
 
     target = float(stats.chi2.median(2))
-    lo, hi = 0.0, float(np.max(c ** 2)) + 1e-300
-    if np.median(score(0.0)) > target:
+    lo, hi = 0.0, float(np.max(c ** 2)) + 1e-300 if len(c) else 1e-300
+    if len(c) and np.median(score(0.0)) > target:
         for _ in range(60):  # bisection: the median score falls as tau grows
             mid = 0.5 * (lo + hi)
             lo, hi = (mid, hi) if np.median(score(mid)) > target else (lo, mid)
@@ -281,10 +286,45 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
     var = _psf_variance(res, None if psf_radius is None
                         else max(1.5, CORE_FRACTION * psf_radius))[idx]
     stretch = 4.0 * np.hypot(e[idx, 0], e[idx, 1]) / np.maximum(var, 1e-12)
+    return idx, z, stretch, float(np.sqrt(tau2))
+
+
+def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
+                    psf_radius: float | None = None) -> dict:
+    """Beads stretched far more than their neighbours (a merged companion 1-3 px away).
+
+    Each bead's elongation (:func:`bead_elongation`) minus its nearest neighbours'
+    (:func:`local_contrast`: the field's own astigmatism, and the model's error over
+    the field, cancel), in units of its noise and of the scatter from bead to bead
+    beyond it (``tau``, set so that the median bead scores the median of a chi-square
+    of 2 dof); beads beyond ``k`` and stretched by more than :data:`MIN_STRETCH` of the
+    variance of the PSF's core (within :data:`CORE_FRACTION` of ``psf_radius``, at least
+    1.5 px; None: the whole patch) are counted.
+    """
+    idx, z, stretch, tau = elongation_scores(res, psf_radius=psf_radius)
+    out = {"count": 0, "beads": [], "tau": tau, "max_z": 0.0}
+    if len(idx) == 0:
+        return out
     hits = idx[(z > k) & (stretch > MIN_STRETCH)]
-    out.update(count=int(len(hits)), beads=hits.tolist(), tau=float(np.sqrt(tau2)),
-               max_z=float(z.max()) if len(z) else 0.0)
+    out.update(count=int(len(hits)), beads=hits.tolist(), max_z=float(z.max()))
     return out
+
+
+def round_beads(res: BeadResiduals, *, psf_radius: float | None = None,
+                k: float = ROUND_Z) -> np.ndarray:
+    """The beads no more elongated than their neighbours, by ``k`` of the score of
+    :func:`elongation_scores`, shape (K,) bool (all, where too few beads are scored).
+
+    A companion merged with its bead makes that bead brighter *and* its core flatter
+    than a single bead's, as a compressive response does to the brightest beads; the
+    response's trend (:func:`core_trend`) is read on the round beads only. A compressive
+    response keeps beads round: beyond ``k`` = 3 a chi-square of 2 dof leaves about 1 %
+    of them out.
+    """
+    keep = np.ones(len(res), bool)
+    idx, z, _, _ = elongation_scores(res, psf_radius=psf_radius)
+    keep[idx[z > k]] = False
+    return keep
 
 
 def bead_flux(image: np.ndarray, positions, psf_radius: float) -> np.ndarray:

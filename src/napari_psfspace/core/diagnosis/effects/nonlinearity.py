@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ...beads.window import radial_distance
-from ..bead_tests import core_residuals, core_trend
+from ..bead_tests import core_residuals, core_trend, round_beads
 from .base import Context, Effect
 
 #: Candidate response coefficients ``c`` (``c < 1/4`` keeps the response increasing up to
@@ -95,7 +95,9 @@ class Nonlinearity(Effect):
         x_ref = float(np.max(ctx.image[~ctx.pixel_mask]) - offset)
         p = res.data.shape[-1]
         core = radial_distance(p) <= max(1.5, ctx.psf_radius / 4)
-        use = res.informative
+        # on the round beads, as the test reads it (a merged companion flattens its bead's
+        # core as it brightens it)
+        use = res.informative & round_beads(res, psf_radius=ctx.psf_radius)
         sub = res.take(use)
         z = np.array([_core_trend(sub, c, x_ref, offset, core) for c in C_GRID])
         # the zero crossing of the trend (interpolated), else the smallest |z|
