@@ -98,10 +98,14 @@ class Motion:
     detected : bool
         A straight zero line common to all beads was found.
     length_px : float or None
-        Length of the smear, pixels (``1 / t`` of the zero line at ``k.u = t``).
+        Length of the smear, pixels: ``1 / t`` of the zero line at ``k.u = t``, refined
+        by the ``sinc^2`` fitted near it
+        (:func:`~napari_psfspace.core.model.motion_fit.fit_line`; the line's own bin is
+        ``checks["length_grid_px"]``).
     angle_deg : float or None
         Direction of the smear, degrees from the column axis towards the rows (0: a
-        horizontal smear, 90: a vertical one), in [0, 180).
+        horizontal smear, 90: a vertical one), in [0, 180); refined the same way (the
+        lowest line's direction is ``checks["angle_line_deg"]``).
     dip_ratio, dip_z : float
         Depth of the strongest dip: the profile over its flanks' geometric mean, and its
         deficit in standard errors.

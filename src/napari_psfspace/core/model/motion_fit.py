@@ -1,6 +1,6 @@
 """The smear's parameters to better than the search's grid: its direction to a tenth of a
-degree (:func:`refine_line`) and its length from the ``sinc^2`` it imprints on the beads'
-mean power over the whole band (:func:`fit_length`).
+degree (:func:`refine_line`, the lowest line of the beads' mean power), then both from
+the ``sinc^2`` the smear imprints on that power near its zero line (:func:`fit_line`).
 
 :func:`~napari_psfspace.core.model.motion.detect_motion` finds a zero line on a grid of
 directions (:data:`~napari_psfspace.core.model.motion.ANGLE_STEP`) and frequency bins; the
@@ -71,12 +71,15 @@ def fit_line(power: np.ndarray, var: np.ndarray, n: int, angle: float, t0: float
     """The smear's direction and length from the ``sinc^2`` it imprints on the beads'
     mean power.
 
-    Model: ``P(k) = O(|k|) sinc^2(L k.u)`` inside the band, with ``O`` any radial
-    function (the optics, averaged over the field) and ``u`` the smear's direction. For
-    each trial ``(u, L)`` the best ``O`` of each ring is its least-squares value; the
-    pair kept is the one whose residual, each ring weighted by its noise variance, is
-    lowest. The whole band informs it: the fall below the first zero as much as the zero,
-    which an aberration can shift on its own.
+    Model: ``P(k) = O(|k|) sinc^2(L k.u)`` inside the band and within
+    :data:`ZERO_REACH` of the zero line, with ``O`` any radial function (the optics,
+    averaged over the field) and ``u`` the smear's direction. For each trial ``(u, L)``
+    the best ``O`` of each ring is its least-squares value; the pair kept is the one
+    whose residual, each ring weighted by its noise variance, is lowest. Near the zero
+    the ``sinc^2`` sets the shape; further from it the optics' own departure from a
+    radial function (the field's astigmatism, averaged) pulls the length, which is why
+    the fit stays there, and within :data:`LENGTH_SPAN` bins of the line's own
+    frequency (``bench/bench_motion.py``).
 
     Parameters
     ----------
@@ -105,8 +108,10 @@ def fit_line(power: np.ndarray, var: np.ndarray, n: int, angle: float, t0: float
     fy, fx = f[:, None] * np.ones((1, n)), np.ones((n, 1)) * f[None, :]
     rad = np.hypot(fy, fx)
     a0 = np.deg2rad(angle)
-    near = np.abs(np.abs(fy * np.sin(a0) + fx * np.cos(a0)) * 1.0 / t0 - 1.0) <= ZERO_REACH
+    near = np.abs(np.abs(fy * np.sin(a0) + fx * np.cos(a0)) / t0 - 1.0) <= ZERO_REACH
     inside = (rad <= band) & (rad > 0) & near
+    if np.count_nonzero(inside) < 8:  # nothing to fit: the line as found
+        return angle % 180.0, 1.0 / t0
     ring = np.round(rad[inside] * n).astype(int)
     ky, kx, s = fy[inside], fx[inside], power[inside]
     nr = int(ring.max()) + 1
