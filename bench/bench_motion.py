@@ -104,15 +104,16 @@ def removal_rows(seeds, lengths):
             try:
                 image, truth, _ = scene(seed, length)
                 e_rm, rec = error(image, truth, True)
-            except ValueError:  # too few beads
-                continue
-            if not rec.get("detected"):
+                if not rec.get("detected"):
+                    continue
+                clean, ctruth, _ = scene(seed, 0.0)
+                e_still = error(clean, ctruth, False)[0]
+            except ValueError:  # too few usable beads, in the smeared scene or the still
                 continue
             found += 1
             removed.append(e_rm)
             kept.append(error(image, truth, False)[0])
-            clean, ctruth, _ = scene(seed, 0.0)
-            still.append(error(clean, ctruth, False)[0])
+            still.append(e_still)
         med = (lambda v: float(np.median(v)) if v else None)
         rows.append({"length_px": length, "found": found, "kept": med(kept),
                      "removed": med(removed), "still": med(still),
