@@ -191,16 +191,10 @@ def _signal_gain(power, noise_power, ring, t):
     least-squares fit of ``T^2 Q`` to the reference's power above its noise; once that
     share has fallen to nothing it stays there (the optics' cutoff: what rises further
     out is re-sampling and window, not the beads')."""
-    weights = np.ones_like(power)
-    n = ring.shape[0]
-    weights[:, 1:-1 if n % 2 == 0 else None] = 2.0  # the rfft half-plane counts twice
     t2 = t * t
     above = np.maximum(power - noise_power[ring], 0.0)
-    num = np.bincount(ring.ravel(), weights=(above * t2 * weights).ravel(),
-                      minlength=len(noise_power))
-    den = np.bincount(ring.ravel(), weights=(t2 * t2 * weights).ravel(),
-                      minlength=len(noise_power))
-    s = num / np.maximum(den, 1e-300)
+    # per ring: sum(above T^2) / sum(T^4), as ratios of ring means over the same cells
+    s = _ring_profile(above * t2, ring) / np.maximum(_ring_profile(t2 * t2, ring), 1e-300)
     nz = np.maximum(noise_power, 1e-12 * max(float(s.max()), 1e-300))
     share = s / (s + nz)
     share[0] = 1.0

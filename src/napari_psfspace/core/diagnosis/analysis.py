@@ -69,6 +69,7 @@ from .bead_tests import (
     core_residuals,
     core_trend,
     elongated_beads,
+    elongation_scores,
     round_beads,
     secondary_peaks,
 )
@@ -212,7 +213,8 @@ def analyse(
     core = radial_distance(p) <= max(1.5, psf_radius / 4)
     amp, core_rel = core_residuals(res, core)
     # on the round beads: a merged companion flattens its bead's core as it brightens it
-    round_ = round_beads(res, psf_radius=psf_radius)
+    scores = elongation_scores(res, psf_radius=psf_radius)  # read here and below
+    round_ = round_beads(res, scores=scores)
     rho, z = core_trend(np.where(round_, amp, np.nan), core_rel, res.positions)
     tests["core_vs_amplitude"] = TestResult("core_vs_amplitude", z, th["core_vs_amplitude"],
                                             {"rho": rho, "left_out_elongated":
@@ -289,7 +291,7 @@ def analyse(
     d = secondary_peaks(res, psf_radius)
     tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),
                                           th["secondary_peaks"], d)
-    d = elongated_beads(res, psf_radius=psf_radius)
+    d = elongated_beads(res, psf_radius=psf_radius, scores=scores)
     tests["elongated_beads"] = TestResult("elongated_beads", float(d["count"]),
                                           th["elongated_beads"], d)
     top = float(img.max())

@@ -290,7 +290,7 @@ def elongation_scores(res: BeadResiduals, *, psf_radius: float | None = None
 
 
 def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
-                    psf_radius: float | None = None) -> dict:
+                    psf_radius: float | None = None, scores=None) -> dict:
     """Beads stretched far more than their neighbours (a merged companion 1-3 px away).
 
     Each bead's elongation (:func:`bead_elongation`) minus its nearest neighbours'
@@ -299,9 +299,11 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
     beyond it (``tau``, set so that the median bead scores the median of a chi-square
     of 2 dof); beads beyond ``k`` and stretched by more than :data:`MIN_STRETCH` of the
     variance of the PSF's core (within :data:`CORE_FRACTION` of ``psf_radius``, at least
-    1.5 px; None: the whole patch) are counted.
+    1.5 px; None: the whole patch) are counted. ``scores``: those of
+    :func:`elongation_scores` for the same ``psf_radius``, when already computed.
     """
-    idx, z, stretch, tau = elongation_scores(res, psf_radius=psf_radius)
+    idx, z, stretch, tau = (elongation_scores(res, psf_radius=psf_radius) if scores is None
+                            else scores)
     out = {"count": 0, "beads": [], "tau": tau, "max_z": 0.0}
     if len(idx) == 0:
         return out
@@ -311,7 +313,7 @@ def elongated_beads(res: BeadResiduals, k: float = ELONGATION_Z, *,
 
 
 def round_beads(res: BeadResiduals, *, psf_radius: float | None = None,
-                k: float = ROUND_Z) -> np.ndarray:
+                k: float = ROUND_Z, scores=None) -> np.ndarray:
     """The beads no more elongated than their neighbours, by ``k`` of the score of
     :func:`elongation_scores`, shape (K,) bool (all, where too few beads are scored).
 
@@ -319,10 +321,11 @@ def round_beads(res: BeadResiduals, *, psf_radius: float | None = None,
     than a single bead's, as a compressive response does to the brightest beads; the
     response's trend (:func:`core_trend`) is read on the round beads only. A compressive
     response keeps beads round: beyond ``k`` = 3 a chi-square of 2 dof leaves about 1 %
-    of them out.
+    of them out. ``scores``: as in :func:`elongated_beads`.
     """
     keep = np.ones(len(res), bool)
-    idx, z, _, _ = elongation_scores(res, psf_radius=psf_radius)
+    idx, z, _, _ = (elongation_scores(res, psf_radius=psf_radius) if scores is None
+                    else scores)
     keep[idx[z > k]] = False
     return keep
 
