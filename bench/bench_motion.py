@@ -114,7 +114,8 @@ def removal_rows(seeds, lengths):
             removed.append(e_rm)
             kept.append(error(image, truth, False)[0])
             still.append(e_still)
-        med = (lambda v: float(np.median(v)) if v else None)
+        def med(v):
+            return float(np.median(v)) if v else None
         rows.append({"length_px": length, "found": found, "kept": med(kept),
                      "removed": med(removed), "still": med(still),
                      "share_of_excess_left": (med([(r - c) / max(k - c, 1e-12) for k, r, c

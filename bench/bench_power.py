@@ -37,8 +37,9 @@ Per case and strength it prints the share of diagnosed scenes where
 Scenes diagnose refuses (too few usable beads) are counted apart. With ``--field``:
 ``field_drop``, the median over the named scenes of ``1 - final / plain`` field error
 (``grid_errors`` 6 x 6 against the truth; plain: the estimator without the diagnosis,
-and for hot pixels without its own masking of them), and ``own_below``: of the named effect's kept steps whose own test reads the
-correction, how many read it below its threshold. ``floor_ratio`` is
+and for hot pixels without its own masking of them), and ``own_below``: of the named
+effect's kept steps whose own test reads the correction, how many read it below its
+threshold. ``floor_ratio`` is
 the median held-out error over its noise floor before any effect: near 1 the scene's
 noise hides any effect (invisible in principle at that signal).
 """
