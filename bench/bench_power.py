@@ -37,10 +37,12 @@ Per case and strength it prints the share of diagnosed scenes where
 Scenes diagnose refuses (too few usable beads) are counted apart. With ``--field``:
 ``field_drop``, the median over the named scenes of ``1 - final / plain`` field error
 (``grid_errors`` 6 x 6 against the truth; plain: the estimator without the diagnosis,
-and for hot pixels without its own masking of them), and ``own_below``: of the named
+and for hot pixels without its own masking of them); ``room``, the median of
+``1 - twin / plain``, the twin being the same scene without the effect estimated the
+same way (the drop no correction can much exceed); and ``own_below``, of the named
 effect's kept steps whose own test reads the correction, how many read it below its
-threshold. ``floor_ratio`` is
-the median held-out error over its noise floor before any effect: near 1 the scene's
+threshold. ``floor_ratio`` is the median held-out error over its noise floor before any
+effect: near 1 the scene's
 noise hides any effect (invisible in principle at that signal).
 """
 
@@ -206,6 +208,14 @@ def run(job) -> dict:
         plain = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius,
                                                 beads=beads)).operator
         row["truth_plain"] = float(np.mean(grid_errors(plain, truth, n=6)))
+        # the room there is: the same scene without the effect, estimated the same way
+        # (no correction can bring the field error much below it)
+        twin, ttruth, _ = random_scene(seed, optics_type=optics_type, **SETTING)
+        try:
+            est = run_with_progress(iter_estimate(twin, psf_radius=ttruth.psf_radius)).operator
+            row["truth_twin"] = float(np.mean(grid_errors(est, ttruth, n=6)))
+        except ValueError:
+            pass
         row["own_below"] = _own_below(d.steps, [name, *ALSO_NAMED.get(name, ())])
     row.update(refused=False, added=", ".join(added) or "-", other=bool(others),
                floor_ratio=d.error_before / max(d.noise_floor, 1e-12),
@@ -324,13 +334,17 @@ def main():
             kept = [r for r in done if r["named"] and "truth_plain" in r]
             out[-1]["field_drop"] = (float(np.median([1 - r["truth_final"] / r["truth_plain"]
                                                       for r in kept])) if kept else None)
+            twins = [r for r in kept if "truth_twin" in r]
+            out[-1]["room"] = (float(np.median([1 - r["truth_twin"] / r["truth_plain"]
+                                                for r in twins])) if twins else None)
             reads = [r["own_below"] for r in kept if r.get("own_below") is not None]
             out[-1]["own_below"] = f"{sum(reads)} of {len(reads)}" if reads else "-"
     print(table(out, [("case", "s"), ("effect", "s"), ("strength", "s"), ("scenes", "d"),
                       ("refused", "d"), ("named", ".2f"), ("named_dropped", ".2f"),
                       ("visible", "d"), ("named_of_visible", ".2f"),
                       ("other", ".2f"), ("floor_ratio", ".2f"), ("truth_final", ".4f"),
-                      *([("field_drop", ".2f"), ("own_below", "s")] if args.field else [])]))
+                      *([("field_drop", ".2f"), ("room", ".2f"), ("own_below", "s")]
+                        if args.field else [])]))
 
 
 if __name__ == "__main__":

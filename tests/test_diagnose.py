@@ -76,8 +76,9 @@ def test_merged_companions_are_fitted_jointly():
     assert_figures_chain(d)
     assert d.context.beads.hot_pixels is not None  # the bead table keeps what it masked
     step = next(s for s in d.steps if s.effect == "neighbours")
-    # measured: 0.040 -> 0.010 on the same beads (chi2/dof 10.7 -> 1.9)
+    # measured: 0.035 -> 0.0085 on the same beads
     assert step.error_after < 0.5 * step.error_before
+    assert step.statistic["significant_before"] and step.statistic["significant_after"] is False
     # the companions found lie near true ones (within 2 px)
     true = np.asarray(truth.effects["companion_positions"])
     found = np.asarray(step.params["companions"])
@@ -97,10 +98,14 @@ def test_fixed_pattern_offsets_are_found_and_subtracted():
     # measured: error 0.0285 -> 0.0251, excess chi2/dof -31 % or more
     assert step.error_after < step.error_before
     assert cmp["chi2_improvement"] > 0.15
-    # the subtracted offsets are the camera's (up to a constant)
-    rows = np.asarray(d.context.params["fixed_pattern"]["rows"])
-    true = truth.effects["row_offset_values"]
-    assert np.corrcoef(rows, true)[0, 1] > 0.8
+    # its own test goes from significant to not: the offsets fitted are the line levels
+    # less their smooth part, which the test's line-to-neighbours contrast cannot read
+    assert step.statistic["significant_before"] and step.statistic["significant_after"] is False
+    # the subtracted offsets are the camera's (up to a constant and the slow part the
+    # background takes: measured r 0.98 and 0.97 for rows and columns)
+    for key, true in (("rows", "row_offset_values"), ("columns", "column_offset_values")):
+        fitted = np.asarray(d.context.params["fixed_pattern"][key])
+        assert np.corrcoef(fitted, truth.effects[true])[0, 1] > 0.9
 
 
 def test_an_effect_that_cannot_be_applied_is_rejected_not_fatal():

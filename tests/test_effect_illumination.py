@@ -18,6 +18,9 @@ def test_illumination_is_added_and_lowers_the_photometric_error():
     cmp = step.params["_comparison"]
     # measured: held-out squared log error 0.029 -> 0.0105 (-64 %), p < 0.001
     assert cmp["photometric_after"] < 0.6 * cmp["photometric_before"]
+    # its own test, read on the held-out amplitude ratios, goes from significant to not
+    # (measured: z 7.7 before, below 0 after)
+    assert step.statistic["significant_before"] and step.statistic["significant_after"] is False
     # the PSF shapes are unchanged by it
     assert abs(step.error_after - step.error_before) < 1e-12
     # the operator's throughput follows the true illumination (measured r = 0.97)

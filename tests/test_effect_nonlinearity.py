@@ -42,3 +42,28 @@ def test_linear_detector_adds_nothing():
     image, truth = simulate_beads((640, 640), 70, aberrations="none", seed=2)
     d = diagnose(image, psf_radius=truth.psf_radius, effects=["nonlinearity"])
     assert d.added == []
+
+
+@pytest.mark.parametrize("slope, accepted", [(45.0, True), (-45.0, False)])
+def test_a_trend_only_its_own_sign_cancels_is_not_a_response(monkeypatch, slope, accepted):
+    """As recorded the trend reads z -3.65 (bright cores flatter, as a compressive
+    response makes them). Where a compressive fit (c > 0) cancels it, that is the
+    response; where only an expansive one does (the trend's z falling as c rises: a
+    vignetted scene of the power bench with no response), the fit refuses."""
+    from types import SimpleNamespace
+
+    from napari_psfspace.core.diagnosis.effects import nonlinearity as nl
+
+    monkeypatch.setattr(nl, "_core_trend", lambda res, c, *a: -3.65 + slope * c)
+    monkeypatch.setattr(nl, "round_beads", lambda res, **kw: np.ones(3, bool))
+    res = SimpleNamespace(data=np.zeros((3, 9, 9)), informative=np.ones(3, bool))
+    res.take = lambda use: res
+    ctx = SimpleNamespace(image=np.full((32, 32), 100.0), pixel_mask=np.zeros((32, 32), bool),
+                          noise=SimpleNamespace(offset=90.0), psf_radius=3.0)
+    ctx.image[16, 16] = 4000.0
+    fit = nl.Nonlinearity().fit
+    if accepted:
+        assert fit(ctx, SimpleNamespace(residuals=res))["c"] == pytest.approx(3.65 / 45, abs=1e-3)
+    else:
+        with pytest.raises(ValueError, match="not the detector's response"):
+            fit(ctx, SimpleNamespace(residuals=res))

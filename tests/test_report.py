@@ -267,3 +267,23 @@ def test_family_reports_chain(seed):
     d = diagnose(image, psf_radius=truth.psf_radius, max_steps=3)
     assert len(d.steps) >= 2  # something was tried
     assert_figures_chain(d)
+
+
+def test_an_error_below_its_noise_floor_is_called_indicative():
+    """A noise model that overstates the noise (camera values giving 60 e- of read noise
+    against 1.5) sets the floor far above what the beads leave: the verdict says the
+    floor is overstated rather than calling the model better than noise allows. With
+    the image's own photon transfer the same scene reads near 1 and says nothing."""
+    from napari_psfspace.core.diagnosis.verdict import BELOW_FLOOR_RATIO
+
+    image, truth = simulate_beads((384, 384), 40, aberrations="none", seed=5)
+    own = diagnose(image, psf_radius=truth.psf_radius, max_steps=0)
+    given = diagnose(image, psf_radius=truth.psf_radius, max_steps=0, gain=1.0,
+                     offset=100.0, read_noise=60.0)
+    # measured: 0.95 and 0.27
+    assert own.verdict.ratio >= BELOW_FLOOR_RATIO
+    assert "below its noise floor" not in own.verdict.headline
+    assert given.verdict.ratio < BELOW_FLOOR_RATIO
+    assert "below its noise floor" in given.verdict.headline
+    assert "camera values given" in given.verdict.headline
+    assert any("gain" in h for h in given.verdict.hints)

@@ -88,14 +88,17 @@ def kept_by_own_test(eff: Effect, own: dict | None, cmp: dict, noise_kind: str, 
                 and none_worse(cmp, noise_kind, min_improvement=min_improvement))
 
 
-def own_statistic(eff: Effect, before: Analysis, after: Analysis) -> dict | None:
-    """The effect's strongest own test (:attr:`Effect.tests`) before and after it."""
+def own_statistic(eff: Effect, before: Analysis, after: Analysis, ctx: Context,
+                  cf: CrossFit) -> dict | None:
+    """The effect's strongest own test (:attr:`Effect.tests`) before and after it (read
+    by :meth:`Effect.reading_after` on the model with it: context ``ctx``, cross-fit
+    ``cf``)."""
     names = [t for t in eff.tests if t in before.tests]
     if not names:
         return None
     t = max(names, key=lambda n: before.tests[n].evidence)
-    b, a = before.tests[t], after.tests.get(t)
-    return statistic(t, b.strength, None if a is None else a.strength, b.threshold)
+    b = before.tests[t]
+    return statistic(t, b.strength, eff.reading_after(t, after, ctx, cf), b.threshold)
 
 
 def evident_tests(eff: Effect, an: Analysis) -> list[str]:

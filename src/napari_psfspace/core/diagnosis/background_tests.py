@@ -48,11 +48,17 @@ def smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.nda
     return num / np.maximum(den, 1e-6)
 
 
-def line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
-                  axis: int, scale_error: float = 0.0) -> dict:
-    """Excess variance of the clipped means of bead-free, detrended pixels along rows
-    (axis=1) or columns (axis=0), line to line, as a z against the noise (with the
-    noise model's relative error ``scale_error``, see :func:`noise_scale_error`)."""
+#: a line's neighbours: the mean of the +-4 lines around it (itself left out)
+NEIGHBOURS = np.r_[np.ones(4), 0.0, np.ones(4)] / 8.0
+
+
+def line_levels(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
+                axis: int) -> dict:
+    """Level of each row (axis=1) or column (axis=0) of the bead-free, detrended pixels
+    ``resid``: ``mean``, shape (n_lines,), the mean of its pixels within LINE_CLIP noise
+    sd of its median; ``count``, ``level`` (the smooth background's median along the
+    line, ADU), ``half`` (the clip's half width, ADU) and ``ok`` (lines with 20 pixels
+    inside or more)."""
     data = np.where(free, resid, np.nan)
     lvl = np.where(free, level, np.nan)
     if axis == 0:  # one line per row of the transposed arrays
@@ -61,33 +67,40 @@ def line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: 
         warnings.simplefilter("ignore", RuntimeWarning)
         lev = np.nanmedian(lvl, axis=1)
         centre = np.nanmedian(data, axis=1)
-    # a line's level is the mean of its pixels within LINE_CLIP sd of its median:
-    # robust to a faint bead's wing or a hot pixel, and, unlike the median (or a trimmed
-    # mean), not stuck to whole ADU on an integer image whose noise is below one ADU (an
-    # 8-bit low-gain scene's medians flip between two integers from line to line: z
-    # 20-75 on still scenes of the family). On integer images the window spans at least
-    # +-1.5 ADU, so that the neighbours of the median's integer stay in
+    # the mean within the clip is robust to a faint bead's wing or a hot pixel, and,
+    # unlike the median (or a trimmed mean), not stuck to whole ADU on an integer image
+    # whose noise is below one ADU (an 8-bit low-gain scene's medians flip between two
+    # integers from line to line: z 20-75 on still scenes of the family). On integer
+    # images the window spans at least +-1.5 ADU, so that the neighbours of the median's
+    # integer stay in
     sd = np.sqrt(noise.variance(np.nan_to_num(lev)))
     half = np.maximum(LINE_CLIP * sd, 1.5 if noise.min_variance > 0 else 0.0)
     with np.errstate(invalid="ignore"):
         inside = np.abs(data - centre[:, None]) <= half[:, None]
     count = inside.sum(axis=1)
-    med = np.where(inside, data, 0.0).sum(axis=1) / np.maximum(count, 1)
-    ok = (count >= 20) & np.isfinite(centre)
+    mean = np.where(inside, data, 0.0).sum(axis=1) / np.maximum(count, 1)
+    return {"mean": mean, "count": count, "level": lev, "half": half, "sd": sd,
+            "ok": (count >= 20) & np.isfinite(centre)}
+
+
+def line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: NoiseModel,
+                  axis: int, scale_error: float = 0.0) -> dict:
+    """Excess variance of the clipped means of bead-free, detrended pixels along rows
+    (axis=1) or columns (axis=0), line to line, as a z against the noise (with the
+    noise model's relative error ``scale_error``, see :func:`noise_scale_error`)."""
+    d = line_levels(resid, level, free, noise, axis)
+    ok = d["ok"]
     if ok.sum() < 10:
         return {"z": 0.0, "n_lines": int(ok.sum())}
-    m = med[ok]
+    m = d["mean"][ok]
     # a fixed pattern is line-to-line jitter: compare each line with the mean of its
     # +-4 neighbours (slow trends of the background left by the smoothing cancel out)
-    kern = np.ones(9) / 8.0
-    kern[4] = 0.0
-    local = ndi.convolve1d(m, kern, mode="reflect")
-    dev = m - local
+    dev = m - ndi.convolve1d(m, NEIGHBOURS, mode="reflect")
     # variance of the mean of normal values clipped at +-c sd
-    c = half[ok] / sd[ok]
+    c = d["half"][ok] / d["sd"][ok]
     clipped = 1.0 - 2.0 * c * stats.norm.pdf(c) / np.maximum(2.0 * stats.norm.cdf(c) - 1.0,
                                                              1e-12)
-    var_line = clipped * noise.variance(lev[ok]) / count[ok]
+    var_line = clipped * noise.variance(d["level"][ok]) / d["count"][ok]
     n = int(ok.sum())
     ratio = float(np.mean(dev**2 / (var_line * (1 + 1 / 8))))
     return {"z": excess_z(ratio, np.sqrt(2.0 / n), scale_error), "n_lines": n,

@@ -384,7 +384,7 @@ def iter_diagnose(
                        flux=flux, reference=reference, informative=informative)
         ok = accept_effect(cmp, new_ctx.noise.kind, ev, min_improvement=min_improvement,
                            evident_improvement=evident_improvement, max_p=max_p)
-        own = own_statistic(eff, an, new_an)
+        own = own_statistic(eff, an, new_an, new_ctx, new_cf)
         by_own = not ok and kept_by_own_test(eff, own, cmp, new_ctx.noise.kind,
                                              min_improvement=min_improvement)
         ok = ok or by_own

@@ -23,7 +23,8 @@ DEFINITION = ("each bead's relative residual energy |data - model|^2 / |model|^2
 #: Its unit.
 UNIT = "fraction of the bead's energy"
 #: Noise floor: the same average for a perfect model (the noise alone).
-FLOOR_DEFINITION = "the same average for a perfect model: the noise alone"
+FLOOR_DEFINITION = ("the same average for a perfect model: what the noise alone leaves after "
+                    "the same fit of amplitude and background")
 #: Within this factor of the noise floor the model explains the beads to the noise.
 AT_FLOOR = 1.5
 

@@ -17,6 +17,11 @@ import numpy as np
 EXPLAINED_RATIO = 1.5
 #: Above this ratio the model does not explain its own held-out beads.
 UNEXPLAINED_RATIO = 5.0
+#: Below this ratio the error is under what noise alone leaves: the noise model
+#: overstates the image's noise. An exact model's beads scatter about their floor with
+#: a standard deviation near 0.2 (tests/test_residuals.py), so the mean over 20 beads
+#: or more has a standard error of at most 0.045, and 0.85 lies 3.3 of them below 1.
+BELOW_FLOOR_RATIO = 0.85
 
 #: What a significant residual test says, in a microscopist's words, for the tests that
 #: no candidate effect of the diagnosis answers.
@@ -148,10 +153,17 @@ def verdict(diagnosis) -> Verdict:
                     f"{err:.4g} is {ratio:.3g} times the noise floor {floor:.4g}, after "
                     f"testing {what}. Do not use it before looking at its PSFs and the "
                     "worst residual patches.")
+    hints = []
+    if np.isfinite(ratio) and ratio < BELOW_FLOOR_RATIO:
+        source = (getattr(d, "noise_source", "") or "not recorded").split(" (")[0]
+        headline += (f" The error is below its noise floor: the noise model ({source}) "
+                     "overstates this image's noise, so the floor and this verdict are "
+                     "indicative only.")
+        hints.append("give the camera's gain, offset and read noise (or a dark frame's) "
+                     "to judge the model against the image's own noise")
     sat = saturation_sentence(d)
     if sat:
         headline += " " + sat
-    hints = []
     if level in ("partly explained", "not explained"):
         model = d.operator.metadata or {}
         used = model.get("n_beads_used")
@@ -170,4 +182,5 @@ def verdict(diagnosis) -> Verdict:
     return Verdict(level, float(ratio), headline, tried, unanswered, hints)
 
 
-__all__ = ["EXPLAINED_RATIO", "UNEXPLAINED_RATIO", "Verdict", "saturation_sentence", "verdict"]
+__all__ = ["BELOW_FLOOR_RATIO", "EXPLAINED_RATIO", "UNEXPLAINED_RATIO", "Verdict",
+           "saturation_sentence", "verdict"]

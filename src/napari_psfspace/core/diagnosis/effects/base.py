@@ -140,3 +140,11 @@ class Effect:
     def apply(self, ctx: Context, params: dict) -> Context:
         """The model context with the effect included."""
         raise NotImplementedError
+
+    def reading_after(self, test: str, after: Analysis, ctx: Context, cf) -> float | None:
+        """The own test ``test`` read on the model with the effect (context ``ctx``, its
+        cross-fit ``cf``): by default the analysis's, which the model's residuals make.
+        An effect the residual analysis does not see (a throughput fitted to the beads'
+        amplitudes) reads it on held-out values instead. None: not read."""
+        t = after.tests.get(test)
+        return None if t is None else t.strength

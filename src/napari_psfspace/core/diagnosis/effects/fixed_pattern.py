@@ -5,20 +5,36 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..background_tests import bead_free_mask, smooth_background
+from ..background_tests import NEIGHBOURS, bead_free_mask, line_levels, smooth_background
+from ..noise import NoiseModel
 from .base import Context, Effect
 
+#: passes of the neighbour filter: the offsets are the line levels less their
+#: ``SMOOTHING``-fold neighbour mean, a low-pass of about ``sqrt(15 SMOOTHING)`` lines'
+#: width, where one pass leaves an eighth of white offsets' variance for the
+#: pattern test to read (bench/RESULTS.md, issue 46, third session)
+SMOOTHING = 8
 
-def line_offsets(image: np.ndarray, free: np.ndarray, psf_radius: float, axis: int
-                 ) -> np.ndarray:
-    """Offset of each row (axis=1) or column (axis=0): the median of the bead-free,
-    detrended pixels of the line minus the mean of its +-4 neighbours' medians."""
+
+def line_offsets(image: np.ndarray, free: np.ndarray, psf_radius: float, axis: int,
+                 noise: NoiseModel) -> np.ndarray:
+    """Offset of each row (axis=1) or column (axis=0), ADU, shape (n_lines,): the line
+    level of the bead-free, detrended pixels (the pattern test's clipped mean,
+    :func:`~..background_tests.line_levels`) less its smooth part, the neighbour mean
+    of :func:`~..background_tests.line_pattern` applied ``SMOOTHING`` times. Lines
+    without enough bead-free pixels get 0."""
     level = smooth_background(image, free, sigma=max(8.0, 2 * psf_radius))
-    med = np.nanmedian(np.where(free, image - level, np.nan), axis=axis)
-    med = np.where(np.isfinite(med), med, 0.0)
-    kern = np.ones(9) / 8.0
-    kern[4] = 0.0
-    return med - ndi.convolve1d(med, kern, mode="reflect")
+    d = line_levels(image - level, level, free, noise, axis)
+    ok = d["ok"]
+    out = np.zeros(len(ok))
+    if ok.sum() < 10:
+        return out
+    m = d["mean"][ok]
+    smooth = m.copy()
+    for _ in range(SMOOTHING):
+        smooth = ndi.convolve1d(smooth, NEIGHBOURS, mode="reflect")
+    out[ok] = m - smooth
+    return out
 
 
 class FixedPattern(Effect):
@@ -32,8 +48,8 @@ class FixedPattern(Effect):
     def fit(self, ctx: Context, analysis) -> dict:
         free = bead_free_mask(ctx.image.shape, ctx.beads.positions, ctx.psf_radius)
         free &= ~ctx.pixel_mask
-        rows = line_offsets(ctx.image, free, ctx.psf_radius, axis=1)
-        cols = line_offsets(ctx.image, free, ctx.psf_radius, axis=0)
+        rows = line_offsets(ctx.image, free, ctx.psf_radius, 1, ctx.noise)
+        cols = line_offsets(ctx.image, free, ctx.psf_radius, 0, ctx.noise)
         use_rows = analysis.tests["row_pattern"].significant
         use_cols = analysis.tests["column_pattern"].significant
         return {"rows": rows.round(4).tolist() if use_rows else None,

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..photometry import throughput_at
+from ..analysis import THRESHOLDS
+from ..photometry import crossfit_log_residuals, throughput_at
+from ..statistics import radial_trend
 from .base import Context, Effect
 
 
@@ -40,4 +42,24 @@ class Illumination(Effect):
 
     def apply(self, ctx: Context, params: dict) -> Context:
         return ctx.with_effect(self.name, params, throughput_degree=int(params["degree"]))
+
+    def reading_after(self, test: str, after, ctx: Context, cf) -> float | None:
+        """The radial trend's z (:func:`~..statistics.radial_trend`) in the beads'
+        held-out amplitude ratios to the throughput fitted without their fold: the
+        residual analysis fits each bead's amplitude freely and reads the raw
+        amplitudes, which no throughput changes. One-sided, as the test: held-out
+        ratios of a throughput that follows the beads keep less radial trend than
+        chance would (F below 1, z negative), which reads 0."""
+        if test != "amplitude_field":
+            return super().reading_after(test, after, ctx, cf)
+        res = cf.residuals
+        logs = crossfit_log_residuals(res.positions, res.amplitude, cf.fold,
+                                      ctx.image.shape, degree=ctx.throughput_degree,
+                                      use=res.photometric)
+        ok = np.isfinite(logs) & res.photometric
+        if ok.sum() < 12:
+            return None
+        z = radial_trend(res.positions[ok], np.exp(logs[ok]), ctx.image.shape,
+                         THRESHOLDS[test])["z"]
+        return max(z, 0.0)
 

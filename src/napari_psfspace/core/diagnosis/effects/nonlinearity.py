@@ -114,6 +114,17 @@ class Nonlinearity(Effect):
                 f"no detector response y = x (1 - c x / x_ref) with c in [{C_GRID[0]:g}, "
                 f"{C_GRID[-1]:g}] removes the core-vs-brightness trend (|z| >= "
                 f"{np.abs(z).min():.1f} throughout): not a quadratic response")
+        # a compressive response flattens the bright cores (z < 0 as recorded) and is
+        # undone by c > 0; an expansive one the reverse. A trend of one sign that only a
+        # response of the same sign cancels is not the detector's (on a vignetted scene
+        # of the power bench with no response: z -3.7 as recorded, cancelled at c -0.08)
+        z0 = float(z[int(np.argmin(np.abs(C_GRID)))])
+        if best * z0 > 0:
+            kind = "expansive" if best < 0 else "compressive"
+            raise ValueError(
+                f"the core-vs-brightness trend (z {z0:.2f} as recorded) vanishes only "
+                f"for a {kind} response (c {best:.3g}), which would make a trend of the "
+                "opposite sign: not the detector's response")
         return {"c": round(best, 4), "x_ref_adu": x_ref, "offset_adu": offset,
                 "trend_z_by_c": np.column_stack([C_GRID, z.round(2)]).tolist()}
 
