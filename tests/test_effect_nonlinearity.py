@@ -45,11 +45,10 @@ def test_linear_detector_adds_nothing():
 
 
 @pytest.mark.parametrize("slope, accepted", [(45.0, True), (-45.0, False)])
-def test_a_trend_only_its_own_sign_cancels_is_not_a_response(monkeypatch, slope, accepted):
-    """As recorded the trend reads z -3.65 (bright cores flatter, as a compressive
-    response makes them). Where a compressive fit (c > 0) cancels it, that is the
-    response; where only an expansive one does (the trend's z falling as c rises: a
-    vignetted scene of the power bench with no response), the fit refuses."""
+def test_only_a_compressive_response_is_fitted(monkeypatch, slope, accepted):
+    """As recorded the trend reads z -3.65. Where a compressive response (c > 0)
+    cancels it, that is fitted; where only an expansive one would (a vignetted scene of
+    the power bench with no response: cancelled at c -0.08), the fit refuses."""
     from types import SimpleNamespace
 
     from napari_psfspace.core.diagnosis.effects import nonlinearity as nl
@@ -65,5 +64,5 @@ def test_a_trend_only_its_own_sign_cancels_is_not_a_response(monkeypatch, slope,
     if accepted:
         assert fit(ctx, SimpleNamespace(residuals=res))["c"] == pytest.approx(3.65 / 45, abs=1e-3)
     else:
-        with pytest.raises(ValueError, match="not the detector's response"):
+        with pytest.raises(ValueError, match="not a quadratic response"):
             fit(ctx, SimpleNamespace(residuals=res))
