@@ -89,10 +89,10 @@ class Neighbours(Effect):
     description = ("companion beads inside the patch (fitted jointly; such beads no longer "
                    "used to learn the PSF)")
     tests = ("secondary_peaks", "elongated_beads")
-    #: A few beads carry it: the held-out mean over all beads falls by half while its
-    #: test of a drop stays above the rule's p (companion scene, seed 30 of the power
-    #: bench: error -55 %, p 0.025, median bead unchanged); the beads its tests count
-    #: are what the pair fit changes (bench/RESULTS.md, issue 46, third session).
+    #: A few beads carry it: the held-out mean over all beads can fall by half while its
+    #: test of a drop stays above the rule's p, the median bead unchanged; the beads its
+    #: tests count are what the pair fit changes (bench/RESULTS.md, issue 46, third
+    #: session).
     own_evidence = True
 
     def fit(self, ctx: Context, analysis) -> dict:
