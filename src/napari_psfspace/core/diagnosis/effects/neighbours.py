@@ -59,7 +59,9 @@ def locate_companion(res: BeadResiduals, i: int
     if where is None:
         return None
 
-    def cost(v):
+    def cost(v):  # the bead within the search's reach, the pair as far apart as searched
+        if np.hypot(v[0], v[1]) > _MAX_SEP or not _MIN_SEP <= np.hypot(v[2], v[3]) <= _MAX_SEP:
+            return np.inf
         return sse_of(np.array([[v[0], v[1]], [v[0] + v[2], v[1] + v[3]]]))[0]
 
     # from the grid's pair, and from the pair centred as the detector centres it
