@@ -64,8 +64,17 @@ def test_unknown_effect_and_too_few_beads():
     with pytest.raises(ValueError, match="Unknown effect"):
         diagnose(image, psf_radius=truth.psf_radius, effects=["astrology"])
     few, t = simulate_beads((256, 256), 3, seed=2)  # leave-one-bead-out needs 5
-    with pytest.raises(ValueError, match="Too few usable beads"):
+    with pytest.raises(ValueError, match="Too few usable beads.*Lower `threshold`"):
         diagnose(few, psf_radius=t.psf_radius)
+    # beads the user gave (a Points layer of two): the advice is about the beads given,
+    # not about the detection's threshold
+    from napari_psfspace.core.beads.detect import Beads
+
+    given = Beads(truth.positions[:2], np.full(2, np.nan), np.array(["kept"] * 2),
+                  np.full(2, np.nan))
+    with pytest.raises(ValueError, match="Too few usable beads.*Give more beads") as err:
+        diagnose(image, psf_radius=truth.psf_radius, beads=given)
+    assert "threshold" not in str(err.value)
 
 
 def test_merged_companions_are_fitted_jointly():

@@ -59,9 +59,9 @@ def test_files_exist_and_figures_are_images(hot):
     for when in ("before", "after"):
         rgb = iio.imread(out / f"residual_map_{when}.png")
         assert rgb.ndim == 3 and rgb.shape[2] == 3 and min(rgb.shape[:2]) >= 256
-        grey = iio.imread(out / f"mean_residual_{when}.png")
-        assert grey.ndim == 2 and grey.shape[0] >= 3 * d.operator.psf_size
-        assert iio.imread(out / f"residual_patches_{when}.png").ndim == 2
+        mean = iio.imread(out / f"mean_residual_{when}.png")
+        assert mean.ndim == 3 and mean.shape[0] >= 3 * d.operator.psf_size
+        assert iio.imread(out / f"residual_patches_{when}.png").ndim == 3
     assert not list(out.glob(".*tmp"))  # atomic writes leave no temporary file
 
 

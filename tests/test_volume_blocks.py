@@ -183,3 +183,61 @@ def test_the_dask_path_runs_on_a_client():
                             dashboard_address=None) as client:
         remote = richardson_lucy_3d_tiled(stack, op, client=client, **kw)
     np.testing.assert_allclose(remote, loop, rtol=0, atol=1e-5 * loop.max())
+
+
+def _rl_problem(seed=4):
+    op = _operator(seed=seed)
+    rng = np.random.default_rng(2)
+    truth = (rng.random(op.shape) < 0.02) * 200.0
+    return op, rng.poisson(op.apply(truth) + 5).astype(np.float32)
+
+
+def test_a_blocked_iteration_yields_after_each_wave_of_blocks():
+    """Cancel waits for one wave of blocks, not for a whole iteration: the generator
+    yields once per wave in ``apply`` and in ``adjoint`` (one block a thread)."""
+    from napari_psfspace.core.volume.deconvolve3d import iter_richardson_lucy_3d
+
+    op, stack = _rl_problem()
+    n_blocks = len(BlockedOperator3D(op, block=16).blocks)  # 4 x 3
+    records = list(iter_richardson_lucy_3d(stack, op, n_iter=2, block=16, workers=1))
+    per_iteration = [r for r in records if r.stage == "iteration"]
+    # each iteration: n_blocks waves in apply, n_blocks in adjoint, and its end
+    assert len(per_iteration) == 2 * (2 * n_blocks + 1)
+    fractions = [r.fraction for r in records]
+    assert fractions == sorted(fractions) and fractions[-1] == 1.0
+    assert sum(r.stage == "setup" for r in records) >= n_blocks  # H^T 1 in waves too
+    est = [r for r in records if r.stage == "estimate"]
+    assert len(est) == 1 and "iterations at most" in est[0].message
+
+
+def test_the_stopping_rule_ends_when_an_iteration_changes_little():
+    op, stack = _rl_problem()
+    full = richardson_lucy_3d(stack, op, n_iter=40, block=16)
+    assert full.iterations == 40 and not full.stopped and len(full.changes) == 40
+    # the rule at the change the 15th iteration made: it stops at the first iteration
+    # (after the minimum) whose change is below it, and that iterate is plain RL's
+    from napari_psfspace.core.volume.deconvolve3d import MIN_ITERATIONS
+
+    tau = full.changes[14] * 1.0001
+    first = next(k for k, c in enumerate(full.changes) if k + 1 >= MIN_ITERATIONS
+                 and c < tau) + 1
+    got = richardson_lucy_3d(stack, op, n_iter=40, block=16, stop=tau)
+    assert got.stopped and got.iterations == first <= 15
+    again = richardson_lucy_3d(stack, op, n_iter=first, block=16)
+    # the same iterate up to the order the threads add the blocks in (float32)
+    assert np.abs(got.volume - again.volume).max() <= 1e-4 * again.volume.max()
+    assert got.estimate_s is not None and got.estimate_s > 0
+    with pytest.raises(ValueError, match="`stop`"):
+        richardson_lucy_3d(stack, op, n_iter=3, stop=-1.0)
+
+
+def test_the_accelerated_iteration_heads_for_plain_rl_sooner():
+    """Biggs-Andrews: after k steps the accelerated estimate lies nearer to plain RL's
+    estimate of 4k steps than plain RL's k-th does, and stays non-negative and finite."""
+    op, stack = _rl_problem()
+    far = richardson_lucy_3d(stack, op, n_iter=40, block=16).volume
+    plain = richardson_lucy_3d(stack, op, n_iter=10, block=16).volume
+    fast = richardson_lucy_3d(stack, op, n_iter=10, block=16, accelerate=True).volume
+    d = lambda v: np.linalg.norm(v - far) / np.linalg.norm(far)  # noqa: E731
+    assert np.isfinite(fast).all() and fast.min() >= 0
+    assert d(fast) < 0.8 * d(plain), (d(fast), d(plain))

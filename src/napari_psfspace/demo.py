@@ -33,7 +33,8 @@ from .core.diagnosis.metric import line as heldout_line
 from .core.model.estimate import iter_estimate
 from .core.simulation import simulate_beads
 from .core.simulation.metrics import evaluate_against_truth, grid_positions
-from .io import write_png, write_tiff
+from .figure import write_figure
+from .io import write_tiff
 
 #: Embedded default scenes: (shape, number of beads, aberration preset).
 SCENES = {
@@ -95,12 +96,24 @@ def run_demo(out_dir: str | os.PathLike = "demo-output", *, scene: str = "wide",
     write_tiff(out / "psf_grid_estimated.tif", estim.reshape(64, op.psf_size, op.psf_size))
     left = mosaic(true, gap=2, gamma=0.5)
     right = mosaic(estim.clip(0, None), gap=2, gamma=0.5)
-    sep = np.ones((left.shape[0], 12))
-    write_png(out / "psf_grid.png", np.hstack([left, sep, right]))
-    write_png(out / "basis.png", mosaic(op.basis[None], gap=2, normalize="each") * 0.5 + 0.5)
+    sep = np.full((left.shape[0], 12), np.nan)
+    px = truth.optics.pixel_size
+    tile = f"{op.psf_size * px:.2f} µm" if px else f"{op.psf_size} px"
+    write_figure(out / "psf_grid.png", np.hstack([left, sep, right]),
+                 title="PSF over the field: true (left), estimated (right)",
+                 unit="relative", limits=(0.0, 1.0), cmap="magma", size=900,
+                 note=f"8 x 8 field positions, tiles {tile}, each scaled to its peak, "
+                      f"gamma 0.5")
+    write_figure(out / "basis.png", mosaic(op.basis[None], gap=2, normalize="each"),
+                 title=f"PSF basis h_0..h_{op.n_psf - 1}", unit="relative",
+                 limits=(-1.0, 1.0), cmap="diverging",
+                 note="each scaled to its largest magnitude, left to right")
     maps = op.coefficient_maps()[:, ::8, ::8]
-    write_png(out / "coefficient_maps.png", mosaic(maps[None], gap=4, normalize="each") * 0.5
-              + 0.5)
+    field = f"{shape[1] * px:.0f} µm" if px else f"{shape[1]} px"
+    write_figure(out / "coefficient_maps.png", mosaic(maps[None], gap=4, normalize="each"),
+                 title=f"Coefficient maps alpha_0..alpha_{op.n_psf - 1}", unit="relative",
+                 limits=(-1.0, 1.0), cmap="diverging",
+                 note=f"each over the {field} field, scaled to its largest magnitude")
 
     result = {
         "scene": scene,

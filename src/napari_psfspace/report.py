@@ -174,12 +174,6 @@ def diverging_grey(values: np.ndarray, limit: float) -> np.ndarray:
     return np.round(127.5 + 127.5 * t).astype(np.uint8)
 
 
-def _enlarge(img: np.ndarray, size: int = 512) -> np.ndarray:
-    """Repeat pixels so that the longer side is about ``size`` (figures stay crisp)."""
-    k = max(1, int(round(size / max(img.shape[:2]))))
-    return np.repeat(np.repeat(img, k, axis=0), k, axis=1)
-
-
 def figure_arrays(diagnosis, *, cells: int = 64, n_patches: int = 16) -> dict[str, Any]:
     """The figures of a diagnosis as arrays, before and after on common scales.
 
@@ -647,7 +641,7 @@ def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "im
     ValueError
         ``out_dir`` exists and is not a folder.
     """
-    from .io import write_png
+    from .figure import write_figure
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -655,13 +649,20 @@ def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "im
     out.mkdir(parents=True, exist_ok=True)
     data = report_dict(diagnosis, image_name=image_name, pixel_size=pixel_size, extra=extra)
     fig = figure_arrays(diagnosis)
-    for when in ("before", "after"):
-        write_png(out / f"residual_map_{when}.png",
-                  _enlarge(colorize(fig[f"map_{when}"], 0.0, fig["map_limit"])))
-        write_png(out / f"mean_residual_{when}.png",
-                  _enlarge(diverging_grey(fig[f"mean_{when}"], fig["mean_limit"]), 256))
-        write_png(out / f"residual_patches_{when}.png",
-                  _enlarge(diverging_grey(fig[f"patches_{when}"], PATCH_LIMIT)))
+    px = pixel_size or diagnosis.operator.metadata.get("pixel_size_um")
+    for when, which in (("before", "plain"), ("after", "final")):
+        write_figure(out / f"residual_map_{when}.png", fig[f"map_{when}"],
+                     title=f"Held-out excess error, {which} model",
+                     unit="fraction of energy", limits=(0.0, fig["map_limit"]),
+                     pixel_size=px * fig["cell_size"] if px else None,
+                     note="each bead's error less its noise floor; grey: no bead")
+        write_figure(out / f"mean_residual_{when}.png", fig[f"mean_{when}"],
+                     title=f"Mean residual, {which} model", unit="noise sd",
+                     limits=(-fig["mean_limit"], fig["mean_limit"]), cmap="grey",
+                     pixel_size=px, size=256)
+        write_figure(out / f"residual_patches_{when}.png", fig[f"patches_{when}"],
+                     title=f"Residuals of the worst beads, {which} model",
+                     unit="noise sd", limits=(-PATCH_LIMIT, PATCH_LIMIT), cmap="grey")
     text = json.dumps(data, indent=2, allow_nan=False)
     atomic_write(out / "report.json", lambda fh: fh.write(text + "\n"), mode="w",
                  encoding="utf-8")

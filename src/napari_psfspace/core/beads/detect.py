@@ -699,13 +699,22 @@ def flag_unusable(
     return beads
 
 
-def require_kept(beads: Beads, minimum: int, *, reason: str) -> None:
-    """Raise :class:`NoBeadsError` when fewer than ``minimum`` beads are kept."""
+#: What to change when too few beads were detected.
+DETECTION_ADVICE = ("Lower `threshold`, check `psf_radius`, or image a denser bead "
+                    "slide.")
+#: What to change when the beads were given (a table, a Points layer).
+GIVEN_ADVICE = ("Give more beads (mark them on the beads layer), or leave `beads` out "
+                "to detect them.")
+
+
+def require_kept(beads: Beads, minimum: int, *, reason: str,
+                 advice: str = DETECTION_ADVICE) -> None:
+    """Raise :class:`NoBeadsError` when fewer than ``minimum`` beads are kept; its
+    message ends with ``advice`` (:data:`GIVEN_ADVICE` for beads the user gave)."""
     n = int(np.count_nonzero(beads.kept))
     if n < minimum:
         raise NoBeadsError(
             f"Too few usable beads: {n} kept, need at least {minimum} {reason}. "
-            f"{beads.summary()}. Lower `threshold`, check `psf_radius`, or image a "
-            "denser bead slide."
+            f"{beads.summary()}. {advice}"
         )
 

@@ -41,7 +41,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..beads.centering import refine_centers
-from ..beads.detect import Beads, detect_beads, flag_unusable, require_kept, saturation_record
+from ..beads.detect import (
+    DETECTION_ADVICE,
+    GIVEN_ADVICE,
+    Beads,
+    detect_beads,
+    flag_unusable,
+    require_kept,
+    saturation_record,
+)
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma
@@ -293,11 +301,13 @@ def iter_diagnose(
         raise ValueError(f"Unknown effect(s) {unknown}; known: {sorted(REGISTRY)}.")
     candidates: list[Effect] = [REGISTRY[n]() for n in names]
 
+    given = beads is not None
     beads = prepare_beads(raw, r, threshold=threshold, beads=beads)
     n_kept = int(np.count_nonzero(beads.kept))
     if n_kept < 2 * folds:  # few beads: each is judged by a model of all the others
         require_kept(beads, MIN_BEADS, reason="to judge each bead by a model learnt "
-                     "without it (leave-one-bead-out)")
+                     "without it (leave-one-bead-out)",
+                     advice=GIVEN_ADVICE if given else DETECTION_ADVICE)
         folds = n_kept
     hot = spike_mask(img.shape, beads.hot_pixels)
     recorded = img

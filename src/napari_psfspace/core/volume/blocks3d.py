@@ -24,6 +24,7 @@ rounding (tested), as does the adjoint (dot-tested).
 from __future__ import annotations
 
 import threading
+from collections.abc import Generator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -148,6 +149,12 @@ class BlockedOperator3D:
         """Largest relative PSF error of any block."""
         return max(b.error for b in self.blocks)
 
+    def fft_pairs(self) -> float:
+        """FFT pairs of :meth:`fft_shape` one ``apply`` and one ``adjoint`` take
+        together: ``k_b + 1`` a block (``k_b`` forward and one inverse one way, one
+        forward and ``k_b`` inverse the other)."""
+        return float(sum(b.n_kernels + 1 for b in self.blocks))
+
     def fft_shape(self, depth: int) -> tuple[int, int, int]:
         k, p, _ = self.operator.kernel_shape
         lat = scipy.fft.next_fast_len(self.block + p - 1, real=True)
@@ -200,19 +207,24 @@ class BlockedOperator3D:
                              f"{self.shape[2]}), got shape {arr.shape}")
         return arr
 
-    def _run(self, fn, workers: int | None) -> None:
+    def _iter_run(self, fn, workers: int | None) -> Generator[float, None, None]:
         """``fn(j)`` for every block, on ``workers`` threads (default: the cores), each
-        FFT on one thread: blocks are independent, and numpy and the FFT release the
-        GIL."""
+        FFT on one thread (blocks are independent, and numpy and the FFT release the
+        GIL), in waves of one block a thread; yields the fraction of blocks done after
+        each wave, so that a caller can stop between waves (nothing runs then)."""
         n = default_workers() if workers is None or workers < 1 else int(workers)
         n = min(n, len(self.blocks))
+        total = len(self.blocks)
         if n <= 1:
-            for j in range(len(self.blocks)):
+            for j in range(total):
                 fn(j)
+                yield (j + 1) / total
             return
         with ThreadPoolExecutor(max_workers=n, thread_name_prefix="psfspace-block") as pool:
-            for f in [pool.submit(fn, j) for j in range(len(self.blocks))]:
-                f.result()
+            for start in range(0, total, n):
+                for f in [pool.submit(fn, j) for j in range(start, min(start + n, total))]:
+                    f.result()
+                yield min(start + n, total) / total
 
     def apply(self, u: ArrayLike, *, out: np.ndarray | None = None,
               workers: int | None = None) -> np.ndarray:
@@ -226,6 +238,12 @@ class BlockedOperator3D:
         workers : int, optional
             Threads (blocks run in parallel); default the machine's cores.
         """
+        return _drain(self.iter_apply(u, out=out, workers=workers))
+
+    def iter_apply(self, u: ArrayLike, *, out: np.ndarray | None = None,
+                   workers: int | None = None) -> Generator[float, None, np.ndarray]:
+        """Generator form of :meth:`apply`: yields the fraction of blocks done after
+        each wave of blocks (one a thread; stop it there to cancel), returns ``H u``."""
         arr = self._check(u, "u")
         z, h, w = arr.shape
         if out is None:
@@ -261,7 +279,7 @@ class BlockedOperator3D:
             with lock:
                 out[:, oy0:oy1, ox0:ox1] += part
 
-        self._run(one, workers)
+        yield from self._iter_run(one, workers)
         return out
 
     def adjoint(self, v: ArrayLike, *, workers: int | None = None,
@@ -277,6 +295,12 @@ class BlockedOperator3D:
             When given, ``multiply_into *= H^T v`` in place (the Richardson-Lucy update)
             and it is returned; it must not be ``v``.
         """
+        return _drain(self.iter_adjoint(v, workers=workers, multiply_into=multiply_into))
+
+    def iter_adjoint(self, v: ArrayLike, *, workers: int | None = None,
+                     multiply_into: np.ndarray | None = None
+                     ) -> Generator[float, None, np.ndarray]:
+        """Generator form of :meth:`adjoint` (yields as :meth:`iter_apply`)."""
         arr = self._check(v, "v")
         z, h, w = arr.shape
         out = np.empty((z, h, w), np.float32) if multiply_into is None else multiply_into
@@ -311,8 +335,17 @@ class BlockedOperator3D:
             else:
                 out[:, b.y0:b.y1, b.x0:b.x1] *= acc
 
-        self._run(one, workers)
+        yield from self._iter_run(one, workers)
         return out
+
+
+def _drain(gen: Generator[float, None, np.ndarray]) -> np.ndarray:
+    """Run a generator of :class:`BlockedOperator3D` to its end; its value."""
+    while True:
+        try:
+            next(gen)
+        except StopIteration as stop:
+            return stop.value
 
 
 __all__ = ["BLOCK", "CACHE_BYTES", "RTOL", "Block", "BlockedOperator3D"]
