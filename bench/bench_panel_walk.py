@@ -6,7 +6,7 @@ Opens napari at 1280 x 800 (a real window: screenshots of hidden viewers come ou
 docks the panel through the Plugins menu's door (``add_plugin_dock_widget``, which hands
 it a public-only proxy of the viewer), opens the sample and clicks through the steps:
 Beads (detect), Review (extract the patches), Model (learn), Diagnose, Deblur (the model
-Diagnose refined), then Family on the second sample, the focus series (every slice).
+Diagnose refined), then Family and 3D on the second sample, the focus series.
 Each step's seconds and the canvas left to the image are printed as a table; a
 screenshot of the window after each step goes to ``--out`` (``panel_<step>.png``).
 """
@@ -36,13 +36,22 @@ def wait(task, timeout: float = 300.0) -> None:
     app.processEvents()
 
 
-def _family(widget) -> None:
-    """The Family step on the focus-series sample (File > Open Sample), every slice."""
-    viewer = widget._viewer
+def _open_focus_series(viewer):
+    """The focus-series sample (File > Open Sample): a z-stack, so several images."""
     stack, kwargs, _ = simulated_focus_series()[0]
-    layer = viewer.add_image(stack, **kwargs)
+    return viewer.add_image(stack, **kwargs)
+
+
+def _family(widget) -> None:
+    """The Family step on the focus-series sample, every slice."""
     widget.source.value = "slices of a stack layer"
-    widget.stack.value = layer
+    widget.stack.value = widget._viewer.layers["simulated focus series"]
+    widget.learn.clicked()
+
+
+def _volume(widget) -> None:
+    """The 3D step on the focus-series sample: learn its 3D PSF."""
+    widget.image.value = widget._viewer.layers["simulated focus series"]
     widget.learn.clicked()
 
 
@@ -66,16 +75,22 @@ def main() -> None:
         ("Diagnose", lambda w: w.diagnose.clicked()),
         ("Deblur", lambda w: w.run_button.clicked()),
         ("Family", _family),
+        ("3D", _volume),
     ]
     rows = []
     total = 0.0
     for title, click in steps:
         widget = panel.steps[title]
+        if title == "Family":  # offered once there are several images
+            stack = _open_focus_series(viewer)
+            viewer.dims.set_point(0, stack.translate[0] + 2 * stack.scale[0])
         panel.tabs.setCurrentIndex(list(panel.steps).index(title))
         app.processEvents()
+        task = getattr(widget, "task", None) or widget.learn_task
         t0 = time.perf_counter()
         click(widget)
-        wait(widget.task)
+        wait(task)
+        app.processEvents()
         seconds = time.perf_counter() - t0
         total += seconds
         canvas = viewer.window._qt_viewer.canvas.native
@@ -84,7 +99,7 @@ def main() -> None:
         rows.append({"step": title, "seconds": seconds,
                      "canvas": f"{canvas.width()}x{canvas.height()}",
                      "window": f"{window.width()}x{window.height()}",
-                     "status": widget.task.status.value[:60].replace("\n", " ")})
+                     "status": task.status.value[:60].replace("\n", " ")})
         print(rows[-1], flush=True)
     rows.append({"step": "all", "seconds": total, "canvas": "", "window": "", "status": ""})
     print(table(rows, [("step", "s"), ("seconds", ".1f"), ("canvas", "s"), ("window", "s"),

@@ -35,7 +35,7 @@ def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
     w.run_button.clicked()
     wait_task(qtbot, w.task, timeout=120_000)
     assert w.last.parameters["debias"] and w.last.parameters["debias_iterations"] > 0
-    sparse, smooth = v.layers[SPARSE], v.layers[SMOOTH]
+    sparse, smooth = v.layers[f"{SPARSE} (image units)"], v.layers[f"{SMOOTH} (image units)"]
     assert sparse.data.shape == image.shape and np.allclose(sparse.scale, (0.065, 0.065))
     assert sparse.data.min() >= 0 and smooth.data.min() >= 0
     assert "identified from" in w.result.value
@@ -80,4 +80,4 @@ def test_model_file_cancel_and_errors(make_napari_viewer, qtbot, family, tmp_pat
     w.max_iter.value = 30
     w.run_button.clicked()
     wait_task(qtbot, w.task, timeout=120_000)
-    assert SPARSE in v.layers and "the model as it is" in w.result.value
+    assert f"{SPARSE} (image units)" in v.layers and "the model as it is" in w.result.value

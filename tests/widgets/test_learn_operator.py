@@ -5,7 +5,14 @@ import pytest
 
 from conftest import wait_task
 from napari_psfspace import load_operator
-from napari_psfspace._widgets._layers import BASIS, BEADS, HELDOUT, MAPS, PSF_AT, PSF_GRID
+from napari_psfspace._widgets._layers import (
+    BASIS,
+    BEADS,
+    HELDOUT_LAYER,
+    MAPS,
+    PSF_AT,
+    PSF_GRID,
+)
 from napari_psfspace._widgets._learn_operator import LearnOperatorWidget
 from napari_psfspace._widgets._pick_beads import PickBeadsWidget
 from napari_psfspace._widgets._review_patches import ReviewPatchesWidget
@@ -34,7 +41,7 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
     w.learn.clicked()
     wait_task(qtbot, w.task)
 
-    for name in (PSF_GRID, BASIS, MAPS, HELDOUT):
+    for name in (PSF_GRID, BASIS, MAPS, HELDOUT_LAYER):
         assert name in viewer.layers, name
     op = load_operator(path)
     image = viewer.layers["beads image"]

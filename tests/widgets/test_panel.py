@@ -51,8 +51,10 @@ def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(lapto
     assert type(panel._viewer).__name__ == "PublicOnlyProxy"  # the user's door
     titles = [panel.tabs.tabText(i) for i in range(panel.tabs.count())]
     assert titles == ["Beads", "Review", "Model", "Diagnose", "Family", "Deblur", "3D"]
+    # one 2-D image: no family to learn, so no Family tab
+    assert panel.offered_steps() == ["Beads", "Review", "Model", "Diagnose", "Deblur", "3D"]
     for i in range(panel.tabs.count()):
-        if not panel.tabs.isTabEnabled(i):
+        if not panel.tabs.isTabVisible(i):
             continue
         panel.tabs.setCurrentIndex(i)
         _settle(qtbot)
@@ -72,17 +74,58 @@ def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(lapto
         scroll = panel.tabs.currentWidget().findChild(QScrollArea)
         assert scroll.widget().minimumSizeHint().width() <= scroll.viewport().width(), (
             titles[i])
-        # tab titles whole, not elided
-        bar = panel.tabs.tabBar()
-        text_width = bar.fontMetrics().horizontalAdvance(titles[i])
-        assert bar.tabRect(i).width() >= text_width, titles[i]
+        # and the dock cannot be dragged narrower than that content
+        assert panel.minimumWidth() >= scroll.widget().minimumSizeHint().width(), titles[i]
+        _assert_tabs_whole(panel)
+
+
+def _assert_tabs_whole(panel) -> None:
+    """Every shown tab's label whole and inside the bar (no scroll buttons hiding one)."""
+    bar = panel.tabs.tabBar()
+    for i in range(panel.tabs.count()):
+        if not panel.tabs.isTabVisible(i):
+            continue
+        rect, text = bar.tabRect(i), panel.tabs.tabText(i)
+        assert rect.width() >= bar.fontMetrics().horizontalAdvance(text), text
+        room = panel.tabs.width()
+        assert rect.left() >= 0 and rect.right() < room, (text, rect, room)
+
+
+def test_the_panel_opens_on_beads_and_says_what_each_step_needs(make_napari_viewer,
+                                                                bead_image, qtbot):
+    v = make_napari_viewer(show=True)
+    v.window._qt_window.resize(1280, 800)
+    _, panel = v.window.add_plugin_dock_widget(PLUGIN, "PSF space")
+    qtbot.wait(100)  # laid out
+    assert panel.tabs.tabText(panel.tabs.currentIndex()) == "Beads"
+    assert "Family" not in panel.offered_steps()
+    # nothing open: the page says what Beads needs, its controls greyed
+    note = panel.needs["Beads"]
+    assert note.isVisibleTo(panel) and "image" in note.text()
+    assert not panel.steps["Beads"].native.isEnabled()
+    _assert_tabs_whole(panel)
+    image, truth = bead_image
+    v.add_image(image, name="one")
+    qtbot.wait(20)
+    assert not note.isVisibleTo(panel) and panel.steps["Beads"].native.isEnabled()
+    assert "Family" not in panel.offered_steps()  # one 2-D image is no family
+    assert panel.needs["3D"].text().startswith("3D needs a z-stack")
+    v.add_image(image * 1.1, name="two")
+    qtbot.wait(50)
+    assert "Family" in panel.offered_steps()
+    _assert_tabs_whole(panel)  # all seven whole
+    assert panel.steps["Family"].source.value == "image layers"  # no stack: the layers
+    v.layers.remove("two")
+    assert "Family" not in panel.offered_steps()
+    v.add_image(np.stack([image, image]), name="stack")
+    assert "Family" in panel.offered_steps() and "3D" in panel.ready_steps()
 
 
 def test_the_radius_set_in_beads_is_every_later_steps_radius(laptop):
     v, dock, panel, _ = laptop
     beads = panel.steps["Beads"].radius
     beads.set_calibration(beads.pixel_size, 11.0)
-    for title in ("Review", "Model", "Diagnose", "Family"):
+    for title in ("Review", "Model", "Diagnose", "Family", "3D"):
         assert np.isclose(panel.steps[title].radius.pixels, 11.0, atol=0.01), title
 
 
@@ -138,7 +181,7 @@ def test_every_step_twice_the_same_layers_cancel_within_a_second(laptop, qtbot,
     v.add_image(np.asarray(image.data) * 1.1, name="beads image 2", scale=image.scale,
                 metadata=dict(image.metadata))
     steps = panel.steps
-    assert panel.enabled_steps() == ["Beads", "Model", "Diagnose", "Family"]
+    assert panel.ready_steps() == ["Beads", "Model", "Diagnose", "Family"]
     steps["Beads"].image.value = image
     buttons = {"Beads": "detect", "Review": "extract", "Model": "learn",
                "Diagnose": "diagnose", "Family": "learn", "Deblur": "run_button"}
@@ -169,10 +212,10 @@ def test_every_step_twice_the_same_layers_cancel_within_a_second(laptop, qtbot,
                 statuses = got
         assert not any(n.endswith("]") for n in names), names  # no "name [1]" copies
         if title == "Beads":
-            assert "Review" in panel.enabled_steps()
-            assert "Deblur" not in panel.enabled_steps()
+            assert "Review" in panel.ready_steps()
+            assert "Deblur" not in panel.ready_steps()
         if title == "Model":  # the model just learnt is Deblur's operator
-            assert "Deblur" in panel.enabled_steps()
+            assert "Deblur" in panel.ready_steps()
             assert steps["Deblur"].source.value == "from the viewer"
             assert steps["Deblur"].model() is widget.operator
         if title == "Diagnose":
@@ -196,11 +239,30 @@ def test_every_step_twice_the_same_layers_cancel_within_a_second(laptop, qtbot,
     _check_groups(v, panel, list(buttons))
 
 
+def _assert_maps_named_with_bars(v, made) -> None:
+    """Every image layer a step made names its unit in brackets and has its colour bar,
+    whose labels carry the same unit; a bar's limits are the map's."""
+    from napari_psfspace._widgets._layers.figure import BAR, BAR_TEXT
+
+    for name in made:
+        layer = v.layers[name]
+        if layer.__class__.__name__ != "Image" or name.startswith(BAR):
+            continue
+        assert name.endswith(")") and " (" in name, name
+        assert BAR + name in v.layers and BAR_TEXT + name in v.layers, name
+        bar = v.layers[BAR + name]
+        assert np.allclose(bar.contrast_limits, layer.contrast_limits), name
+        assert bar.colormap.name == layer.colormap.name, name
+        unit = (layer.metadata or {}).get("unit", "")
+        ticks = list(v.layers[BAR_TEXT + name].features["tick"])
+        assert len(ticks) == 3 and all(t.endswith(unit) for t in ticks), (name, ticks)
+
+
 def _check_groups(v, panel, titles):
-    """Each step's layers are one group: titled, colour bars on the maps, and removed
-    together by the step's button, the other steps' layers and the data left alone."""
-    from napari_psfspace._widgets._diagnose import MAP_AFTER, MAP_BEFORE
-    from napari_psfspace._widgets._layers import MAPS, STEP_KEY, step_layers
+    """Each step's layers are one group: titled, each map named with its unit and with
+    its colour bar, none over the data or another, and removed together by the step's
+    button, the other steps' layers and the data left alone."""
+    from napari_psfspace._widgets._layers import STEP_KEY, step_layers
 
     groups = {t: {layer.name for layer in step_layers(v, t)} for t in titles}
     assert all(groups.values()), groups
@@ -210,14 +272,11 @@ def _check_groups(v, panel, titles):
         assert any(n.startswith("titles: ") for n in groups[t]), (t, groups[t])
         texts = [n for n in groups[t] if n.startswith("titles: ")]
         assert len(v.layers[texts[0]].features["title"]) >= 3
-    # the residual maps' one colour scale has its bar (the mosaics are relative, -1..1)
-    assert v.layers[MAP_AFTER].colorbar.visible
-    assert not v.layers[MAP_BEFORE].colorbar.visible and not v.layers[MAPS].colorbar.visible
-    # results never land on each other nor on the data (the deblurred image lies on it
-    # by design; points mark places on the mosaics and the image)
+    _assert_maps_named_with_bars(v, made)
+    # results never land on each other nor on the data (points mark places on the
+    # mosaics and the image)
     boxes = [(layer.name, np.asarray(layer.extent.world)[:, -2:]) for layer in v.layers
              if layer.__class__.__name__ == "Image"
-             and (layer.metadata or {}).get(STEP_KEY) != "Deblur"
              and layer.name != "beads image 2"]  # a copy of the data, on the data
     for i, (a, box_a) in enumerate(boxes):
         for b, box_b in boxes[i + 1:]:

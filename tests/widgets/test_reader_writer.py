@@ -5,7 +5,8 @@ import pytest
 
 from napari_psfspace import estimate_operator, load_operator
 from napari_psfspace._reader import get_model_reader, get_tiff_reader
-from napari_psfspace._widgets._layers import OPERATOR_KEY
+from napari_psfspace._widgets._layers import BASIS, MAPS, OPERATOR_KEY, PSF_GRID
+from napari_psfspace._widgets._layers.figure import BAR, BAR_TEXT
 from napari_psfspace._writer import write_model, write_psf_tiff
 from napari_psfspace.io import read_image, write_tiff
 
@@ -28,15 +29,16 @@ def test_model_reader_gives_grid_basis_and_scaled_maps(model):
     reader = get_model_reader(str(path))
     assert reader is not None
     layers = {kw["name"].split(" [")[0]: (d, kw, t) for d, kw, t in reader(str(path))}
-    assert set(layers) == {"PSF grid", "PSF basis h_i", "coefficient maps alpha_i",
-                           "titles: model"}
-    maps, kw, kind = layers["coefficient maps alpha_i"]
+    shown = {PSF_GRID, BASIS, MAPS}
+    assert set(layers) == shown | {BAR + n for n in shown} | {BAR_TEXT + n for n in shown} | {
+        "titles: model"}
+    maps, kw, kind = layers[MAPS]
     # a 2-D mosaic of the I maps, fitting the image's size in its units (um)
     assert kind == "image" and maps.ndim == 2
     height, width = (n * kw["scale"][0] for n in maps.shape)
     assert max(height / (op.shape[0] * 0.065), width / (op.shape[1] * 0.065)) == (
         pytest.approx(1.0))
-    assert isinstance(layers["PSF grid"][1]["metadata"][OPERATOR_KEY], type(op))
+    assert isinstance(layers[PSF_GRID][1]["metadata"][OPERATOR_KEY], type(op))
 
 
 def test_model_reader_refuses_other_files(tmp_path):

@@ -41,7 +41,8 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     v.add_image(stack[0], name="a 2-D image")  # not offered: not a z-stack
     assert [name for name, _ in w._stacks()] == ["bead stack"]
     w.image.value = v.layers["bead stack"]
-    w.radius.value = int(series.psf_radius.max())
+    assert w.radius.value_edit.label.endswith("(µm)")  # the stack is calibrated
+    w.radius.set_calibration(w.radius.pixel_size, float(int(series.psf_radius.max())))
     names = None
     for _ in range(2):
         w.learn.clicked()
@@ -49,25 +50,28 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         now = [layer.name for layer in v.layers]
         assert names is None or now == names  # a re-run updates, never piles up
         names = now
-    grid = v.layers[PSF_GRID_3D]
+    grid = v.layers[f"{PSF_GRID_3D} (relative)"]
     op = grid.metadata[OPERATOR_3D_KEY]
     assert op is w.operator and grid.data.ndim == 3
-    assert grid.data.shape[0] == op.kernel_shape[0]
-    # the grid's bead plane on the stack's: world z of kernel plane K // 2 = op.plane
-    assert grid.translate[0] + (op.kernel_shape[0] // 2) * grid.scale[0] == \
-        pytest.approx(op.plane * 0.2)
-    assert PSF_SECTIONS in v.layers and PSF_SECTIONS_Y in v.layers
-    # the maps in nm (the stack is calibrated), their unit in their names
-    assert all(f"{label} (nm)" in v.layers for _, label, _ in MAPS)
-    assert np.isfinite(v.layers[f"{MAPS[0][1]} (nm)"].data).all()
+    # on the stack's own planes: the z slider keeps the stack's length
+    assert grid.data.shape[0] == stack.shape[0] and grid.translate[0] == 0.0
+    assert grid.scale[0] == pytest.approx(0.2)
+    sections = v.layers[f"{PSF_SECTIONS} (relative)"]
+    assert f"{PSF_SECTIONS_Y} (relative)" in v.layers
+    # the sections fit one slot: no taller than the stack's field
+    height = np.ptp(np.asarray(sections.extent.world)[:, -2])
+    assert height <= stack.shape[1] * px * (1 + 1e-6)
+    # the maps in µm (the stack is calibrated), their unit in their names
+    assert all(f"{label} (µm)" in v.layers for _, label, _ in MAPS)
+    assert np.isfinite(v.layers[f"{MAPS[0][1]} (µm)"].data).all()
     # the lateral FWHM where the optics put it: 1 to 1.6x the Airy disk's (the grid's
     # PSFs carry the field's aberrations; a map in px would read 3-6 here)
     from napari_psfspace.core.common.measures import diffraction_limit
 
-    limit = 1000 * diffraction_limit(series.optics.na, series.optics.wavelength)["lateral"]
-    lateral = v.layers["lateral FWHM (nm)"].data
+    limit = diffraction_limit(series.optics.na, series.optics.wavelength)["lateral"]
+    lateral = v.layers["lateral FWHM (µm)"].data
     assert 0.95 * limit <= lateral.min() and lateral.max() <= 1.6 * limit, (limit, lateral)
-    assert "lateral FWHM" in w.learn_result.value and " nm," in w.learn_result.value
+    assert "lateral FWHM" in w.learn_result.value and " µm," in w.learn_result.value
     # deblur with the learnt model, twice: one layer
     w.iterations.value = 3
     for _ in range(2):
@@ -76,18 +80,53 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     out = [layer for layer in v.layers if layer.name.startswith(DEBLURRED_3D)]
     assert len(out) == 1 and out[0].data.shape == stack.shape
     assert np.all(out[0].data >= 0) and tuple(out[0].scale) == (0.2, px, px)
-    # Cancel within a second, nothing added
+    # beside the stack, on its planes, never blended over it
+    raw = np.asarray(v.layers["bead stack"].extent.world)
+    got = np.asarray(out[0].extent.world)
+    assert got[1, -1] < raw[0, -1] and np.allclose(got[:, 0], raw[:, 0])
+    assert out[0].blending != "additive"
+    # a re-learn keeps the deblurred stack; the step's button removes everything
+    w.learn.clicked()
+    wait_task(qtbot, w.learn_task, timeout=60_000)
+    assert out[0] in v.layers
+    # Cancel in every phase: within 2 s, nothing added. The iteration yields after each
+    # wave of blocks (one a thread), the setup after each of its steps
     w.iterations.value = 10_000
-    v.layers.remove(out[0])
-    w.deblur.clicked()
-    qtbot.waitUntil(lambda: w.deblur_task.running, timeout=5_000)
-    qtbot.wait(200)
-    w.deblur_task.request_cancel()
-    wait_task(qtbot, w.deblur_task, timeout=1_000 + 5_000)
-    assert DEBLURRED_3D not in v.layers
+    from napari_psfspace._widgets._layers import group_layers, remove_step
+
+    assert remove_step(v, "3D") >= 2 and not group_layers(v, "3D")
+    assert [layer.name for layer in v.layers] == ["bead stack", "a 2-D image"]
+    for phase in ("setup", "iteration"):
+        records = []
+        w.deblur.clicked()
+        w.deblur_task.worker.yielded.connect(records.append)
+        if phase == "iteration":
+            qtbot.waitUntil(lambda r=records: any(x.stage == "iteration" for x in r),
+                            timeout=30_000)
+        w.deblur_task.request_cancel()
+        wait_task(qtbot, w.deblur_task, timeout=2_000)
+        stages = {x.stage for x in records}
+        assert ("iteration" in stages) == (phase == "iteration"), (phase, stages)
+        assert w.deblur_task.status.value.startswith("cancelled"), phase
+        assert not any(layer.name.startswith(DEBLURRED_3D) for layer in v.layers), phase
     # a wrong model file is named, no traceback
     bad = tmp_path / "bad.npz"
     bad.write_text("not a model")
     w.model_file.value = bad
     w.deblur.clicked()
     assert "bad.npz" in w.deblur_task.status.value
+
+
+def test_the_psf_grid_lies_on_the_stacks_planes():
+    """Plane j of the shown grid is the kernel's plane K // 2 + j - plane: the bead
+    plane on the stack's, zeros where the kernel has no plane, the stack's length."""
+    from napari_psfspace._widgets._volume import on_stack_planes
+
+    k, plane, n = 7, 1, 4
+    volume = np.arange(k, dtype=np.float32)[:, None, None] * np.ones((k, 2, 3), np.float32)
+    got = on_stack_planes(volume, plane, n)
+    assert got.shape == (n, 2, 3)
+    assert [float(p[0, 0]) for p in got] == [2.0, 3.0, 4.0, 5.0]  # K // 2 + j - plane
+    # a stack deeper than the kernel: zeros beyond it
+    got = on_stack_planes(volume, 5, 12)
+    assert got[5, 0, 0] == 3.0 and not got[:2].any() and not got[9:].any()

@@ -30,12 +30,27 @@ from napari.utils.notifications import show_error
 from ..core.common.progress import Progress
 from ..core.restore import identify_operator, iter_deblur
 from ..core.restore.identify import IdentificationWarning
-from ._layers import OPERATOR_KEY, SUBSPACE_KEY, image_plane, show_layers
+from ._layers import (
+    MADE_AS,
+    OPERATOR_KEY,
+    PSF_GRID,
+    SUB_GRID,
+    SUBSPACE_KEY,
+    Frame,
+    LayerTuple,
+    beside,
+    focus_on_step,
+    free_slot,
+    image_plane,
+    map_layers,
+    show_layers,
+)
 from ._worker import CoreTask, layer_choices, result_text
 
 if TYPE_CHECKING:
     import napari
 
+#: Names of the result layers, before the slice and the unit.
 SPARSE = "deblurred: sparse part"
 SMOOTH = "deblurred: smooth part"
 SOURCES = ("file (subspace or model)", "from the viewer")
@@ -61,6 +76,45 @@ def _identify_and_deblur(plane, model, beads, **kwargs):
     return res, op, note
 
 
+def _limits(values: np.ndarray) -> tuple[float, float]:
+    """Contrast limits that show a sparse image's single points: 0 to the 99.9th
+    percentile of its nonzero values (not of every pixel, which is 0 for most)."""
+    nz = np.abs(values[np.isfinite(values) & (values != 0)])
+    top = float(np.percentile(nz, 99.9)) if nz.size else 1.0
+    lo = float(min(np.nanmin(values), 0.0)) if values.size else 0.0
+    return lo, max(top, lo + 1e-12)
+
+
+def result_layers(viewer, res, frame: Frame, layer) -> list[LayerTuple]:
+    """The sparse part left of the input (the first free slot leftwards, column -1 unless
+    another step's results lie there) and the smooth part below it,
+    each with its colour bar, in the image's units. From a stack's slice the parts are
+    one-plane stacks on that slice (shown with it, not over every slice), named for it."""
+    where = "" if frame.index is None else f", slice {frame.index}"
+    meta = {"pixel_size_um": frame.pixel_size, "deblur": res.parameters,
+            "source": layer.name, "slice": frame.index}
+    out: list[LayerTuple] = []
+    _, x = free_slot(viewer, frame, "Deblur")
+    for row, (part, name, cmap) in enumerate(((res.sparse, SPARSE, "magma"),
+                                              (res.smooth, SMOOTH, "gray"))):
+        y = beside(frame, 0.0, float(row))[0]
+        kwargs = {"name": f"{name}{where} (image units)", "scale": frame.scale,
+                  "translate": (y, x), "colormap": cmap, "contrast_limits": _limits(part),
+                  "metadata": meta}
+        out.extend(map_layers(np.asarray(part, np.float32), kwargs, "", frame))
+    if frame.index is not None:  # on the slice it came from
+        dz, tz = float(layer.scale[0]), float(layer.translate[0])
+        z = tz + frame.index * dz
+        for i, (data, kwargs, kind) in enumerate(out):
+            if kind == "image" and np.ndim(data) == 2:
+                out[i] = (data[None], kwargs | {"scale": (dz, *kwargs["scale"]),
+                                                "translate": (z, *kwargs["translate"])},
+                          kind)
+            else:
+                out[i] = (np.column_stack([np.full(len(data), z), data]), kwargs, kind)
+    return out
+
+
 def _viewer_models(viewer) -> list:
     """(label, layer name) of the layers holding an operator or a family: the model is
     looked up by name when the deblur starts, so a step re-run in place (the same
@@ -68,10 +122,13 @@ def _viewer_models(viewer) -> list:
     out = []
     for layer in viewer.layers:
         meta = getattr(layer, "metadata", None) or {}
+        made = meta.get(MADE_AS)
         if SUBSPACE_KEY in meta:
-            out.append((f"family: {layer.name}", layer.name))
+            out.append(("Family step's family" if made == SUB_GRID
+                        else f"family: {layer.name}", layer.name))
         elif OPERATOR_KEY in meta:
-            out.append((meta.get("model_label", f"model: {layer.name}"), layer.name))
+            label = "Model step's model" if made == PSF_GRID else f"model: {layer.name}"
+            out.append((meta.get("model_label", label), layer.name))
     return out
 
 
@@ -192,15 +249,9 @@ class DeblurWidget(Container):
         def on_result(got) -> None:
             res, op, note = got
             self.last, self.operator = res, op
-            common = {"scale": frame.scale, "translate": frame.translate,
-                      "metadata": {"pixel_size_um": frame.pixel_size,
-                                   "deblur": res.parameters, "source": layer.name}}
-            show_layers(self._viewer, [
-                (res.smooth, {"name": SMOOTH, "colormap": "gray", "visible": False,
-                              **common}, "image"),
-                (res.sparse, {"name": SPARSE, "colormap": "magma",
-                              "blending": "additive", **common}, "image")],
+            show_layers(self._viewer, result_layers(self._viewer, res, frame, layer),
                         step="Deblur", replace=True)
+            focus_on_step(self._viewer, "Deblur", layer)
             p = res.parameters
             self.result.value = (
                 f"{note}; {res.iterations} iterations "

@@ -27,11 +27,12 @@ from ..report import (
     write_report,
 )
 from ._layers import (
-    COLORBAR,
     OPERATOR_KEY,
     Frame,
     LayerTuple,
     beside,
+    focus_on_step,
+    map_layers,
     show_layers,
     titles_layer,
     user_beads,
@@ -49,10 +50,10 @@ if TYPE_CHECKING:
     import napari
 
 #: Names of the layers this widget creates.
-MAP_BEFORE = "residual map (plain model)"
-MAP_AFTER = "residual map (final model)"
-MEAN_BEFORE = "mean residual (plain model)"
-MEAN_AFTER = "mean residual (final model)"
+MAP_BEFORE = "excess error, plain model (fraction of energy)"
+MAP_AFTER = "excess error, final model (fraction of energy)"
+MEAN_BEFORE = "mean residual, plain model (noise sd)"
+MEAN_AFTER = "mean residual, final model (noise sd)"
 TITLES = "titles: diagnosis"
 
 
@@ -83,12 +84,12 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
         meta = {"about": about_map, "cell_size_px": cell}
         if key == "map_after":  # the model the diagnosis refined: Deblur offers it
             meta[OPERATOR_KEY] = diagnosis.operator
-            meta["model_label"] = "diagnosed model (Diagnose's final model)"
-        out.append((fig[key].astype("float32"),
-                    {"name": name, "scale": scale, "translate": beside(frame, col, -1.0),
-                     "colormap": "viridis", "contrast_limits": (0.0, fig["map_limit"]),
-                     COLORBAR: key == "map_after",  # one scale for both maps
-                     "metadata": meta}, "image"))
+            meta["model_label"] = "Diagnose's final model"
+        out.extend(map_layers(fig[key].astype("float32"),
+                              {"name": name, "scale": scale,
+                               "translate": beside(frame, col, -1.0), "colormap": "viridis",
+                               "contrast_limits": (0.0, fig["map_limit"]), "metadata": meta},
+                              "", frame))
     lim = fig["mean_limit"]
     size = 0.45 * frame.height
     y0, x0 = beside(frame, 2.0, -1.0)
@@ -96,12 +97,13 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
                                        (MEAN_AFTER, "mean_after"))):
         patch = fig[key]
         s = size / patch.shape[-1]
-        out.append((patch.astype("float32"),
-                    {"name": name, "scale": (s, s),
-                     "translate": (y0 + row * 0.55 * frame.height, x0),
-                     "colormap": "gray", "contrast_limits": (-lim, lim),
-                     "metadata": {"about": "mean normalised residual patch over the beads "
-                                           "(noise sd)"}}, "image"))
+        out.extend(map_layers(patch.astype("float32"),
+                              {"name": name, "scale": (s, s),
+                               "translate": (y0 + row * 0.55 * frame.height, x0),
+                               "colormap": "gray", "contrast_limits": (-lim, lim),
+                               "metadata": {"about": "mean normalised residual patch over "
+                                                     "the beads (noise sd)"}},
+                              "sd", frame))
     titles = []
     for col, which in enumerate(("plain", "final")):
         y, x = beside(frame, col, -1.0)
@@ -209,7 +211,7 @@ class DiagnoseWidget(FollowsBeads, Container):
                                                         markdown=False)])
             show_layers(self._viewer, diagnosis_layers(diag, frame), step="Diagnose",
                         replace=True)
-            self._viewer.reset_view()
+            focus_on_step(self._viewer, "Diagnose", img)
             if folder is not None:
                 path = write_report(diag, folder, image_name=name,
                                     pixel_size=frame.pixel_size,

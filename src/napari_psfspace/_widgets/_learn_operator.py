@@ -28,9 +28,10 @@ from ._layers import (
     PSF_GRID,
     beads_layer,
     find_layer,
-    heldout_layer,
+    focus_on_step,
+    heldout_layers,
     operator_layers,
-    psf_layer,
+    psf_layers,
     set_statuses,
     show_layers,
     user_beads,
@@ -170,10 +171,10 @@ class LearnOperatorWidget(FollowsBeads, Container):
                 set_statuses(pts, ids, est.beads.status)
             tuples = operator_layers(est.operator, frame)
             if est.heldout is not None and len(est.heldout.residual):
-                tuples.append(heldout_layer(est.heldout, frame))
+                tuples.extend(heldout_layers(est.heldout, frame))
             show_layers(self._viewer, tuples, step="Model", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
-            self._viewer.reset_view()
+            focus_on_step(self._viewer, "Model", img)
             self.show_psf.enabled = True
             self.result.value = self._describe(est, self.radius.pixel_size)
             if path is not None:
@@ -211,4 +212,4 @@ class LearnOperatorWidget(FollowsBeads, Container):
 
             show_error(str(exc))
             return
-        show_layers(self._viewer, [psf_layer(psf, y, x, self._frame)], step="Model")
+        show_layers(self._viewer, psf_layers(psf, y, x, self._frame), step="Model")

@@ -35,6 +35,7 @@ from ._layers import (
     Frame,
     below_others,
     find_layer,
+    focus_on_step,
     show_layers,
     subspace_layers,
 )
@@ -108,6 +109,9 @@ class LearnSubspaceWidget(Container):
 
     def _on_layers(self, *_) -> None:
         self.reset_choices()
+        # several 2-D images and no stack: they are the images
+        if not self._stacks() and len(self._planes()) >= 2 and self.source.value == SOURCES[0]:
+            self.source.value = SOURCES[1]
 
     def _on_source(self, *_) -> None:
         src = self.source.value
@@ -195,7 +199,7 @@ class LearnSubspaceWidget(Container):
                                                       stack_axis=axis),
                         step="Family", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)
-            self._viewer.reset_view()
+            focus_on_step(self._viewer, "Family")
             self.result.value = self._describe(sub)
             if path is not None:
                 sub.save(path)

@@ -3,11 +3,12 @@
 Beads -> Review -> Model -> Diagnose -> Family -> Deblur, and 3D for z-stacks. Each tab
 holds one of the step widgets (the same classes the Plugins menu offers one by one), in a
 scroll area so that the dock fits a laptop screen (1280 x 800) with the canvas beside it
-whatever the step shows. A tab is enabled once its input exists (an image; a beads layer
-for Review; a learnt model or family for Deblur; a z-stack for 3D), and says why not in
-its tooltip otherwise. The steps share their state through the viewer's layers (the beads
-layer carries the user's rejections) and through the panel: the PSF radius set in Beads
-is the radius of every later step.
+whatever the step shows. The panel opens on Beads. A step's controls are live once its
+input exists (an image; a beads layer for Review; several images for Family, whose tab
+shows only then; a learnt model or family for Deblur; a z-stack for 3D); until then its
+page says, above the greyed controls, what it needs. The steps share their state
+through the viewer's layers (the beads layer carries the user's rejections) and through
+the panel: the PSF radius set in Beads is the radius of every later step.
 """
 
 from __future__ import annotations
@@ -16,11 +17,11 @@ from typing import TYPE_CHECKING
 
 from napari.layers import Image, Points
 from qtpy.QtCore import Qt
-from qtpy.QtWidgets import QPushButton, QScrollArea, QTabWidget, QVBoxLayout, QWidget
+from qtpy.QtWidgets import QLabel, QPushButton, QScrollArea, QTabWidget, QVBoxLayout, QWidget
 
 from ._deblur import DeblurWidget
 from ._diagnose import DiagnoseWidget
-from ._layers import BEADS, OPERATOR_KEY, SUBSPACE_KEY, remove_step, step_layers
+from ._layers import BEADS, OPERATOR_KEY, SUBSPACE_KEY, group_layers, remove_step
 from ._learn_operator import LearnOperatorWidget
 from ._learn_subspace import LearnSubspaceWidget
 from ._pick_beads import PickBeadsWidget
@@ -30,18 +31,24 @@ from ._volume import Volume3DWidget
 if TYPE_CHECKING:
     import napari
 
-#: (tab title, widget class, what the step needs, in words for its tooltip).
+#: (tab title, widget class, what the step needs, in words for its page).
 STEPS = (
-    ("Beads", PickBeadsWidget, "an image layer"),
-    ("Review", ReviewPatchesWidget, "a beads layer (detect beads first)"),
-    ("Model", LearnOperatorWidget, "an image layer"),
-    ("Diagnose", DiagnoseWidget, "an image layer"),
-    ("Family", LearnSubspaceWidget, "an image layer"),
-    ("Deblur", DeblurWidget, "a learnt model or family (Model or Family step)"),
+    ("Beads", PickBeadsWidget, "an image layer: open a bead image (File > Open, or drag "
+                               "it onto the canvas)"),
+    ("Review", ReviewPatchesWidget, "a beads layer: detect beads in the Beads step first"),
+    ("Model", LearnOperatorWidget, "an image layer: open a bead image"),
+    ("Diagnose", DiagnoseWidget, "an image layer: open a bead image"),
+    ("Family", LearnSubspaceWidget, "several images: a z-stack, or two or more 2-D images"),
+    ("Deblur", DeblurWidget, "a learnt model or family: run the Model or Family step, or "
+                             "open a model file"),
     ("3D", Volume3DWidget, "a z-stack image layer (Z, Y, X)"),
 )
 #: Widest the dock asks for (px): the canvas keeps the rest of a 1280 px screen.
 PANEL_WIDTH = 380
+#: Tabs shown only when their step can run (the others say why in their page).
+HIDDEN_UNLESS_READY = ("Family",)
+#: Padding of a tab's label (px, left and right): seven whole labels in the dock's width.
+TAB_PADDING = 5
 
 
 def _has(viewer, test) -> bool:
@@ -49,7 +56,11 @@ def _has(viewer, test) -> bool:
 
 
 def _is_image(layer) -> bool:
-    return isinstance(layer, Image)
+    return isinstance(layer, Image) and not getattr(layer, "rgb", False)
+
+
+def _is_stack(layer) -> bool:
+    return _is_image(layer) and layer.ndim == 3
 
 
 def _is_beads(layer) -> bool:
@@ -61,15 +72,22 @@ def _is_model(layer) -> bool:
     return OPERATOR_KEY in meta or SUBSPACE_KEY in meta
 
 
-#: What enables each step (a test on the viewer's layers).
+def _several_images(viewer) -> bool:
+    """A stack of two planes or more, or two 2-D images or more: a family's input."""
+    if any(_is_stack(layer) and layer.data.shape[0] >= 2 for layer in viewer.layers):
+        return True
+    return sum(_is_image(layer) and layer.ndim == 2 for layer in viewer.layers) >= 2
+
+
+#: What lets each step run (a test on the viewer).
 NEEDS = {
-    "Beads": _is_image,
-    "Review": _is_beads,
-    "Model": _is_image,
-    "Diagnose": _is_image,
-    "Family": _is_image,
-    "Deblur": _is_model,
-    "3D": lambda layer: _is_image(layer) and layer.ndim == 3 and not layer.rgb,
+    "Beads": lambda viewer: _has(viewer, _is_image),
+    "Review": lambda viewer: _has(viewer, _is_beads),
+    "Model": lambda viewer: _has(viewer, _is_image),
+    "Diagnose": lambda viewer: _has(viewer, _is_image),
+    "Family": _several_images,
+    "Deblur": lambda viewer: _has(viewer, _is_model),
+    "3D": lambda viewer: _has(viewer, _is_stack),
 }
 
 
@@ -98,9 +116,15 @@ class PsfSpacePanel(QWidget):
         self.tabs.setDocumentMode(True)
         self.steps: dict = {}
         self.clear_buttons: dict = {}
-        for title, cls, _ in STEPS:
+        self.needs: dict = {}  # the line in each page that says what the step needs
+        self.pages: dict = {}
+        for title, cls, need in STEPS:
             widget = cls(viewer)
             self.steps[title] = widget
+            note = QLabel(f"{title} needs {need}.")
+            note.setWordWrap(True)
+            note.setStyleSheet("QLabel { padding: 6px; color: #ffcc66; }")
+            self.needs[title] = note
             scroll = QScrollArea()
             scroll.setWidgetResizable(True)
             scroll.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
@@ -108,6 +132,7 @@ class PsfSpacePanel(QWidget):
             page = QWidget()
             box = QVBoxLayout(page)
             box.setContentsMargins(0, 0, 0, 0)
+            box.addWidget(note)
             box.addWidget(scroll)
             clear = QPushButton(f"Remove the {title} step's layers")
             clear.setToolTip("Remove every layer this step made (results, titles, "
@@ -116,10 +141,19 @@ class PsfSpacePanel(QWidget):
             box.addWidget(clear)
             self.clear_buttons[title] = clear
             self.tabs.addTab(page, title)
+            self.pages[title] = page
+        self.tabs.tabBar().setStyleSheet(
+            f"QTabBar::tab {{ padding-left: {TAB_PADDING}px; padding-right: {TAB_PADDING}px; "
+            f"min-width: 0px; }}")
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
         layout.addWidget(self.tabs)
         self.setMaximumWidth(PANEL_WIDTH + 40)
+        # never narrower than the widest step's content: dragging the dock narrower
+        # would cut its controls (the scroll areas scroll vertically only)
+        bar = QScrollArea().verticalScrollBar().sizeHint().width()
+        need = max(w.native.minimumSizeHint().width() for w in self.steps.values())
+        self.setMinimumWidth(min(need + bar + 8, PANEL_WIDTH + 40))
         self.setMinimumHeight(0)
         # one radius for every step: the one set in Beads
         self.steps["Beads"].radius.value_edit.changed.connect(self._share_radius)
@@ -127,6 +161,7 @@ class PsfSpacePanel(QWidget):
         viewer.layers.events.removed.connect(self.update_steps)
         viewer.layers.events.changed.connect(self.update_steps)
         self.update_steps()
+        self.tabs.setCurrentIndex(0)  # the method's first step
 
     def sizeHint(self):  # noqa: N802 (Qt's name)
         hint = super().sizeHint()
@@ -141,7 +176,7 @@ class PsfSpacePanel(QWidget):
 
     def _share_radius(self, *_) -> None:
         source = self.steps["Beads"].radius
-        for title in ("Review", "Model", "Diagnose", "Family"):
+        for title in ("Review", "Model", "Diagnose", "Family", "3D"):
             edit = getattr(self.steps[title], "radius", None)
             if edit is not None and edit is not source:
                 edit.set_calibration(edit.pixel_size, source.pixels)
@@ -150,23 +185,28 @@ class PsfSpacePanel(QWidget):
         """Remove the layers the step ``title`` made (one group); how many went."""
         return remove_step(self._viewer, title)
 
-    def enabled_steps(self) -> list[str]:
-        """The titles of the tabs enabled now."""
+    def ready_steps(self) -> list[str]:
+        """The titles of the steps that can run now."""
+        return [title for title, _, _ in STEPS if NEEDS[title](self._viewer)]
+
+    def offered_steps(self) -> list[str]:
+        """The titles of the tabs shown now."""
         return [self.tabs.tabText(i) for i in range(self.tabs.count())
-                if self.tabs.isTabEnabled(i)]
+                if self.tabs.isTabVisible(i)]
 
     def update_steps(self, *_) -> None:
-        """Enable each step whose input exists; say in its tooltip what it needs."""
+        """Each step runs once its input exists; until then its page says what it needs
+        and its controls are greyed. Family is shown only with several images."""
         for i, (title, _, need) in enumerate(STEPS):
-            ok = _has(self._viewer, NEEDS[title])
-            self.tabs.setTabEnabled(i, ok)
+            ok = NEEDS[title](self._viewer)
+            self.needs[title].setVisible(not ok)
+            self.steps[title].native.setEnabled(ok)
             self.tabs.setTabToolTip(i, "" if ok else f"{title} needs {need}.")
-            self.clear_buttons[title].setEnabled(bool(step_layers(self._viewer, title)))
-        if not self.tabs.isTabEnabled(self.tabs.currentIndex()):
-            for i in range(self.tabs.count()):
-                if self.tabs.isTabEnabled(i):
-                    self.tabs.setCurrentIndex(i)
-                    break
+            if title in HIDDEN_UNLESS_READY:
+                self.tabs.setTabVisible(i, ok)
+            self.clear_buttons[title].setEnabled(bool(group_layers(self._viewer, title)))
+        if not self.tabs.isTabVisible(self.tabs.currentIndex()):
+            self.tabs.setCurrentIndex(0)
 
 
 __all__ = ["STEPS", "PsfSpacePanel"]

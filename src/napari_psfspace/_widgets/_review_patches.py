@@ -17,9 +17,10 @@ from ._layers import (
     beads_from_points,
     ensure_bead_features,
     find_layer,
+    focus_on_step,
     gallery_cell,
     gallery_index,
-    gallery_layer,
+    gallery_layers,
     set_statuses,
     show_layers,
 )
@@ -107,7 +108,7 @@ class ReviewPatchesWidget(FollowsBeads, Container):
             self.review, self._ids, self._frame = review, ids[review.index], frame
             self._show_gallery()
             self.patch.max = len(review) - 1
-            self._viewer.reset_view()
+            focus_on_step(self._viewer, "Review", self.image.value)
             self.patch.enabled = self.accept.enabled = self.reject.enabled = True
             self.task.status.value = (f"{len(review)} patches below the image; click one, "
                                       f"or set 'patch'.")
@@ -119,8 +120,8 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         if self.review is None:
             return
         stack = self.review.views[self.view.value]
-        layer = show_layers(self._viewer, [gallery_layer(stack, self._frame,
-                                                         view=self.view.value)],
+        layer = show_layers(self._viewer, gallery_layers(stack, self._frame,
+                                                       view=self.view.value),
                             step="Review")[0]
         if self._on_click not in layer.mouse_drag_callbacks:
             layer.mouse_drag_callbacks.append(self._on_click)

@@ -19,22 +19,45 @@ handlers touch the viewer.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from magicgui.widgets import ComboBox, Container, FileEdit, Label, PushButton, SpinBox
+from magicgui.widgets import (
+    CheckBox,
+    ComboBox,
+    Container,
+    FileEdit,
+    FloatSpinBox,
+    Label,
+    PushButton,
+    SpinBox,
+)
 from napari.layers import Image
 from napari.utils.notifications import show_error
 
 from ..core.common.measures import in_units, psf_measures
 from ..core.common.progress import Progress
 from ..core.volume import iter_estimate_operator_3d, load_operator_3d
-from ..core.volume.deconvolve3d import iter_richardson_lucy_3d
+from ..core.volume.deconvolve3d import (
+    MIN_ITERATIONS,
+    STOP_CHANGE,
+    iter_richardson_lucy_3d,
+)
 from ..core.volume.measures import measure_maps
 from ..core.volume.views import psf_grid_3d
-from ._layers import COLORBAR, show_layers
-from ._worker import CoreTask, result_text
+from ._layers import (
+    Frame,
+    below_others,
+    beside,
+    focus_on_step,
+    free_slot,
+    map_layers,
+    show_layers,
+    titles_layer,
+)
+from ._worker import CoreTask, RadiusEdit, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -44,23 +67,55 @@ PSF_GRID_3D = "3D PSF grid"
 PSF_SECTIONS = "3D PSF grid: sections (z down, x across)"
 PSF_SECTIONS_Y = "3D PSF grid: sections (z down, y across)"
 DEBLURRED_3D = "deblurred 3D"
+TITLES_3D = "titles: 3D"
+#: The deblurred stack's group: removed with the step's other layers, not replaced by a
+#: new Learn.
+DEBLUR_STEP = f"{STEP}/deblur"
 OPERATOR_3D_KEY = "psfspace_operator_3d"
-#: (measure, layer name without its unit, colormap) of the maps shown; the unit (nm where
+#: (measure, layer name without its unit, colormap) of the maps shown; the unit (µm where
 #: the stack's voxel size is known, else px and planes) is added to the name.
 MAPS = (("focal_plane", "focal shift", "coolwarm"),
         ("fwhm_lateral", "lateral FWHM", "viridis"),
         ("fwhm_axial", "axial FWHM", "viridis"),
         ("astigmatic_split", "astigmatic split", "PiYG"))
-
-
 def map_in_units(key: str, values: np.ndarray, plane: int, voxel) -> tuple[np.ndarray, str]:
-    """A measure map as shown: the focal shift from the bead plane; nm where ``voxel``
+    """A measure map as shown: the focal shift from the bead plane; µm where ``voxel``
     ``(dz, dy, dx)`` in µm is known, else px and planes. Returns the map and its unit."""
     m = values.astype(np.float64) - (plane if key == "focal_plane" else 0.0)
     if voxel is None:
         return m.astype(np.float32), "px" if key == "fwhm_lateral" else "planes"
     step = voxel[1] if key == "fwhm_lateral" else voxel[0]
-    return (m * step * 1000.0).astype(np.float32), "nm"
+    return (m * step).astype(np.float32), "µm"
+
+
+def map_limits(key: str, m: np.ndarray) -> tuple[float, float]:
+    """Contrast limits of a map: its finite range; a flat map (one PSF for the field) gets
+    its value mid-bar; signed measures (focal shift, astigmatic split) a range symmetric
+    about 0."""
+    finite = m[np.isfinite(m)]
+    if not finite.size:
+        return 0.0, 1.0
+    lo, hi = float(finite.min()), float(finite.max())
+    if key in ("focal_plane", "astigmatic_split"):
+        top = max(abs(lo), abs(hi))
+        return (-top, top) if top > 0 else (-1.0, 1.0)
+    if hi - lo < 1e-3 * max(abs(lo), abs(hi), 1e-12):
+        pad = 0.05 * max(abs(lo), 1e-12)
+        return lo - pad, hi + pad
+    return lo, hi
+
+
+def on_stack_planes(volume: np.ndarray, plane: int, n_planes: int) -> np.ndarray:
+    """The 3D PSF grid (K planes, its bead plane at K // 2) on the stack's own planes:
+    plane ``j`` of the result is the grid's plane ``K // 2 + j - plane``, zero where
+    the grid has none."""
+    k = volume.shape[0]
+    out = np.zeros((n_planes, *volume.shape[1:]), np.float32)
+    j = np.arange(n_planes)
+    src = k // 2 + j - int(plane)
+    ok = (src >= 0) & (src < k)
+    out[j[ok]] = volume[src[ok]]
+    return out
 
 
 def stack_of(layer) -> tuple[np.ndarray, tuple, tuple]:
@@ -83,7 +138,29 @@ def _learn(stack, voxel, **kwargs):
     maps = measure_maps(est.operator, 8, 8)
     _, h, w = est.operator.shape
     centre = psf_measures(est.operator.psf_at((h - 1) / 2, (w - 1) / 2))
-    return est, grid, maps, in_units(centre, voxel)
+    values, units = in_units(centre, voxel)
+    for name, unit in units.items():  # the panel's unit: µm
+        if unit == "nm":
+            values[name], units[name] = values[name] / 1000.0, "µm"
+    return est, grid, maps, (values, units)
+
+
+def deblurred_layers(viewer, res, layer, scale, translate) -> list:
+    """The deblurred stack left of the input (the first free slot leftwards: column -1
+    unless another step's results are there; the same planes, so the z slider shows
+    both side by side), in the input's colormap, with its colour bar."""
+    _, h, w = np.shape(res.volume)
+    frame = Frame((h, w), tuple(scale[1:]), tuple(translate[1:]))
+    y0, x0 = free_slot(viewer, frame, STEP)
+    vol = np.asarray(res.volume, np.float32)
+    top = float(np.percentile(vol, 99.99)) if vol.size else 1.0
+    cmap = getattr(getattr(layer, "colormap", None), "name", None) or "gray"
+    return map_layers(vol, {
+        "name": f"{DEBLURRED_3D} (image units)", "scale": scale,
+        "translate": (translate[0], y0, x0), "colormap": cmap,
+        "contrast_limits": (0.0, max(top, 1e-12)),
+        "metadata": {"source": layer.name, "iterations": res.iterations,
+                     "background": res.background}}, "", frame)
 
 
 class Volume3DWidget(Container):
@@ -92,29 +169,60 @@ class Volume3DWidget(Container):
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
         self.image = ComboBox(label="z-stack", choices=self._stacks)
-        self.radius = SpinBox(label="PSF radius (px)", min=2, max=500, value=16)
-        self.radius.tooltip = "Lateral radius of the 3D PSF, pixels (the widest plane kept)."
-        self.z_radius = SpinBox(label="z radius (planes)", min=0, max=1000, value=0)
-        self.z_radius.tooltip = "Planes kept on each side of the bead plane (0: all)."
+        self.radius = RadiusEdit()
+        self.radius.value_edit.tooltip = (
+            "Lateral radius of the 3D PSF (the widest plane kept): µm for a calibrated "
+            "stack, else px. The panel sets it from the Beads step's radius.")
+        self.radius.set_calibration(None, 16.0)
+        self.z_radius = FloatSpinBox(label="z radius (planes)", min=0.0, max=1e4, value=0.0)
+        self.z_radius.tooltip = ("Depth kept on each side of the bead plane: µm for a "
+                                 "calibrated stack, else planes (0: all).")
+        self._z_step: float | None = None
         self.n_psf = SpinBox(label="basis size I", min=0, max=50, value=0)
         self.n_psf.tooltip = "Number of 3D kernels (0: chosen from the data)."
         self.learn = PushButton(text="Learn 3D PSF")
         self.learn_task = CoreTask(self.learn)
         self.learn_result = result_text(6)
         self.model_file = FileEdit(mode="r", filter="*.npz", label="or model file")
-        self.iterations = SpinBox(label="iterations", min=1, max=10000, value=50)
+        self.iterations = SpinBox(label="iterations at most", min=1, max=10000, value=50)
+        self.accelerate = CheckBox(value=True, text="accelerate (Biggs-Andrews)")
+        self.accelerate.tooltip = ("Each step starts from an extrapolation of the last "
+                                   "two: the same fixed point in fewer iterations.")
+        self.stop = CheckBox(value=True, text="stop when the result stops changing")
+        self.stop.tooltip = (f"Ends when one iteration changes the result by less than "
+                             f"{STOP_CHANGE:g} (relative l2), after {MIN_ITERATIONS} "
+                             f"iterations at least.")
         self.deblur = PushButton(text="Deblur 3D")
         self.deblur_task = CoreTask(self.deblur)
         self.deblur_result = Label(value="")
+        self.deblur_result.native.setWordWrap(True)
         super().__init__(widgets=[
             self.image, self.radius, self.z_radius, self.n_psf, self.learn,
             self.learn_task, self.learn_result, self.model_file, self.iterations,
-            self.deblur, self.deblur_task, self.deblur_result])
+            self.accelerate, self.stop, self.deblur, self.deblur_task,
+            self.deblur_result])
         self.operator = None
         self.learn.changed.connect(self.run_learn)
+        self.image.changed.connect(self._calibrate)
+        self._calibrate()
         self.deblur.changed.connect(self.run_deblur)
         viewer.layers.events.inserted.connect(lambda *_: self.reset_choices())
         viewer.layers.events.removed.connect(lambda *_: self.reset_choices())
+
+    def _calibrate(self, *_) -> None:
+        """µm for a calibrated stack (its lateral and z steps), else px and planes."""
+        layer = self.image.value
+        scale = (1.0, 1.0, 1.0) if layer is None else tuple(float(v) for v in layer.scale)
+        calibrated = not np.allclose(scale, 1.0)
+        self.radius.set_calibration(scale[-1] if calibrated else None)
+        planes = self.z_planes()
+        self._z_step = scale[0] if calibrated else None
+        self.z_radius.label = "z radius (µm)" if calibrated else "z radius (planes)"
+        self.z_radius.value = planes * (self._z_step or 1.0)
+
+    def z_planes(self) -> int:
+        """The z radius in planes (0: all)."""
+        return int(round(float(self.z_radius.value) / (self._z_step or 1.0)))
 
     def _stacks(self, _widget=None) -> list:
         return [(layer.name, layer) for layer in self._viewer.layers
@@ -133,14 +241,15 @@ class Volume3DWidget(Container):
             self._fail(exc, self.learn_task)
             return
         voxel = None if np.allclose(scale, 1.0) else scale
-        gen = _learn(stack, voxel, psf_radius=float(self.radius.value),
-                     z_radius=int(self.z_radius.value) or None,
+        gen = _learn(stack, voxel, psf_radius=float(self.radius.pixels),
+                     z_radius=self.z_planes() or None,
                      n_psf=int(self.n_psf.value) or None)
 
         def on_result(got) -> None:
             est, (_, _, volume, sections, sections_y), (_, _, maps), (c, u) = got
             self.operator = op = est.operator
-            self._show(op, volume, (sections, sections_y), maps, scale, translate)
+            self._show(op, volume, (sections, sections_y), maps, scale, translate,
+                       stack.shape[0])
             meta = op.metadata
             self.learn_result.value = (
                 f"I = {op.n_psf} 3D kernels of {'x'.join(map(str, op.kernel_shape))} from "
@@ -160,54 +269,56 @@ class Volume3DWidget(Container):
 
         self.learn_task.run(gen, on_result)
 
-    def _show(self, op, volume, sections, maps, scale, translate) -> None:
+    def _show(self, op, volume, sections, maps, scale, translate, n_planes) -> None:
         dz, dy, dx = scale
         tz, ty, tx = translate
         _, h, w = op.shape
-        k, p, _ = op.kernel_shape
-        gap = 0.05 * w * dx
-        left = tx + w * dx + gap  # beside the stack
-        tiles = volume.shape[1]
-        s = h * dy / tiles  # the grid as tall as the field
-        z0 = tz + (op.plane - k // 2) * dz  # its bead plane on the stack's
-        tuples = [
-            (volume, {"name": PSF_GRID_3D, "scale": (dz, s, s), "translate": (z0, ty, left),
-                      "colormap": "magma",
-                      "metadata": {OPERATOR_3D_KEY: op,
-                                   "about": "3D PSF at 5 x 5 field positions, each scaled "
-                                            "to its maximum, gamma 0.5"}}, "image"),
-            (sections[0], {"name": PSF_SECTIONS,
-                           "scale": (dz * s / dy, s), "translate": (ty + h * dy + gap, left),
-                           "colormap": "magma"}, "image"),
-            (sections[1], {"name": PSF_SECTIONS_Y, "scale": (dz * s / dy, s),
-                           "translate": (ty + h * dy + gap,
-                                         left + sections[1].shape[1] * s + gap),
-                           "colormap": "magma"}, "image"),
-        ]
+        frame = Frame((h, w), (dy, dx), (ty, tx))
+        # below the other steps' results when they lie in the slots (a 2-D model learnt
+        # from an image at the same place); beside the stack otherwise
+        moved = below_others(self._viewer, frame, 0.0, STEP, results_only=True)
+        beside_stack = moved.translate == frame.translate
+        frame = moved
         voxel = None if np.allclose(scale, 1.0) else scale
-        for j, (key, label, cmap) in enumerate(MAPS):
+        rel = "relative"
+        tiles = volume.shape[1]
+        s = min(frame.height, frame.width) / tiles  # the grid as tall as the field
+        gy, gx = beside(frame, 1.0)
+        tuples = map_layers(on_stack_planes(volume, op.plane, n_planes), {
+            "name": f"{PSF_GRID_3D} ({rel})", "scale": (dz, s, s), "translate": (tz, gy, gx),
+            "colormap": "magma", "contrast_limits": (0.0, 1.0),
+            "metadata": {OPERATOR_3D_KEY: op,
+                         "about": "3D PSF at 5 x 5 field positions on the stack's planes, "
+                                  "each scaled to its maximum, gamma 0.5"}}, "", frame)
+        titles = [(gy, gx, "3D PSF grid 5 x 5")]
+        # the sections beside the grid, in their true aspect (z step over lateral step),
+        # shrunk together to fit one slot
+        for col, (name, sec, title) in enumerate((
+                (PSF_SECTIONS, sections[0], "sections: z down, x across"),
+                (PSF_SECTIONS_Y, sections[1], "sections: z down, y across"))):
+            aspect = dz / dy
+            shrink = min(1.0, frame.height / (sec.shape[0] * s * aspect),
+                         frame.width / (sec.shape[1] * s))
+            y0, x0 = beside(frame, 2.0 + col)
+            tuples += map_layers(sec, {
+                "name": f"{name} ({rel})", "scale": (s * aspect * shrink, s * shrink),
+                "translate": (y0, x0), "colormap": "magma", "contrast_limits": (0.0, 1.0),
+                "metadata": {"about": "sections of the grid's PSFs, true aspect ratio"}},
+                "", frame)
+            titles.append((y0, x0, title))
+        # the maps in a row below, one slot each
+        for col, (key, label, cmap) in enumerate(MAPS):
             m, unit = map_in_units(key, maps[key], op.plane, voxel)
-            name = f"{label} ({unit})"
-            finite = m[np.isfinite(m)]
-            lim = ((float(finite.min()), float(finite.max())) if finite.size
-                   else (0.0, 1.0))
-            if lim[1] - lim[0] < 1e-3 * max(abs(lim[0]), abs(lim[1]), 1.0):
-                # a flat map (one PSF for the field): its value mid-bar, not 0-1000
-                pad = 0.05 * max(abs(lim[0]), 1.0)
-                lim = (lim[0] - pad, lim[1] + pad)
-            if key in ("focal_plane", "astigmatic_split") and finite.size:
-                top = max(abs(lim[0]), abs(lim[1]), 1e-6)
-                lim = (-top, top)
-            # a 2 x 2 block of half-size maps below the stack
-            ms = (h * dy / 2 / m.shape[0], w * dx / 2 / m.shape[1])
-            row, col = divmod(j, 2)
-            tuples.append((np.nan_to_num(m, nan=0.0),
-                           {"name": name, "scale": ms,
-                            "translate": (ty + h * dy + gap + row * (h * dy / 2 + gap / 2),
-                                          tx + col * (w * dx / 2 + gap / 2)),
-                            "colormap": cmap, "contrast_limits": lim, COLORBAR: True},
-                           "image"))
+            y0, x0 = beside(frame, float(col), 1.0)
+            fit = min(frame.height / m.shape[0], frame.width / m.shape[1])
+            tuples += map_layers(np.nan_to_num(m, nan=0.0), {
+                "name": f"{label} ({unit})", "scale": (fit, fit), "translate": (y0, x0),
+                "colormap": cmap, "contrast_limits": map_limits(key, m)}, unit, frame)
+            titles.append((y0, x0, f"{label} ({unit})"))
+        tuples.append(titles_layer(TITLES_3D, titles, frame))
         show_layers(self._viewer, tuples, step=STEP, replace=True)
+        # the figure with the stack when it lies beside it; else the figure alone
+        focus_on_step(self._viewer, STEP, self.image.value if beside_stack else None)
 
     def model(self):
         """The model to deblur with: the file when one is chosen, else the learnt one."""
@@ -230,19 +341,31 @@ class Volume3DWidget(Container):
         except (ValueError, OSError) as exc:
             self._fail(exc, self.deblur_task)
             return
-        gen = iter_richardson_lucy_3d(stack, op, n_iter=int(self.iterations.value))
+        gen = iter_richardson_lucy_3d(stack, op, n_iter=int(self.iterations.value),
+                                      stop=STOP_CHANGE if self.stop.value else None,
+                                      accelerate=bool(self.accelerate.value))
+        self.deblur_result.value = ""
+        started = time.perf_counter()
+
+        def on_progress(rec) -> None:
+            if getattr(rec, "stage", "") == "estimate":  # kept while it runs
+                self.deblur_result.value = f"estimate: {rec.message}"
 
         def on_result(res) -> None:
-            show_layers(self._viewer, [(res.volume, {
-                "name": DEBLURRED_3D, "scale": scale, "translate": translate,
-                "colormap": "magma", "blending": "additive",
-                "metadata": {"source": layer.name, "iterations": res.iterations,
-                             "background": res.background}}, "image")], step="3D deblur",
-                replace=True)
-            self.deblur_result.value = (f"{res.iterations} Richardson-Lucy iterations, "
-                                        f"{res.n_kernels:.1f} kernels a block")
+            show_layers(self._viewer, deblurred_layers(self._viewer, res, layer, scale,
+                                                          translate),
+                        step=DEBLUR_STEP, replace=True)
+            focus_on_step(self._viewer, DEBLUR_STEP, layer)
+            seconds = time.perf_counter() - started
+            why = ("the result stopped changing" if res.stopped
+                   else "the most iterations asked for")
+            estimate = ("" if res.estimate_s is None
+                        else f" (estimated {res.estimate_s:.0f} s)")
+            self.deblur_result.value = (
+                f"{res.iterations} Richardson-Lucy iterations ({why}), "
+                f"{res.n_kernels:.1f} kernels a block; {seconds:.0f} s{estimate}")
 
-        self.deblur_task.run(gen, on_result)
+        self.deblur_task.run(gen, on_result, on_progress=on_progress)
 
 
 __all__ = ["Volume3DWidget"]

@@ -70,7 +70,8 @@ class CoreTask(Container):
         return self.worker is not None
 
     def run(self, gen: Generator, on_result: Callable[[Any], None],
-            *, on_cancel: Callable[[], None] | None = None) -> GeneratorWorker:
+            *, on_cancel: Callable[[], None] | None = None,
+            on_progress: Callable[[Any], None] | None = None) -> GeneratorWorker:
         """Run ``gen`` in a worker thread and call ``on_result(value)`` in the GUI thread.
 
         Parameters
@@ -81,6 +82,8 @@ class CoreTask(Container):
             Receives the generator's return value unless it failed or was cancelled.
         on_cancel : callable, optional
             Called in the GUI thread after a cancellation.
+        on_progress : callable, optional
+            Called in the GUI thread with each progress record, after the bar moved.
 
         Returns
         -------
@@ -92,6 +95,8 @@ class CoreTask(Container):
         worker = thread_worker(_guarded, start_thread=False)(gen)
         self.worker = worker
         worker.yielded.connect(self._on_progress)
+        if on_progress is not None:
+            worker.yielded.connect(on_progress)
         worker.returned.connect(lambda value: self._on_returned(value, on_result))
         worker.aborted.connect(lambda: self._on_aborted(on_cancel))
         worker.finished.connect(self._on_finished)

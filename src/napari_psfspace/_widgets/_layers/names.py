@@ -1,0 +1,76 @@
+"""Names: of the layers the plugin makes, of their metadata keys, and of the beads' statuses.
+
+One place for every string a layer is found again by (a re-run updates the layer made
+as that name, whatever napari renamed it to), so that the widgets, the reader and the
+writer agree.
+"""
+
+from __future__ import annotations
+
+from ...core.beads.detect import COMPANION, HELDOUT, REJECTED, STATUSES, STRUCTURE
+
+#: Every status a bead of the Points layer can have ("rejected": by the user in the
+#: review; not used for the model).
+ALL_STATUSES = STATUSES
+#: Ring colour of each status in the Points layer.
+STATUS_COLORS = {
+    "kept": "#3cff3c",
+    "saturated": "#ff9900",
+    "border": "#ffe135",
+    "neighbour": "#29c8ff",
+    "faint": "#a0a0a0",
+    "outlier": "#ff40ff",
+    REJECTED: "#ff2020",
+    HELDOUT: "#ffffff",
+    COMPANION: "#8a2be2",
+    STRUCTURE: "#8b5a2b",
+}
+#: Human-readable meaning of each status (shown in the widgets).
+STATUS_MEANING = {
+    "kept": "kept",
+    "saturated": "saturated",
+    "border": "too close to the border",
+    "neighbour": "too close to a neighbour",
+    "faint": "no signal above the background",
+    "outlier": "z-score outlier",
+    REJECTED: "rejected by hand",
+    HELDOUT: "held out of the fit",
+    COMPANION: "companion in the patch (fitted jointly, not learnt)",
+    STRUCTURE: "background structure, not a bead (wider than the PSF)",
+}
+#: Names of the layers the plugin creates. A map's name ends with its unit in brackets:
+#: "relative" where each tile is scaled to its largest magnitude (the metadata's "about"
+#: says how).
+BEADS = "beads"
+GALLERY = "bead patches (relative)"
+CURRENT = "patch on display"
+PSF_GRID = "PSF grid (relative)"
+BASIS = "PSF basis h_i (relative)"
+MAPS = "coefficient maps alpha_i (relative)"
+HELDOUT_LAYER = "held-out residual per bead (fraction of energy)"
+PSF_AT = "PSF at position (fraction per px)"
+SUB_GRID = "family PSF grid (relative)"
+SUB_BASIS = "family PSF basis h_i (relative)"
+SUB_SPACE = "family spatial basis a_j (relative)"
+SUB_CONDITIONS = "family conditions (principal coordinates)"
+MODEL_TITLES = "titles: model"
+FAMILY_TITLES = "titles: family"
+#: Key of the subspace layer metadata that holds the OperatorSubspace.
+SUBSPACE_KEY = "psfspace_subspace"
+HOT_PIXELS = "hot pixels"
+#: Key of the layer metadata that holds the operator (read by the model writer).
+OPERATOR_KEY = "psfspace_operator"
+#: Metadata key marking a layer the plugin made, with the name it asked for: found again
+#: on a re-run even when napari renamed it ("beads [1]" beside a user's image "beads").
+MADE_AS = "psfspace_layer"
+
+
+#: Metadata key of the step that made a layer: a step's layers are one group, replaced
+#: together on a re-run and removed together (:func:`remove_step`).
+STEP_KEY = "psfspace_step"
+
+__all__ = ["ALL_STATUSES", "BASIS", "BEADS", "CURRENT", "FAMILY_TITLES",
+           "GALLERY", "HELDOUT_LAYER", "HOT_PIXELS", "MADE_AS", "MAPS", "MODEL_TITLES",
+           "OPERATOR_KEY", "PSF_AT", "PSF_GRID", "STATUS_COLORS", "STATUS_MEANING",
+           "STEP_KEY", "SUBSPACE_KEY", "SUB_BASIS", "SUB_CONDITIONS", "SUB_GRID",
+           "SUB_SPACE"]
