@@ -1,4 +1,4 @@
-"""Deblur 3D at the panel's defaults on the measured SP8 confocal stack (71 x 1024 x 1024).
+"""Deblur 3D at the panel's defaults on a measured stack (SP8 confocal, 71 x 1024 x 1024).
 
 The 3D step's defaults: the model learnt with the panel's radius (16 px) and every plane
 (``z_radius`` None), then space-varying Richardson-Lucy for at most 50 iterations with
@@ -11,8 +11,8 @@ relative change of each iteration and the distance of checkpoints to the 50th it
     python bench/bench_deblur3d_panel.py --accelerate --stop 0.005 \
         --reference /tmp/plain50.npy                                   # the panel's
 
-Needs ``../shared/data/sp8_confocal_beads``; the model is learnt once and kept in the
-temp folder (``--fresh`` learns it again).
+Needs ``../shared/data/sp8_confocal_beads`` (``--file astig``: the astigmatic stack); the
+model is learnt once and kept in the temp folder (``--fresh`` learns it again).
 """
 
 from __future__ import annotations
@@ -28,15 +28,16 @@ import numpy as np
 from _common import table
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-SP8 = DATA / "sp8_confocal_beads" / "sp8_series045_beads_zyx_uint8.tif"
+FILES = {"sp8": DATA / "sp8_confocal_beads" / "sp8_series045_beads_zyx_uint8.tif",
+         "astig": DATA / "astigmatic_beads" / "psfextractor_astigmatism_zyx_uint8.tif"}
 #: Iterates kept to measure their distance to the last.
 CHECKPOINTS = (5, 8, 10, 12, 15, 20, 25, 30, 40)
 
 
-def _model(stack, voxel, radius: float, fresh: bool):
+def _model(stack, voxel, radius: float, fresh: bool, name: str):
     from napari_psfspace.core.volume import estimate_operator_3d, load_operator_3d
 
-    path = Path(tempfile.gettempdir()) / f"psfspace_panel_sp8_r{radius:g}.npz"
+    path = Path(tempfile.gettempdir()) / f"psfspace_panel_{name}_r{radius:g}.npz"
     if path.exists() and not fresh:
         return load_operator_3d(path), 0.0
     t0 = time.perf_counter()
@@ -51,25 +52,27 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=50)
     ap.add_argument("--radius", type=float, default=16.0)
     ap.add_argument("--fresh", action="store_true")
+    ap.add_argument("--file", choices=sorted(FILES), default="sp8")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--accelerate", action="store_true",
                     help="Biggs-Andrews acceleration (the panel's default)")
     ap.add_argument("--stop", type=float, default=None,
-                    help="the stopping rule's threshold (the panel's: STOP_CHANGE)")
+                    help="the stopping rule's threshold (the panel's: STOP_FIT)")
     ap.add_argument("--save", type=Path, help="save the result (.npy)")
     ap.add_argument("--reference", type=Path,
                     help="a saved result (.npy, e.g. plain RL's 50 iterations): each "
                          "checkpoint's and the result's distance to it")
     args = ap.parse_args()
-    if not SP8.exists():
-        raise SystemExit(f"needs {SP8} (../shared/data beside the repository)")
+    path = FILES[args.file]
+    if not path.exists():
+        raise SystemExit(f"needs {path} (../shared/data beside the repository)")
     from napari_psfspace.core.volume.deconvolve3d import iter_richardson_lucy_3d
     from napari_psfspace.io import read_stack
 
-    stack, info = read_stack(str(SP8))
+    stack, info = read_stack(str(path))
     voxel = ((info.z_spacing, info.pixel_size, info.pixel_size)
              if info.pixel_size and info.z_spacing else None)
-    op, learn_s = _model(stack, voxel, args.radius, args.fresh)
+    op, learn_s = _model(stack, voxel, args.radius, args.fresh, args.file)
     print(f"model: I = {op.n_psf}, kernel {op.kernel_shape}, plane {op.plane}, "
           f"voxel {voxel}, learnt in {learn_s:.0f} s", flush=True)
     gen = iter_richardson_lucy_3d(stack, op, n_iter=args.iterations, stop=args.stop,
@@ -111,13 +114,18 @@ def main() -> None:
     print(table(rows, cols + ([("to_reference", ".4f")] if ref is not None else [])))
     if args.save:
         np.save(args.save, final)
+    dev = np.asarray(res.deviances)
+    gains = (dev[:-1] - dev[1:]) / dev[1:]
+    print("fit improvement of iterate k (k = 1..):",
+          " ".join(f"{g:.1e}" for g in gains), flush=True)
     out = {"stack": "x".join(map(str, stack.shape)), "kernel": list(op.kernel_shape),
            "I": op.n_psf, "n_kernels": res.n_kernels, "setup_s": setup_end - t0,
            "per_iteration_s": float(np.median(times)), "total_s": total,
            "estimate_s": res.estimate_s, "iterations": res.iterations,
            "stopped": res.stopped, "accelerate": args.accelerate, "stop": args.stop,
-           "changes": res.changes, "checkpoints": rows}
-    print(json.dumps({k: v for k, v in out.items() if k != "changes"}, indent=1))
+           "changes": res.changes, "deviances": res.deviances, "checkpoints": rows}
+    print(json.dumps({k: v for k, v in out.items()
+                      if k not in ("changes", "deviances", "checkpoints")}, indent=1))
     if args.json:
         args.json.write_text(json.dumps(out, indent=1))
 

@@ -17,6 +17,7 @@ from napari_psfspace.core.volume import (
     load_operator_3d,
 )
 from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d, shift_invariant
+from napari_psfspace.core.volume.heldout3d import FOLDS
 from napari_psfspace.core.volume.measures import (
     bead_measures,
     map_uncertainty,
@@ -153,7 +154,11 @@ def test_a_focus_series_gives_the_field_varying_3d_psf(estimated):
     """Against the true 3D PSFs on a 4 x 4 grid: at most a third of the error of the best
     single 3D PSF (the mean of the true ones), the issue's bound."""
     stack, series, est, stages = estimated
-    assert stages == ["detect", "centre", "patches", "basis", "fit", "held-out"]
+    # each stage in order; its long steps and each held-out fold answer while they run
+    # (Cancel within a fraction of a second), so a stage may repeat
+    order = [s for i, s in enumerate(stages) if i == 0 or s != stages[i - 1]]
+    assert order == ["detect", "centre", "patches", "basis", "fit", "held-out"]
+    assert stages.count("held-out") >= FOLDS + 1
     op = est.operator
     assert op.plane == series.focus_index and op.shape == stack.shape
     truths = _truth_grid(series, op)
@@ -179,12 +184,13 @@ def test_held_out_beads_prefer_the_field_and_a_losing_field_falls_back(estimated
 
     def losing(est_, stack_, **kw):
         k = 12
+        yield from ()
         return Heldout3D(np.zeros((k, 2)), np.full(k, 0.3), np.full(k, 0.2), np.full(k, 0.1))
 
     small, sseries = simulate_focus_series((320, 320), 14, np.linspace(-0.4, 0.4, 5),
                                            seed=2)
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(estimate3d, "heldout_error_3d", losing)
+        mp.setattr(estimate3d, "iter_heldout_error_3d", losing)
         fallback = run_with_progress(iter_estimate_operator_3d(
             small, psf_radius=int(sseries.psf_radius.max()))).operator
     assert fallback.n_psf == 1 and fallback.metadata["field_model"] == "shift-invariant"

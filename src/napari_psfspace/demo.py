@@ -104,13 +104,13 @@ def run_demo(out_dir: str | os.PathLike = "demo-output", *, scene: str = "wide",
                  unit="relative", limits=(0.0, 1.0), cmap="magma", size=900,
                  note=f"8 x 8 field positions, tiles {tile}, each scaled to its peak, "
                       f"gamma 0.5")
-    write_figure(out / "basis.png", mosaic(op.basis[None], gap=2, normalize="each"),
+    write_figure(out / "basis.png", mosaic(op.basis, gap=2, normalize="each", fill=np.nan),
                  title=f"PSF basis h_0..h_{op.n_psf - 1}", unit="relative",
                  limits=(-1.0, 1.0), cmap="diverging",
-                 note="each scaled to its largest magnitude, left to right")
+                 note="each scaled to its largest magnitude, left to right, row by row")
     maps = op.coefficient_maps()[:, ::8, ::8]
     field = f"{shape[1] * px:.0f} µm" if px else f"{shape[1]} px"
-    write_figure(out / "coefficient_maps.png", mosaic(maps[None], gap=4, normalize="each"),
+    write_figure(out / "coefficient_maps.png", mosaic(maps, gap=4, normalize="each", fill=np.nan),
                  title=f"Coefficient maps alpha_0..alpha_{op.n_psf - 1}", unit="relative",
                  limits=(-1.0, 1.0), cmap="diverging",
                  note=f"each over the {field} field, scaled to its largest magnitude")

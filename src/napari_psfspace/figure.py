@@ -58,6 +58,11 @@ def _font(size: int):
         return ImageFont.load_default()
 
 
+def _plain(text: str) -> str:
+    """Pillow's default font has no micro sign: "um" where the text says µm."""
+    return text.replace("µ", "u").replace("μ", "u")
+
+
 def _tick(value: float, unit: str) -> str:
     text = f"{value:.0f}" if 1e4 <= abs(value) < 1e7 else f"{value:.3g}"
     return f"{text} {unit}" if unit and len(unit) <= 4 else text
@@ -89,7 +94,7 @@ def labelled_figure(values: np.ndarray, *, title: str, unit: str,
     unit : str
         Unit of the values, named above the colour bar ("relative" for tiles scaled to
         their largest magnitude); a short unit (µm, nm, px) is also written after each
-        limit.
+        limit. µ is written "u" (the default font has no micro sign).
     limits : (float, float), optional
         The colour bar's bottom and top; default the finite range of ``values``.
     cmap : str
@@ -125,6 +130,7 @@ def labelled_figure(values: np.ndarray, *, title: str, unit: str,
     canvas.paste(Image.fromarray(img), (pad, title_h))
     draw = ImageDraw.Draw(canvas)
     big, small = _font(16), _font(12)
+    title, unit, note = _plain(title), _plain(unit), _plain(note)
     draw.text((pad, 6), title, fill=INK, font=big)
     # the colour bar: top = hi
     ramp = np.linspace(hi, lo, h)[:, None] * np.ones((1, bar_w))
@@ -142,7 +148,7 @@ def labelled_figure(values: np.ndarray, *, title: str, unit: str,
         length = _scale_bar_length(v.shape[1] * float(pixel_size))
         bar = int(round(length / um_per_px))
         draw.rectangle((pad, y + 4, pad + bar, y + 9), fill=INK)
-        draw.text((pad + bar + 8, y), f"{length:g} µm", fill=INK, font=small)
+        draw.text((pad + bar + 8, y), f"{length:g} um", fill=INK, font=small)
         y += 30
     if note:
         draw.text((pad, y), note, fill=INK, font=small)

@@ -48,6 +48,25 @@ def viewer(make_napari_viewer, bead_image):
     return calibrated_viewer(make_napari_viewer, *bead_image, "beads image")
 
 
+def assert_maps_named_with_bars(v, made) -> None:
+    """Every image layer a step made names its unit in brackets and has its colour bar,
+    whose labels carry the same unit; a bar's limits are the map's."""
+    from napari_psfspace._widgets._layers.figure import BAR, BAR_TEXT
+
+    for name in made:
+        layer = v.layers[name]
+        if layer.__class__.__name__ != "Image" or name.startswith(BAR):
+            continue
+        assert name.endswith(")") and " (" in name, name
+        assert BAR + name in v.layers and BAR_TEXT + name in v.layers, name
+        bar = v.layers[BAR + name]
+        assert np.allclose(bar.contrast_limits, layer.contrast_limits), name
+        assert bar.colormap.name == layer.colormap.name, name
+        unit = (layer.metadata or {}).get("unit", "")
+        ticks = list(v.layers[BAR_TEXT + name].features["tick"])
+        assert len(ticks) == 3 and all(t.endswith(unit) for t in ticks), (name, ticks)
+
+
 def wait_task(qtbot, task, timeout: int = 30_000) -> None:
     """Wait until a CoreTask's worker has finished."""
     qtbot.waitUntil(lambda: not task.running, timeout=timeout)

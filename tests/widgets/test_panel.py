@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import wait_task
+from conftest import assert_maps_named_with_bars, wait_task
 
 PLUGIN = "napari-psfspace"
 
@@ -239,25 +239,6 @@ def test_every_step_twice_the_same_layers_cancel_within_a_second(laptop, qtbot,
     _check_groups(v, panel, list(buttons))
 
 
-def _assert_maps_named_with_bars(v, made) -> None:
-    """Every image layer a step made names its unit in brackets and has its colour bar,
-    whose labels carry the same unit; a bar's limits are the map's."""
-    from napari_psfspace._widgets._layers.figure import BAR, BAR_TEXT
-
-    for name in made:
-        layer = v.layers[name]
-        if layer.__class__.__name__ != "Image" or name.startswith(BAR):
-            continue
-        assert name.endswith(")") and " (" in name, name
-        assert BAR + name in v.layers and BAR_TEXT + name in v.layers, name
-        bar = v.layers[BAR + name]
-        assert np.allclose(bar.contrast_limits, layer.contrast_limits), name
-        assert bar.colormap.name == layer.colormap.name, name
-        unit = (layer.metadata or {}).get("unit", "")
-        ticks = list(v.layers[BAR_TEXT + name].features["tick"])
-        assert len(ticks) == 3 and all(t.endswith(unit) for t in ticks), (name, ticks)
-
-
 def _check_groups(v, panel, titles):
     """Each step's layers are one group: titled, each map named with its unit and with
     its colour bar, none over the data or another, and removed together by the step's
@@ -272,7 +253,7 @@ def _check_groups(v, panel, titles):
         assert any(n.startswith("titles: ") for n in groups[t]), (t, groups[t])
         texts = [n for n in groups[t] if n.startswith("titles: ")]
         assert len(v.layers[texts[0]].features["title"]) >= 3
-    _assert_maps_named_with_bars(v, made)
+    assert_maps_named_with_bars(v, made)
     # results never land on each other nor on the data (points mark places on the
     # mosaics and the image)
     boxes = [(layer.name, np.asarray(layer.extent.world)[:, -2:]) for layer in v.layers

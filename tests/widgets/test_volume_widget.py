@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conftest import wait_task
+from conftest import assert_maps_named_with_bars, wait_task
 
 PLUGIN = "napari-psfspace"
 
@@ -50,6 +50,13 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         now = [layer.name for layer in v.layers]
         assert names is None or now == names  # a re-run updates, never piles up
         names = now
+    # Cancel during Learn 3D PSF: within 2 s, the layers as they were
+    before = [layer.name for layer in v.layers]
+    w.learn.clicked()
+    w.learn_task.request_cancel()
+    wait_task(qtbot, w.learn_task, timeout=2_000)
+    assert w.learn_task.status.value.startswith("cancelled")
+    assert [layer.name for layer in v.layers] == before
     grid = v.layers[f"{PSF_GRID_3D} (relative)"]
     op = grid.metadata[OPERATOR_3D_KEY]
     assert op is w.operator and grid.data.ndim == 3
@@ -63,6 +70,17 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     assert height <= stack.shape[1] * px * (1 + 1e-6)
     # the maps in µm (the stack is calibrated), their unit in their names
     assert all(f"{label} (µm)" in v.layers for _, label, _ in MAPS)
+    from napari_psfspace._widgets._layers import group_layers
+
+    made = group_layers(v, "3D")
+    assert_maps_named_with_bars(v, {layer.name for layer in made})
+    # no image on the stack: the figure lies beside and below it (points only mark
+    # places: the titles)
+    raw = np.asarray(v.layers["bead stack"].extent.world)[:, -2:]
+    for layer in (x for x in made if x.__class__.__name__ == "Image"):
+        box = np.asarray(layer.extent.world)[:, -2:]
+        overlap = np.minimum(box[1], raw[1]) - np.maximum(box[0], raw[0])
+        assert np.any(overlap <= 0), layer.name
     assert np.isfinite(v.layers[f"{MAPS[0][1]} (µm)"].data).all()
     # the lateral FWHM where the optics put it: 1 to 1.6x the Airy disk's (the grid's
     # PSFs carry the field's aberrations; a map in px would read 3-6 here)
@@ -79,6 +97,8 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         wait_task(qtbot, w.deblur_task, timeout=60_000)
     out = [layer for layer in v.layers if layer.name.startswith(DEBLURRED_3D)]
     assert len(out) == 1 and out[0].data.shape == stack.shape
+    # the time estimated before the iterations and the time taken, side by side
+    assert "(estimated " in w.deblur_result.value and " s" in w.deblur_result.value
     assert np.all(out[0].data >= 0) and tuple(out[0].scale) == (0.2, px, px)
     # beside the stack, on its planes, never blended over it
     raw = np.asarray(v.layers["bead stack"].extent.world)

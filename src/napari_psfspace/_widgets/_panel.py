@@ -17,7 +17,15 @@ from typing import TYPE_CHECKING
 
 from napari.layers import Image, Points
 from qtpy.QtCore import Qt
-from qtpy.QtWidgets import QLabel, QPushButton, QScrollArea, QTabWidget, QVBoxLayout, QWidget
+from qtpy.QtWidgets import (
+    QLabel,
+    QPushButton,
+    QScrollArea,
+    QStyle,
+    QTabWidget,
+    QVBoxLayout,
+    QWidget,
+)
 
 from ._deblur import DeblurWidget
 from ._diagnose import DiagnoseWidget
@@ -151,7 +159,7 @@ class PsfSpacePanel(QWidget):
         self.setMaximumWidth(PANEL_WIDTH + 40)
         # never narrower than the widest step's content: dragging the dock narrower
         # would cut its controls (the scroll areas scroll vertically only)
-        bar = QScrollArea().verticalScrollBar().sizeHint().width()
+        bar = self.style().pixelMetric(QStyle.PixelMetric.PM_ScrollBarExtent)
         need = max(w.native.minimumSizeHint().width() for w in self.steps.values())
         self.setMinimumWidth(min(need + bar + 8, PANEL_WIDTH + 40))
         self.setMinimumHeight(0)

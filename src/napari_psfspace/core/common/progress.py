@@ -38,6 +38,18 @@ class Progress:
 ProgressCallback = Callable[[Progress], None]
 
 
+def within(gen: Generator[Progress, None, Any], start: float, span: float
+           ) -> Generator[Progress, None, Any]:
+    """The records of a nested computation, its fractions placed within ``start ..
+    start + span`` of the caller's; returns its value (``yield from within(...)``)."""
+    while True:
+        try:
+            rec = next(gen)
+        except StopIteration as stop:
+            return stop.value
+        yield Progress(rec.stage, start + span * float(rec.fraction), rec.message)
+
+
 def run_with_progress(gen: Generator[Progress, None, Any],
                       progress: ProgressCallback | None = None) -> Any:
     """Drain a progress generator, calling ``progress`` on each record; return its value.
@@ -140,4 +152,4 @@ def _steps() -> _StepThreads:
         return _STEPS
 
 
-__all__ = ["Progress", "ProgressCallback", "run_with_progress", "wait_with_progress"]
+__all__ = ["Progress", "ProgressCallback", "run_with_progress", "wait_with_progress", "within"]

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Generator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,6 +46,8 @@ BLOCK = 256
 RTOL = 0.05
 #: Default budget for cached block spectra, bytes.
 CACHE_BYTES = 1 << 30
+#: Seconds between two progress records while a wave of blocks runs.
+TICK = 0.25
 #: Pixels of a block's maps used to choose its kernels (subsampled beyond).
 _ROWS = 4096
 
@@ -207,11 +209,14 @@ class BlockedOperator3D:
                              f"{self.shape[2]}), got shape {arr.shape}")
         return arr
 
-    def _iter_run(self, fn, workers: int | None) -> Generator[float, None, None]:
+    def _iter_run(self, fn, workers: int | None, halt: threading.Event
+                  ) -> Generator[float, None, None]:
         """``fn(j)`` for every block, on ``workers`` threads (default: the cores), each
         FFT on one thread (blocks are independent, and numpy and the FFT release the
         GIL), in waves of one block a thread; yields the fraction of blocks done after
-        each wave, so that a caller can stop between waves (nothing runs then)."""
+        each wave and every :data:`TICK` seconds while one runs. A caller that stops it
+        (closes the generator) sets ``halt``, which ``fn`` reads between two kernels:
+        the blocks under way end within one FFT."""
         n = default_workers() if workers is None or workers < 1 else int(workers)
         n = min(n, len(self.blocks))
         total = len(self.blocks)
@@ -221,10 +226,18 @@ class BlockedOperator3D:
                 yield (j + 1) / total
             return
         with ThreadPoolExecutor(max_workers=n, thread_name_prefix="psfspace-block") as pool:
-            for start in range(0, total, n):
-                for f in [pool.submit(fn, j) for j in range(start, min(start + n, total))]:
-                    f.result()
-                yield min(start + n, total) / total
+            try:
+                for start in range(0, total, n):
+                    futures = [pool.submit(fn, j)
+                               for j in range(start, min(start + n, total))]
+                    while wait(futures, timeout=TICK)[1]:
+                        yield start / total
+                    for f in futures:
+                        f.result()
+                    yield min(start + n, total) / total
+            except GeneratorExit:
+                halt.set()  # the blocks under way stop at their next kernel
+                raise
 
     def apply(self, u: ArrayLike, *, out: np.ndarray | None = None,
               workers: int | None = None) -> np.ndarray:
@@ -253,6 +266,7 @@ class BlockedOperator3D:
         fshape = self.fft_shape(z)
         c = self.operator.kernel_shape[1] // 2
         lock = threading.Lock()
+        halt = threading.Event()
         self._spectra(0, fshape)  # the basis spectra, once, before the threads
 
         def one(j: int) -> None:
@@ -262,6 +276,8 @@ class BlockedOperator3D:
             pad = np.zeros(fshape, np.float32)
             acc = None
             for i in range(len(maps)):
+                if halt.is_set():
+                    return
                 np.multiply(maps[i][None], arr[:, b.y0:b.y1, b.x0:b.x1],
                             out=pad[:z, :bh, :bw])
                 f = scipy.fft.rfftn(pad, workers=1)
@@ -279,7 +295,7 @@ class BlockedOperator3D:
             with lock:
                 out[:, oy0:oy1, ox0:ox1] += part
 
-        yield from self._iter_run(one, workers)
+        yield from self._iter_run(one, workers, halt)
         return out
 
     def adjoint(self, v: ArrayLike, *, workers: int | None = None,
@@ -306,6 +322,7 @@ class BlockedOperator3D:
         out = np.empty((z, h, w), np.float32) if multiply_into is None else multiply_into
         fshape = self.fft_shape(z)
         c = self.operator.kernel_shape[1] // 2
+        halt = threading.Event()
         self._spectra(0, fshape)
 
         def one(j: int) -> None:
@@ -325,6 +342,8 @@ class BlockedOperator3D:
             tmp = np.empty((z, bh, bw), np.float32)
             prod = np.empty_like(f)
             for i in range(len(maps)):
+                if halt.is_set():
+                    return
                 np.conjugate(spec[i], out=prod)
                 prod *= f
                 back = scipy.fft.irfftn(prod, s=fshape, workers=1, overwrite_x=True)
@@ -335,7 +354,7 @@ class BlockedOperator3D:
             else:
                 out[:, b.y0:b.y1, b.x0:b.x1] *= acc
 
-        yield from self._iter_run(one, workers)
+        yield from self._iter_run(one, workers, halt)
         return out
 
 

@@ -32,36 +32,52 @@ from .operator3d import ProductConvolution3D
 TINY = 1e-6
 #: Voxels read to set the default background and the starting value.
 STATS_VOXELS = 1 << 22
-#: The stopping rule's default: an iteration that changes the estimate by less than
-#: this (relative l2) ends the iteration (``stop``; measured against 50 iterations in
-#: bench/bench_deblur3d_panel.py).
-STOP_CHANGE = 5e-3
+#: The stopping rule's default: an iteration that improves the data fit (Poisson
+#: deviance) by less than this fraction of itself ends the iteration (``stop``; its
+#: effect on the result: bench/bench_deblur3d_panel.py, figures in bench/RESULTS.md).
+STOP_FIT = 3e-3
 #: Largest extrapolation factor of the accelerated iteration (Biggs and Andrews 1997,
 #: who bound it below 1).
 ALPHA_MAX = 0.95
 #: Iterations always run before the stopping rule is read.
 MIN_ITERATIONS = 5
-#: Seconds of everything else an iteration does per second of its FFT pairs (the
-#: products with the maps and spectra, the sums), for the time estimate.
+#: Seconds of the products with the maps and spectra per second of an iteration's FFT
+#: pairs, for the time estimate.
 OVERHEAD = 1.6
+#: Passes over a volume an iteration makes besides its blocks (the ratio to the data,
+#: the update, the copies), for the time estimate; more with the acceleration's
+#: extrapolation.
+PASSES = 8
+PASSES_ACCELERATED = 16
 
 
-def estimate_seconds(op: BlockedOperator3D, depth: int, n_iter: int,
-                     workers: int) -> float:
+def estimate_seconds(op: BlockedOperator3D, volume: np.ndarray, n_iter: int,
+                     workers: int, *, accelerate: bool = False) -> float:
     """Seconds ``n_iter`` blocked Richardson-Lucy iterations and their setup should take
-    here: one FFT pair of the blocks' padded shape is timed (on one thread, as each
-    block runs), then counted (:meth:`BlockedOperator3D.fft_pairs` an iteration, half
-    an iteration for the setup's ``H^T 1``), the blocks shared among ``workers``
-    threads, times :data:`OVERHEAD` for the rest."""
-    shape = op.fft_shape(depth)
+    here, from two timings (each the median of three): one FFT pair of the blocks'
+    padded shape on one thread (as each block runs), counted
+    (:meth:`BlockedOperator3D.fft_pairs` an iteration, half an iteration for the
+    setup's ``H^T 1``; the blocks shared among ``workers`` threads) times
+    :data:`OVERHEAD` for the products around them; and one pass over ``volume`` (a
+    float32 array of the stack's shape, overwritten), counted :data:`PASSES` an
+    iteration (:data:`PASSES_ACCELERATED` with the acceleration)."""
+    shape = op.fft_shape(volume.shape[0])
     x = np.zeros(shape, np.float32)
-    best = np.inf
-    for _ in range(2):
-        t0 = time.perf_counter()
-        scipy.fft.irfftn(scipy.fft.rfftn(x, workers=1), s=shape, workers=1)
-        best = min(best, time.perf_counter() - t0)
+
+    def median_time(fn) -> float:
+        times = []
+        for _ in range(3):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return float(np.median(times))
+
+    pair = median_time(lambda: scipy.fft.irfftn(scipy.fft.rfftn(x, workers=1), s=shape,
+                                                workers=1))
+    one_pass = median_time(lambda: np.multiply(volume, 1.0, out=volume))
     threads = max(1, min(int(workers), len(op.blocks)))
-    per_iteration = OVERHEAD * best * op.fft_pairs() / threads
+    passes = PASSES_ACCELERATED if accelerate else PASSES
+    per_iteration = OVERHEAD * pair * op.fft_pairs() / threads + passes * one_pass
     return float(per_iteration * (n_iter + 0.5))
 
 
@@ -93,6 +109,10 @@ class Deconvolved3D:
         True when the stopping rule ended the iteration before ``n_iter``.
     estimate_s : float or None
         The time the run was expected to take at its start (seconds; blocks only).
+    deviances : list of float
+        The data fit of the iterates ``u_0, u_1, ...`` (Poisson deviance per voxel of
+        ``H u + b`` against the stack, on the same subsample): what the stopping rule
+        reads.
     """
 
     volume: np.ndarray
@@ -102,6 +122,7 @@ class Deconvolved3D:
     changes: list = field(default_factory=list)
     stopped: bool = False
     estimate_s: float | None = None
+    deviances: list = field(default_factory=list)
 
 
 def shift_invariant(operator: ProductConvolution3D, y: float | None = None,
@@ -158,8 +179,8 @@ def iter_richardson_lucy_3d(
     accelerate: bool = False,
 ) -> Generator[Progress, None, Deconvolved3D]:
     """Generator form of :func:`richardson_lucy_3d`: yields progress after every wave
-    of blocks (one a thread; stop it there to cancel: a wave takes about a second on a
-    1024 x 1024 stack of 71 planes), returns the :class:`Deconvolved3D`."""
+    of blocks (one block a thread; stop it there to cancel) and every iteration,
+    returns the :class:`Deconvolved3D`."""
     check_stack(stack, operator)
     n_iter = check_int(n_iter, "n_iter", minimum=1)
     if stop is not None and not (np.isfinite(stop) and stop >= 0):
@@ -172,6 +193,7 @@ def iter_richardson_lucy_3d(
     # always a copy, clipped in place: a view of the user's array (a memmap of their
     # file) is never written to
     data = np.array(stack, dtype=np.float32, copy=True)
+    yield Progress("setup", 0.0, "a float32 copy of the stack")
     np.clip(data, 0, None, out=data)
     if not np.isfinite(data.sum(dtype=np.float64)):
         raise ValueError("`stack` contains NaN or infinite values")
@@ -180,17 +202,20 @@ def iter_richardson_lucy_3d(
     workers = default_workers() if workers is None else workers  # FFT threads or blocks
     n_kernels = float(op.n_kernels) if block is not None else float(operator.n_psf)
     estimate = None
+    buf = np.empty_like(data)
     if block is not None:
-        estimate = estimate_seconds(op, data.shape[0], n_iter, workers)
+        yield Progress("setup", 0.0, "timing one FFT of a block")
+        estimate = estimate_seconds(op, buf, n_iter, workers, accelerate=accelerate)
         yield Progress("estimate", 0.0, f"about {_duration(estimate)} for {n_iter} "
                                         f"iterations at most")
-    buf = np.ones_like(data)
+    buf.fill(1.0)
     if block is None:
         norm = op.adjoint(buf, workers=workers)
     else:
         norm = yield from _waves(op.iter_adjoint(buf, workers=workers), "setup", 0.0,
                                  0.0, "H^T 1")
     np.maximum(norm, TINY * max(float(norm.max()), 1.0), out=norm)
+    yield Progress("setup", 0.0, "the starting estimate")
     u = np.full_like(data, max(mean - b, TINY) if start is None else float(start))
     # the change of each iteration, read on a strided subsample (a sixteenth of a
     # 1024 x 1024 stack): no fifth volume in memory
@@ -198,8 +223,16 @@ def iter_richardson_lucy_3d(
     step = max(1, int(np.ceil(np.sqrt(z * h * w / (4 * STATS_VOXELS)))))
     prev = np.empty_like(u[:, ::step, ::step])
     changes: list[float] = []
+    # the data fit of each iterate (Poisson deviance per voxel), on the same subsample
+    fit = _DevianceOnSample(data[:, ::step, ::step])
+    deviances: list[float] = []
     if accelerate:  # Biggs-Andrews: x_{k-1}, the last two steps g, the prediction y
-        x_prev, g1, g2, g_new = (np.zeros_like(u) for _ in range(4))
+        made = []
+        for _ in range(4):
+            made.append(np.zeros_like(u))
+            yield Progress("setup", 0.0, "the acceleration's volumes")
+        x_prev, g1, g2, g_new = made
+        del made
     t_iter = time.perf_counter()
     for k in range(n_iter):
         np.copyto(prev, u[:, ::step, ::step])
@@ -213,14 +246,22 @@ def iter_richardson_lucy_3d(
         if block is None:
             buf = op.apply(u, workers=workers)
         else:
+            yield Progress("iteration", where[0], where[2])  # after the extrapolation
             yield from _waves(op.iter_apply(u, out=buf, workers=workers), "iteration",
                               where[0], where[1] / 2, where[2])
         buf += b
         np.maximum(buf, TINY, out=buf)
+        deviances.append(fit(buf[:, ::step, ::step]))
+        if (stop is not None and k >= MIN_ITERATIONS
+                and deviances[-2] - deviances[-1] < stop * deviances[-1]):
+            if accelerate:  # the iterate, not its extrapolation
+                np.copyto(u, x_prev)
+            break  # u_k fits the data as well as u_{k-1}, to ``stop``: it is the result
         np.divide(data, buf, out=buf)
         if block is None:
             u *= op.adjoint(buf, workers=workers)
         else:
+            yield Progress("iteration", where[0] + where[1] / 2, where[2])
             yield from _waves(op.iter_adjoint(buf, multiply_into=u, workers=workers),
                               "iteration", where[0] + where[1] / 2, where[1] / 2, where[2])
         u /= norm
@@ -232,13 +273,28 @@ def iter_richardson_lucy_3d(
         changes.append(float(np.linalg.norm(prev) / max(np.linalg.norm(now), TINY)))
         yield Progress("iteration", (k + 1) / n_iter,
                        f"iteration {k + 1} of {n_iter}, change {changes[-1]:.2g}")
-        if stop is not None and k + 1 >= MIN_ITERATIONS and changes[-1] < stop:
-            break
     del prev
     if accelerate:
         del x_prev, g1, g2, g_new
     stopped = len(changes) < n_iter
-    return Deconvolved3D(u, len(changes), b, n_kernels, changes, stopped, estimate)
+    return Deconvolved3D(u, len(changes), b, n_kernels, changes, stopped, estimate,
+                         deviances)
+
+
+class _DevianceOnSample:
+    """The Poisson deviance per voxel, ``2 mean(y log(y / mu) - (y - mu))``, of the
+    blurred estimate ``mu = H u + b`` against the data ``y`` on a fixed subsample (the
+    terms of ``y`` alone computed once)."""
+
+    def __init__(self, y: np.ndarray) -> None:
+        self.y = np.ascontiguousarray(y, dtype=np.float64)
+        pos = self.y > 0
+        self.const = float(np.sum(self.y[pos] * np.log(self.y[pos])) - self.y.sum())
+        self.n = max(self.y.size, 1)
+
+    def __call__(self, mu: np.ndarray) -> float:
+        m = np.asarray(mu, dtype=np.float64)
+        return 2.0 * (self.const - float(np.sum(self.y * np.log(m))) + float(m.sum())) / self.n
 
 
 def _predict(u: np.ndarray, x_prev: np.ndarray, g1: np.ndarray, g2: np.ndarray,
@@ -324,10 +380,13 @@ def richardson_lucy_3d(
         from ``x_k + a (x_k - x_{k-1})``, ``a`` from the last two steps' agreement; the
         same fixed point in fewer iterations, at four more volumes of memory.
     stop : float, optional
-        The stopping rule: end when one iteration changes the estimate by less than
-        this, relative l2 (``||u_k - u_{k-1}|| / ||u_k||``), after at least
-        :data:`MIN_ITERATIONS`; ``n_iter`` is then the most. None (default): ``n_iter``
-        iterations. :data:`STOP_CHANGE` is the panel's.
+        The stopping rule: end when an iteration improves the fit to the data by less
+        than this, relative: the Poisson deviance of ``H u_k + b`` against the stack
+        lowered by less than ``stop`` times itself (after at least
+        :data:`MIN_ITERATIONS`; ``n_iter`` is then the most). The iterate returned is
+        ``u_k``. The estimate itself keeps moving long after (its change per iteration
+        is in ``changes``). None (default): ``n_iter`` iterations. :data:`STOP_FIT` is
+        the panel's.
     progress : callable, optional
         Called after each wave of blocks and each iteration.
 
@@ -340,6 +399,6 @@ def richardson_lucy_3d(
         workers=workers, start=start, stop=stop, accelerate=accelerate), progress)
 
 
-__all__ = ["MIN_ITERATIONS", "STOP_CHANGE", "Deconvolved3D", "check_stack",
+__all__ = ["MIN_ITERATIONS", "STOP_FIT", "Deconvolved3D", "check_stack",
            "estimate_seconds", "iter_richardson_lucy_3d", "richardson_lucy_3d",
            "shift_invariant", "stack_statistics"]

@@ -21,7 +21,7 @@ import numpy as np
 from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads, saturation_record
 from ..beads.focus import best_focus_index
 from ..beads.window import radial_distance
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress, run_with_progress, wait_with_progress, within
 from ..common.threads import blas_threads
 from ..common.validate import check_grid_step, check_int, check_psf_radius
 from ..model.cone import Cone, reduce_cone
@@ -30,7 +30,7 @@ from ..model.field import choose_constraint, coarse_grid, keep_in_cone
 from ..model.pca import PsfBasis, learn_basis, min_beads_for
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
-from .heldout3d import FOLDS, Heldout3D, heldout_error_3d
+from .heldout3d import FOLDS, Heldout3D, iter_heldout_error_3d
 from .operator3d import ProductConvolution3D
 from .patches3d import Patches3D, bead_planes, extract_patches_3d
 
@@ -109,14 +109,20 @@ def iter_estimate_operator_3d(
     if bead_diameter:
         raise ValueError(f"`bead_diameter` = {bead_diameter!r}: dividing a bead's sphere out "
                          "of a 3D PSF is not implemented yet; give 0 (point sources)")
-    focus = best_focus_index(vol)
-    beads = detect_beads(np.asarray(stack)[focus], r, threshold=threshold)
+    # the long steps run in a helper thread while this generator keeps answering
+    # (wait_with_progress): Cancel is honoured within a fraction of a second
+    focus = yield from wait_with_progress(lambda: best_focus_index(vol),
+                                          Progress("detect", 0.0, "best-focus slice"))
+    beads = yield from wait_with_progress(
+        lambda: detect_beads(np.asarray(stack)[focus], r, threshold=threshold),
+        Progress("detect", 0.05, f"detecting beads on slice {focus}"))
     img = beads.clean_image(vol[focus])
     yield Progress("detect", 0.15, f"slice {focus} (best focus): {beads.summary()}")
     kept = centre_beads(img, beads, r)
     yield Progress("centre", 0.3, f"{len(kept)} beads centred laterally")
 
-    own = bead_planes(vol, beads.positions[kept], r)
+    own = yield from wait_with_progress(lambda: bead_planes(vol, beads.positions[kept], r),
+                                        Progress("patches", 0.35, "each bead's focus"))
     # the beads' median plane of best focus; a handful of beads cannot outvote the noise
     # of one whose peak has two maxima (an index mismatch): the stack's best focus,
     # from every detection, then
@@ -125,7 +131,10 @@ def iter_estimate_operator_3d(
         z_radius = max(plane, depth - 1 - plane)
     # planes beyond the stack hold nothing: at most depth - 1 on each side
     z_radius = check_int(z_radius, "z_radius", minimum=1, maximum=max(depth - 1, 1))
-    patches = extract_patches_3d(vol, beads.positions[kept], r, plane=plane, z_radius=z_radius)
+    patches = yield from wait_with_progress(
+        lambda: extract_patches_3d(vol, beads.positions[kept], r, plane=plane,
+                                   z_radius=z_radius),
+        Progress("patches", 0.4, "3D patches"))
     usable = patches.flux > 0
     faint, _ = faint_beads(np.where(usable, patches.flux, 0.0))
     usable &= ~faint
@@ -144,8 +153,10 @@ def iter_estimate_operator_3d(
     inside = (patches.planes >= 0) & (patches.planes < depth)
     support = (inside[:, None, None]
                & (radial_distance(patches.size) < patches.r_ext)[None])
-    basis = learn_basis(patches.psf, n_psf, support=support, positions=patches.centers,
-                        z_threshold=z_threshold)
+    basis = yield from wait_with_progress(
+        lambda: learn_basis(patches.psf, n_psf, support=support, positions=patches.centers,
+                            z_threshold=z_threshold),
+        Progress("basis", 0.5, "the PCA basis, outliers rejected"))
     yield Progress("basis", 0.7, f"{basis.n_psf} 3D PSFs from {int(basis.inliers.sum())} "
                    "beads")
     centers = patches.centers[basis.inliers]
@@ -182,7 +193,8 @@ def iter_estimate_operator_3d(
     est = Estimation3D(op, beads, patches, kept, basis, cone, own)
     if holdout and meta["n_beads_used"] >= 2 * FOLDS:
         try:  # a score of the model: it never aborts the estimate
-            held = heldout_error_3d(est, stack, smoothing=smoothing)
+            held = yield from within(iter_heldout_error_3d(est, stack,
+                                                           smoothing=smoothing), 0.9, 0.1)
             est.heldout = held
             meta["heldout"] = held.summary()
         except ValueError as exc:

@@ -23,11 +23,13 @@ which is better (``field_wins``).
 
 from __future__ import annotations
 
+from collections.abc import Generator
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..beads.window import bump_window, radial_distance
+from ..common.progress import Progress, run_with_progress, wait_with_progress
 from ..diagnosis.noise import noise_model
 from ..model.field import keep_in_cone
 from ..model.heldout import morton_order
@@ -88,6 +90,8 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
                      smoothing: float | None = None) -> Heldout3D:
     """The held-out residuals of a 3D estimate (the module's notes).
 
+    :func:`iter_heldout_error_3d` is its generator form (progress after each fold).
+
     Parameters
     ----------
     estimation : Estimation3D
@@ -104,6 +108,15 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     -------
     Heldout3D
     """
+    return run_with_progress(iter_heldout_error_3d(estimation, stack, folds=folds,
+                                                   smoothing=smoothing))
+
+
+def iter_heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
+                          smoothing: float | None = None
+                          ) -> Generator[Progress, None, Heldout3D]:
+    """Generator form of :func:`heldout_error_3d`: yields after each fold (stop it
+    there to cancel), returns the :class:`Heldout3D`."""
     if int(folds) != folds or folds < 2:
         raise ValueError(f"`folds` must be an integer >= 2, got {folds!r}")
     patches = estimation.patches.subset(estimation.basis.inliers)
@@ -125,6 +138,8 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
                            patches.psf.shape[1:]) * inside[:, None, None]
     res, single, floor, pos = [], [], [], []
     for f in range(int(folds)):
+        yield Progress("held-out", f / int(folds), f"held-out beads: fold {f + 1} of "
+                                                   f"{int(folds)}")
         test, train = group == f, group != f
         # the largest basis the fold's training beads support, at most the model's: a
         # fold of a model whose basis uses nearly every bead is still scored (with a
@@ -132,7 +147,11 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
         n_fold = min(n_psf, max((int(train.sum()) - 2) // 2, 0))
         if test.sum() == 0 or n_fold < 1 or train.sum() < min_beads_for(n_fold):
             continue  # too few beads left for any basis: the fold is skipped
-        basis = learn_basis(patches.psf[train], n_fold, support=support)
+        basis = yield from wait_with_progress(
+            lambda train=train, n_fold=n_fold: learn_basis(patches.psf[train], n_fold,
+                                                           support=support),
+            Progress("held-out", f / int(folds), f"held-out beads: fold {f + 1} of "
+                                                 f"{int(folds)}"))
         centers = patches.centers[train][basis.inliers]
         spline = ThinPlateSpline(centers, basis.coefficients,
                                  weights=voronoi_areas(centers, (h, w)),
@@ -156,4 +175,4 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
                      np.asarray(floor), gain, str(nm.kind))
 
 
-__all__ = ["FOLDS", "Heldout3D", "heldout_error_3d"]
+__all__ = ["FOLDS", "Heldout3D", "heldout_error_3d", "iter_heldout_error_3d"]
