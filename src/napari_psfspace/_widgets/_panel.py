@@ -156,12 +156,8 @@ class PsfSpacePanel(QWidget):
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
         layout.addWidget(self.tabs)
-        self.setMaximumWidth(PANEL_WIDTH + 40)
-        # never narrower than the widest step's content: dragging the dock narrower
-        # would cut its controls (the scroll areas scroll vertically only)
-        bar = self.style().pixelMetric(QStyle.PixelMetric.PM_ScrollBarExtent)
-        need = max(w.native.minimumSizeHint().width() for w in self.steps.values())
-        self.setMinimumWidth(min(need + bar + 8, PANEL_WIDTH + 40))
+        self.setMaximumWidth(PANEL_WIDTH + 80)
+        self._fit_width()
         self.setMinimumHeight(0)
         # one radius for every step: the one set in Beads
         self.steps["Beads"].radius.value_edit.changed.connect(self._share_radius)
@@ -181,6 +177,14 @@ class PsfSpacePanel(QWidget):
         hint = super().minimumSizeHint()
         hint.setHeight(min(hint.height(), 200))
         return hint
+
+    def _fit_width(self) -> None:
+        """Never narrower than the widest step's content (its choices change it: a long
+        layer name): dragging the dock narrower would cut its controls, the scroll
+        areas scroll vertically only."""
+        bar = self.style().pixelMetric(QStyle.PixelMetric.PM_ScrollBarExtent)
+        need = max(w.native.minimumSizeHint().width() for w in self.steps.values())
+        self.setMinimumWidth(min(need + bar + 8, PANEL_WIDTH + 80))
 
     def _share_radius(self, *_) -> None:
         source = self.steps["Beads"].radius
@@ -213,6 +217,7 @@ class PsfSpacePanel(QWidget):
             if title in HIDDEN_UNLESS_READY:
                 self.tabs.setTabVisible(i, ok)
             self.clear_buttons[title].setEnabled(bool(group_layers(self._viewer, title)))
+        self._fit_width()
         if not self.tabs.isTabVisible(self.tabs.currentIndex()):
             self.tabs.setCurrentIndex(0)
 

@@ -82,6 +82,11 @@ MAPS = (("focal_plane", "focal shift", "coolwarm"),
         ("fwhm_lateral", "lateral FWHM", "viridis"),
         ("fwhm_axial", "axial FWHM", "viridis"),
         ("astigmatic_split", "astigmatic split", "PiYG"))
+#: Titles short enough for a slot at the zoom that shows the figure (the layer names
+#: and colour bars say the rest).
+SHORT = {"astigmatic split": "astig. split"}
+
+
 def map_in_units(key: str, values: np.ndarray, plane: int, voxel) -> tuple[np.ndarray, str]:
     """A measure map as shown: the focal shift from the bead plane; µm where ``voxel``
     ``(dz, dy, dx)`` in µm is known, else px and planes. Returns the map and its unit."""
@@ -295,12 +300,12 @@ class Volume3DWidget(Container):
             "metadata": {OPERATOR_3D_KEY: op,
                          "about": "3D PSF at 5 x 5 field positions on the stack's planes, "
                                   "each scaled to its maximum, gamma 0.5"}}, "", frame)
-        titles = [(gy, gx, "3D PSF grid 5 x 5")]
+        titles = [(gy, gx, "3D PSF grid")]
         # the sections beside the grid, in their true aspect (z step over lateral step),
         # shrunk together to fit one slot
         for col, (name, sec, title) in enumerate((
-                (PSF_SECTIONS, sections[0], "sections: z down, x across"),
-                (PSF_SECTIONS_Y, sections[1], "sections: z down, y across"))):
+                (PSF_SECTIONS, sections[0], "x-z sections"),
+                (PSF_SECTIONS_Y, sections[1], "y-z sections"))):
             aspect = dz / dy
             shrink = min(1.0, frame.height / (sec.shape[0] * s * aspect),
                          frame.width / (sec.shape[1] * s))
@@ -319,7 +324,7 @@ class Volume3DWidget(Container):
             tuples += map_layers(np.nan_to_num(m, nan=0.0), {
                 "name": f"{label} ({unit})", "scale": (fit, fit), "translate": (y0, x0),
                 "colormap": cmap, "contrast_limits": map_limits(key, m)}, unit, frame)
-            titles.append((y0, x0, f"{label} ({unit})"))
+            titles.append((y0, x0, SHORT.get(label, label)))  # the unit: its bar
         tuples.append(titles_layer(TITLES_3D, titles, frame))
         show_layers(self._viewer, tuples, step=STEP, replace=True)
         # the figure with the stack when it lies beside it; else the figure alone

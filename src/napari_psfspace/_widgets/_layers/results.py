@@ -159,9 +159,9 @@ def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     short = [lab.rsplit("[", 1)[-1].rstrip("]") if lab.endswith("]") else lab
              for lab in labels]
     titles = titles_layer(FAMILY_TITLES, [
-        (sy, sx, f"family: a_0..a_{space.shape[0] - 1}"),
-        (y0, x0, f"PSF grid {len(ys)} x {len(xs)}, per image"),
-        (by, bx, f"family: h_0..h_{basis.shape[0] - 1}"),
+        (sy, sx, f"a_0..a_{space.shape[0] - 1}"),  # short: the slots are narrow
+        (y0, x0, f"PSF grid {len(ys)} x {len(xs)}"),
+        (by, bx, f"h_0..h_{basis.shape[0] - 1}"),
         (cy, cx, "conditions"),
     ], frame)
     return [
