@@ -59,13 +59,6 @@ STEP_COLUMNS = ("effect", "stage", "evidence", "tests", "own test", "held-out er
 #: Largest |normalised residual| (noise sd) shown in the patch mosaics.
 PATCH_LIMIT = 5.0
 
-# viridis at 10 evenly spaced points (RGB, 0-255)
-_VIRIDIS = np.array([[68, 1, 84], [72, 40, 120], [62, 74, 137], [49, 104, 142],
-                     [38, 130, 142], [31, 158, 137], [53, 183, 121], [109, 205, 89],
-                     [180, 222, 44], [253, 231, 37]], dtype=np.float64)
-_NO_DATA = (48, 48, 48)
-
-
 # ------------------------------------------------------------------ maps (numpy only)
 def excess_error(res: BeadResiduals) -> np.ndarray:
     """Each bead's relative residual energy minus what noise alone leaves, shape (K,)."""
@@ -156,15 +149,11 @@ def map_limit(*maps: np.ndarray, percentile: float = 98.0) -> float:
 
 
 def colorize(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
-    """Viridis-like RGB image of a 2-D array (NaN: dark grey), uint8 (M, N, 3)."""
-    v = np.asarray(values, float)
-    t = np.clip((v - vmin) / (vmax - vmin if vmax > vmin else 1.0), 0.0, 1.0)
-    t = np.nan_to_num(t) * (len(_VIRIDIS) - 1)
-    i = np.minimum(t.astype(int), len(_VIRIDIS) - 2)
-    f = (t - i)[..., None]
-    rgb = (1 - f) * _VIRIDIS[i] + f * _VIRIDIS[i + 1]
-    rgb[~np.isfinite(v)] = _NO_DATA
-    return np.round(rgb).astype(np.uint8)
+    """Viridis RGB image of a 2-D array (NaN: dark grey), uint8 (M, N, 3)
+    (:func:`~napari_psfspace.figure.apply_colormap`)."""
+    from .figure import apply_colormap
+
+    return apply_colormap(values, vmin, vmax, "viridis")
 
 
 def diverging_grey(values: np.ndarray, limit: float) -> np.ndarray:
