@@ -5,7 +5,12 @@ import time
 
 import pytest
 
-from napari_psfspace.core.common.progress import Progress, run_with_progress, wait_with_progress
+from napari_psfspace.core.common.progress import (
+    Progress,
+    responsive,
+    run_with_progress,
+    wait_with_progress,
+)
 
 RECORD = Progress("step", 0.5, "running")
 
@@ -78,3 +83,55 @@ def test_steps_reuse_their_thread_and_one_left_running_holds_up_no_other():
     other = run_with_progress(wait_with_progress(threading.get_ident, RECORD, every=0.05))
     assert time.perf_counter() - t0 < 5.0 and other != threading.get_ident()
     release.set()
+
+
+# ------------------------------------------------------------------ responsive (the panel's door)
+def _core(release: threading.Event, after: list, closed: threading.Event):
+    """A core generator with a long step that cannot yield (blocked on ``release``)."""
+    try:
+        yield Progress("one", 0.25, "first")
+        release.wait(60)
+        after.append("the step after the long one ran")
+        yield Progress("two", 0.5, "second")
+        return "value"
+    finally:
+        closed.set()
+
+
+def test_responsive_passes_the_records_and_the_value_on():
+    release, closed, after = threading.Event(), threading.Event(), []
+    release.set()
+    seen = []
+    value = run_with_progress(responsive(_core(release, after, closed), every=0.05),
+                              seen.append)
+    assert value == "value" and closed.is_set()
+    own = [r for r in seen if r.stage in ("one", "two")]
+    assert [r.message for r in own] == ["first", "second"]
+    # anything else is a repeat of the latest record (or the starting one)
+    assert all(r.stage in ("one", "two", "start") for r in seen)
+
+
+def test_responsive_answers_while_the_core_is_blocked_and_closes_it_after_its_step():
+    release, closed, after = threading.Event(), threading.Event(), []
+    gen = responsive(_core(release, after, closed), every=0.01)
+    guard = threading.Timer(30, release.set)  # a broken door fails below, never hangs
+    guard.start()
+    records = [next(gen) for _ in range(5)]  # the core is blocked after its first record
+    assert not release.is_set()
+    assert records[-1].message == "first"  # the latest record, repeated
+    gen.close()  # Cancel, while the core's step still runs
+    assert not closed.is_set()
+    release.set()  # the step ends on its own: then the core is closed
+    assert closed.wait(30)
+    guard.cancel()
+    assert after == ["the step after the long one ran"]  # the step under way ended
+    # ... and nothing after it: the second record was never asked for
+
+
+def test_responsive_raises_the_core_error():
+    def core():
+        yield RECORD
+        raise ValueError("`psf_radius`: bad")
+
+    with pytest.raises(ValueError, match="`psf_radius`: bad"):
+        run_with_progress(responsive(core(), every=0.01))

@@ -9,9 +9,7 @@ import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
 from napari.layers import Image
 
-from ..core.beads.detect import detect_beads
-from ..core.beads.scale import suggest_psf_radius
-from ..core.common.progress import Progress
+from ..core.beads.steps import iter_detect_beads, iter_suggest_psf_radius
 from ._layers import (
     BEADS,
     HOT_PIXELS,
@@ -31,16 +29,6 @@ if TYPE_CHECKING:
 
 DEFAULT_RADIUS_PX = 10.0
 _WATCHED: weakref.WeakSet = weakref.WeakSet()  # Points layers whose ids we maintain
-
-
-def _detect(plane, psf_radius: float, threshold: float):
-    yield Progress("detect", 0.1, "detecting beads...")
-    return detect_beads(plane, psf_radius, threshold=threshold)
-
-
-def _suggest(plane):
-    yield Progress("suggest", 0.1, "measuring the widths of bright spots...")
-    return suggest_psf_radius(plane)
 
 
 def legend_html() -> str:
@@ -151,7 +139,7 @@ class PickBeadsWidget(Container):
             self.radius.set_calibration(self.radius.pixel_size, radius)
             self.task.status.value = f"suggested PSF radius: {radius:g} px"
 
-        self.task.run(_suggest(plane), on_result)
+        self.task.run(iter_suggest_psf_radius(plane), on_result)
 
     def run(self, *_) -> None:
         """Detect beads in the chosen image (in a worker thread)."""
@@ -189,7 +177,8 @@ class PickBeadsWidget(Container):
             self._viewer.layers.selection.active = points
             self.task.status.value = beads.summary()
 
-        self.task.run(_detect(plane, r, float(self.threshold.value)), on_result)
+        self.task.run(iter_detect_beads(plane, r, threshold=float(self.threshold.value)),
+                      on_result)
 
 
 __all__ = ["BEADS", "PickBeadsWidget"]

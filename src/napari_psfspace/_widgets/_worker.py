@@ -6,8 +6,11 @@ The core's long computations are generators that yield
 :class:`CoreTask` runs one with :func:`napari.qt.threading.thread_worker`:
 
 * ``yielded`` moves the progress bar and the status line;
-* Cancel calls ``worker.quit()``: the generator stops at its next ``yield`` and the
-  result handler is never called (so nothing is added or saved);
+* the generator is driven by :func:`~napari_psfspace.core.common.progress.responsive`,
+  which repeats its latest record every fraction of a second while it works, so that
+* Cancel calls ``worker.quit()`` and is honoured at once, in every phase: the job
+  stops, the generator is closed after the step it is in, and the result handler is
+  never called (so nothing is added or saved);
 * a ``ValueError`` from the core (bad parameter, no beads, ...) is caught *in the
   worker* and shown with :func:`napari.utils.notifications.show_error` as its message,
   which says what to change, never as a traceback;
@@ -24,6 +27,8 @@ from magicgui.widgets import Container, Label, ProgressBar, PushButton
 from napari.qt.threading import GeneratorWorker, thread_worker
 from napari.utils.notifications import show_error
 
+from ..core.common.progress import responsive
+
 
 @dataclass(frozen=True)
 class Failure:
@@ -37,6 +42,10 @@ def _guarded(gen: Generator) -> Generator[Any, None, Any]:
         return (yield from gen)
     except ValueError as exc:  # the core's input errors (incl. NoBeadsError)
         return Failure(str(exc))
+
+
+def _drive(job: Generator) -> Generator[Any, None, Any]:
+    return (yield from job)
 
 
 class CoreTask(Container):
@@ -63,6 +72,7 @@ class CoreTask(Container):
         super().__init__(widgets=[self.progress, self.cancel, self.status], labels=False)
         self.cancel.changed.connect(self.request_cancel)
         self.worker: GeneratorWorker | None = None
+        self._job: Generator | None = None
 
     @property
     def running(self) -> bool:
@@ -92,8 +102,9 @@ class CoreTask(Container):
         """
         if self.worker is not None:
             raise RuntimeError("a job is already running")
-        worker = thread_worker(_guarded, start_thread=False)(gen)
-        self.worker = worker
+        job = _guarded(responsive(gen))
+        worker = thread_worker(_drive, start_thread=False)(job)
+        self.worker, self._job = worker, job
         worker.yielded.connect(self._on_progress)
         if on_progress is not None:
             worker.yielded.connect(on_progress)
@@ -136,12 +147,15 @@ class CoreTask(Container):
             show_error(f"Could not save: {exc}")
 
     def _on_aborted(self, on_cancel) -> None:
+        job, self._job = self._job, None
+        if job is not None:  # the core generator's clean-up runs after its step
+            job.close()
         self.status.value = "cancelled: nothing was changed"
         if on_cancel is not None:
             on_cancel()
 
     def _on_finished(self) -> None:
-        self.worker = None
+        self.worker, self._job = None, None
         self.progress.visible = self.cancel.visible = False
         self._start_button.enabled = True
 

@@ -114,6 +114,14 @@ def focus_on_step(viewer, step: str, *inputs, margin: float = 0.15) -> None:
     boxes = np.array([np.asarray(layer.extent.world, float)[:, -2:] for layer in layers])
     lo, hi = boxes[:, 0].min(axis=0), boxes[:, 1].max(axis=0)
     size = np.maximum(hi - lo, 1e-12)
-    height, width = (float(v) for v in viewer.canvas.size)
-    viewer.camera.center = tuple((lo + hi) / 2)
-    viewer.camera.zoom = float((1 - margin) * min(height / size[0], width / size[1]))
+    # napari 0.9 keeps the camera in the scene and the canvas size in the model; before,
+    # the viewer held the camera and the canvas size was the Qt canvas's (not sought:
+    # the view then stays as it is)
+    canvas = getattr(getattr(viewer, "canvas", None), "size", None)
+    if canvas is None:
+        return
+    scene = getattr(viewer, "scene", None)
+    camera = scene.camera if scene is not None else viewer.camera
+    height, width = (float(v) for v in canvas)
+    camera.center = tuple((lo + hi) / 2)
+    camera.zoom = float((1 - margin) * min(height / size[0], width / size[1]))

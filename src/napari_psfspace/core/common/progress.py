@@ -102,6 +102,58 @@ def wait_with_progress(fn: Callable[[], Any], record: Progress, *,
         yield record
 
 
+def responsive(gen: Generator[Progress, None, Any], *, every: float = 0.2
+               ) -> Generator[Progress, None, Any]:
+    """Drive ``gen`` from a helper thread and pass its records on, repeating the latest
+    one every ``every`` seconds while ``gen`` works between two of its own.
+
+    A consumer that stops between two records (a panel's Cancel) is then answered within
+    ``every`` seconds in every phase, however long ``gen``'s own steps are. The step
+    ``gen`` is in runs on to its next record in its thread; then ``gen`` is closed, and
+    nothing after that step runs. Returns ``gen``'s value (or raises its exception).
+
+    Parameters
+    ----------
+    gen : generator
+        A core generator (not started) yielding :class:`Progress` records.
+    every : float
+        The longest time between two records, in seconds.
+    """
+    last = Progress("start", 0.0, "starting...")
+    done = object()
+
+    def step():
+        try:
+            return next(gen)
+        except StopIteration as stop:
+            return done, stop.value
+
+    def close(_future=None) -> None:
+        try:
+            gen.close()  # its own clean-up (a halt event, a file) runs now
+        except (RuntimeError, ValueError):  # pragma: no cover (already executing)
+            pass
+
+    future = None
+    try:
+        while True:
+            future = _drivers().submit(step)
+            while True:
+                finished, _ = wait([future], timeout=float(every))
+                if finished:
+                    break
+                yield last
+            got = future.result()  # gen's exception is raised here
+            if isinstance(got, tuple) and len(got) == 2 and got[0] is done:
+                return got[1]
+            last = got
+            yield got
+    except GeneratorExit:  # the consumer stopped: gen is closed after its step
+        if future is not None:
+            future.add_done_callback(close)
+        raise
+
+
 #: Threads for :func:`wait_with_progress`: reused from one step to the next (dask keeps a
 #: pool of workers per calling thread, and each new thread also costs its own memory
 #: arena); more than one, so that a step left running by a Cancel does not hold up the
@@ -144,6 +196,20 @@ _STEPS: _StepThreads | None = None
 _STEPS_LOCK = threading.Lock()
 
 
+#: Threads that drive the generators of :func:`responsive` (apart from the steps' own
+#: threads, which they wait on: a driver never waits for another driver).
+DRIVER_THREADS = 8
+_DRIVERS: _StepThreads | None = None
+
+
+def _drivers() -> _StepThreads:
+    global _DRIVERS
+    with _STEPS_LOCK:
+        if _DRIVERS is None:
+            _DRIVERS = _StepThreads(DRIVER_THREADS)
+        return _DRIVERS
+
+
 def _steps() -> _StepThreads:
     global _STEPS
     with _STEPS_LOCK:
@@ -152,4 +218,5 @@ def _steps() -> _StepThreads:
         return _STEPS
 
 
-__all__ = ["Progress", "ProgressCallback", "run_with_progress", "wait_with_progress", "within"]
+__all__ = ["Progress", "ProgressCallback", "responsive", "run_with_progress",
+           "wait_with_progress", "within"]

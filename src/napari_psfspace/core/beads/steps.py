@@ -1,0 +1,51 @@
+"""Generator forms of the bead steps a panel runs on its own: detection and the radius
+suggestion.
+
+Each is one call that cannot yield, so it runs in a helper thread while the generator
+yields a record every fraction of a second (:func:`..common.progress.wait_with_progress`):
+a consumer that stops between two records (a panel's Cancel) is answered at once, and the
+call's result is dropped.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Generator
+
+import numpy as np
+
+from ..common.progress import Progress, wait_with_progress
+from .detect import Beads, detect_beads
+from .scale import suggest_psf_radius
+
+
+def iter_detect_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0
+                      ) -> Generator[Progress, None, Beads]:
+    """Generator form of :func:`.detect.detect_beads`: yields progress while it runs,
+    returns the :class:`.detect.Beads`.
+
+    Parameters
+    ----------
+    image : (M, N) array
+        The bead image.
+    psf_radius : float
+        PSF radius in pixels.
+    threshold : float
+        Detection threshold in noise standard deviations.
+    """
+    return (yield from wait_with_progress(
+        lambda: detect_beads(image, psf_radius, threshold=threshold),
+        Progress("detect", 0.1, "detecting beads...")))
+
+
+def iter_suggest_psf_radius(image: np.ndarray) -> Generator[Progress, None, float]:
+    """Generator form of :func:`.scale.suggest_psf_radius`: yields progress while it
+    runs, returns the radius in pixels.
+
+    Parameters
+    ----------
+    image : (M, N) array
+        The bead image.
+    """
+    return (yield from wait_with_progress(
+        lambda: suggest_psf_radius(image),
+        Progress("suggest", 0.1, "measuring the widths of bright spots...")))
