@@ -17,6 +17,7 @@ import tifffile
 
 import napari_psfspace as ps
 from napari_psfspace.cli import main
+from napari_psfspace.core.common.device import gpu_status
 from napari_psfspace.core.model.cone import Cone
 from napari_psfspace.core.subspace import OperatorSubspace
 
@@ -123,6 +124,12 @@ CASES = [
      "x.tif"),
     ("simulate -o {d}/x.tif --beads 0", "--beads", "x.tif"),
 ]
+# the GPU: named before any work; without CuPy or a device, the extra that installs it
+CASES.append(("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --device gpu "
+              "--method sparse", "--device gpu runs Richardson-Lucy", "x3.tif"))
+if not gpu_status()[0]:
+    CASES.append(("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --device gpu",
+                  "napari-psfspace[gpu]", "x3.tif"))
 
 
 @pytest.fixture

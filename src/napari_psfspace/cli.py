@@ -559,6 +559,12 @@ def _cmd_deblur3d(args) -> int:
         raise ValueError("--scheduler runs tiles: give --tile too")
     if args.method == "sparse" and args.tile:
         raise ValueError("--tile runs Richardson-Lucy only: drop --tile, or use --method rl")
+    from .core.common.device import array_module
+
+    if args.device == "gpu" and (args.method == "sparse" or args.tile):
+        raise ValueError("--device gpu runs Richardson-Lucy on the whole stack: drop "
+                         "--tile and use --method rl, or --device cpu")
+    device = array_module(args.device if args.method == "rl" and not args.tile else "cpu")
     op = load_operator_3d(args.model)
     stack, info = read_stack(args.stack)
     if stack.shape[1:] != op.shape[1:]:
@@ -597,10 +603,10 @@ def _cmd_deblur3d(args) -> int:
     else:
         res = run_with_progress(iter_richardson_lucy_3d(stack, op, n_iter=args.iterations,
                                                         background=args.background,
-                                                        rtol=rtol), printer)
+                                                        rtol=rtol, device=device), printer)
         volume = res.volume
-        meta.update(iterations=res.iterations, background=res.background)
-        what = f"{res.iterations} Richardson-Lucy iterations"
+        meta.update(iterations=res.iterations, background=res.background, device=res.device)
+        what = f"{res.iterations} Richardson-Lucy iterations on the {res.device.upper()}"
     write_tiff(args.output, volume, pixel_size=info.pixel_size, metadata={"deblur3d": meta})
     print(f"wrote {args.output}: {what} with the space-varying 3D PSF, "
           f"{time.perf_counter() - t0:.1f} s")
@@ -807,6 +813,9 @@ def build_parser() -> argparse.ArgumentParser:
                          "than memory; 0: the whole stack at once)")
     d3.add_argument("--scheduler", metavar="ADDRESS",
                     help="with --tile: a dask.distributed scheduler to run the tiles on")
+    d3.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
+                    help="rl: where it runs; auto (default): the GPU when CuPy sees one "
+                         "(pip install 'napari-psfspace[gpu]'), else the CPU")
     d3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     d3.set_defaults(func=_cmd_deblur3d)
 

@@ -100,7 +100,7 @@ def check_dc(spec: np.ndarray, name: str) -> None:
     input (even where a coefficient map is 0, as 0 * inf = NaN) makes it
     non-finite. Only a float overflow of the sum can also trigger it.
     """
-    if not np.isfinite(spec.flat[0]):
+    if not np.isfinite(complex(spec.ravel()[0])):  # a NumPy or a CuPy array
         raise ValueError(
             f"`{name}` contains NaN or infinite values (or values so large that "
             f"the computation overflows)"

@@ -32,6 +32,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike
 
+from ..common.device import ArrayModule, array_module
 from ..common.threads import default_workers
 from ..common.validate import check_int
 from ..model.compress import compressed_field
@@ -103,6 +104,11 @@ class BlockedOperator3D:
     cache_bytes : int
         Memory for cached block spectra; beyond it, a block's spectra are formed on
         each use.
+    device : {"cpu", "gpu", "auto"} or ArrayModule
+        Where the blocks' FFTs run (:mod:`..common.device`). On the GPU the blocks run
+        one after the other (the device is parallel within each); the volumes given to
+        :meth:`apply` and :meth:`adjoint` may be on the device or the host (each block
+        is then copied over and back: a volume larger than the device's memory runs).
 
     Attributes
     ----------
@@ -110,7 +116,8 @@ class BlockedOperator3D:
     """
 
     def __init__(self, operator: ProductConvolution3D, *, block: int = BLOCK,
-                 rtol: float = RTOL, cache_bytes: int = CACHE_BYTES) -> None:
+                 rtol: float = RTOL, cache_bytes: int = CACHE_BYTES,
+                 device: str | ArrayModule = "cpu") -> None:
         if not isinstance(operator, ProductConvolution3D):
             raise TypeError(f"`operator` must be a ProductConvolution3D, got "
                             f"{type(operator).__name__}")
@@ -119,6 +126,7 @@ class BlockedOperator3D:
         if not (np.isfinite(rtol) and rtol >= 0):
             raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
         self.operator = operator
+        self.am = device if isinstance(device, ArrayModule) else array_module(device)
         self.block = block
         self.rtol = float(rtol)
         self.cache_bytes = int(cache_bytes)
@@ -131,6 +139,7 @@ class BlockedOperator3D:
                 y1, x1 = min(y0 + block, h), min(x0 + block, w)
                 mix, combo, err = _local_kernels(basis, maps[:, y0:y1, x0:x1], self.rtol)
                 self.blocks.append(Block(y0, y1, x0, x1, mix, combo, err))
+        self._device_maps = None
         self._basis_spectra: dict[tuple, np.ndarray] = {}
         self._block_spectra: dict[tuple, np.ndarray] = {}
         self._cached = 0
@@ -174,7 +183,8 @@ class BlockedOperator3D:
         combo = self.blocks[index].combo
         if np.array_equal(combo, np.eye(len(combo))):
             return base
-        spec = np.tensordot(combo.astype(np.complex64), base, axes=1)
+        xp = self.am.xp
+        spec = xp.tensordot(xp.asarray(combo.astype(np.complex64)), base, axes=1)
         with self._lock:
             if self._cached + spec.nbytes <= self.cache_bytes:
                 self._block_spectra[key] = spec
@@ -193,17 +203,28 @@ class BlockedOperator3D:
                 big[:k, :p, :p] = h
                 big = np.roll(big, -(k // 2), axis=0)
                 base[i] = scipy.fft.rfftn(big)
+            base = self.am.asarray(base)  # on the device, once
             self._basis_spectra = {fshape: base}
         return base
 
     def _maps(self, b: Block) -> np.ndarray:
-        m = self.operator.coefficient_maps(np.float32)[:, b.y0:b.y1, b.x0:b.x1]
+        if self._device_maps is None:  # the maps on the device, once
+            self._device_maps = self.am.asarray(self.operator.coefficient_maps(np.float32))
+        m = self._device_maps[:, b.y0:b.y1, b.x0:b.x1]
         if np.array_equal(b.mix, np.eye(len(b.mix))):
             return m
-        return np.tensordot(b.mix.T.astype(np.float32), m, axes=1)
+        xp = self.am.xp
+        return xp.tensordot(xp.asarray(b.mix.T.astype(np.float32)), m, axes=1)
+
+    def release(self) -> None:
+        """Drop the cached spectra and maps (on the GPU: give their memory back)."""
+        with self._lock:
+            self._basis_spectra, self._block_spectra, self._cached = {}, {}, 0
+            self._device_maps = None
+        self.am.free_cache()
 
     def _check(self, u: ArrayLike, name: str) -> np.ndarray:
-        arr = np.asarray(u)
+        arr = u if hasattr(u, "__cuda_array_interface__") else np.asarray(u)
         if arr.ndim != 3 or arr.shape[1:] != self.shape[1:]:
             raise ValueError(f"`{name}` must be a volume (Z, {self.shape[1]}, "
                              f"{self.shape[2]}), got shape {arr.shape}")
@@ -218,7 +239,7 @@ class BlockedOperator3D:
         (closes the generator) sets ``halt``, which ``fn`` reads between two kernels:
         the blocks under way end within one FFT."""
         n = default_workers() if workers is None or workers < 1 else int(workers)
-        n = min(n, len(self.blocks))
+        n = 1 if self.am.gpu else min(n, len(self.blocks))
         total = len(self.blocks)
         if n <= 1:
             for j in range(total):
@@ -259,8 +280,10 @@ class BlockedOperator3D:
         each wave of blocks (one a thread; stop it there to cancel), returns ``H u``."""
         arr = self._check(u, "u")
         z, h, w = arr.shape
+        am, xp = self.am, self.am.xp
         if out is None:
-            out = np.zeros((z, h, w), np.float32)
+            out = np.zeros((z, h, w), np.float32) if _on_host(arr) else \
+                xp.zeros((z, h, w), np.float32)
         else:
             out[...] = 0
         fshape = self.fft_shape(z)
@@ -273,25 +296,27 @@ class BlockedOperator3D:
             b = self.blocks[j]
             spec, maps = self._spectra(j, fshape), self._maps(b)
             bh, bw = b.y1 - b.y0, b.x1 - b.x0
-            pad = np.zeros(fshape, np.float32)
+            part_in = am.asarray(arr[:, b.y0:b.y1, b.x0:b.x1])
+            pad = xp.zeros(fshape, np.float32)
             acc = None
             for i in range(len(maps)):
                 if halt.is_set():
                     return
-                np.multiply(maps[i][None], arr[:, b.y0:b.y1, b.x0:b.x1],
-                            out=pad[:z, :bh, :bw])
-                f = scipy.fft.rfftn(pad, workers=1)
+                xp.multiply(maps[i][None], part_in, out=pad[:z, :bh, :bw])
+                f = am.rfftn(pad, workers=1)
                 check_dc(f, "u")
                 if acc is None:
-                    acc = np.multiply(f, spec[i], out=f)
+                    acc = xp.multiply(f, spec[i], out=f)
                 else:
                     f *= spec[i]
                     acc += f
-            res = scipy.fft.irfftn(acc, s=fshape, workers=1, overwrite_x=True)
+            res = am.irfftn(acc, s=fshape, workers=1, overwrite_x=True)
             # output rows y0 - c .. y1 + c sit at res rows 0 .. bh + 2c
             oy0, ox0 = max(b.y0 - c, 0), max(b.x0 - c, 0)
             oy1, ox1 = min(b.y1 + c, h), min(b.x1 + c, w)
             part = res[:z, oy0 - b.y0 + c:oy1 - b.y0 + c, ox0 - b.x0 + c:ox1 - b.x0 + c]
+            if _on_host(out):
+                part = am.to_host(part)
             with lock:
                 out[:, oy0:oy1, ox0:ox1] += part
 
@@ -319,7 +344,12 @@ class BlockedOperator3D:
         """Generator form of :meth:`adjoint` (yields as :meth:`iter_apply`)."""
         arr = self._check(v, "v")
         z, h, w = arr.shape
-        out = np.empty((z, h, w), np.float32) if multiply_into is None else multiply_into
+        am, xp = self.am, self.am.xp
+        if multiply_into is not None:
+            out = multiply_into
+        else:
+            out = np.empty((z, h, w), np.float32) if _on_host(arr) else \
+                xp.empty((z, h, w), np.float32)
         fshape = self.fft_shape(z)
         c = self.operator.kernel_shape[1] // 2
         halt = threading.Event()
@@ -332,23 +362,25 @@ class BlockedOperator3D:
             # v on rows y0 - c .. y1 + c (zero outside the volume) at pad rows 0 ..
             iy0, ix0 = max(b.y0 - c, 0), max(b.x0 - c, 0)
             iy1, ix1 = min(b.y1 + c, h), min(b.x1 + c, w)
-            pad = np.zeros(fshape, np.float32)
+            pad = xp.zeros(fshape, np.float32)
             pad[:z, iy0 - b.y0 + c:iy1 - b.y0 + c, ix0 - b.x0 + c:ix1 - b.x0 + c] = \
-                arr[:, iy0:iy1, ix0:ix1]
-            f = scipy.fft.rfftn(pad, workers=1)
+                am.asarray(arr[:, iy0:iy1, ix0:ix1])
+            f = am.rfftn(pad, workers=1)
             del pad
             check_dc(f, "v")
-            acc = np.zeros((z, bh, bw), np.float32)
-            tmp = np.empty((z, bh, bw), np.float32)
-            prod = np.empty_like(f)
+            acc = xp.zeros((z, bh, bw), np.float32)
+            tmp = xp.empty((z, bh, bw), np.float32)
+            prod = xp.empty_like(f)
             for i in range(len(maps)):
                 if halt.is_set():
                     return
-                np.conjugate(spec[i], out=prod)
+                xp.conjugate(spec[i], out=prod)
                 prod *= f
-                back = scipy.fft.irfftn(prod, s=fshape, workers=1, overwrite_x=True)
-                np.multiply(maps[i][None], back[:z, :bh, :bw], out=tmp)
+                back = am.irfftn(prod, s=fshape, workers=1, overwrite_x=True)
+                xp.multiply(maps[i][None], back[:z, :bh, :bw], out=tmp)
                 acc += tmp
+            if _on_host(out):
+                acc = am.to_host(acc)
             if multiply_into is None:
                 out[:, b.y0:b.y1, b.x0:b.x1] = acc
             else:
@@ -356,6 +388,11 @@ class BlockedOperator3D:
 
         yield from self._iter_run(one, workers, halt)
         return out
+
+
+def _on_host(a) -> bool:
+    """True for a NumPy array (not a device array)."""
+    return isinstance(a, np.ndarray)
 
 
 def _drain(gen: Generator[float, None, np.ndarray]) -> np.ndarray:

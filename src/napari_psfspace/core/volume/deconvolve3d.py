@@ -20,12 +20,13 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
 
 import numpy as np
-import scipy.fft
 
+from ..common.device import array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
 from ..common.validate import check_int
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
+from .device_plan import plan_on_device
 from .operator3d import ProductConvolution3D
 
 #: Smallest denominator of the ratio ``y / (H u + b)`` (image units).
@@ -61,21 +62,23 @@ def estimate_seconds(op: BlockedOperator3D, volume: np.ndarray, n_iter: int,
     :data:`OVERHEAD` for the products around them; and one pass over ``volume`` (a
     float32 array of the stack's shape, overwritten), counted :data:`PASSES` an
     iteration (:data:`PASSES_ACCELERATED` with the acceleration)."""
+    am = op.am
     shape = op.fft_shape(volume.shape[0])
-    x = np.zeros(shape, np.float32)
+    x = am.xp.zeros(shape, np.float32)
+    vx = np if isinstance(volume, np.ndarray) else am.xp
 
     def median_time(fn) -> float:
         times = []
         for _ in range(3):
             t0 = time.perf_counter()
             fn()
+            am.synchronize()
             times.append(time.perf_counter() - t0)
         return float(np.median(times))
 
-    pair = median_time(lambda: scipy.fft.irfftn(scipy.fft.rfftn(x, workers=1), s=shape,
-                                                workers=1))
-    one_pass = median_time(lambda: np.multiply(volume, 1.0, out=volume))
-    threads = max(1, min(int(workers), len(op.blocks)))
+    pair = median_time(lambda: am.irfftn(am.rfftn(x, workers=1), s=shape, workers=1))
+    one_pass = median_time(lambda: vx.multiply(volume, 1.0, out=volume))
+    threads = 1 if am.gpu else max(1, min(int(workers), len(op.blocks)))
     passes = PASSES_ACCELERATED if accelerate else PASSES
     per_iteration = OVERHEAD * pair * op.fft_pairs() / threads + passes * one_pass
     return float(per_iteration * (n_iter + 0.5))
@@ -109,6 +112,10 @@ class Deconvolved3D:
         True when the stopping rule ended the iteration before ``n_iter``.
     estimate_s : float or None
         The time the run was expected to take at its start (seconds; blocks only).
+    device : str
+        Where it ran: "cpu" or "gpu".
+    block : int or None
+        The lateral block size it ran on (None: the whole volume at once).
     deviances : list of float
         The data fit of the iterates ``u_0, u_1, ...`` (Poisson deviance per voxel of
         ``H u + b`` against the stack, on the same subsample): what the stopping rule
@@ -123,6 +130,8 @@ class Deconvolved3D:
     stopped: bool = False
     estimate_s: float | None = None
     deviances: list = field(default_factory=list)
+    device: str = "cpu"
+    block: int | None = None
 
 
 def shift_invariant(operator: ProductConvolution3D, y: float | None = None,
@@ -177,6 +186,7 @@ def iter_richardson_lucy_3d(
     start: float | None = None,
     stop: float | None = None,
     accelerate: bool = False,
+    device: str = "auto",
 ) -> Generator[Progress, None, Deconvolved3D]:
     """Generator form of :func:`richardson_lucy_3d`: yields progress after every wave
     of blocks (one block a thread; stop it there to cancel) and every iteration,
@@ -185,6 +195,7 @@ def iter_richardson_lucy_3d(
     n_iter = check_int(n_iter, "n_iter", minimum=1)
     if stop is not None and not (np.isfinite(stop) and stop >= 0):
         raise ValueError(f"`stop` must be a finite number >= 0 or None, got {stop!r}")
+    am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     yield Progress("setup", 0.0, "statistics of the stack")
     b0, mean = stack_statistics(stack)
     b = b0 if background is None else float(background)
@@ -198,67 +209,81 @@ def iter_richardson_lucy_3d(
     if not np.isfinite(data.sum(dtype=np.float64)):
         raise ValueError("`stack` contains NaN or infinite values")
     yield Progress("setup", 0.0, "blocks and their kernels")
-    op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    xp = np  # the volumes' array module: the device's where they fit there
+    if am.gpu:  # blocks as large as the device's memory allows (device_plan)
+        plan = plan_on_device(operator, data.shape[0], am.free_bytes(),
+                              accelerate=accelerate)
+        block = plan.block
+        if plan.volumes_on_device:
+            xp = am.xp
+            data = am.asarray(data)
+        op = BlockedOperator3D(operator, block=block, rtol=rtol, device=am)
+    else:
+        op = operator if block is None else BlockedOperator3D(operator, block=block,
+                                                              rtol=rtol)
     workers = default_workers() if workers is None else workers  # FFT threads or blocks
-    n_kernels = float(op.n_kernels) if block is not None else float(operator.n_psf)
+    blocked = block is not None
+    n_kernels = float(op.n_kernels) if blocked else float(operator.n_psf)
     estimate = None
-    buf = np.empty_like(data)
-    if block is not None:
+    buf = xp.empty_like(data)
+    buf.fill(1.0)
+    if blocked:
         yield Progress("setup", 0.0, "timing one FFT of a block")
         estimate = estimate_seconds(op, buf, n_iter, workers, accelerate=accelerate)
         yield Progress("estimate", 0.0, f"about {_duration(estimate)} for {n_iter} "
-                                        f"iterations at most")
-    buf.fill(1.0)
-    if block is None:
+                                        f"iterations at most"
+                                        + (" on the GPU" if am.gpu else ""))
+        buf.fill(1.0)
+    if not blocked:
         norm = op.adjoint(buf, workers=workers)
     else:
         norm = yield from _waves(op.iter_adjoint(buf, workers=workers), "setup", 0.0,
                                  0.0, "H^T 1")
-    np.maximum(norm, TINY * max(float(norm.max()), 1.0), out=norm)
+    xp.maximum(norm, TINY * max(float(norm.max()), 1.0), out=norm)
     yield Progress("setup", 0.0, "the starting estimate")
-    u = np.full_like(data, max(mean - b, TINY) if start is None else float(start))
+    u = xp.full_like(data, max(mean - b, TINY) if start is None else float(start))
     # the change of each iteration, read on a strided subsample (a sixteenth of a
     # 1024 x 1024 stack): no fifth volume in memory
     z, h, w = u.shape
     step = max(1, int(np.ceil(np.sqrt(z * h * w / (4 * STATS_VOXELS)))))
-    prev = np.empty_like(u[:, ::step, ::step])
+    prev = xp.empty_like(u[:, ::step, ::step])
     changes: list[float] = []
     # the data fit of each iterate (Poisson deviance per voxel), on the same subsample
-    fit = _DevianceOnSample(data[:, ::step, ::step])
+    fit = _DevianceOnSample(data[:, ::step, ::step], xp)
     deviances: list[float] = []
     if accelerate:  # Biggs-Andrews: x_{k-1}, the last two steps g, the prediction y
         made = []
         for _ in range(4):
-            made.append(np.zeros_like(u))
+            made.append(xp.zeros_like(u))
             yield Progress("setup", 0.0, "the acceleration's volumes")
         x_prev, g1, g2, g_new = made
         del made
     t_iter = time.perf_counter()
     for k in range(n_iter):
-        np.copyto(prev, u[:, ::step, ::step])
+        xp.copyto(prev, u[:, ::step, ::step])
         if accelerate:
-            _predict(u, x_prev, g1, g2, g_new, k)
+            _predict(u, x_prev, g1, g2, g_new, k, xp)
         left = ""
         if k:
             per = (time.perf_counter() - t_iter) / k
             left = f", {_duration(per * (n_iter - k))} left at most"
         where = (k / n_iter, 1 / n_iter, f"iteration {k + 1} of {n_iter}{left}")
-        if block is None:
+        if not blocked:
             buf = op.apply(u, workers=workers)
         else:
             yield Progress("iteration", where[0], where[2])  # after the extrapolation
             yield from _waves(op.iter_apply(u, out=buf, workers=workers), "iteration",
                               where[0], where[1] / 2, where[2])
         buf += b
-        np.maximum(buf, TINY, out=buf)
+        xp.maximum(buf, TINY, out=buf)
         deviances.append(fit(buf[:, ::step, ::step]))
         if (stop is not None and k >= MIN_ITERATIONS
                 and deviances[-2] - deviances[-1] < stop * deviances[-1]):
             if accelerate:  # the iterate, not its extrapolation
-                np.copyto(u, x_prev)
+                xp.copyto(u, x_prev)
             break  # u_k fits the data as well as u_{k-1}, to ``stop``: it is the result
-        np.divide(data, buf, out=buf)
-        if block is None:
+        xp.divide(data, buf, out=buf)
+        if not blocked:
             u *= op.adjoint(buf, workers=workers)
         else:
             yield Progress("iteration", where[0] + where[1] / 2, where[2])
@@ -266,39 +291,44 @@ def iter_richardson_lucy_3d(
                               "iteration", where[0] + where[1] / 2, where[1] / 2, where[2])
         u /= norm
         if accelerate:  # this step's change from its prediction
-            np.subtract(u, g_new, out=g_new)
+            xp.subtract(u, g_new, out=g_new)
             g1, g2, g_new = g_new, g1, g2
         now = u[:, ::step, ::step]
         prev -= now
-        changes.append(float(np.linalg.norm(prev) / max(np.linalg.norm(now), TINY)))
+        changes.append(float(xp.linalg.norm(prev) / max(xp.linalg.norm(now), TINY)))
         yield Progress("iteration", (k + 1) / n_iter,
                        f"iteration {k + 1} of {n_iter}, change {changes[-1]:.2g}")
-    del prev
+    del prev, buf, norm, data
     if accelerate:
         del x_prev, g1, g2, g_new
     stopped = len(changes) < n_iter
-    return Deconvolved3D(u, len(changes), b, n_kernels, changes, stopped, estimate,
-                         deviances)
+    volume = am.to_host(u) if xp is not np else u
+    del u
+    if isinstance(op, BlockedOperator3D) and am.gpu:
+        op.release()  # its spectra and plans go back to the device
+    return Deconvolved3D(volume, len(changes), b, n_kernels, changes, stopped, estimate,
+                         deviances, am.name, block)
 
 
 class _DevianceOnSample:
     """The Poisson deviance per voxel, ``2 mean(y log(y / mu) - (y - mu))``, of the
     blurred estimate ``mu = H u + b`` against the data ``y`` on a fixed subsample (the
-    terms of ``y`` alone computed once)."""
+    terms of ``y`` alone computed once), in the array module ``xp`` of the volumes."""
 
-    def __init__(self, y: np.ndarray) -> None:
-        self.y = np.ascontiguousarray(y, dtype=np.float64)
+    def __init__(self, y, xp=np) -> None:
+        self.xp = xp
+        self.y = xp.ascontiguousarray(y, dtype=np.float64)
         pos = self.y > 0
-        self.const = float(np.sum(self.y[pos] * np.log(self.y[pos])) - self.y.sum())
+        self.const = float(xp.sum(self.y[pos] * xp.log(self.y[pos])) - self.y.sum())
         self.n = max(self.y.size, 1)
 
-    def __call__(self, mu: np.ndarray) -> float:
-        m = np.asarray(mu, dtype=np.float64)
-        return 2.0 * (self.const - float(np.sum(self.y * np.log(m))) + float(m.sum())) / self.n
+    def __call__(self, mu) -> float:
+        xp = self.xp
+        m = xp.asarray(mu, dtype=np.float64)
+        return 2.0 * (self.const - float(xp.sum(self.y * xp.log(m))) + float(m.sum())) / self.n
 
 
-def _predict(u: np.ndarray, x_prev: np.ndarray, g1: np.ndarray, g2: np.ndarray,
-             y: np.ndarray, k: int) -> float:
+def _predict(u, x_prev, g1, g2, y, k: int, xp=np) -> float:
     """Biggs-Andrews vector extrapolation before Richardson-Lucy step ``k`` (in place):
     ``u`` (the estimate ``x_k``) becomes the prediction ``x_k + a (x_k - x_{k-1})``,
     clipped at 0, with ``a = <g_{k-1}, g_{k-2}> / <g_{k-2}, g_{k-2}>`` in
@@ -307,18 +337,18 @@ def _predict(u: np.ndarray, x_prev: np.ndarray, g1: np.ndarray, g2: np.ndarray,
     Returns ``a``."""
     alpha = 0.0
     if k >= 2:
-        den = float(np.dot(g2.ravel(), g2.ravel()))
+        den = float(xp.dot(g2.ravel(), g2.ravel()))
         if den > 0:
-            alpha = float(np.clip(np.dot(g1.ravel(), g2.ravel()) / den, 0.0, ALPHA_MAX))
+            alpha = float(xp.clip(xp.dot(g1.ravel(), g2.ravel()) / den, 0.0, ALPHA_MAX))
     if k >= 1 and alpha > 0:
-        np.subtract(u, x_prev, out=y)  # x_k - x_{k-1}, in y's buffer for a moment
-        np.copyto(x_prev, u)
+        xp.subtract(u, x_prev, out=y)  # x_k - x_{k-1}, in y's buffer for a moment
+        xp.copyto(x_prev, u)
         y *= alpha
         u += y
-        np.maximum(u, 0, out=u)
+        xp.maximum(u, 0, out=u)
     else:
-        np.copyto(x_prev, u)
-    np.copyto(y, u)
+        xp.copyto(x_prev, u)
+    xp.copyto(y, u)
     return alpha
 
 
@@ -346,6 +376,7 @@ def richardson_lucy_3d(
     start: float | None = None,
     stop: float | None = None,
     accelerate: bool = False,
+    device: str = "auto",
     progress: Callable[[Progress], None] | None = None,
 ) -> Deconvolved3D:
     """Space-varying Richardson-Lucy deconvolution of a z-stack, in float32.
@@ -387,6 +418,11 @@ def richardson_lucy_3d(
         ``u_k``. The estimate itself keeps moving long after (its change per iteration
         is in ``changes``). None (default): ``n_iter`` iterations. :data:`STOP_FIT` is
         the panel's.
+    device : {"auto", "cpu", "gpu"}
+        Where the iteration runs (:mod:`~napari_psfspace.core.common.device`): "auto" is
+        the GPU when CuPy imports and sees a device, else the CPU. On the GPU the blocks
+        are sized from the device's free memory (``block`` is then not used:
+        :mod:`~napari_psfspace.core.volume.device_plan`). The result is a NumPy array.
     progress : callable, optional
         Called after each wave of blocks and each iteration.
 
@@ -396,7 +432,8 @@ def richardson_lucy_3d(
     """
     return run_with_progress(iter_richardson_lucy_3d(
         stack, operator, n_iter=n_iter, background=background, block=block, rtol=rtol,
-        workers=workers, start=start, stop=stop, accelerate=accelerate), progress)
+        workers=workers, start=start, stop=stop, accelerate=accelerate, device=device),
+        progress)
 
 
 __all__ = ["MIN_ITERATIONS", "STOP_FIT", "Deconvolved3D", "check_stack",

@@ -1,0 +1,200 @@
+"""The deblurring on the GPU (CuPy) against the CPU path, on one machine, in one run.
+
+For synthetic volumes blurred by a field of I = 4 kernels of 17 x 45 x 45 voxels:
+
+* one Richardson-Lucy 3D iteration at 64 x 1024 x 1024 and 64 x 2048 x 2048: seconds on
+  the GPU (the mean of the iterations after the first), on the CPU (one iteration, all
+  cores), and the floor: ``I + 1`` pairs of rfftn + irfftn of the padded shape, timed on
+  the GPU in the same run;
+* the relative l2 difference of 10 iterations' result from the CPU's;
+* the device's peak memory during the run (CuPy's pool, what the arrays held);
+* a 256 x 2048 x 2048 volume: its plan (the blocks, where the volumes live), its peak
+  memory, and that it ran.
+
+Imports only the core (no dask, napari or magicgui): it runs on a bare GPU machine.
+
+    python bench/bench_gpu.py [--sizes 1024 2048] [--big] [--cpu-iterations 10]
+    python bench/bench_gpu.py --small     # a small smoke run (CPU only where no GPU)
+"""
+
+from __future__ import annotations
+
+import argparse
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))  # a bare checkout
+
+from napari_psfspace.core.common.device import array_module, gpu_status  # noqa: E402
+from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d  # noqa: E402
+from napari_psfspace.core.volume.device_plan import plan_on_device  # noqa: E402
+from napari_psfspace.core.volume.operator3d import ProductConvolution3D  # noqa: E402
+
+
+def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:
+    heads = [k for k, _ in columns]
+    cells = [[format(r[k], f) if r.get(k) is not None else "-" for k, f in columns]
+             for r in rows]
+    widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(heads)]
+    line = " | ".join(h.rjust(w) for h, w in zip(heads, widths, strict=True))
+    out = [line, "-" * len(line)]
+    out += [" | ".join(c.rjust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
+    return "\n".join(out)
+
+
+def operator(shape, kernel=(17, 45, 45), n=4, seed=0) -> ProductConvolution3D:
+    """A smooth field of ``n`` Gaussian-like kernels over a 5 x 5 grid."""
+    rng = np.random.default_rng(seed)
+    k, p, _ = kernel
+    z, y, x = np.meshgrid(np.arange(k) - k // 2, np.arange(p) - p // 2,
+                          np.arange(p) - p // 2, indexing="ij")
+    basis = []
+    for i in range(n):
+        s = 2.0 + i
+        g = np.exp(-(y ** 2 + x ** 2) / (2 * s ** 2) - z ** 2 / (2 * (2 * s) ** 2))
+        basis.append(g / g.sum())
+    gy, gx = np.linspace(0, shape[1] - 1, 5), np.linspace(0, shape[2] - 1, 5)
+    coef = 0.2 + rng.random((n, 5, 5))
+    return ProductConvolution3D(np.array(basis), coef / coef.sum(0), shape=shape,
+                                grid=(gy, gx), plane=k // 2)
+
+
+def volume(op: ProductConvolution3D, seed=1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    obj = np.zeros(op.shape, np.float32)
+    n = obj.size // 2000
+    obj[tuple(rng.integers(0, s, n) for s in op.shape)] = rng.uniform(500, 5000, n)
+    return rng.poisson(np.clip(op.apply(obj), 0, None) + 20).astype(np.float32)
+
+
+class Peak:
+    """The peak of the bytes CuPy's pool lends to arrays (a memory hook)."""
+
+    def __init__(self):
+        import cupy
+
+        class Hook(cupy.cuda.MemoryHook):
+            name = "peak"
+
+            def __init__(self):
+                self.now = self.peak = 0
+
+            def malloc_postprocess(self, **kw):
+                self.now += kw["mem_size"]
+                self.peak = max(self.peak, self.now)
+
+            def free_postprocess(self, **kw):
+                self.now -= kw["mem_size"]
+
+        self.hook = Hook()
+
+    def __enter__(self):
+        self.hook.__enter__()
+        return self.hook
+
+    def __exit__(self, *exc):
+        self.hook.__exit__(*exc)
+
+
+def fft_floor(am, op, depth: int) -> float:
+    """Seconds of ``I + 1`` rfftn + irfftn pairs of the whole field's padded shape."""
+    plan = plan_on_device(op, depth, am.free_bytes())
+    k, p, _ = op.kernel_shape
+    import scipy.fft
+
+    fz = scipy.fft.next_fast_len(depth + k // 2, real=True)
+    fl = scipy.fft.next_fast_len(plan.block + p - 1, real=True)
+    x = am.xp.zeros((fz, fl, fl), np.float32)
+    am.irfftn(am.rfftn(x), s=x.shape)  # plans made
+    am.synchronize()
+    t0 = time.perf_counter()
+    for _ in range(5):
+        am.irfftn(am.rfftn(x), s=x.shape)
+    am.synchronize()
+    del x
+    return (time.perf_counter() - t0) / 5 * (op.n_psf + 1)
+
+
+def per_iteration(stack, op, device, n_iter) -> tuple[float, object]:
+    """Seconds an iteration after the first (``n_iter`` >= 2), and the result."""
+    times = []
+    last = [time.perf_counter()]
+
+    def on(rec):
+        if rec.stage == "iteration" and rec.message.startswith("iteration") and \
+                ", change" in rec.message:
+            now = time.perf_counter()
+            times.append(now - last[0])
+            last[0] = now
+
+    res = richardson_lucy_3d(stack, op, n_iter=n_iter, device=device, progress=on)
+    return float(np.mean(times[1:] if len(times) > 1 else times)), res
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", nargs="+", type=int, default=[1024, 2048])
+    ap.add_argument("--depth", type=int, default=64)
+    ap.add_argument("--iterations", type=int, default=10)
+    ap.add_argument("--cpu-iterations", type=int, default=10,
+                    help="CPU iterations for the difference (0: time one only)")
+    ap.add_argument("--big", action="store_true", help="also 256 x 2048 x 2048")
+    ap.add_argument("--small", action="store_true", help="a smoke run: 16 x 256 x 256")
+    args = ap.parse_args()
+    ok, why = gpu_status()
+    print(f"machine: {platform.node()}, {platform.processor() or platform.machine()}; "
+          f"GPU: {'yes' if ok else 'no (' + why + ')'}")
+    if ok:
+        import cupy
+
+        props = cupy.cuda.runtime.getDeviceProperties(0)
+        print(f"device: {props['name'].decode()}, "
+              f"{props['totalGlobalMem'] / 2**30:.0f} GiB; CuPy {cupy.__version__}")
+    sizes, depth = ([256], 16) if args.small else (args.sizes, args.depth)
+    rows = []
+    for size in sizes:
+        op = operator((depth, size, size))
+        stack = volume(op)
+        row = {"shape": f"{depth}x{size}x{size}", "I": op.n_psf}
+        n_cpu = max(args.cpu_iterations, 2)
+        row["cpu_s"], cpu = per_iteration(stack, op, "cpu", n_cpu)
+        if ok:
+            am = array_module("gpu")
+            row["floor_s"] = fft_floor(am, op, depth)
+            with Peak() as peak:
+                row["gpu_s"], gpu = per_iteration(stack, op, "gpu", args.iterations)
+            row["peak_GiB"] = peak.peak / 2**30
+            row["block"] = gpu.block
+            row["vs_floor"] = row["gpu_s"] / row["floor_s"]
+            row["speedup"] = row["cpu_s"] / row["gpu_s"]
+            if args.cpu_iterations >= 2 and args.iterations == n_cpu:
+                row["rel_l2"] = float(np.linalg.norm(gpu.volume - cpu.volume)
+                                      / np.linalg.norm(cpu.volume))
+        rows.append(row)
+        print(table(rows[-1:], COLUMNS), flush=True)
+    if ok and args.big:
+        op = operator((256, 2048, 2048))
+        am = array_module("gpu")
+        plan = plan_on_device(op, 256, am.free_bytes())
+        stack = volume(op)
+        with Peak() as peak:
+            t, res = per_iteration(stack, op, "gpu", 2)
+        rows.append({"shape": "256x2048x2048", "I": op.n_psf, "gpu_s": t,
+                     "peak_GiB": peak.peak / 2**30, "block": res.block})
+        print(f"256x2048x2048: block {plan.block}, volumes on the device: "
+              f"{plan.volumes_on_device}; ran {res.iterations} iterations")
+    print("\nRichardson-Lucy 3D, one iteration (I = 4 kernels of 17 x 45 x 45)")
+    print(table(rows, COLUMNS))
+
+
+COLUMNS = [("shape", "s"), ("I", "d"), ("block", "d"), ("gpu_s", ".4f"), ("floor_s", ".4f"),
+           ("vs_floor", ".2f"), ("cpu_s", ".2f"), ("speedup", ".1f"), ("rel_l2", ".1e"),
+           ("peak_GiB", ".1f")]
+
+
+if __name__ == "__main__":
+    main()
