@@ -47,7 +47,7 @@ DEPTH = 12
 BACKGROUND = 20.0
 
 
-def pyotf_stack(seed: int, shape=SHAPE, n_beads: int = 40, dz: float = 0.15,
+def pyotf_stack(seed: int, shape=SHAPE, n_beads: int = 25, dz: float = 0.15,
                 planes: int = 11, size: int = 61):
     """A bead z-stack from pyotf's PSFs, spherical aberration growing with the column,
     made by the true field itself; returns what ``bench_volume``'s generators return."""
@@ -82,7 +82,7 @@ def pyotf_stack(seed: int, shape=SHAPE, n_beads: int = 40, dz: float = 0.15,
 
 GENERATORS = {
     "ours": lambda seed: ours("moderate", seed),
-    "psfmodels": lambda seed: psfmodels_stack(seed, shape=SHAPE),
+    "psfmodels": lambda seed: psfmodels_stack(seed, shape=SHAPE, n_beads=25),
     "pyotf": pyotf_stack,
 }
 

@@ -99,6 +99,10 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     assert len(out) == 1 and out[0].data.shape == stack.shape
     # the time estimated before the iterations and the time taken, side by side
     assert "(estimated " in w.deblur_result.value and " s" in w.deblur_result.value
+    from napari_psfspace.core.common.device import gpu_status
+
+    on_gpu = gpu_status()[0]
+    assert ("on the GPU" if on_gpu else "on the CPU") in w.deblur_result.value
     assert np.all(out[0].data >= 0) and tuple(out[0].scale) == (0.2, px, px)
     # beside the stack, on its planes, never blended over it
     raw = np.asarray(v.layers["bead stack"].extent.world)
@@ -129,6 +133,13 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         assert ("iteration" in stages) == (phase == "iteration"), (phase, stages)
         assert w.deblur_task.status.value.startswith("cancelled"), phase
         assert not any(layer.name.startswith(DEBLURRED_3D) for layer in v.layers), phase
+    if not on_gpu:  # a GPU asked for where there is none: one line, nothing added
+        w.device.value = "gpu"
+        w.deblur.clicked()
+        wait_task(qtbot, w.deblur_task, timeout=30_000)
+        assert w.deblur_task.status.value.startswith("failed"), w.deblur_task.status.value
+        assert not any(layer.name.startswith(DEBLURRED_3D) for layer in v.layers)
+        w.device.value = "auto"
     # a wrong model file is named, no traceback
     bad = tmp_path / "bad.npz"
     bad.write_text("not a model")

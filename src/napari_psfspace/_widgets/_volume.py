@@ -37,6 +37,7 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_error
 
+from ..core.common.device import DEVICES, gpu_status
 from ..core.common.measures import in_units, psf_measures
 from ..core.common.progress import Progress
 from ..core.volume import iter_estimate_operator_3d, load_operator_3d
@@ -202,6 +203,11 @@ class Volume3DWidget(Container):
         self.stop.tooltip = (f"Ends when an iteration improves the fit to the data "
                              f"(Poisson deviance) by less than {STOP_FIT:g} of itself, "
                              f"after {MIN_ITERATIONS} iterations at least.")
+        self.device = ComboBox(label="device", choices=list(DEVICES), value="auto")
+        ok, why = gpu_status()
+        self.device.tooltip = ("auto: the GPU when CuPy sees one, else the CPU. Here: "
+                               + ("a GPU." if ok else f"no GPU ({why}); pip install "
+                                  "'napari-psfspace[gpu]' on a machine with one."))
         self.deblur = PushButton(text="Deblur 3D")
         self.deblur_task = CoreTask(self.deblur)
         self.deblur_result = Label(value="")
@@ -209,7 +215,7 @@ class Volume3DWidget(Container):
         super().__init__(widgets=[
             self.image, self.radius, self.z_radius, self.n_psf, self.learn,
             self.learn_task, self.learn_result, self.model_file, self.iterations,
-            self.accelerate, self.stop, self.deblur, self.deblur_task,
+            self.accelerate, self.stop, self.device, self.deblur, self.deblur_task,
             self.deblur_result])
         self.operator = None
         self.learn.changed.connect(self.run_learn)
@@ -353,7 +359,8 @@ class Volume3DWidget(Container):
             return
         gen = iter_richardson_lucy_3d(stack, op, n_iter=int(self.iterations.value),
                                       stop=STOP_FIT if self.stop.value else None,
-                                      accelerate=bool(self.accelerate.value))
+                                      accelerate=bool(self.accelerate.value),
+                                      device=str(self.device.value))
         self.deblur_result.value = ""
         started = time.perf_counter()
 
@@ -372,8 +379,9 @@ class Volume3DWidget(Container):
             estimate = ("" if res.estimate_s is None
                         else f" (estimated {res.estimate_s:.0f} s)")
             self.deblur_result.value = (
-                f"{res.iterations} Richardson-Lucy iterations ({why}), "
-                f"{res.n_kernels:.1f} kernels a block; {seconds:.0f} s{estimate}")
+                f"{res.iterations} Richardson-Lucy iterations ({why}) on the "
+                f"{res.device.upper()}, {res.n_kernels:.1f} kernels a block; "
+                f"{seconds:.0f} s{estimate}")
 
         self.deblur_task.run(gen, on_result, on_progress=on_progress)
 
