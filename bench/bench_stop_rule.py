@@ -21,7 +21,7 @@ scale, ``bench_deblur3d.region_error`` over the whole field; ``truth_ratio`` = t
 over plain RL's: at most 1 means the rule loses nothing against the truth).
 
     python bench/bench_stop_rule.py [--sets ours psfmodels pyotf] [--seeds 1 2]
-        [--thresholds 1e-3 3e-3 1e-2]
+        [--thresholds 1e-3 3e-3 1e-2] [--cap 25]
 
 Needs the ``bench`` extra (pyotf, psfmodels).
 """
@@ -87,7 +87,8 @@ GENERATORS = {
 }
 
 
-def run(name: str, seed: int, thresholds: list[float]) -> list[dict]:
+def run(name: str, seed: int, thresholds: list[float], cap: int | None = None
+        ) -> list[dict]:
     stack, truth, radius, z_radius = GENERATORS[name](seed)
     est = run_with_progress(iter_estimate_operator_3d(stack, psf_radius=radius,
                                                       z_radius=z_radius)).operator
@@ -106,12 +107,15 @@ def run(name: str, seed: int, thresholds: list[float]) -> list[dict]:
     rows = [{"set": name, "seed": seed, "method": "plain RL 50", "iterations": 50,
              "vs_rl50": 0.0, "truth": base, "truth_ratio": 1.0,
              "seconds": time.perf_counter() - t0}]
-    for t in thresholds:
+    runs = [(f"rule {t:g}", t, 50) for t in thresholds]
+    if cap:
+        runs.append((f"panel: rule {STOP_FIT:g}, at most {cap}", STOP_FIT, cap))
+    for label, t, n in runs:
         t0 = time.perf_counter()
-        res = richardson_lucy_3d(data, op, n_iter=50, background=BACKGROUND, stop=t,
+        res = richardson_lucy_3d(data, op, n_iter=n, background=BACKGROUND, stop=t,
                                  accelerate=True)
         err = region_error(res.volume, obj, everywhere)
-        rows.append({"set": name, "seed": seed, "method": f"rule {t:g}",
+        rows.append({"set": name, "seed": seed, "method": label,
                      "iterations": res.iterations,
                      "vs_rl50": float(np.linalg.norm(res.volume - ref) / np.linalg.norm(ref)),
                      "truth": err, "truth_ratio": err / base,
@@ -128,18 +132,23 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sets", nargs="+", default=list(GENERATORS), choices=list(GENERATORS))
     ap.add_argument("--seeds", nargs="+", type=int, default=[1, 2])
-    ap.add_argument("--thresholds", nargs="+", type=float, default=[1e-3, STOP_FIT, 1e-2])
+    ap.add_argument("--thresholds", nargs="*", type=float, default=[1e-3, STOP_FIT, 1e-2])
+    ap.add_argument("--cap", type=int, default=None,
+                    help="also the panel's run: the rule at STOP_FIT, at most CAP "
+                         "iterations (the panel's PANEL_ITERATIONS is 25)")
     args = ap.parse_args()
     rows = []
     for name in args.sets:
         for seed in args.seeds:
-            rows += run(name, seed, args.thresholds)
+            rows += run(name, seed, args.thresholds, args.cap)
     print(f"\nThe stopping rule against plain RL of 50 iterations (the library's STOP_FIT "
           f"is {STOP_FIT:g})")
     print(table(rows, COLUMNS))
-    for t in args.thresholds:
-        mine = [r for r in rows if r["method"] == f"rule {t:g}"]
-        print(f"rule {t:g}: iterations {min(r['iterations'] for r in mine)}-"
+    labels = [f"rule {t:g}" for t in args.thresholds]
+    labels += [f"panel: rule {STOP_FIT:g}, at most {args.cap}"] if args.cap else []
+    for label in labels:
+        mine = [r for r in rows if r["method"] == label]
+        print(f"{label}: iterations {min(r['iterations'] for r in mine)}-"
               f"{max(r['iterations'] for r in mine)}, vs_rl50 at most "
               f"{max(r['vs_rl50'] for r in mine):.4f}, truth_ratio at most "
               f"{max(r['truth_ratio'] for r in mine):.3f}")
