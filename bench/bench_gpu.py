@@ -21,29 +21,15 @@ from __future__ import annotations
 
 import argparse
 import platform
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))  # a bare checkout
-
-from napari_psfspace.core.common.device import array_module, gpu_status  # noqa: E402
-from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d  # noqa: E402
-from napari_psfspace.core.volume.device_plan import plan_on_device  # noqa: E402
-from napari_psfspace.core.volume.operator3d import ProductConvolution3D  # noqa: E402
-
-
-def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:
-    heads = [k for k, _ in columns]
-    cells = [[format(r[k], f) if r.get(k) is not None else "-" for k, f in columns]
-             for r in rows]
-    widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(heads)]
-    line = " | ".join(h.rjust(w) for h, w in zip(heads, widths, strict=True))
-    out = [line, "-" * len(line)]
-    out += [" | ".join(c.rjust(w) for c, w in zip(row, widths, strict=True)) for row in cells]
-    return "\n".join(out)
+from _common import table  # stdlib only; it puts src on the path
+from napari_psfspace.core.common.device import array_module, gpu_status
+from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d
+from napari_psfspace.core.volume.device_plan import plan_on_device
+from napari_psfspace.core.volume.operator3d import ProductConvolution3D
 
 
 def operator(shape, kernel=(17, 45, 45), n=4, seed=0) -> ProductConvolution3D:

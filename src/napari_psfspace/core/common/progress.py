@@ -192,30 +192,27 @@ class _StepThreads:
                 future.set_exception(exc)
 
 
-_STEPS: _StepThreads | None = None
-_STEPS_LOCK = threading.Lock()
-
-
 #: Threads that drive the generators of :func:`responsive` (apart from the steps' own
 #: threads, which they wait on: a driver never waits for another driver).
 DRIVER_THREADS = 8
-_DRIVERS: _StepThreads | None = None
+_POOLS: dict[str, _StepThreads] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def _pool(kind: str, n: int) -> _StepThreads:
+    """The process's pool of ``kind`` ("steps" or "drivers"), made on first use."""
+    with _POOLS_LOCK:
+        if kind not in _POOLS:
+            _POOLS[kind] = _StepThreads(n)
+        return _POOLS[kind]
 
 
 def _drivers() -> _StepThreads:
-    global _DRIVERS
-    with _STEPS_LOCK:
-        if _DRIVERS is None:
-            _DRIVERS = _StepThreads(DRIVER_THREADS)
-        return _DRIVERS
+    return _pool("drivers", DRIVER_THREADS)
 
 
 def _steps() -> _StepThreads:
-    global _STEPS
-    with _STEPS_LOCK:
-        if _STEPS is None:
-            _STEPS = _StepThreads(STEP_THREADS)
-        return _STEPS
+    return _pool("steps", STEP_THREADS)
 
 
 __all__ = ["Progress", "ProgressCallback", "responsive", "run_with_progress",
