@@ -9,7 +9,11 @@ For synthetic volumes blurred by a field of I = 4 kernels of 17 x 45 x 45 voxels
 * the relative l2 difference of 10 iterations' result from the CPU's;
 * the device's peak memory during the run (CuPy's pool, what the arrays held);
 * a 256 x 2048 x 2048 volume: its plan (the blocks, where the volumes live), its peak
-  memory, and that it ran.
+  memory, and that it ran;
+* the sparse + smooth deblurs: ``deblur_3d`` at 64 x 2048 x 2048 (the same field) and the
+  2-D ``deblur`` at 2048 x 2048 (I = 12 kernels of 41 x 41), a fixed number of
+  iterations each (no stopping rule, no polish) on the GPU and on the CPU: the seconds of
+  the whole call and of an iteration, and the relative l2 difference of the results.
 
 Imports only the core (no dask, napari or magicgui): it runs on a bare GPU machine.
 
@@ -27,8 +31,11 @@ import numpy as np
 
 from _common import table  # stdlib only; it puts src on the path
 from napari_psfspace.core.common.device import array_module, gpu_status
+from napari_psfspace.core.model.operator import ProductConvolution
+from napari_psfspace.core.restore.deconvolve import deblur
 from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d
 from napari_psfspace.core.volume.device_plan import plan_on_device
+from napari_psfspace.core.volume.fista3d import deblur_3d
 from napari_psfspace.core.volume.operator3d import ProductConvolution3D
 
 
@@ -121,6 +128,66 @@ def per_iteration(stack, op, device, n_iter) -> tuple[float, object]:
     return float(np.mean(times[1:] if len(times) > 1 else times)), res
 
 
+def operator_2d(size: int, n: int = 12, p: int = 41, seed=0) -> ProductConvolution:
+    """A smooth field of ``n`` Gaussian kernels of ``p x p`` over a 6 x 6 grid."""
+    rng = np.random.default_rng(seed)
+    y, x = np.mgrid[:p, :p] - p // 2
+    basis = [np.exp(-(y ** 2 + x ** 2) / (2 * (1.5 + 0.4 * i) ** 2)) for i in range(n)]
+    basis = np.array([b / b.sum() for b in basis])
+    g = np.linspace(0, size - 1, 6)
+    coef = 0.2 + rng.random((n, 6, 6))
+    return ProductConvolution(basis, coef / coef.sum(0), shape=(size, size), grid=(g, g))
+
+
+def image_2d(op: ProductConvolution, seed=1) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    obj = np.zeros(op.shape, np.float32)
+    n = obj.size // 2000
+    obj[tuple(rng.integers(0, s, n) for s in op.shape)] = rng.uniform(500, 5000, n)
+    return rng.poisson(np.clip(op.apply(obj), 0, None) + 20).astype(np.float32)
+
+
+def timed_deblur(fn, data, op, device, n_iter, **kw) -> tuple[dict, object]:
+    """The whole call's seconds and an iteration's (the mean after the first), and the
+    result, of a sparse + smooth deblur run for exactly ``n_iter`` iterations."""
+    stamps = []
+
+    def on(rec):
+        if rec.stage == "deblur" and "iteration" in rec.message:
+            stamps.append(time.perf_counter())
+
+    t0 = time.perf_counter()
+    res = fn(data, op, max_iter=n_iter, tol=0.0 if fn is deblur_3d else 1e-30,
+             device=device, progress=on, **kw)
+    total = time.perf_counter() - t0
+    steps = np.diff(stamps)
+    return {"total_s": total, "iter_s": float(np.mean(steps)) if len(steps) else None}, res
+
+
+def deblur_rows(size2d: int, shape3d: tuple, n_iter: int, ok: bool) -> list[dict]:
+    """The 2-D deblur and deblur_3d, CPU and (where there is one) GPU."""
+    rows = []
+    for name, fn, op, kw in (("deblur 2-D", deblur, operator_2d(size2d), {"polish": False}),
+                             ("deblur_3d", deblur_3d, operator(shape3d), {})):
+        data = image_2d(op) if fn is deblur else volume(op)
+        shape = "x".join(map(str, op.shape))
+        cpu_t, cpu = timed_deblur(fn, data, op, "cpu", n_iter, **kw)
+        row = {"what": name, "shape": shape, "its": cpu.iterations,
+               "cpu_total_s": cpu_t["total_s"], "cpu_iter_s": cpu_t["iter_s"]}
+        if ok:
+            with Peak() as peak:
+                gpu_t, gpu = timed_deblur(fn, data, op, "gpu", n_iter, **kw)
+            a = gpu.image if fn is deblur else gpu.volume
+            b = cpu.image if fn is deblur else cpu.volume
+            row.update(gpu_total_s=gpu_t["total_s"], gpu_iter_s=gpu_t["iter_s"],
+                       speedup=cpu_t["iter_s"] / gpu_t["iter_s"],
+                       rel_l2=float(np.linalg.norm(a - b) / np.linalg.norm(b)),
+                       peak_GiB=peak.peak / 2**30)
+        rows.append(row)
+        print(table(rows[-1:], DEBLUR_COLUMNS), flush=True)
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", nargs="+", type=int, default=[1024, 2048])
@@ -130,6 +197,8 @@ def main() -> None:
                     help="CPU iterations for the difference (0: time one only)")
     ap.add_argument("--big", action="store_true", help="also 256 x 2048 x 2048")
     ap.add_argument("--small", action="store_true", help="a smoke run: 16 x 256 x 256")
+    ap.add_argument("--deblur-iterations", type=int, default=10,
+                    help="iterations of each sparse + smooth deblur (0: none run)")
     args = ap.parse_args()
     ok, why = gpu_status()
     print(f"machine: {platform.node()}, {platform.processor() or platform.machine()}; "
@@ -173,10 +242,22 @@ def main() -> None:
                      "peak_GiB": peak.peak / 2**30, "block": res.block})
         print(f"256x2048x2048: block {plan.block}, volumes on the device: "
               f"{plan.volumes_on_device}; ran {res.iterations} iterations")
+    deblurs = []
+    if args.deblur_iterations:
+        size2d, shape3d = (256, (16, 256, 256)) if args.small else \
+            (2048, (depth, 2048, 2048))
+        deblurs = deblur_rows(size2d, shape3d, args.deblur_iterations, ok)
     print("\nRichardson-Lucy 3D, one iteration (I = 4 kernels of 17 x 45 x 45)")
     print(table(rows, COLUMNS))
+    if deblurs:
+        print(f"\nSparse + smooth deblurs, {args.deblur_iterations} iterations each "
+              "(2-D: I = 12 kernels of 41 x 41; 3D: the field above)")
+        print(table(deblurs, DEBLUR_COLUMNS))
 
 
+DEBLUR_COLUMNS = [("what", "s"), ("shape", "s"), ("its", "d"), ("gpu_total_s", ".2f"),
+                  ("gpu_iter_s", ".4f"), ("cpu_total_s", ".1f"), ("cpu_iter_s", ".3f"),
+                  ("speedup", ".1f"), ("rel_l2", ".1e"), ("peak_GiB", ".1f")]
 COLUMNS = [("shape", "s"), ("I", "d"), ("block", "d"), ("gpu_s", ".4f"), ("floor_s", ".4f"),
            ("vs_floor", ".2f"), ("cpu_s", ".2f"), ("speedup", ".1f"), ("rel_l2", ".1e"),
            ("peak_GiB", ".1f")]

@@ -126,10 +126,15 @@ CASES = [
 ]
 # the GPU: named before any work; without CuPy or a device, the extra that installs it
 CASES.append(("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --device gpu "
-              "--method sparse", "--device gpu runs Richardson-Lucy", "x3.tif"))
+              "--tile 64", "--device gpu runs on the whole stack", "x3.tif"))
+CASES.append(("deblur {d}/beads.tif --model {d}/model.npz -o {d}/x.tif --device cuda",
+              "--device", "x.tif"))
 if not gpu_status()[0]:
-    CASES.append(("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --device gpu",
-                  "napari-psfspace[gpu]", "x3.tif"))
+    for method in ("rl", "sparse"):
+        CASES.append((f"deblur3d {{d}}/stack.tif --model {{d}}/model3d.npz -o {{d}}/x3.tif "
+                      f"--device gpu --method {method}", "napari-psfspace[gpu]", "x3.tif"))
+    CASES.append(("deblur {d}/beads.tif --model {d}/model.npz -o {d}/x.tif --device gpu",
+                  "napari-psfspace[gpu]", "x.tif"))
 
 
 @pytest.fixture

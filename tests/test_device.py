@@ -135,3 +135,142 @@ def test_the_device_path_equals_the_cpu_path(on_device, monkeypatch):
     rel = np.linalg.norm(got.volume - ref.volume) / np.linalg.norm(ref.volume)
     assert rel <= 6 * 10 * U32, rel
     assert got.iterations == ref.iterations == 6
+
+
+# ----------------------------------------------------------------- the 2-D operator and deblur
+def _operator_2d(shape=(300, 270), n=3, p=9, seed=0):
+    from napari_psfspace.core.model.operator import ProductConvolution
+
+    rng = np.random.default_rng(seed)
+    basis = rng.random((n, p, p))
+    basis /= basis.sum(axis=(1, 2), keepdims=True)
+    gy, gx = np.linspace(0, shape[0] - 1, 4), np.linspace(0, shape[1] - 1, 3)
+    return ProductConvolution(basis, 0.5 + rng.random((n, 4, 3)), shape=shape, grid=(gy, gx))
+
+
+def test_the_2d_operator_on_the_device_path_is_the_cpus():
+    """apply, adjoint and the fused data gradient (censored pixels too) through the
+    device path (whole arrays, one inverse transform) against the CPU's row-threaded
+    path: in float64 both are within a few roundings of the exact result."""
+    op = _operator_2d()
+    dev = NumpyDevice("gpu", np)
+    rng = np.random.default_rng(3)
+    u, v = rng.standard_normal((2, *op.shape))
+    cens = np.nonzero(rng.random(op.shape) < 0.05)
+    pairs = [(op.apply(u, device=dev), op.apply(u, workers=2)),
+             (op.adjoint(v, device=dev), op.adjoint(v, workers=2))]
+    for c in (None, cens):
+        (g, val), (g0, val0) = (op.data_gradient(u, v, censored=c, device=dev),
+                                op.data_gradient(u, v, censored=c, workers=2))
+        pairs.append((g, g0))
+        assert val == pytest.approx(val0, rel=1e-12)
+    for got, ref in pairs:
+        assert got.dtype == np.float64
+        assert np.linalg.norm(got - ref) <= 1e-12 * np.linalg.norm(ref)
+    # the dot test through the device path alone
+    lhs, rhs = np.vdot(op.apply(u, device=dev), v), np.vdot(u, op.adjoint(v, device=dev))
+    assert abs(lhs - rhs) <= 1e-10 * abs(lhs)
+    # its spectra and maps were kept for the device; release() gives them back
+    assert op.__dict__.get("_device_cache")
+    op.release()
+    assert not op.__dict__.get("_device_cache")
+
+
+def test_the_3d_operator_on_the_device_path_is_the_cpus():
+    op = _operator(shape=(5, 40, 36))
+    dev = NumpyDevice("gpu", np)
+    rng = np.random.default_rng(4)
+    u, v = rng.standard_normal((2, *op.shape))
+    for got, ref in ((op.apply(u, device=dev), op.apply(u)),
+                     (op.adjoint(v, device=dev), op.adjoint(v))):
+        assert np.linalg.norm(got - ref) <= 1e-12 * np.linalg.norm(ref)
+    assert op.__dict__.get("_device_cache")
+    op.release()
+    assert not op.__dict__.get("_device_cache")
+
+
+def test_block_fista_on_whole_blocks_is_the_row_chunked_iteration(monkeypatch):
+    """On a device BlockFista works on whole blocks (one call, rows = slice(None)); a
+    module standing in for the device's (NumPy's functions under another name) takes
+    that branch: the same iterates as the CPU's row chunks, in float64."""
+    import types
+
+    from napari_psfspace.core.restore import fista
+
+    op = _operator_2d(shape=(300, 64))
+    rng = np.random.default_rng(5)
+    y = op.apply(rng.random(op.shape) * (rng.random(op.shape) < 0.01) * 100)
+
+    def gradient(x):
+        g, value = op.data_gradient(x[0], y, workers=1)
+        return [g], 0.5 * value
+
+    def solve():
+        s = fista.BlockFista(gradient,
+                             [lambda v, t, rows: np.maximum(v - t * 0.1, 0, out=v)], [1.5],
+                             penalty=[lambda v, rows: 0.1 * float(np.abs(v).sum())],
+                             workers=2)
+        s.setup([np.zeros(op.shape)])
+        list(s.run(15, 0.0))
+        return s.finalize()[0], s.objective
+
+    ref, obj_ref = solve()
+    stand_in = types.ModuleType("stand_in")
+    stand_in.__dict__.update(np.__dict__)
+    monkeypatch.setattr(fista, "namespace", lambda a: stand_in)
+    got, obj = solve()
+    assert np.linalg.norm(got - ref) <= 1e-12 * np.linalg.norm(ref)
+    assert obj == pytest.approx(obj_ref, rel=1e-12)
+
+
+def _deblur_scene(op, seed=6):
+    rng = np.random.default_rng(seed)
+    truth = np.zeros(op.shape)
+    ys, xs = (rng.integers(10, n - 10, 30) for n in op.shape)
+    truth[ys, xs] = rng.uniform(200, 400, 30)
+    return rng.poisson(np.clip(op.apply(truth), 0, None) + 20).astype(np.float32)
+
+
+def test_deblur_on_the_device_path_is_the_cpus():
+    """The 2-D deblur with the transforms on the "device" (the data kept there, the
+    iterate on the host): the CPU's result to float32 rounding carried over the
+    iterations (a relative 10 U32 per gradient, as the 3D test argues, over at most 60
+    iterations; the polish and the support are discrete, and they agree)."""
+    from napari_psfspace.core.restore.deconvolve import deblur
+
+    op = _operator_2d()
+    image = _deblur_scene(op)
+    dev = NumpyDevice("gpu", np)
+    got = deblur(image, op, max_iter=60, device=dev)
+    ref = deblur(image, op, max_iter=60, device="cpu")
+    assert got.parameters["device"] == "gpu" and ref.parameters["device"] == "cpu"
+    assert got.iterations == ref.iterations
+    assert np.array_equal(got.sparse > 0, ref.sparse > 0)
+    rel = np.linalg.norm(got.image - ref.image) / np.linalg.norm(ref.image)
+    assert rel <= got.iterations * 10 * U32, rel
+
+
+@pytest.mark.parametrize("on_device", [True, False])
+def test_deblur_3d_on_the_device_path_is_the_cpus(on_device, monkeypatch):
+    from napari_psfspace.core.volume import device_plan
+    from napari_psfspace.core.volume.fista3d import FISTA_VOLUMES, deblur_3d
+
+    op = _operator()
+    rng = np.random.default_rng(7)
+    truth = (rng.random(op.shape) < 0.002) * rng.uniform(200, 400, op.shape)
+    stack = rng.poisson(op.apply(truth) + 10).astype(np.float32)
+    free = 1 << 40
+    if not on_device:  # room for blocks of 48 px, not for the volumes
+        monkeypatch.setattr(device_plan, "MIN_BLOCK", 48)
+        free = int(block_bytes(op, op.shape[0], 48) / MEMORY_FRACTION) + 1
+        plan = plan_on_device(op, op.shape[0], free, volumes=FISTA_VOLUMES)
+        assert (plan.block, plan.volumes_on_device) == (48, False)
+    dev = NumpyDevice("gpu", np, free=free)
+    got = deblur_3d(stack, op, max_iter=10, rtol=0.0, grid_step=16, device=dev)
+    ref = deblur_3d(stack, op, max_iter=10, rtol=0.0, grid_step=16, device="cpu")
+    assert got.parameters["device"] == "gpu" and ref.parameters["device"] == "cpu"
+    assert got.parameters["block"] == (96 if on_device else 48)
+    assert isinstance(got.volume, np.ndarray) and got.volume.dtype == np.float32
+    assert got.iterations == ref.iterations
+    rel = np.linalg.norm(got.volume - ref.volume) / np.linalg.norm(ref.volume)
+    assert rel <= got.iterations * 10 * U32, rel

@@ -402,6 +402,9 @@ def _cmd_deblur(args) -> int:
                              "the model is used as it is")
     if args.beads:
         _existing(args.beads, "--beads")
+    from .core.common.device import array_module
+
+    device = array_module(args.device)  # gpu without CuPy or a device: one line, no work
     image, info = read_image(args.image, index=args.slice)
     t0 = time.perf_counter()
     if args.subspace is not None:
@@ -428,18 +431,19 @@ def _cmd_deblur(args) -> int:
         op = load_operator(args.model)
     gen = iter_deblur(image, op, sparse_weight=args.sparse_weight,
                       smooth_weight=args.smooth_weight, max_iter=args.max_iter,
-                      debias=args.refit_amplitudes)
+                      debias=args.refit_amplitudes, device=device)
     res = run_with_progress(gen, None if args.quiet else _progress_printer())
     write_tiff(out, res.image, pixel_size=info.pixel_size,
                metadata={"deblur": res.parameters, "iterations": res.iterations})
     written = [str(out)]
+    p = res.parameters
     if args.parts:
         for name, part in (("sparse", res.sparse), ("smooth", res.smooth)):
             path = out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}")
             write_tiff(path, part, pixel_size=info.pixel_size)
             written.append(str(path))
-    p = res.parameters
-    print(f"wrote {', '.join(written)}: {res.iterations} iterations "
+    print(f"wrote {', '.join(written)}: {res.iterations} iterations on the "
+          f"{p['device'].upper()} "
           f"({'converged' if res.converged else 'max_iter reached'}), sparse weight "
           f"{p['sparse_weight']:.3g}, smooth weight {p['smooth_weight']:.3g}, noise sd "
           f"{p['noise_sd']:.3g}, {time.perf_counter() - t0:.1f} s"
@@ -561,10 +565,10 @@ def _cmd_deblur3d(args) -> int:
         raise ValueError("--tile runs Richardson-Lucy only: drop --tile, or use --method rl")
     from .core.common.device import array_module
 
-    if args.device == "gpu" and (args.method == "sparse" or args.tile):
-        raise ValueError("--device gpu runs Richardson-Lucy on the whole stack: drop "
-                         "--tile and use --method rl, or --device cpu")
-    device = array_module(args.device if args.method == "rl" and not args.tile else "cpu")
+    if args.device == "gpu" and args.tile:
+        raise ValueError("--device gpu runs on the whole stack (its blocks sized from the "
+                         "GPU's memory): drop --tile, or use --device cpu")
+    device = array_module("cpu" if args.tile else args.device)
     op = load_operator_3d(args.model)
     stack, info = read_stack(args.stack)
     if stack.shape[1:] != op.shape[1:]:
@@ -578,12 +582,14 @@ def _cmd_deblur3d(args) -> int:
     meta: dict = {"method": args.method, "rtol": rtol}
     if args.method == "sparse":
         res = run_with_progress(iter_deblur_3d(stack, op, max_iter=args.iterations,
-                                               rtol=rtol), printer)
+                                               rtol=rtol, device=device), printer)
         volume = res.volume
         meta.update(iterations=res.iterations, converged=res.converged,
                     sparse_weight=res.parameters["sparse_weight"],
-                    smooth_weight=res.parameters["smooth_weight"])
-        what = (f"{res.iterations} sparse + smooth iterations "
+                    smooth_weight=res.parameters["smooth_weight"],
+                    device=res.parameters["device"])
+        what = (f"{res.iterations} sparse + smooth iterations on the "
+                f"{res.parameters['device'].upper()} "
                 f"({'converged' if res.converged else 'stopped at the limit'})")
     elif args.tile:
         client = None
@@ -769,6 +775,10 @@ def build_parser() -> argparse.ArgumentParser:
                     help="then refit each cluster of points' flux by least squares (the l1 "
                          "term shrinks it; also raises spurious points: see deblur's "
                          "`debias`)")
+    db.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
+                    help="where the operator's transforms run; auto (default): the GPU "
+                         "when CuPy sees one (pip install 'napari-psfspace[gpu]'), else "
+                         "the CPU")
     db.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     db.set_defaults(func=_cmd_deblur)
 
@@ -814,7 +824,7 @@ def build_parser() -> argparse.ArgumentParser:
     d3.add_argument("--scheduler", metavar="ADDRESS",
                     help="with --tile: a dask.distributed scheduler to run the tiles on")
     d3.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
-                    help="rl: where it runs; auto (default): the GPU when CuPy sees one "
+                    help="where it runs; auto (default): the GPU when CuPy sees one "
                          "(pip install 'napari-psfspace[gpu]'), else the CPU")
     d3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     d3.set_defaults(func=_cmd_deblur3d)

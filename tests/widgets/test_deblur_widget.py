@@ -81,3 +81,13 @@ def test_model_file_cancel_and_errors(make_napari_viewer, qtbot, family, tmp_pat
     w.run_button.clicked()
     wait_task(qtbot, w.task, timeout=120_000)
     assert f"{SPARSE} (image units)" in v.layers and "the model as it is" in w.result.value
+    from napari_psfspace.core.common.device import gpu_status
+
+    on_gpu = gpu_status()[0]
+    assert ("on the GPU" if on_gpu else "on the CPU") in w.result.value
+    assert w.last.parameters["device"] == ("gpu" if on_gpu else "cpu")
+    if not on_gpu:  # a GPU asked for where there is none: one line, before any work
+        w.device.value = "gpu"
+        w.run_button.clicked()
+        assert not w.task.running
+        assert "\n" not in shown[-1] and "napari-psfspace[gpu]" in shown[-1], shown[-1]

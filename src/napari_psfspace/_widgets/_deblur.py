@@ -27,6 +27,7 @@ from magicgui.widgets import (
 from napari.layers import Image, Points
 from napari.utils.notifications import show_error
 
+from ..core.common.device import array_module
 from ..core.common.progress import Progress
 from ..core.restore import identify_operator, iter_deblur
 from ..core.restore.identify import IdentificationWarning
@@ -45,7 +46,7 @@ from ._layers import (
     map_layers,
     show_layers,
 )
-from ._worker import CoreTask, layer_choices, result_text
+from ._worker import CoreTask, device_choice, layer_choices, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -163,12 +164,13 @@ class DeblurWidget(Container):
         self.refit.tooltip = ("After the deblurring, one least-squares scale per cluster of "
                               "points: their flux without the l1 shrinkage (spurious "
                               "points rise too)")
+        self.device = device_choice()
         self.run_button = PushButton(text="Deblur")
         self.task = CoreTask(self.run_button)
         self.result = result_text()
         super().__init__(widgets=[
             self.image, self.source, self.path, self.in_viewer, self.points, self.auto,
-            self.sparse_weight, self.smooth_weight, self.max_iter, self.refit,
+            self.sparse_weight, self.smooth_weight, self.max_iter, self.refit, self.device,
             self.run_button,
             self.task, self.result])
         self.source.changed.connect(self._on_source)
@@ -231,6 +233,7 @@ class DeblurWidget(Container):
                 raise ValueError("image: open an image first")
             plane, frame = image_plane(layer, self._viewer.dims.point)
             model = self.model()
+            device = array_module(str(self.device.value))  # a missing GPU: one line
             beads = None
             pts = self.points.value
             if pts is not None and len(pts.data):
@@ -244,7 +247,7 @@ class DeblurWidget(Container):
             "sparse_weight": float(self.sparse_weight.value),
             "smooth_weight": float(self.smooth_weight.value)}
         gen = _identify_and_deblur(plane, model, beads, max_iter=int(self.max_iter.value),
-                                   debias=bool(self.refit.value), **weights)
+                                   debias=bool(self.refit.value), device=device, **weights)
 
         def on_result(got) -> None:
             res, op, note = got
@@ -255,8 +258,9 @@ class DeblurWidget(Container):
             p = res.parameters
             self.result.value = (
                 f"{note}; {res.iterations} iterations "
-                f"({'converged' if res.converged else 'stopped at the limit'}), "
-                f"{p['seconds']:.1f} s\nsparse weight {p['sparse_weight']:.3g}, smooth "
-                f"weight {p['smooth_weight']:.3g} (noise sd {p['noise_sd']:.3g})")
+                f"({'converged' if res.converged else 'stopped at the limit'}) on the "
+                f"{p['device'].upper()}, {p['seconds']:.1f} s\nsparse weight "
+                f"{p['sparse_weight']:.3g}, smooth weight {p['smooth_weight']:.3g} "
+                f"(noise sd {p['noise_sd']:.3g})")
 
         self.task.run(gen, on_result)

@@ -37,7 +37,6 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_error
 
-from ..core.common.device import DEVICES, gpu_status
 from ..core.common.measures import in_units, psf_measures
 from ..core.common.progress import Progress
 from ..core.volume import iter_estimate_operator_3d, load_operator_3d
@@ -58,7 +57,7 @@ from ._layers import (
     show_layers,
     titles_layer,
 )
-from ._worker import CoreTask, RadiusEdit, result_text
+from ._worker import CoreTask, RadiusEdit, device_choice, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -203,11 +202,7 @@ class Volume3DWidget(Container):
         self.stop.tooltip = (f"Ends when an iteration improves the fit to the data "
                              f"(Poisson deviance) by less than {STOP_FIT:g} of itself, "
                              f"after {MIN_ITERATIONS} iterations at least.")
-        self.device = ComboBox(label="device", choices=list(DEVICES), value="auto")
-        ok, why = gpu_status()
-        self.device.tooltip = ("auto: the GPU when CuPy sees one, else the CPU. Here: "
-                               + ("a GPU." if ok else f"no GPU ({why}); pip install "
-                                  "'napari-psfspace[gpu]' on a machine with one."))
+        self.device = device_choice()
         self.deblur = PushButton(text="Deblur 3D")
         self.deblur_task = CoreTask(self.deblur)
         self.deblur_result = Label(value="")

@@ -23,10 +23,11 @@ from collections.abc import Callable, Generator
 from dataclasses import dataclass
 from typing import Any
 
-from magicgui.widgets import Container, Label, ProgressBar, PushButton
+from magicgui.widgets import ComboBox, Container, Label, ProgressBar, PushButton
 from napari.qt.threading import GeneratorWorker, thread_worker
 from napari.utils.notifications import show_error
 
+from ..core.common.device import DEVICES, gpu_status
 from ..core.common.progress import responsive
 
 
@@ -192,6 +193,17 @@ def prefer_beads(combo) -> None:
     options = [v for v in combo.choices if v is not None and "status" in v.features]
     if options:
         combo.value = options[-1]
+
+
+def device_choice() -> ComboBox:
+    """The device a step runs on (auto, cpu, gpu); its tooltip says whether this machine
+    has a GPU the package can use, and what installs it where not."""
+    combo = ComboBox(label="device", choices=list(DEVICES), value="auto")
+    ok, why = gpu_status()
+    combo.tooltip = ("auto: the GPU when CuPy sees one, else the CPU. Here: "
+                     + ("a GPU." if ok else f"no GPU ({why}); pip install "
+                        "'napari-psfspace[gpu]' on a machine with one."))
+    return combo
 
 
 def result_text(lines: int = 8):

@@ -141,6 +141,41 @@ def gpu_status() -> tuple[bool, str]:
     return True, ""
 
 
+def namespace(a) -> ModuleType:
+    """The array module of ``a``: ``numpy`` for a NumPy array (or anything else that is
+    not a device array), ``cupy`` for a CuPy array."""
+    if isinstance(a, np.ndarray):
+        return np
+    if type(a).__module__.split(".")[0] == "cupy":
+        import cupy
+
+        return cupy
+    return np
+
+
+def on_device(a) -> bool:
+    """Whether ``a`` is a device (CuPy) array."""
+    return namespace(a) is not np
+
+
+def module_of(a) -> ArrayModule:
+    """The :class:`ArrayModule` where ``a`` lives: :data:`CPU` for a NumPy array, the GPU
+    for a CuPy array."""
+    if on_device(a):
+        import cupy
+
+        return ArrayModule("gpu", cupy)
+    return CPU
+
+
+def resolve(device: str | ArrayModule | None, a=None) -> ArrayModule:
+    """The device an operator runs on: ``device`` when given (:func:`array_module`),
+    else where its input ``a`` lives (:func:`module_of`)."""
+    if device is None:
+        return module_of(a)
+    return array_module(device)
+
+
 def check_device(device: Any) -> str:
     """``device`` checked: one of :data:`DEVICES` (a ValueError naming it otherwise)."""
     if not isinstance(device, str) or device not in DEVICES:
@@ -181,4 +216,4 @@ def array_module(device: str | ArrayModule = "auto") -> ArrayModule:
 
 
 __all__ = ["CPU", "DEVICES", "GPU_EXTRA", "ArrayModule", "array_module", "available_host_bytes",
-           "check_device", "gpu_status"]
+           "check_device", "gpu_status", "module_of", "namespace", "on_device", "resolve"]

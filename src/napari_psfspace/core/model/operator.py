@@ -24,8 +24,10 @@ Conventions
 
 The representation (basis, coefficients, PSFs at any position) is
 :class:`~.psf_field.PsfField`; its input checks are in :mod:`.operator_checks`, the FFT
-machinery in :mod:`.operator_fft` and the file format in :mod:`.operator_file`. This
-module is pure numpy / scipy.
+machinery in :mod:`.operator_fft` and the file format in :mod:`.operator_file`. The
+operators run on NumPy, or on a GPU through the array-module seam
+(:mod:`~napari_psfspace.core.common.device`): the same code, whole-array products and the
+device's FFTs there.
 """
 
 from __future__ import annotations
@@ -37,6 +39,7 @@ import scipy.fft
 from numpy.typing import ArrayLike, DTypeLike
 from scipy.sparse.linalg import LinearOperator
 
+from ..common.device import CPU, ArrayModule, resolve
 from ..common.threads import by_rows, by_rows_many
 from .operator_fft import (
     check_dc,
@@ -48,6 +51,7 @@ from .operator_fft import (
     multiply_accumulate,
     multiply_into,
     n_workers,
+    rfft2,
     subtract_into,
 )
 from .operator_file import FORMAT_NAME, FORMAT_VERSION, read_model, write_model
@@ -108,8 +112,10 @@ class ProductConvolution(PsfField):
             scipy.fft.next_fast_len(W + c, real=True),
         )
 
-    def _kernel_spectra(self, fshape: tuple[int, int], dt: np.dtype) -> np.ndarray:
-        """Cached :func:`~.operator_fft.kernel_spectra` of the basis (read-only)."""
+    def _kernel_spectra(self, fshape: tuple[int, int], dt: np.dtype,
+                        am: ArrayModule = CPU) -> np.ndarray:
+        """Cached :func:`~.operator_fft.kernel_spectra` of the basis (read-only), on
+        ``am``'s device."""
         key = (fshape, dt)
         with self._lock:
             spectra = self._spectra_cache.get(key)
@@ -117,23 +123,56 @@ class ProductConvolution(PsfField):
                 spectra = kernel_spectra(self._basis, fshape, dt)
                 spectra.flags.writeable = False
                 self._spectra_cache[key] = spectra
-        return spectra
+            if not am.gpu:
+                return spectra
+            cache = self.__dict__.setdefault("_device_cache", {})
+            dkey = ("spectra", am, fshape, dt)
+            if dkey not in cache:
+                cache[dkey] = am.asarray(spectra)
+            return cache[dkey]
 
-    def _check_image(self, u: ArrayLike, name: str) -> tuple[np.ndarray, np.dtype]:
-        arr = np.asarray(u)
+    def _maps_on(self, dt: np.dtype, am: ArrayModule):
+        """The coefficient maps in ``dt``, on ``am``'s device (cached there)."""
+        maps = self.coefficient_maps(dt)
+        if not am.gpu:
+            return maps
+        with self._lock:
+            cache = self.__dict__.setdefault("_device_cache", {})
+            key = ("maps", am, dt)
+            if key not in cache:
+                cache[key] = am.asarray(maps)
+            return cache[key]
+
+    def release(self) -> None:
+        """Free what this operator holds on a device (kernel spectra, maps, FFT plans);
+        rebuilt when it runs there again. Nothing to do for the CPU."""
+        with self._lock:
+            cache = self.__dict__.pop("_device_cache", None)
+        if cache:
+            modules = {key[1] for key in cache}
+            cache.clear()
+            for am in modules:
+                am.free_cache()
+
+    def _check_image(self, u: ArrayLike, name: str, am: ArrayModule = CPU
+                     ) -> tuple[np.ndarray, np.dtype]:
+        arr = u if am.gpu and hasattr(u, "dtype") else np.asarray(u)
         dt = computation_dtype(arr, name)
-        if arr.shape != self._shape:
+        if tuple(arr.shape) != self._shape:
             raise ValueError(
                 f"model was estimated for an image of shape {self._shape}, "
-                f"got `{name}` of shape {arr.shape}"
+                f"got `{name}` of shape {tuple(arr.shape)}"
             )
+        if am.gpu:  # on the device, in the computation's dtype (a copy from the host)
+            arr = am.asarray(arr, dtype=dt)
         # NaN / inf are detected after the first FFT (see _check_dc), which saves a
         # full pass over the image.
         return arr, dt
 
 
     # ------------------------------------------------------------------ operators
-    def apply(self, u: ArrayLike, *, workers: int | None = None) -> np.ndarray:
+    def apply(self, u: ArrayLike, *, workers: int | None = None,
+              device: str | ArrayModule | None = None) -> np.ndarray:
         """Blur ``u``: ``H u = sum_i h_i * (alpha_i . u)`` with zero boundaries.
 
         Parameters
@@ -143,6 +182,9 @@ class ProductConvolution(PsfField):
             in float32 with complex64 spectra; float64 in float64.
         workers : int, optional
             Threads for ``scipy.fft``; default ``os.cpu_count()``.
+        device : {"auto", "cpu", "gpu"} or ArrayModule, optional
+            Where to run (:mod:`~napari_psfspace.core.common.device`); default: where
+            ``u`` lives (NumPy: the CPU, CuPy: the GPU). The result is on that device.
 
         Returns
         -------
@@ -155,16 +197,18 @@ class ProductConvolution(PsfField):
         ValueError
             If ``u`` has the wrong shape, a non-real dtype or non-finite values.
         """
-        u, dt = self._check_image(u, "u")
-        w = n_workers(workers)
+        am = resolve(device, u)
+        u, dt = self._check_image(u, "u", am)
+        w = 1 if am.gpu else n_workers(workers)  # the device is parallel on its own
         H, W = self._shape
         fshape = self.padded_shape()
-        full = cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
-        out = np.empty((H, W), dtype=full.dtype)
+        full = cropped_irfft2(self._forward_spectrum(u, dt, w, am), fshape, H, w, am)
+        out = am.xp.empty((H, W), dtype=full.dtype)
         by_rows(copy_into, (out, full[:, :W]), w)
         return out
 
-    def adjoint(self, v: ArrayLike, *, workers: int | None = None) -> np.ndarray:
+    def adjoint(self, v: ArrayLike, *, workers: int | None = None,
+                device: str | ArrayModule | None = None) -> np.ndarray:
         """Apply the adjoint ``H^T v = sum_i alpha_i . (h_i correlated with v)``.
 
         Exact adjoint of :meth:`apply` (``<H u, v> = <u, H^T v>``): one forward
@@ -176,24 +220,28 @@ class ProductConvolution(PsfField):
             Image; same dtype rules as :meth:`apply`.
         workers : int, optional
             Threads for ``scipy.fft``; default ``os.cpu_count()``.
+        device : {"auto", "cpu", "gpu"} or ArrayModule, optional
+            As in :meth:`apply`.
 
         Returns
         -------
         ndarray, shape (H, W), float32 or float64
         """
-        v, dt = self._check_image(v, "v")
-        w = n_workers(workers)
+        am = resolve(device, v)
+        v, dt = self._check_image(v, "v", am)
+        w = 1 if am.gpu else n_workers(workers)
         H, W = self._shape
-        buf = np.zeros(self.padded_shape(), dtype=dt)
+        buf = am.xp.zeros(self.padded_shape(), dtype=dt)
         buf[:H, :W] = v
-        vhat = scipy.fft.rfft2(buf, workers=w)
+        vhat = rfft2(buf, w, am)
         del buf
         check_dc(vhat, "v")
-        return self._adjoint_of_spectrum(vhat, dt, w)
+        return self._adjoint_of_spectrum(vhat, dt, w, am)
 
     def data_gradient(self, u: ArrayLike, y: ArrayLike, *,
                       censored: tuple[np.ndarray, np.ndarray] | None = None,
-                      workers: int | None = None) -> tuple[np.ndarray, float]:
+                      workers: int | None = None,
+                      device: str | ArrayModule | None = None) -> tuple[np.ndarray, float]:
         """The gradient and value of the data term ``||H u - y||^2 / 2``, fused.
 
         ``H^T (H u - y)`` and ``||H u - y||^2`` as :meth:`adjoint` of :meth:`apply`
@@ -213,64 +261,72 @@ class ProductConvolution(PsfField):
             with the same Lipschitz bound).
         workers : int, optional
             Threads for ``scipy.fft``; default ``os.cpu_count()``.
+        device : {"auto", "cpu", "gpu"} or ArrayModule, optional
+            As in :meth:`apply`; ``y`` and ``censored`` may be on the host or there.
 
         Returns
         -------
         gradient : ndarray, shape (H, W), the dtype of :meth:`apply`'s result
         value : float
-            ``||H u - y||^2`` (summed in float64 over row chunks).
+            ``||H u - y||^2`` (summed in float64 over row chunks on the CPU).
         """
-        u, dt = self._check_image(u, "u")
-        y = np.asarray(y)
-        if y.shape != self._shape:
+        am = resolve(device, u)
+        u, dt = self._check_image(u, "u", am)
+        if tuple(np.shape(y)) != self._shape:
             raise ValueError(f"model was estimated for an image of shape {self._shape}, "
-                             f"got `y` of shape {y.shape}")
-        w = n_workers(workers)
+                             f"got `y` of shape {tuple(np.shape(y))}")
+        y = am.asarray(y, dtype=dt) if am.gpu else np.asarray(y)
+        w = 1 if am.gpu else n_workers(workers)
         H, W = self._shape
         fshape = self.padded_shape()
-        full = cropped_irfft2(self._forward_spectrum(u, dt, w), fshape, H, w)
-        buf = np.zeros(fshape, dtype=dt)
+        full = cropped_irfft2(self._forward_spectrum(u, dt, w, am), fshape, H, w, am)
+        buf = am.xp.zeros(fshape, dtype=dt)
         by_rows(subtract_into, (full[:, :W], y, buf[:H, :W]), w)
         del full
         if censored is not None:
-            buf[censored] = np.minimum(buf[censored], 0)
-        value = sum(float(np.vdot(c, c)) for c in np.array_split(buf[:H], 16))
-        vhat = scipy.fft.rfft2(buf, workers=w)
+            if am.gpu:
+                censored = tuple(am.asarray(c) for c in censored)
+            buf[censored] = am.xp.minimum(buf[censored], 0)
+        if am.gpu:
+            value = am.scalar(am.xp.vdot(buf[:H], buf[:H]).astype(np.float64))
+        else:
+            value = sum(float(np.vdot(c, c)) for c in np.array_split(buf[:H], 16))
+        vhat = rfft2(buf, w, am)
         del buf
         check_dc(vhat, "y")
-        return self._adjoint_of_spectrum(vhat, dt, w), value
+        return self._adjoint_of_spectrum(vhat, dt, w, am), value
 
-    def _forward_spectrum(self, u: np.ndarray, dt: np.dtype, w: int) -> np.ndarray:
+    def _forward_spectrum(self, u, dt: np.dtype, w: int, am: ArrayModule = CPU):
         """``sum_i K_i . rfft2(alpha_i . u)`` on the padded shape (complex)."""
         H, W = self._shape
         fshape = self.padded_shape()
-        spectra = self._kernel_spectra(fshape, dt)
-        maps = self.coefficient_maps(dt)
-        buf = np.zeros(fshape, dtype=dt)  # zero padding written once, reused
+        spectra = self._kernel_spectra(fshape, dt, am)
+        maps = self._maps_on(dt, am)
+        buf = am.xp.zeros(fshape, dtype=dt)  # zero padding written once, reused
         view = buf[:H, :W]
         by_rows(multiply_into, (maps[0], u, view), w)
-        acc = scipy.fft.rfft2(buf, workers=w)
+        acc = rfft2(buf, w, am)
         check_dc(acc, "u")
         pending = (multiply_into, (acc, spectra[0], acc))  # the last spectrum's product
         for i in range(1, self.n_psf):
             # this kernel's map product and the last spectrum's product: one hand-over
             by_rows_many([(multiply_into, (maps[i], u, view)), pending], w)
-            spec = scipy.fft.rfft2(buf, workers=w)
+            spec = rfft2(buf, w, am)
             pending = (multiply_accumulate, (acc, spec, spectra[i]))
         by_rows(*pending, w)
         return acc
 
-    def _adjoint_of_spectrum(self, vhat: np.ndarray, dt: np.dtype, w: int) -> np.ndarray:
+    def _adjoint_of_spectrum(self, vhat, dt: np.dtype, w: int, am: ArrayModule = CPU):
         """``sum_i alpha_i . irfft2(conj(K_i) . vhat)`` cropped to the image."""
         H, W = self._shape
         fshape = self.padded_shape()
-        spectra = self._kernel_spectra(fshape, dt)
-        maps = self.coefficient_maps(dt)
-        out = np.empty((H, W), dtype=dt)
-        prod = np.empty_like(vhat)
+        spectra = self._kernel_spectra(fshape, dt, am)
+        maps = self._maps_on(dt, am)
+        out = am.xp.empty((H, W), dtype=dt)
+        prod = am.xp.empty_like(vhat)
         by_rows(conj_multiply, (spectra[0], vhat, prod), w)
         for i in range(self.n_psf):
-            r = cropped_irfft2(prod, fshape, H, w)[:, :W]  # prod is free again
+            r = cropped_irfft2(prod, fshape, H, w, am)[:, :W]  # prod is free again
             # this kernel's accumulation, and the next kernel's product, in one hand-over
             if i == 0:
                 tasks = [(multiply_into, (maps[i], r, out))]

@@ -1,6 +1,7 @@
 """FFT machinery of :class:`~.operator.ProductConvolution`: the kernels' spectra,
 block-wise in-place products run over rows by worker threads, and a cropped inverse
-transform. Pure numpy / scipy.
+transform. NumPy / scipy, or the device's arrays through :mod:`..common.device` (the same
+products on whole arrays, the device's FFTs).
 """
 
 from __future__ import annotations
@@ -10,39 +11,60 @@ import os
 import numpy as np
 import scipy.fft
 
-
-def multiply_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    np.multiply(a, b, out=out, casting="unsafe")
+from ..common.device import CPU, ArrayModule, namespace
 
 
-def multiply_accumulate(acc: np.ndarray, a: np.ndarray, b: np.ndarray) -> None:
+def multiply_into(a, b, out) -> None:
+    """``out = a * b`` (NumPy: any cast allowed; on the device the dtypes agree)."""
+    if isinstance(out, np.ndarray):
+        np.multiply(a, b, out=out, casting="unsafe")
+    else:
+        namespace(out).multiply(a, b, out=out)
+
+
+def multiply_accumulate(acc, a, b) -> None:
     """``acc += a * b``, overwriting ``a``."""
-    np.multiply(a, b, out=a)
-    np.add(acc, a, out=acc)
+    xp = namespace(acc)
+    xp.multiply(a, b, out=a)
+    xp.add(acc, a, out=acc)
 
 
-def copy_into(out: np.ndarray, a: np.ndarray) -> None:
-    np.copyto(out, a)
+def copy_into(out, a) -> None:
+    namespace(out).copyto(out, a)
 
 
-def conj_multiply(k: np.ndarray, v: np.ndarray, out: np.ndarray) -> None:
+def conj_multiply(k, v, out) -> None:
     """``out = conj(k) * v``."""
-    np.conjugate(k, out=out)
-    np.multiply(out, v, out=out)
+    xp = namespace(out)
+    xp.conjugate(k, out=out)
+    xp.multiply(out, v, out=out)
 
 
-def subtract_into(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    np.subtract(a, b, out=out, casting="unsafe")
+def subtract_into(a, b, out) -> None:
+    if isinstance(out, np.ndarray):
+        np.subtract(a, b, out=out, casting="unsafe")
+    else:
+        namespace(out).subtract(a, b, out=out)
 
 
-def cropped_irfft2(spec: np.ndarray, fshape: tuple[int, int], n_rows: int, workers: int):
+def rfft2(a, workers: int, am: ArrayModule = CPU):
+    """``rfft2`` of a padded image, on ``am``'s device."""
+    if am.gpu:
+        return am.rfftn(a)
+    return scipy.fft.rfft2(a, workers=workers)
+
+
+def cropped_irfft2(spec, fshape: tuple[int, int], n_rows: int, workers: int,
+                   am: ArrayModule = CPU):
     """``irfft2(spec, s=fshape)[:n_rows]``, destroying ``spec``.
 
-    Done as an in-place complex inverse FFT along axis 0 followed by real
+    On the CPU: an in-place complex inverse FFT along axis 0 followed by real
     inverse FFTs of the first ``n_rows`` rows only: skips the rows that are
     cropped away and, with pocketfft, is markedly faster than ``irfft2``
-    (which copies its input).
+    (which copies its input). On a device: its ``irfftn``, cropped.
     """
+    if am.gpu:
+        return am.irfftn(spec, s=fshape, overwrite_x=True)[:n_rows]
     spec = scipy.fft.ifft(spec, axis=0, workers=workers, overwrite_x=True)
     return scipy.fft.irfft(spec[:n_rows], n=fshape[1], axis=1, workers=workers)
 

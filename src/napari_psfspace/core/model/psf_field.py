@@ -125,6 +125,7 @@ class PsfField:
         state = self.__dict__.copy()
         for key in ("_lock", "_maps_cache", "_spectra_cache"):
             state.pop(key)
+        state.pop("_device_cache", None)  # arrays on a GPU, if it ran there
         return state
 
     def __setstate__(self, state: dict[str, Any]) -> None:

@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..common.device import CPU, ArrayModule, array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.validate import (
     as_image,
@@ -200,7 +201,8 @@ class SmoothGrid:
 
 
 def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
-                        seed: int = 0, workers: int | None = None
+                        seed: int = 0, workers: int | None = None,
+                        device: ArrayModule = CPU
                         ) -> Generator[tuple[int, float], None, float]:
     """Generator form of :func:`operator_norm2`: yields ``(iteration, value)`` after each
     iteration (a point to cancel at: one application of ``H^T H`` apart), returns the
@@ -210,7 +212,8 @@ def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float
     x /= np.linalg.norm(x)
     value = 0.0
     for it in range(int(n_iter)):
-        y = op.adjoint(op.apply(x, workers=workers), workers=workers)
+        y = device.to_host(op.adjoint(op.apply(x, workers=workers, device=device),
+                                      workers=workers, device=device))
         new = float(np.linalg.norm(y))
         if new == 0:
             return 0.0
@@ -286,6 +289,7 @@ def iter_deblur(
     compression: float | None = None,
     polish: bool = True,
     workers: int | None = None,
+    device: str | ArrayModule = "auto",
 ) -> Generator[Progress, None, Deblurred]:
     """Generator form of :func:`deblur`: yields progress between iterations (stop it
     there to cancel), returns the :class:`Deblurred`."""
@@ -293,6 +297,7 @@ def iter_deblur(
     check_instance(operator, ProductConvolution, "operator",
                    "A family (OperatorSubspace) gives its operator for an image with "
                    "identify_operator(image, subspace).")
+    am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     raw = np.asarray(image)
     y = as_image(image, dtype=np.float32)
     if tuple(y.shape) != tuple(operator.shape):
@@ -338,7 +343,7 @@ def iter_deblur(
             raise ValueError(f"`smooth_weight` must be >= 0, got {smooth_weight!r}")
         g2 = float(smooth_weight)
     yield Progress("setup", 0.0, "estimating ||H||")
-    norm = iter_operator_norm2(operator, workers=workers)
+    norm = iter_operator_norm2(operator, workers=workers, device=am)
     while True:  # one application of H^T H between yields: cancellable
         try:
             it, value = next(norm)
@@ -354,12 +359,22 @@ def iter_deblur(
     search = (compress_operator(operator, SEARCH_COMPRESSION * eps)
               if polish and eps > 0 and tol < POLISH_AFTER else operator)
     active = [search]  # the operator of the gradient: the search's, then the exact one
+    # on a GPU the data stay there; the gradient's transforms run there, the iterate
+    # (two small blocks) on the host
+    y_on, censored_on = ((am.asarray(y), None if censored is None else
+                          tuple(am.asarray(c) for c in censored)) if am.gpu
+                         else (y, censored))
+
+    def data_gradient(op, z):
+        g, value = op.data_gradient(z, y_on, censored=censored_on, workers=workers,
+                                    device=am)
+        return am.to_host(g), value
 
     def gradient(x):
         u1, w = x
         z = grid.synthesis(w)
         z += u1
-        g, value = active[0].data_gradient(z, y, censored=censored, workers=workers)
+        g, value = data_gradient(active[0], z)
         lw = grid.laplacian(w)
         value = 0.5 * value + pen * float(np.vdot(lw, lw))
         return [g, grid.adjoint(g) + (2.0 * pen) * grid.laplacian(lw)], value
@@ -409,7 +424,7 @@ def iter_deblur(
                 yield Progress(step.stage, iterations / int(max_iter), step.message)
             # optimality off the support (FISTA stopped early: a pixel may still want
             # in): -gradient <= gamma1 wherever u1 = 0
-            g, _ = operator.data_gradient(u1 + u2, y, censored=censored, workers=workers)
+            g, _ = data_gradient(operator, u1 + u2)
             entering = int(np.count_nonzero((u1 == 0) & (-g > gmap * (1.0 + KKT_SLACK))))
             polish_info["entering"] = entering
             converged = bool(polish_info["converged"])
@@ -428,7 +443,7 @@ def iter_deblur(
               "saturation": saturation, "saturated_pixels": n_saturated,
               "compression": float(compression), "kernels": [int(n_kernels),
                                                              int(operator.n_psf)],
-              "search_kernels": int(search.n_psf)}
+              "search_kernels": int(search.n_psf), "device": am.name}
     if polish_info is not None:
         params["polish"] = polish_info
     if debias and u1.any():
@@ -436,6 +451,9 @@ def iter_deblur(
                                              min(int(max_iter), DEBIAS_MAX_ITER), workers,
                                              params)
     u2 = grid.synthesis(w)
+    if am.gpu:  # the kernels' spectra and maps go back to the device
+        operator.release()
+        search.release()
     params["seconds"] = round(time.perf_counter() - t0, 3)
     yield Progress("deblur", 1.0, f"{iterations} iterations"
                    + (f" + {params['debias_iterations']} to refit the amplitudes"
@@ -531,6 +549,7 @@ def deblur(
     compression: float | None = None,
     polish: bool = True,
     workers: int | None = None,
+    device: str | ArrayModule = "auto",
     progress: Callable[[Progress], None] | None = None,
 ) -> Deblurred:
     """Deblur point sources on a smooth background with a known operator.
@@ -592,16 +611,21 @@ def deblur(
         ``POLISH_MAX_SUPPORT`` pixels are not polished.
     workers : int, optional
         FFT threads.
+    device : {"auto", "cpu", "gpu"}
+        Where the operator's transforms run (:mod:`~napari_psfspace.core.common.device`):
+        "auto" is the GPU when CuPy imports and sees a device, else the CPU. The data
+        stay on the device; the iterate and the polish on the host.
     progress : callable, optional
         Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
 
     Returns
     -------
     Deblurred
-        Sparse and smooth parts (float32, the image's shape) and the objective history.
+        Sparse and smooth parts (float32, the image's shape) and the objective history;
+        ``parameters["device"]`` says where the transforms ran.
     """
     return run_with_progress(iter_deblur(
         image, operator, sparse_weight=sparse_weight, smooth_weight=smooth_weight,
         grid_step=grid_step, model_error=model_error, max_iter=max_iter, tol=tol,
         debias=debias, saturation=saturation, compression=compression, polish=polish,
-        workers=workers), progress)
+        workers=workers, device=device), progress)

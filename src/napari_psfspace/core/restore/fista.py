@@ -19,6 +19,7 @@ from collections.abc import Callable, Generator, Sequence
 
 import numpy as np
 
+from ..common.device import namespace
 from ..common.threads import default_workers, map_rows
 
 Blocks = list[np.ndarray]
@@ -49,7 +50,9 @@ class BlockFista:
     An iteration's element-wise work (gradient step, proximal map, the sums of the
     restart test and of the objective, the extrapolation) runs fused on chunks of
     rows in threads: two passes over each block instead of a dozen
-    (``bench/bench_deblur_speed.py``).
+    (``bench/bench_deblur_speed.py``). Blocks on a GPU (CuPy arrays, from ``setup``)
+    stay there, and each step runs on a whole block at once (``rows`` is then
+    ``slice(None)``).
     """
 
     def __init__(self, gradient: Callable[[Blocks], tuple[Blocks, float]],
@@ -67,25 +70,30 @@ class BlockFista:
         self.lipschitz = [float(v) for v in lipschitz]
         self.penalty = None if penalty is None else list(penalty)
         self.workers = default_workers() if workers is None else int(workers)
+        self.xp = np  # the blocks' array module, from setup
         self.x: Blocks = []
         self.objective: list[float] = []
         self.restarts = 0
         self.iterations = 0
 
     def setup(self, x0: Blocks) -> None:
-        """Start from ``x0`` (copied)."""
-        self.x = [np.array(b, copy=True) for b in x0]
+        """Start from ``x0`` (copied; the blocks stay on the device they are on)."""
+        self.xp = namespace(x0[0])
+        self.x = [self.xp.array(b, copy=True) for b in x0]
         self.z = [b.copy() for b in self.x]  # extrapolated point
         self.t = 1.0
         self.objective, self.restarts, self.iterations = [], 0, 0
 
     def _map(self, fn: Callable[[slice], object], block: np.ndarray) -> list:
+        if self.xp is not np:  # a device: one call on the whole block
+            return [fn(slice(None))]
         return map_rows(fn, block.shape[0], self.workers)
 
     def step(self) -> float:
         """One iteration; returns ``||x_new - x|| / ||x_new||`` over all blocks."""
         grad, fz = self.gradient(self.z)
         sums = np.zeros(4)  # ||d||^2, ||x_new||^2, <z - x_new, d>, penalty at z
+        xp = self.xp
         for b, (z, g, x) in enumerate(zip(self.z, grad, self.x, strict=True)):
             step = 1.0 / self.lipschitz[b]
             prox = self.prox[b]
@@ -98,9 +106,9 @@ class BlockFista:
                 new = prox(gr, step, rows)
                 if new is not gr:
                     gr[...] = new
-                np.subtract(gr, xr, out=xr)  # the old iterate's buffer now holds d
-                zd = float(np.vdot(zr, xr)) - float(np.vdot(gr, xr))
-                return (float(np.vdot(xr, xr)), float(np.vdot(gr, gr)), zd,
+                xp.subtract(gr, xr, out=xr)  # the old iterate's buffer now holds d
+                zd = float(xp.vdot(zr, xr)) - float(xp.vdot(gr, xr))
+                return (float(xp.vdot(xr, xr)), float(xp.vdot(gr, gr)), zd,
                         0.0 if pen is None else float(pen(zr, rows)))
 
             sums += np.sum(self._map(forward, z), axis=0)
@@ -115,7 +123,7 @@ class BlockFista:
         beta = (self.t - 1.0) / t_new
         for z, new, d in zip(self.z, grad, self.x, strict=True):
             def extrapolate(rows, z=z, new=new, d=d):  # z = x_new + beta d, in place
-                np.multiply(d[rows], beta, out=z[rows])
+                xp.multiply(d[rows], beta, out=z[rows])
                 z[rows] += new[rows]
 
             self._map(extrapolate, z)

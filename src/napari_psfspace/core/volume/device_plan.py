@@ -1,10 +1,11 @@
 """Where the 3D deblur's arrays live on a GPU, and how large its blocks are there.
 
 On the GPU the volumes of Richardson-Lucy (the data, the estimate, the ratio and
-``H^T 1``; four more with the acceleration) stay on the device when they fit, and the
-operator runs on lateral blocks (:class:`~.blocks3d.BlockedOperator3D`, exact overlap-add
-and overlap-save) as large as the device's free memory allows: the whole field in one
-block where it fits (the FFTs of the padded volume, nothing cut), else smaller blocks.
+``H^T 1``; four more with the acceleration) or of the sparse + smooth deblur stay on the
+device when they fit, and the operator runs on lateral blocks
+(:class:`~.blocks3d.BlockedOperator3D`, exact overlap-add and overlap-save) as large as
+the device's free memory allows: the whole field in one block where it fits (the FFTs of
+the padded volume, nothing cut), else smaller blocks.
 When even the volumes do not fit, they stay in the host's memory and each block is copied
 over and back: a volume larger than the device runs, in tiles.
 
@@ -67,7 +68,7 @@ def block_bytes(operator: ProductConvolution3D, depth: int, block: int) -> int:
 
 
 def plan_on_device(operator: ProductConvolution3D, depth: int, free_bytes: int, *,
-                   accelerate: bool = False) -> DevicePlan:
+                   accelerate: bool = False, volumes: int | None = None) -> DevicePlan:
     """The largest blocks that fit in ``MEMORY_FRACTION`` of ``free_bytes``, the volumes
     on the device when they fit beside them.
 
@@ -80,6 +81,9 @@ def plan_on_device(operator: ProductConvolution3D, depth: int, free_bytes: int, 
         The device's free memory (:meth:`~..common.device.ArrayModule.free_bytes`).
     accelerate : bool
         Whether the iteration holds the acceleration's four volumes.
+    volumes : int, optional
+        float32 volumes the iteration holds, when it is not Richardson-Lucy
+        (:func:`volume_count`): the sparse + smooth deblur's.
 
     Raises
     ------
@@ -90,7 +94,8 @@ def plan_on_device(operator: ProductConvolution3D, depth: int, free_bytes: int, 
     _, h, w = operator.shape
     p = operator.kernel_shape[1]
     budget = MEMORY_FRACTION * float(free_bytes)
-    volumes = volume_count(accelerate) * depth * h * w * 4
+    count = volume_count(accelerate) if volumes is None else int(volumes)
+    volumes = count * depth * h * w * 4
     sizes, b = [], max(h, w)
     while True:
         sizes.append(max(b, p))

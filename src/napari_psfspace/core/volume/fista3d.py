@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..common.device import ArrayModule, array_module, namespace
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
 from ..common.validate import check_int
@@ -37,12 +38,17 @@ from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT, Smooth
 from ..restore.fista import BlockFista
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import check_stack
+from .device_plan import plan_on_device
 from .operator3d import ProductConvolution3D
 
 #: Largest eigenvalue of the nodes' 3D graph Laplacian (6 neighbours): at most 12.
 LAPLACIAN_NORM = 12.0
 #: Most power iterations for ``||H||^2`` (each one ``H^T H``; stops earlier at 0.1 %).
 POWER_ITER = 30
+#: float32 volumes the iteration holds at its peak: the data, the iterate, the
+#: extrapolated point, the gradient, the prediction's buffer and the smooth part's
+#: synthesis (device_plan counts them on a GPU).
+FISTA_VOLUMES = 6
 
 
 @dataclass
@@ -74,8 +80,9 @@ class Deblurred3D:
 
 
 def laplacian_3d(w: np.ndarray) -> np.ndarray:
-    """Graph Laplacian of nodes (Z, ny, nx): 6 neighbours, none across the borders."""
-    out = np.zeros_like(w)
+    """Graph Laplacian of nodes (Z, ny, nx): 6 neighbours, none across the borders
+    (on the device ``w`` is on)."""
+    out = namespace(w).zeros_like(w)
     for axis in range(3):
         n = w.shape[axis]
         if n < 2:
@@ -89,14 +96,15 @@ def laplacian_3d(w: np.ndarray) -> np.ndarray:
     return out
 
 
-def _power(op, shape, workers, rtol: float = 1e-3):
-    """``||H||^2`` by power iteration (yields after each application of ``H^T H``)."""
-    x = np.random.default_rng(0).random(shape).astype(np.float32)
-    x /= np.linalg.norm(x)
+def _power(op, shape, workers, rtol: float = 1e-3, xp=np):
+    """``||H||^2`` by power iteration (yields after each application of ``H^T H``), the
+    vectors in the array module ``xp``."""
+    x = xp.asarray(np.random.default_rng(0).random(shape).astype(np.float32))
+    x /= xp.linalg.norm(x)
     value = 0.0
     for it in range(POWER_ITER):
         y = op.adjoint(op.apply(x, workers=workers), workers=workers)
-        new = float(np.linalg.norm(y))
+        new = float(xp.linalg.norm(y))
         if new == 0:
             return 0.0
         x = y / np.float32(new)
@@ -121,6 +129,7 @@ def iter_deblur_3d(
     block: int | None = BLOCK,
     rtol: float = RTOL,
     workers: int | None = None,
+    device: str | ArrayModule = "auto",
 ) -> Generator[Progress, None, Deblurred3D]:
     """Generator form of :func:`deblur_3d`: yields progress after every iteration (stop
     it there to cancel), returns the :class:`Deblurred3D`."""
@@ -131,14 +140,26 @@ def iter_deblur_3d(
         raise ValueError(f"`tol` must be a finite number >= 0, got {tol!r}")
     if not (np.isfinite(grid_step) and grid_step >= 2):
         raise ValueError(f"`grid_step` must be at least 2 pixels, got {grid_step!r}")
+    am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     y = np.asarray(stack, dtype=np.float32)
     if not np.isfinite(y.sum(dtype=np.float64)):
         raise ValueError("`stack` contains NaN or infinite values")
     z, h, w = y.shape
-    op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    xp = np  # the volumes' array module: the device's where they fit there
+    if am.gpu:  # blocks as large as the device's memory allows (device_plan)
+        plan = plan_on_device(operator, z, am.free_bytes(), volumes=FISTA_VOLUMES)
+        block = plan.block
+        if plan.volumes_on_device:
+            xp = am.xp
+        op = BlockedOperator3D(operator, block=block, rtol=rtol, device=am)
+    else:
+        op = operator if block is None else BlockedOperator3D(operator, block=block,
+                                                                rtol=rtol)
     workers = default_workers() if workers is None else workers
     grid = SmoothGrid((h, w), grid_step)
     ry, rx = grid.ry.toarray(), grid.rx.toarray()  # (H, ny), (W, nx)
+    if xp is not np:
+        ry, rx = am.asarray(ry.astype(np.float32)), am.asarray(rx.astype(np.float32))
 
     def synthesis(nodes):
         return (ry @ nodes) @ rx.T  # (Z, H, W)
@@ -160,14 +181,16 @@ def iter_deblur_3d(
     for name, v in (("sparse_weight", g1), ("smooth_weight", g2)):
         if not (np.isfinite(v) and v >= 0):
             raise ValueError(f"`{name}` must be a finite number >= 0, got {v!r}")
-    h2 = NORM_MARGIN * float((yield from _power(op, y.shape, workers)))
+    h2 = NORM_MARGIN * float((yield from _power(op, y.shape, workers, xp=xp)))
     if h2 <= 0:
         raise ValueError("`operator` is zero: nothing to deblur with")
     pen = g2 / grid.step ** 2
     c = BLOCK_SPLIT
     lips = [(1.0 + c) * h2,
             (1.0 + 1.0 / c) * h2 * grid.norm2() + 2.0 * pen * LAPLACIAN_NORM ** 2]
-    buf = np.empty_like(y)
+    if xp is not np:
+        y = am.asarray(y)
+    buf = xp.empty_like(y)
 
     def gradient(x):
         u1, nodes = x
@@ -179,32 +202,32 @@ def iter_deblur_3d(
             r = op.apply(u, out=buf, workers=workers)
         del u  # one volume less while H^T runs: the peak (a 64 x 2048 x 2048 stack)
         r -= y
-        value = 0.5 * float(np.vdot(r, r))
+        value = 0.5 * float(xp.vdot(r, r))
         g = op.adjoint(r, workers=workers)
         lw = laplacian_3d(nodes)
-        value += pen * float(np.vdot(lw, lw))
+        value += pen * float(xp.vdot(lw, lw))
         return [g, analysis(g) + (2.0 * pen) * laplacian_3d(lw)], value
 
     def prox_sparse(v, t, rows):
         v -= np.float32(t * g1)
-        np.maximum(v, 0, out=v)
+        xp.maximum(v, 0, out=v)
         return v
 
     def prox_smooth(v, t, rows):
-        np.maximum(v, 0, out=v)
+        xp.maximum(v, 0, out=v)
         return v
 
     def penalty_sparse(v, rows):
-        return g1 * float(np.abs(v).sum())
+        return g1 * float(xp.abs(v).sum())
 
     solver = BlockFista(gradient, [prox_sparse, prox_smooth], lips,
                         penalty=[penalty_sparse, None], workers=workers)
-    level = max(float(np.median(y)), 0.0)
+    level = max(float(xp.median(y)), 0.0)
     # start: no source, the background at the stack's level seen through H (whose
     # planes sum to about 1 per plane of the kernel)
     gain = max(float(psf.sum()), 1e-12)
-    solver.setup([np.zeros(y.shape, np.float32),
-                  np.full((z, *grid.grid_shape), level / gain, np.float32)])
+    solver.setup([xp.zeros(y.shape, np.float32),
+                  xp.full((z, *grid.grid_shape), level / gain, np.float32)])
     run = solver.run(max_iter, tol)
     converged = False
     while True:
@@ -217,13 +240,20 @@ def iter_deblur_3d(
                                                 f"{change:.1e}")
     u1, nodes = solver.finalize()
     solver.z = []  # the extrapolated point: a volume the result does not need
+    buf = y = None  # two volumes the result does not need (the gradient is done)
+    smooth = synthesis(nodes)
+    if xp is not np:  # the result comes back to the host
+        u1, smooth = am.to_host(u1), am.to_host(smooth)
+    if isinstance(op, BlockedOperator3D) and am.gpu:
+        op.release()  # its spectra and plans go back to the device
     params = {"sparse_weight": g1, "smooth_weight": g2, "grid_step": grid.step,
               "noise_sd": sigma, "lipschitz": lips, "norm2": h2, "tol": float(tol),
               "max_iter": max_iter, "restarts": solver.restarts,
               "kernels": float(op.n_kernels) if block is not None else operator.n_psf,
+              "device": am.name, "block": block,
               "seconds": round(time.perf_counter() - t0, 3)}
     return Deblurred3D(u1.astype(np.float32, copy=False),
-                       synthesis(nodes).astype(np.float32, copy=False),
+                       smooth.astype(np.float32, copy=False),
                        solver.iterations, converged, params, list(solver.objective))
 
 
@@ -239,6 +269,7 @@ def deblur_3d(
     block: int | None = BLOCK,
     rtol: float = RTOL,
     workers: int | None = None,
+    device: str | ArrayModule = "auto",
     progress: Callable[[Progress], None] | None = None,
 ) -> Deblurred3D:
     """Sparse + smooth deblurring of a z-stack with a space-varying 3D PSF.
@@ -262,17 +293,24 @@ def deblur_3d(
         The operator on lateral blocks, as in
         :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d`.
     workers : int, optional
+    device : {"auto", "cpu", "gpu"}
+        Where the iteration runs (:mod:`~napari_psfspace.core.common.device`): "auto" is
+        the GPU when CuPy imports and sees a device, else the CPU. On the GPU the blocks
+        are sized from the device's free memory (``block`` is then not used), the
+        volumes stay there when the iteration's :data:`FISTA_VOLUMES` fit beside them,
+        else on the host (each block copied over and back). The result is NumPy.
     progress : callable, optional
 
     Returns
     -------
     Deblurred3D
+        ``parameters["device"]`` says where it ran, ``parameters["block"]`` the block.
     """
     return run_with_progress(iter_deblur_3d(
         stack, operator, sparse_weight=sparse_weight, smooth_weight=smooth_weight,
         grid_step=grid_step, max_iter=max_iter, tol=tol, block=block, rtol=rtol,
-        workers=workers), progress)
+        workers=workers, device=device), progress)
 
 
-__all__ = ["LAPLACIAN_NORM", "POWER_ITER", "Deblurred3D", "deblur_3d", "iter_deblur_3d",
-           "laplacian_3d"]
+__all__ = ["FISTA_VOLUMES", "LAPLACIAN_NORM", "POWER_ITER", "Deblurred3D", "deblur_3d",
+           "iter_deblur_3d", "laplacian_3d"]

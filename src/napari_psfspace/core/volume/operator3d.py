@@ -27,6 +27,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike
 
+from ..common.device import CPU, ArrayModule, resolve
 from ..model.operator_checks import as_real_array, normalise_metadata
 from ..model.operator_fft import check_dc, computation_dtype
 from ..model.operator_file import read_archive, software_string, write_archive
@@ -115,7 +116,7 @@ class ProductConvolution3D:
         """For dask's transport to its workers (files never use pickle): the arrays and
         settings, without the lock and the caches."""
         return {k: v for k, v in self.__dict__.items()
-                if k not in ("_lock", "_maps", "_spectra")}
+                if k not in ("_lock", "_maps", "_spectra", "_device_cache")}
 
     def __setstate__(self, state: dict) -> None:
         self.__dict__.update(state)
@@ -228,7 +229,9 @@ class ProductConvolution3D:
                 scipy.fft.next_fast_len(h + p // 2, real=True),
                 scipy.fft.next_fast_len(w + p // 2, real=True))
 
-    def _kernel_spectra(self, fshape: tuple[int, int, int], dt: np.dtype) -> np.ndarray:
+    def _kernel_spectra(self, fshape: tuple[int, int, int], dt: np.dtype,
+                        am: ArrayModule = CPU) -> np.ndarray:
+        """The kernels' spectra on ``fshape`` (read-only, cached), on ``am``'s device."""
         key = (fshape, dt)
         with self._lock:
             spec = self._spectra.get(key)
@@ -244,18 +247,42 @@ class ProductConvolution3D:
                     spec[i] = scipy.fft.rfftn(big)
                 spec.flags.writeable = False
                 self._spectra[key] = spec
-        return spec
+            return self._on(am, ("spectra", fshape, dt), spec)
 
-    def _check_volume(self, u: ArrayLike, name: str) -> tuple[np.ndarray, np.dtype]:
-        arr = np.asarray(u)
-        if arr.ndim != 3 or arr.shape[1:] != self._shape[1:]:
+    def _on(self, am: ArrayModule, key: tuple, host: np.ndarray):
+        """``host`` on ``am``'s device, copied there once per key (cache freed by
+        :meth:`release`)."""
+        if not am.gpu:
+            return host
+        cache = self.__dict__.setdefault("_device_cache", {})
+        key = (am, *key)
+        if key not in cache:
+            cache[key] = am.asarray(host)
+        return cache[key]
+
+    def release(self) -> None:
+        """Free what this operator holds on a device (kernel spectra, maps, FFT plans)."""
+        with self._lock:
+            cache = self.__dict__.pop("_device_cache", None)
+        if cache:
+            modules = {key[0] for key in cache}
+            cache.clear()
+            for am in modules:
+                am.free_cache()
+
+    def _check_volume(self, u: ArrayLike, name: str, am: ArrayModule = CPU
+                      ) -> tuple[np.ndarray, np.dtype]:
+        arr = u if am.gpu and hasattr(u, "dtype") else np.asarray(u)
+        if arr.ndim != 3 or tuple(arr.shape[1:]) != self._shape[1:]:
             raise ValueError(f"`{name}` must be a volume (Z, {self._shape[1]}, "
-                             f"{self._shape[2]}), got shape {arr.shape}")
+                             f"{self._shape[2]}), got shape {tuple(arr.shape)}")
         # NaN / inf are caught on the first spectrum's DC term (check_dc): no extra pass
         # over the volume in every iteration of a deconvolution
-        return arr, computation_dtype(arr, name)
+        dt = computation_dtype(arr, name)
+        return (am.asarray(arr, dtype=dt) if am.gpu else arr), dt
 
-    def apply(self, u: ArrayLike, *, workers: int | None = None) -> np.ndarray:
+    def apply(self, u: ArrayLike, *, workers: int | None = None,
+              device: str | ArrayModule | None = None) -> np.ndarray:
         """``H u``: the volume ``u`` (Z', H, W) seen through the microscope.
 
         Parameters
@@ -264,56 +291,66 @@ class ProductConvolution3D:
             Any depth; the lateral shape is the model's. float32 stays float32.
         workers : int, optional
             FFT threads.
+        device : {"auto", "cpu", "gpu"} or ArrayModule, optional
+            Where to run (:mod:`~napari_psfspace.core.common.device`); default: where
+            ``u`` lives. The result is on that device.
 
         Returns
         -------
         ndarray of shape (Z', H, W)
         """
-        arr, dt = self._check_volume(u, "u")
+        am = resolve(device, u)
+        arr, dt = self._check_volume(u, "u", am)
+        xp = am.xp
         arr = arr.astype(dt, copy=False)
         fshape = self.fft_shape(arr.shape[0])
-        spectra = self._kernel_spectra(fshape, dt)
-        maps = self.coefficient_maps(dt)
+        spectra = self._kernel_spectra(fshape, dt, am)
+        maps = self._on(am, ("maps", dt), self.coefficient_maps(dt))
         z, h, w = arr.shape
-        pad = np.zeros(fshape, dt)  # the product alpha_i u, zero-padded, reused
+        pad = xp.zeros(fshape, dt)  # the product alpha_i u, zero-padded, reused
         acc = None
         for i in range(self.n_psf):
-            np.multiply(maps[i][None], arr, out=pad[:z, :h, :w])
-            spec = scipy.fft.rfftn(pad, workers=workers, overwrite_x=False)
+            xp.multiply(maps[i][None], arr, out=pad[:z, :h, :w])
+            spec = am.rfftn(pad, workers=workers, overwrite_x=False)
             check_dc(spec, "u")
             if acc is None:
-                acc = np.multiply(spec, spectra[i], out=spec)
+                acc = xp.multiply(spec, spectra[i], out=spec)
             else:
                 spec *= spectra[i]
                 acc += spec
-        out = scipy.fft.irfftn(acc, s=fshape, workers=workers, overwrite_x=True)
-        return np.ascontiguousarray(out[:z, :h, :w], dt)
+        out = am.irfftn(acc, s=fshape, workers=workers, overwrite_x=True)
+        return xp.ascontiguousarray(out[:z, :h, :w], dt)
 
-    def adjoint(self, v: ArrayLike, *, workers: int | None = None) -> np.ndarray:
+    def adjoint(self, v: ArrayLike, *, workers: int | None = None,
+                device: str | ArrayModule | None = None) -> np.ndarray:
         """``H^T v``, the adjoint of :meth:`apply` (dot-tested).
 
         Parameters
         ----------
         v : array_like of shape (Z', H, W)
         workers : int, optional
+        device : {"auto", "cpu", "gpu"} or ArrayModule, optional
+            As in :meth:`apply`.
 
         Returns
         -------
         ndarray of shape (Z', H, W)
         """
-        arr, dt = self._check_volume(v, "v")
+        am = resolve(device, v)
+        arr, dt = self._check_volume(v, "v", am)
+        xp = am.xp
         fshape = self.fft_shape(arr.shape[0])
-        spectra = self._kernel_spectra(fshape, dt)
-        maps = self.coefficient_maps(dt)
+        spectra = self._kernel_spectra(fshape, dt, am)
+        maps = self._on(am, ("maps", dt), self.coefficient_maps(dt))
         z, h, w = arr.shape
-        vhat = scipy.fft.rfftn(arr.astype(dt, copy=False), s=fshape, workers=workers)
+        vhat = am.rfftn(arr.astype(dt, copy=False), s=fshape, workers=workers)
         check_dc(vhat, "v")
-        out = np.zeros(arr.shape, dt)
-        prod = np.empty_like(vhat)
+        out = xp.zeros(arr.shape, dt)
+        prod = xp.empty_like(vhat)
         for i in range(self.n_psf):
-            np.conjugate(spectra[i], out=prod)
+            xp.conjugate(spectra[i], out=prod)
             prod *= vhat
-            back = scipy.fft.irfftn(prod, s=fshape, workers=workers, overwrite_x=True)
+            back = am.irfftn(prod, s=fshape, workers=workers, overwrite_x=True)
             out += maps[i][None] * back[:z, :h, :w]
         return out
 
