@@ -29,7 +29,7 @@ import numpy as np
 import tifffile
 
 from _common import table
-from napari_psfspace.core.beads.scale import suggest_psf_radius
+from napari_psfspace.core.beads.radius import suggest_psf_radius
 from napari_psfspace.core.common.errors import PsfSpaceError
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.loop import diagnose

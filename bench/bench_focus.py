@@ -31,7 +31,7 @@ from scipy.spatial import cKDTree
 from _common import table
 from napari_psfspace.core.beads.detect import NoBeadsError, detect_beads
 from napari_psfspace.core.beads.focus import best_focus_index
-from napari_psfspace.core.beads.scale import suggest_psf_radius
+from napari_psfspace.core.beads.radius import suggest_psf_radius
 from napari_psfspace.core.simulation import FieldAberrations, Optics
 from napari_psfspace.core.simulation.focus import simulate_focus_series
 

@@ -47,7 +47,7 @@ import tifffile
 
 from _common import optics_type, table
 from napari_psfspace.core.beads.detect import HELDOUT, KEPT
-from napari_psfspace.core.beads.scale import suggest_psf_radius
+from napari_psfspace.core.beads.radius import suggest_psf_radius
 from napari_psfspace.core.beads.spikes import spike_mask
 from napari_psfspace.core.common.errors import PsfSpaceError
 from napari_psfspace.core.common.progress import run_with_progress

@@ -180,9 +180,9 @@ def test_a_dead_scheduler_is_named(files, trapped, capsys, monkeypatch):
     """A scheduler that does not answer: a one-line error naming --scheduler, after the
     timeout (shortened here), not a traceback."""
     pytest.importorskip("distributed")
-    import napari_psfspace.cli as cli
+    import napari_psfspace.cli.common as common
 
-    monkeypatch.setattr(cli, "SCHEDULER_TIMEOUT", "1s")
+    monkeypatch.setattr(common, "SCHEDULER_TIMEOUT", "1s")
     code = main(["learn", str(files / "stack.tif"), "--slices", "0:3", "-o",
                  str(files / "f.npz"), "--psf-radius", "5", "--scheduler", "tcp://127.0.0.1:9"])
     err = capsys.readouterr().err.strip()

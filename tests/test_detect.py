@@ -12,8 +12,8 @@ from napari_psfspace.core.beads.detect import (
     Beads,
     NoBeadsError,
     detect_beads,
-    log_response,
 )
+from napari_psfspace.core.beads.log import log_response
 from synthetic import integrated_gaussian
 
 SIGMA = 1.5  # blob standard deviation, pixels
@@ -144,7 +144,7 @@ def test_suggested_radius_is_usable(preset, seed):
     field's widest wings are below the noise, so it is smaller there), and its model far
     better than the best shift-invariant PSF."""
     from napari_psfspace import estimate_operator, simulate_beads
-    from napari_psfspace.core.beads.scale import suggest_psf_radius
+    from napari_psfspace.core.beads.radius import suggest_psf_radius
     from napari_psfspace.core.simulation.metrics import evaluate_against_truth
 
     image, truth = simulate_beads((768, 768), 90, aberrations=preset, seed=seed)
@@ -161,7 +161,7 @@ def test_the_suggested_radius_keeps_the_wings_the_beads_share():
     was suggested before: 1.5x the best there). The family of scenes and the measured
     stacks: ``bench/bench_radius_sweep.py``."""
     from napari_psfspace import estimate_operator, simulate_beads
-    from napari_psfspace.core.beads.scale import suggest_psf_radius
+    from napari_psfspace.core.beads.radius import suggest_psf_radius
     from napari_psfspace.core.simulation.metrics import grid_positions, psf_error
 
     image, truth = simulate_beads((768, 768), 90, aberrations="moderate", seed=0)
@@ -184,7 +184,7 @@ def test_the_suggested_radius_keeps_the_wings_the_beads_share():
 
 
 def test_suggest_radius_on_noise_raises():
-    from napari_psfspace.core.beads.scale import suggest_psf_radius
+    from napari_psfspace.core.beads.radius import suggest_psf_radius
 
     noise = np.random.default_rng(0).normal(100, 5, (300, 300))
     with pytest.raises(NoBeadsError, match="psf_radius"):

@@ -13,7 +13,7 @@ from scipy.spatial import cKDTree
 from napari_psfspace import best_focus_index, detect_beads, spot_scale, suggest_psf_radius
 from napari_psfspace.core.beads.detect import NoBeadsError
 from napari_psfspace.core.beads.focus import focus_measure
-from napari_psfspace.core.beads.scale import WINGS
+from napari_psfspace.core.beads.radius import WINGS
 from napari_psfspace.core.simulation import Optics
 from napari_psfspace.core.simulation.focus import defocus_zernike, simulate_focus_series
 

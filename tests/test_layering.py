@@ -151,3 +151,103 @@ def test_the_import_check_sees_a_violation():
         assert sorted(s for _, s in _imported_stages(fake)) == ["diagnosis", "model"]
     finally:
         fake.unlink()
+
+
+# --------------------------------------------------------------------------- no circles
+SRC = CORE.parents[1]
+
+
+def _import_graph() -> dict[str, set[str]]:
+    """Module -> the package's modules it imports, at the top or inside a function
+    (``from pkg import name`` counts as importing ``pkg.name`` where that is a module,
+    else ``pkg``)."""
+    mods: dict[str, tuple[Path, list[str]]] = {}
+    for p in SRC.rglob("*.py"):
+        parts = list(p.relative_to(SRC).with_suffix("").parts)
+        if parts[-1] == "__init__":
+            parts = parts[:-1]
+            package = parts
+        else:
+            package = parts[:-1]
+        mods[".".join(parts)] = (p, package)
+
+    def known(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for m, (p, package) in mods.items():
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom):
+                base = (".".join(package[:len(package) - node.level + 1]
+                                 + ([node.module] if node.module else []))
+                        if node.level else (node.module or ""))
+                names = [f"{base}.{a.name}" if f"{base}.{a.name}" in mods else base
+                         for a in node.names]
+            elif isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            else:
+                continue
+            for name in names:
+                target = known(name) if name.startswith("napari_psfspace") else None
+                if target and target != m:
+                    graph[m].add(target)
+    return graph
+
+
+def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_no_import_circle_under_src():
+    graph = _import_graph()
+    assert len(graph) > 100 and graph["napari_psfspace.core.beads.detect"]
+    assert not _circles(graph), _circles(graph)
+
+
+def test_the_circle_finder_finds_a_circle():
+    """Guard against a vacuous test: a circle of three is found, a chain is not."""
+    assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert _circles({"a": {"b"}, "b": {"c"}, "c": set()}) == []
+
+
+def test_no_module_over_600_lines():
+    long = {str(p.relative_to(SRC)): n for p in SRC.rglob("*.py")
+            if (n := len(p.read_text(encoding="utf-8").splitlines())) > 600}
+    assert not long, long
+
+
+def test_the_core_never_imports_the_top_package():
+    graph = _import_graph()
+    top = [m for m, targets in graph.items()
+           if m.startswith("napari_psfspace.core") and "napari_psfspace" in targets]
+    assert not top, top

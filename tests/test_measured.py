@@ -121,7 +121,7 @@ def test_noise_model_is_plausible_or_names_its_fallback(shared_data, name):
 def test_single_and_few_bead_stacks_give_a_shift_invariant_psf(shared_data, name):
     """1-4 beads (data: pycudadecon MIT, pyotf Apache-2.0, BioImageAnalysisNotebooks
     CC-BY-4.0): one PSF for the whole field, said plainly."""
-    from napari_psfspace.core.beads.scale import suggest_psf_radius
+    from napari_psfspace.core.beads.radius import suggest_psf_radius
 
     image, info, _ = _read(shared_data, name)
     est = run_with_progress(iter_estimate(image, psf_radius=suggest_psf_radius(image)))
@@ -194,7 +194,7 @@ def test_every_slice_estimates_or_stops_with_a_message(shared_data):
     numpy's "zero-size array" (a 3 px radius leaves no ring for the secondary-peak test)."""
     import tifffile
 
-    from napari_psfspace.core.beads.scale import suggest_psf_radius
+    from napari_psfspace.core.beads.radius import suggest_psf_radius
     from napari_psfspace.core.common.errors import PsfSpaceError
     from napari_psfspace.core.diagnosis.loop import diagnose
 

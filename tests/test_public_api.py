@@ -114,7 +114,7 @@ TWINS = [
     ("estimate_subspace", "iter_estimate_subspace", set()),
     ("deblur", "iter_deblur", set()),
     ("estimate_operator_3d", "iter_estimate_operator_3d", set()),
-    ("core.restore.deconvolve.operator_norm2", "core.restore.deconvolve.iter_operator_norm2",
+    ("core.restore.norm.operator_norm2", "core.restore.norm.iter_operator_norm2",
      set()),
 ]
 

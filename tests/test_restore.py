@@ -10,7 +10,7 @@ from scipy.spatial import cKDTree
 
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.model.operator import ProductConvolution
-from napari_psfspace.core.restore.deconvolve import SmoothGrid, deblur, iter_deblur
+from napari_psfspace.core.restore.deconvolve import deblur, iter_deblur
 from napari_psfspace.core.restore.fista import BlockFista
 from napari_psfspace.core.restore.identify import (
     MIN_BEADS_JUDGED,
@@ -18,6 +18,7 @@ from napari_psfspace.core.restore.identify import (
     identify_operator,
     solve_identification,
 )
+from napari_psfspace.core.restore.smooth_grid import SmoothGrid
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
 from napari_psfspace.core.subspace import estimate_subspace

@@ -21,12 +21,15 @@ deblurring with it (:func:`deblur`); from a bead z-stack, a space-varying 3D PSF
 (:func:`estimate_operator_3d`).
 """
 
-__version__ = "0.1.0"
+from .core.common.version import package_version
+
+__version__ = package_version()
 
 from .core.beads.detect import Beads, NoBeadsError, detect_beads
 from .core.beads.focus import best_focus_index
 from .core.beads.patches import Patches, extract_patches
-from .core.beads.scale import spot_scale, suggest_psf_radius
+from .core.beads.radius import suggest_psf_radius
+from .core.beads.scale import spot_scale
 from .core.common.errors import PsfSpaceError
 from .core.common.progress import Progress, run_with_progress
 from .core.diagnosis.loop import Diagnosis, diagnose, iter_diagnose, iter_heldout_error
@@ -37,7 +40,7 @@ from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate
 from .core.simulation.focus import simulate_focus_series
 from .core.simulation.metrics import psf_error
 from .core.subspace import OperatorSubspace, estimate_subspace, iter_estimate_subspace
-from .core.subspace.subspace_file import load_subspace
+from .core.subspace.result import load_subspace
 from .core.volume import (
     ProductConvolution3D,
     deblur_3d,

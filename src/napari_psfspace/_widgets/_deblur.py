@@ -220,7 +220,8 @@ class DeblurWidget(Container):
             raise ValueError("file: choose a model or subspace file (.npz)")
         from ..core.model.operator import load_operator
         from ..core.model.operator_file import archive_format
-        from ..core.subspace.subspace_file import FORMAT_NAME, load_subspace
+        from ..core.subspace.result import load_subspace
+        from ..core.subspace.subspace_file import FORMAT_NAME
 
         p = Path(path)
         return load_subspace(p) if archive_format(p) == FORMAT_NAME else load_operator(p)

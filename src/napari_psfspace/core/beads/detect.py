@@ -15,10 +15,11 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ..common import spacing
-from ..common.errors import PsfSpaceError
-from ..common.threads import filter_by_rows
+from ..common.errors import NoBeadsError
 from ..common.validate import as_image, check_positive, check_psf_radius
+from .log import local_peaks, log_response
 from .overlap import NEIGHBOUR_SHARE, patch_shares
+from .saturation import saturated_cores
 from .scale import block_mean, characteristic_scale, detection_image, spot_scale
 from .spikes import (
     find_spikes,
@@ -55,10 +56,6 @@ MIN_SCALE_PEAKS = 16
 #: Where a quarter of the maxima found stand less than this many times the threshold
 #: out, the beads are faint (more stand just below it): wider scales are searched too.
 FAINT_STRENGTH = 2.0
-
-
-class NoBeadsError(PsfSpaceError):
-    """Raised when an image holds no usable bead."""
 
 
 @dataclass
@@ -142,60 +139,6 @@ class Beads:
         if self.hot_pixels is None or len(self.hot_pixels) == 0:
             return image
         return inpaint_pixels(image, self.hot_pixels)
-
-
-def log_kernel_norm(sigma: float) -> float:
-    """l2 norm of the scale-normalised LoG kernel ``sigma^2 LoG`` as sampled by
-    :func:`scipy.ndimage.gaussian_laplace` (about ``1 / (sigma sqrt(2 pi))``): the
-    response's standard deviation for white noise of unit variance."""
-    half = int(np.ceil(4 * sigma)) + 1
-    delta = np.zeros((2 * half + 1, 2 * half + 1))
-    delta[half, half] = 1.0
-    return float(sigma**2 * np.linalg.norm(ndi.gaussian_laplace(delta, sigma)))
-
-
-def log_response(image, sigma: float, *, pixel_sd_floor: float = 0.0) -> np.ndarray:
-    """Scale-normalised negative Laplacian of Gaussian, in robust noise units.
-
-    Parameters
-    ----------
-    image : ndarray of shape (M, N)
-    sigma : float
-        Gaussian scale in pixels.
-    pixel_sd_floor : float
-        Smallest per-pixel noise sd (image units) the response's noise level may
-        correspond to: for integer images the rounding noise ``sqrt(1/12)``, so that
-        a nearly constant integer background (MAD of zero) does not turn every
-        one-count bump into a detection.
-
-    Returns
-    -------
-    ndarray of shape (M, N), float32
-        ``-sigma**2 * LoG(image)`` divided by its robust standard deviation (MAD,
-        at least ``pixel_sd_floor`` times the kernel's l2 norm) and shifted so that its
-        median is 0: a bead of detection strength 10 stands ten noise standard
-        deviations above the filtered background.
-    """
-    img = as_image(image, dtype=np.float32)
-    # the kernel reaches int(4 sigma + 0.5) pixels (scipy's truncate=4): blocks of rows
-    # filtered in parallel with that halo give the same result
-    resp = filter_by_rows(lambda a: ndi.gaussian_laplace(a, sigma, mode="reflect"), img,
-                          int(4 * sigma + 0.5) + 1)
-    resp *= -(sigma**2)
-    # Robust noise level from a subsample: median and MAD are O(N) but slow on 5 Mpx.
-    step = max(1, int(np.sqrt(resp.size / 250_000)))
-    sample = resp[::step, ::step]
-    med = float(np.median(sample))
-    mad = float(np.median(np.abs(sample - med))) * 1.4826
-    floor = pixel_sd_floor * log_kernel_norm(sigma) if pixel_sd_floor > 0 else 0.0
-    if not np.isfinite(mad) or mad <= floor:
-        mad = max(floor, mad if np.isfinite(mad) else 0.0)
-    if mad <= 0:
-        spread = float(sample.std())
-        mad = spread if spread > 0 else 1.0
-    resp -= med
-    resp /= mad
-    return resp
 
 
 def detect_beads(
@@ -386,52 +329,6 @@ def detect_beads(
     return beads
 
 
-def local_peaks(response: np.ndarray, min_distance: int, threshold: float) -> np.ndarray:
-    """Maxima of ``response`` over a ``(2 d + 1)`` square, above ``threshold``, strongest
-    first: :func:`skimage.feature.peak_local_max` with ``exclude_border=False``, computed
-    on the pixels above the threshold only (the full-image maximum filter cost as much as
-    the hot-pixel search it makes room for).
-
-    Returns
-    -------
-    ndarray of shape (K, 2), int
-        ``(row, column)``, by decreasing response; peaks closer than ``d`` (Chebyshev) to
-        a stronger one are dropped (plateaus).
-    """
-    resp = np.asarray(response)
-    h, w = resp.shape
-    ys, xs = np.nonzero(resp > threshold)
-    if len(ys) == 0:
-        return np.zeros((0, 2), np.intp)
-    vals = resp[ys, xs]
-    for half in (1, int(min_distance)):  # 3 x 3 first: a cheap, exact pre-selection
-        if half < 1:
-            continue
-        d = np.arange(-half, half + 1)
-        # clipped indices: the maximum filter's "nearest" mode, whose padding repeats
-        # values already in the window
-        rows = np.clip(ys[:, None, None] + d[None, :, None], 0, h - 1)
-        cols = np.clip(xs[:, None, None] + d[None, None, :], 0, w - 1)
-        top = resp[rows, cols].reshape(len(ys), -1).max(axis=1)
-        keep = vals >= top
-        ys, xs, vals = ys[keep], xs[keep], vals[keep]
-    order = np.argsort(-vals, kind="stable")
-    peaks = np.column_stack([ys, xs])[order]
-    if len(peaks) > 1 and min_distance > 1:  # equal maxima within d: keep the first
-        from scipy.spatial import cKDTree
-
-        tree = cKDTree(peaks)
-        drop = np.zeros(len(peaks), bool)
-        for i, near in enumerate(tree.query_ball_point(peaks, r=min_distance, p=np.inf)):
-            if drop[i]:
-                continue
-            for j in near:
-                if j > i and np.abs(peaks[j] - peaks[i]).max() < min_distance:
-                    drop[j] = True
-        peaks = peaks[~drop]
-    return peaks
-
-
 def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: float,
                       *, sigma: float | None = None, quantile: float = 50.0) -> np.ndarray:
     """How far each maximum stands above the local background, in noise sd, shape (M,).
@@ -573,51 +470,6 @@ def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r:
     st = np.array([strength[groups == g].max() for g in keep])
     order = np.argsort(-st, kind="stable")
     return np.rint(out[order]).astype(peaks.dtype), st[order]
-
-
-#: Without a given level, this many pixels sharing the image's maximum show clipping.
-MIN_CLIPPED = 3
-
-
-def saturated_cores(image: np.ndarray, positions: np.ndarray, psf_radius: float,
-                    level: float) -> np.ndarray:
-    """Which beads have a pixel at or above ``level`` in their core (the square of half
-    side ``max(1, round(r / 3))`` about each position), shape (K,), bool."""
-    pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
-    if len(pos) == 0:
-        return np.zeros(0, bool)
-    h, w = image.shape
-    iy = np.clip(np.round(pos[:, 0]).astype(int), 0, h - 1)
-    ix = np.clip(np.round(pos[:, 1]).astype(int), 0, w - 1)
-    core = max(1, int(round(psf_radius / 3)))
-    d = np.arange(-core, core + 1)
-    rows = np.clip(iy[:, None, None] + d[None, :, None], 0, h - 1)
-    cols = np.clip(ix[:, None, None] + d[None, None, :], 0, w - 1)
-    return image[rows, cols].reshape(len(pos), -1).max(axis=1) >= level
-
-
-def saturation_record(image: np.ndarray, beads, psf_radius: float,
-                      level: float | None) -> dict:
-    """What a reader must be told of saturation: the level (the given one, else the
-    image's maximum where it is the dtype's or :data:`MIN_CLIPPED` pixels or more share
-    it, else the dtype's maximum for integer images), the pixels at it and the
-    detections whose core holds one (whatever else left them out)."""
-    img = np.asarray(image)
-    if level is None:
-        top = float(img.max())
-        n_top = int(np.count_nonzero(img >= top))
-        dtype_max = float(np.iinfo(img.dtype).max) if img.dtype.kind in "ui" else None
-        # a camera clips below its container's maximum too (12 bits in 16): pixels
-        # sharing the image's maximum are clipped
-        level = top if (top == dtype_max or n_top >= MIN_CLIPPED) else (
-            dtype_max if dtype_max is not None else top)
-    n_pix = int(np.count_nonzero(img >= level))
-    if n_pix < MIN_CLIPPED and level == float(img.max()) and img.dtype.kind not in "ui":
-        n_pix = 0  # a float image's brightest pixel or two: no clipping shown
-    n_beads = int(saturated_cores(img, beads.positions, psf_radius, level).sum()) \
-        if n_pix else 0
-    return {"level": float(level), "pixels": n_pix, "beads": n_beads,
-            "detections": int(len(beads.positions))}
 
 
 def flag_unusable(

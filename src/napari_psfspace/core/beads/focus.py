@@ -15,7 +15,9 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..common.errors import PsfSpaceError
+from ..common.errors import NoBeadsError, PsfSpaceError
+from .detect import detect_beads
+from .radius import suggest_psf_radius
 
 #: A bead's peak is its brightest 3 x 3 mean within this many pixels of its centre.
 PEAK_REACH = 1.5
@@ -108,9 +110,6 @@ def focus_measure(stack, *, psf_radius: float | None = None, n_beads: int = 60
     PsfSpaceError
         No bead is found on the maximum projection (then there is no focus to measure).
     """
-    from .detect import detect_beads
-    from .scale import suggest_psf_radius
-
     arr = _stack(stack)
     proj = arr.max(axis=0)
     if float(proj.max()) == float(proj.min()):
@@ -145,8 +144,6 @@ def best_focus_index(stack, *, psf_radius: float | None = None) -> int:
     Falls back to the slice of highest contrast (standard deviation) when no bead can be
     measured on the stack's maximum projection.
     """
-    from .detect import NoBeadsError
-
     arr = _stack(stack)
     try:
         return int(np.argmax(focus_measure(arr, psf_radius=psf_radius)))
@@ -154,4 +151,52 @@ def best_focus_index(stack, *, psf_radius: float | None = None) -> int:
         return int(np.argmax(arr.reshape(arr.shape[0], -1).astype(np.float32).std(axis=1)))
 
 
-__all__ = ["MIN_PEAK_SHARE", "PEAK_REACH", "bead_peaks", "best_focus_index", "focus_measure"]
+#: A slice's suggested radius beyond this factor of the in-focus slice's is explained.
+SLICE_RATIO = 1.5
+
+
+def radius_against_focus(stack, index: int, radius: float, *, focus: int | None = None,
+                         focus_radius: float | None = None) -> str:
+    """Why a slice's radius departs from the in-focus slice's by more than
+    :data:`SLICE_RATIO`, in one sentence; empty when it does not (or is the focus).
+
+    Parameters
+    ----------
+    stack : ndarray of shape (Z, M, N)
+    index : int
+        The slice the radius is for.
+    radius : float
+        Its suggested radius, pixels.
+    focus, focus_radius : optional
+        The best-focus slice and its suggested radius, where already known.
+    """
+    arr = np.asarray(stack)
+    focus = best_focus_index(arr) if focus is None else int(focus)
+    if focus == index:
+        return ""
+    try:
+        r_focus = suggest_psf_radius(arr[focus]) if focus_radius is None else focus_radius
+    except PsfSpaceError:
+        return ""
+    ratio = float(radius) / r_focus
+    if 1 / SLICE_RATIO <= ratio <= SLICE_RATIO:
+        return ""
+
+    def count(image, r):
+        try:
+            b = detect_beads(image, r)
+            return int(np.count_nonzero(b.kept)), len(b)
+        except PsfSpaceError:
+            return 0, 0
+
+    kept, found = count(arr[index], radius)
+    kept_f, found_f = count(arr[focus], r_focus)
+    return (f"slice {index} is {abs(index - focus)} slice(s) from the best focus (slice "
+            f"{focus}, radius {r_focus:g} px, {kept_f} of {found_f} beads kept): its "
+            f"beads are {'wider' if ratio > 1 else 'narrower'} there, {ratio:.2f}x "
+            f"({radius:g} px, {kept} of {found} beads kept); pass --psf-radius to choose "
+            "another.")
+
+
+__all__ = ["MIN_PEAK_SHARE", "PEAK_REACH", "SLICE_RATIO", "bead_peaks", "best_focus_index",
+           "focus_measure", "radius_against_focus"]

@@ -15,7 +15,7 @@ import numpy as np
 
 from ..common.progress import Progress, wait_with_progress
 from .detect import Beads, detect_beads
-from .scale import suggest_psf_radius
+from .radius import suggest_psf_radius
 
 
 def iter_detect_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0
@@ -38,7 +38,7 @@ def iter_detect_beads(image: np.ndarray, psf_radius: float, *, threshold: float 
 
 
 def iter_suggest_psf_radius(image: np.ndarray) -> Generator[Progress, None, float]:
-    """Generator form of :func:`.scale.suggest_psf_radius`: yields progress while it
+    """Generator form of :func:`.radius.suggest_psf_radius`: yields progress while it
     runs, returns the radius in pixels.
 
     Parameters

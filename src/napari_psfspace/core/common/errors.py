@@ -14,4 +14,8 @@ class PsfSpaceError(ValueError):
     """A stop with a message: the input cannot give what was asked (not a bug)."""
 
 
-__all__ = ["PsfSpaceError"]
+class NoBeadsError(PsfSpaceError):
+    """Raised when an image holds no usable bead."""
+
+
+__all__ = ["NoBeadsError", "PsfSpaceError"]

@@ -48,8 +48,8 @@ from ..beads.detect import (
     detect_beads,
     flag_unusable,
     require_kept,
-    saturation_record,
 )
+from ..beads.saturation import saturation_record
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma

@@ -25,10 +25,10 @@ from ..beads.detect import (
     NoBeadsError,
     detect_beads,
     flag_unusable,
-    saturation_record,
 )
 from ..beads.overlap import neighbour_light
 from ..beads.patches import Patches, extract_patches
+from ..beads.saturation import saturation_record
 from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance

@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from ..common.atomic import atomic_open
+from ..common.version import software_string
 
 #: Value of the ``"format"`` field of the JSON header of a saved model.
 FORMAT_NAME = "napari-psfspace/product-convolution"
@@ -22,15 +23,6 @@ FORMAT_VERSION = 1
 
 
 _REQUIRED_KEYS = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header")
-
-
-def software_string() -> str:
-    try:
-        from ... import __version__
-    except Exception:  # pragma: no cover - broken install
-        __version__ = "unknown"
-    return f"napari-psfspace {__version__}"
-
 
 
 def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..common.device import CPU, ArrayModule, array_module
+from ..common.device import ArrayModule, array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.validate import (
     as_image,
@@ -65,9 +65,10 @@ from ..diagnosis.noise import background_variance
 from ..model.compress import compress_operator
 from ..model.heldout import beyond_noise
 from ..model.operator import ProductConvolution
-from ..model.psf_field import interp_matrix
 from .fista import BlockFista
+from .norm import iter_operator_norm2
 from .polish import polish_support
+from .smooth_grid import SmoothGrid
 
 #: ``gamma2 = SMOOTH_WEIGHT * grid_step**4`` by default.
 SMOOTH_WEIGHT = 0.05
@@ -149,91 +150,6 @@ class Deblurred:
     def image(self) -> np.ndarray:
         """``u1 + u2``: the deblurred image."""
         return self.sparse + self.smooth
-
-
-class SmoothGrid:
-    """``u = U w``: bilinear interpolation of nodes every ``step`` pixels; its adjoint;
-    and the nodes' graph Laplacian (symmetric, norm <= 8)."""
-
-    def __init__(self, shape: tuple[int, int], step: float) -> None:
-        h, w = shape
-        self.shape = (int(h), int(w))
-        ny = max(2, int(np.ceil((h - 1) / step)) + 1)
-        nx = max(2, int(np.ceil((w - 1) / step)) + 1)
-        self.nodes = (np.linspace(0, h - 1, ny), np.linspace(0, w - 1, nx))
-        self.ry = interp_matrix(self.nodes[0], h).astype(np.float32).tocsr()  # (H, ny)
-        self.rx = interp_matrix(self.nodes[1], w).astype(np.float32).tocsr()  # (W, nx)
-        self.ryt, self.rxt = self.ry.T.tocsr(), self.rx.T.tocsr()
-        # synthesis as dense products (BLAS): faster than the sparse ones (bench_deblur_speed)
-        self._ry_dense = self.ry.toarray()
-        self._rxt_dense = np.ascontiguousarray(self.rxt.toarray())  # (nx, W)
-        self.step = float(max((h - 1) / (ny - 1), (w - 1) / (nx - 1)))
-
-    @property
-    def grid_shape(self) -> tuple[int, int]:
-        return (len(self.nodes[0]), len(self.nodes[1]))
-
-    def synthesis(self, w: np.ndarray) -> np.ndarray:
-        """``U w``: (ny, nx) -> (H, W)."""
-        a = self._ry_dense @ np.asarray(w, np.float32)  # (H, nx)
-        return a @ self._rxt_dense
-
-    def adjoint(self, g: np.ndarray) -> np.ndarray:
-        """``U^T g``: (H, W) -> (ny, nx)."""
-        a = self.ryt @ g  # (ny, W)
-        return np.ascontiguousarray((self.rxt @ a.T).T)
-
-    @staticmethod
-    def laplacian(w: np.ndarray) -> np.ndarray:
-        """Graph Laplacian of the nodes (4 neighbours, none across the border)."""
-        out = np.zeros_like(w)
-        out[1:] += w[:-1] - w[1:]
-        out[:-1] += w[1:] - w[:-1]
-        out[:, 1:] += w[:, :-1] - w[:, 1:]
-        out[:, :-1] += w[:, 1:] - w[:, :-1]
-        return out
-
-    def norm2(self) -> float:
-        """``||U||^2`` (exact: the largest eigenvalues of the small ``R^T R``)."""
-        ey = np.linalg.eigvalsh((self.ryt @ self.ry).toarray()).max()
-        ex = np.linalg.eigvalsh((self.rxt @ self.rx).toarray()).max()
-        return float(ey * ex)
-
-
-def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
-                        seed: int = 0, workers: int | None = None,
-                        device: ArrayModule = CPU
-                        ) -> Generator[tuple[int, float], None, float]:
-    """Generator form of :func:`operator_norm2`: yields ``(iteration, value)`` after each
-    iteration (a point to cancel at: one application of ``H^T H`` apart), returns the
-    value."""
-    rng = np.random.default_rng(seed)
-    x = rng.random(op.shape).astype(np.float32)
-    x /= np.linalg.norm(x)
-    value = 0.0
-    for it in range(int(n_iter)):
-        y = device.to_host(op.adjoint(op.apply(x, workers=workers, device=device),
-                                      workers=workers, device=device))
-        new = float(np.linalg.norm(y))
-        if new == 0:
-            return 0.0
-        x = (y / new).astype(np.float32)
-        done = abs(new - value) <= rtol * new
-        value = new
-        yield it + 1, value
-        if done:
-            break
-    return value
-
-
-def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
-                   seed: int = 0, workers: int | None = None,
-                   progress: Callable[[Progress], None] | None = None) -> float:
-    """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
-    below): at most ``n_iter`` iterations, stopping once an iteration raises the value
-    by less than ``rtol`` (relatively)."""
-    return float(run_with_progress(iter_operator_norm2(op, n_iter=n_iter, rtol=rtol,
-                                                       seed=seed, workers=workers), progress))
 
 
 def model_error_of(op: ProductConvolution) -> float:

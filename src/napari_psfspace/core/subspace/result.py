@@ -9,6 +9,7 @@ The family is the cone of the ``Gamma_k`` (section 2.5): :meth:`project` brings 
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,6 +20,7 @@ from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
 from ..model.psf_field import interp_weights
 from .choice import blend
+from .subspace_file import read_subspace, write_subspace
 
 
 def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
@@ -221,13 +223,57 @@ class OperatorSubspace:
 
     def save(self, path) -> None:
         """Save to a ``.npz`` file (atomically, no pickle; ``docs/file-format.md``)."""
-        from .subspace_file import save_subspace
-
-        save_subspace(self, path)
+        arrays = {"basis": self.basis, "space": self.space,
+                  "grid_y": self.grid[0], "grid_x": self.grid[1],
+                  "shape": np.asarray(self.shape, dtype=np.int64),
+                  "gammas": self.gammas, "cone": self.cone.generators,
+                  "family_weights": (np.ones(self.n_images) if self.family_weights is None
+                                     else np.asarray(self.family_weights, np.float64))}
+        own = {}
+        for k, op in self.own.items():
+            if op.grid is None:
+                raise ValueError(f"image {k}'s own operator must have coarse maps (a grid)")
+            own[k] = {"basis": op.basis, "coefficients": op.coefficients,
+                      "grid_y": op.grid[0], "grid_x": op.grid[1]}
+        write_subspace(path, arrays, own, grid_step=self.grid_step,
+                       metadata=self.metadata,
+                       own_metadata={k: op.metadata for k, op in self.own.items()})
 
     @classmethod
     def load(cls, path) -> OperatorSubspace:
-        """Read a subspace written by :meth:`save`."""
-        from .subspace_file import load_subspace
+        """Read a subspace written by :meth:`save`.
 
-        return load_subspace(path)
+        Raises
+        ------
+        ValueError
+            If the file is not a napari-psfspace subspace, has a newer format version, or
+            holds inconsistent arrays (the message says which).
+        FileNotFoundError
+            If ``path`` does not exist.
+        """
+        arr, own_arrays, weights, header = read_subspace(path)
+        shape = (int(arr["shape"][0]), int(arr["shape"][1]))
+        meta = header.get("own_metadata", {})
+        own = {}
+        for k, a in own_arrays.items():
+            try:
+                own[k] = ProductConvolution(a["basis"], a["coefficients"], shape=shape,
+                                            grid=(a["grid_y"], a["grid_x"]),
+                                            metadata=meta.get(str(k), {}))
+            except ValueError as exc:
+                raise ValueError(f"{os.fspath(path)!r}: inconsistent subspace file: image "
+                                 f"{k}'s own operator: {exc}") from exc
+        return cls(arr["basis"], arr["space"], (arr["grid_y"], arr["grid_x"]), shape,
+                   arr["gammas"], Cone(arr["cone"]),
+                   grid_step=float(header.get("grid_step", 32.0)),
+                   metadata=header.get("metadata", {}), own=own, family_weights=weights)
+
+
+def save_subspace(subspace: OperatorSubspace, path) -> None:
+    """Write ``subspace`` to ``path``: :meth:`OperatorSubspace.save`."""
+    subspace.save(path)
+
+
+def load_subspace(path) -> OperatorSubspace:
+    """Read a subspace written by :func:`save_subspace`: :meth:`OperatorSubspace.load`."""
+    return OperatorSubspace.load(path)

@@ -1,6 +1,11 @@
-"""The file format of an :class:`~.result.OperatorSubspace`: the same family as the single
-operator's (``docs/file-format.md``): a NumPy ``.npz`` archive of plain arrays and a JSON
-header, written atomically, read without pickle.
+"""The file format of a family of operators (an
+:class:`~.result.OperatorSubspace`): the same family as the single operator's
+(``docs/file-format.md``): a NumPy ``.npz`` archive of plain arrays and a JSON header,
+written atomically, read without pickle.
+
+Like :mod:`~napari_psfspace.core.model.operator_file` for the operator, this module
+writes and reads arrays and knows no class: :meth:`~.result.OperatorSubspace.save` and
+:meth:`~.result.OperatorSubspace.load` turn a family into its arrays and back.
 """
 
 from __future__ import annotations
@@ -9,10 +14,8 @@ import os
 
 import numpy as np
 
-from ..model.cone import Cone
-from ..model.operator import ProductConvolution
-from ..model.operator_file import read_archive, software_string, write_archive
-from .result import OperatorSubspace
+from ..common.version import software_string
+from ..model.operator_file import read_archive, write_archive
 
 #: Value of the ``"format"`` field of the JSON header of a saved subspace.
 FORMAT_NAME = "napari-psfspace/operator-subspace"
@@ -21,35 +24,44 @@ FORMAT_NAME = "napari-psfspace/operator-subspace"
 FORMAT_VERSION = 2
 
 _ARRAYS = ("basis", "space", "grid_y", "grid_x", "shape", "gammas", "cone")
+#: The arrays of each image's own operator, ``own_{k}_{part}``.
+OWN_PARTS = ("basis", "coefficients", "grid_y", "grid_x")
 
 
-def save_subspace(subspace: OperatorSubspace, path: str | os.PathLike[str]) -> None:
-    """Write ``subspace`` to ``path`` (atomically: an existing file is replaced only once
-    the new one is complete; no pickle)."""
+def write_subspace(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
+                   own: dict[int, dict[str, np.ndarray]], *, grid_step: float,
+                   metadata: dict, own_metadata: dict[int, dict]) -> None:
+    """Write a family's arrays to ``path`` (atomically: an existing file is replaced only
+    once the new one is complete; no pickle).
+
+    Parameters
+    ----------
+    arrays : dict
+        ``basis``, ``space``, ``grid_y``, ``grid_x``, ``shape``, ``gammas``, ``cone`` and
+        ``family_weights``.
+    own : dict of int to dict
+        Each image's own operator: its ``basis``, ``coefficients``, ``grid_y``, ``grid_x``.
+    grid_step : float
+    metadata : dict
+        The family's (JSON-serialisable).
+    own_metadata : dict of int to dict
+        Each own operator's metadata.
+    """
     header = {"format": FORMAT_NAME, "version": FORMAT_VERSION,
-              "software": software_string(), "grid_step": float(subspace.grid_step),
-              "metadata": subspace.metadata}
-    arrays = {"basis": subspace.basis, "space": subspace.space,
-              "grid_y": subspace.grid[0], "grid_x": subspace.grid[1],
-              "shape": np.asarray(subspace.shape, dtype=np.int64),
-              "gammas": subspace.gammas, "cone": subspace.cone.generators,
-              "own_images": np.asarray(sorted(subspace.own), dtype=np.int64),
-              "family_weights": (np.ones(subspace.n_images) if subspace.family_weights is None
-                                 else np.asarray(subspace.family_weights, np.float64))}
-    for k in sorted(subspace.own):
-        op = subspace.own[k]
-        if op.grid is None:
-            raise ValueError(f"image {k}'s own operator must have coarse maps (a grid)")
-        arrays.update({f"own_{k}_basis": op.basis, f"own_{k}_coefficients": op.coefficients,
-                       f"own_{k}_grid_y": op.grid[0], f"own_{k}_grid_x": op.grid[1]})
-        header.setdefault("own_metadata", {})[str(k)] = op.metadata
-    write_archive(path, arrays, header)
+              "software": software_string(), "grid_step": float(grid_step),
+              "metadata": metadata}
+    out = dict(arrays)
+    out["own_images"] = np.asarray(sorted(own), dtype=np.int64)
+    for k in sorted(own):
+        out.update({f"own_{k}_{part}": own[k][part] for part in OWN_PARTS})
+        header.setdefault("own_metadata", {})[str(k)] = own_metadata.get(k, {})
+    write_archive(path, out, header)
 
 
-def _own_operators(path: str, header: dict, shape: tuple[int, int],
-                  n_images: int) -> tuple[dict, np.ndarray | None]:
-    """The images' own operators and the family's weights of a version 2 file (none in
-    a version 1 file)."""
+def _own_arrays(path: str, header: dict, n_images: int
+                ) -> tuple[dict[int, dict[str, np.ndarray]], np.ndarray | None]:
+    """The images' own operators' arrays and the family's weights of a version 2 file
+    (none in a version 1 file)."""
     if header.get("version", 1) < 2:
         return {}, None
     index, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
@@ -63,26 +75,25 @@ def _own_operators(path: str, header: dict, shape: tuple[int, int],
         raise ValueError(f"{path!r}: inconsistent subspace file: own operators for images "
                          f"{ks} and family weights {weights.tolist()} for {n_images} images "
                          "(expected indices in [0, K) and K weights in [0, 1])")
-    names = tuple(f"own_{k}_{part}" for k in ks
-                  for part in ("basis", "coefficients", "grid_y", "grid_x"))
+    names = tuple(f"own_{k}_{part}" for k in ks for part in OWN_PARTS)
     arr, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
                           entries=(*names, "header"), kind="subspace")
-    meta = header.get("own_metadata", {})
-    own = {}
-    for k in ks:
-        try:
-            own[k] = ProductConvolution(
-                arr[f"own_{k}_basis"], arr[f"own_{k}_coefficients"], shape=shape,
-                grid=(arr[f"own_{k}_grid_y"], arr[f"own_{k}_grid_x"]),
-                metadata=meta.get(str(k), {}))
-        except ValueError as exc:
-            raise ValueError(f"{path!r}: inconsistent subspace file: image {k}'s own "
-                             f"operator: {exc}") from exc
-    return own, weights
+    return {k: {part: arr[f"own_{k}_{part}"] for part in OWN_PARTS} for k in ks}, weights
 
 
-def load_subspace(path: str | os.PathLike[str]) -> OperatorSubspace:
-    """Read a subspace written by :func:`save_subspace`.
+def read_subspace(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray | None, dict]:
+    """Read the arrays written by :func:`write_subspace`, checked for consistency.
+
+    Returns
+    -------
+    arrays : dict
+        The family's arrays (float64; ``shape`` as int).
+    own : dict of int to dict
+        Each image's own operator's arrays.
+    family_weights : ndarray of shape (K,) or None
+        None in a version 1 file.
+    header : dict
+        With ``grid_step``, ``metadata`` and ``own_metadata``.
 
     Raises
     ------
@@ -106,12 +117,10 @@ def load_subspace(path: str | os.PathLike[str]) -> OperatorSubspace:
                          f"{space.shape}, gammas {gammas.shape}, grid "
                          f"({arr['grid_y'].size}, {arr['grid_x'].size}), cone "
                          f"{arr['cone'].shape}")
-    shape = (int(arr["shape"][0]), int(arr["shape"][1]))
-    own, weights = _own_operators(path, header, shape, gammas.shape[0])
-    return OperatorSubspace(basis.astype(np.float64), space.astype(np.float64),
-                            (arr["grid_y"].astype(np.float64), arr["grid_x"].astype(np.float64)),
-                            shape, gammas.astype(np.float64),
-                            Cone(arr["cone"].astype(np.float64)),
-                            grid_step=float(header.get("grid_step", 32.0)),
-                            metadata=header.get("metadata", {}), own=own,
-                            family_weights=weights)
+    own, weights = _own_arrays(path, header, gammas.shape[0])
+    arrays = {k: (np.asarray(v) if k == "shape" else np.asarray(v, np.float64))
+              for k, v in arr.items() if k in _ARRAYS}
+    return arrays, own, weights, header
+
+
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "OWN_PARTS", "read_subspace", "write_subspace"]

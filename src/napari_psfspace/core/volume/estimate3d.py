@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads, saturation_record
+from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads
 from ..beads.focus import best_focus_index
+from ..beads.saturation import saturation_record
 from ..beads.window import radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress, within
 from ..common.threads import blas_threads

@@ -7,7 +7,7 @@ The 2D method (:mod:`~napari_psfspace.core.restore.deconvolve`) on a z-stack:
 
 ``u_1`` holds the point-like part (voxels), ``U w`` the smooth part (background,
 out-of-focus haze): nodes every ``grid_step`` pixels on each plane (bilinear between
-them, :class:`~napari_psfspace.core.restore.deconvolve.SmoothGrid`), one set per plane,
+them, :class:`~napari_psfspace.core.restore.smooth_grid.SmoothGrid`), one set per plane,
 and ``L`` the nodes' graph Laplacian across the plane and to the planes above and below.
 ``H`` is the 3D operator on lateral blocks
 (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`, float32). FISTA with
@@ -34,8 +34,9 @@ from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
 from ..common.validate import check_int
 from ..diagnosis.noise import background_variance
-from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT, SmoothGrid
+from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT
 from ..restore.fista import BlockFista
+from ..restore.smooth_grid import SmoothGrid
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import check_stack
 from .device_plan import plan_on_device

@@ -28,9 +28,10 @@ import scipy.fft
 from numpy.typing import ArrayLike
 
 from ..common.device import CPU, ArrayModule, resolve
+from ..common.version import software_string
 from ..model.operator_checks import as_real_array, normalise_metadata
 from ..model.operator_fft import check_dc, computation_dtype
-from ..model.operator_file import read_archive, software_string, write_archive
+from ..model.operator_file import read_archive, write_archive
 from ..model.psf_field import check_in_field, interp_matrix, interp_weights
 
 #: Value of the ``"format"`` field of a 3D model file's JSON header.

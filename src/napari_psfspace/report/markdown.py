@@ -1,208 +1,24 @@
-"""The report of a diagnosis: ``report.json``, ``report.md`` and PNG figures.
-
-:func:`write_report` turns a :class:`~napari_psfspace.core.diagnosis.loop.Diagnosis` into a
-folder a microscopist can read (``report.md``), a program can parse (``report.json``,
-documented in ``docs/report-format.md``) and figures (PNG, drawn with numpy alone):
-
-* ``residual_map_before.png`` / ``residual_map_after.png``: each bead's held-out excess
-  error (relative residual energy minus its noise floor) painted as a disk at its place
-  in the field, on a coarse grid, viridis-like colours on one scale for both;
-* ``mean_residual_before.png`` / ``mean_residual_after.png``: the mean normalised
-  residual patch over the beads (grey ramp: black negative, mid-grey zero, white
-  positive), one scale for both;
-* ``residual_patches_before.png`` / ``residual_patches_after.png``: the normalised
-  residual patches of the 16 worst beads (same ramp, clipped at +-5 noise sd).
-
-The map builders (:func:`residual_map`, :func:`mean_residual_patch`,
-:func:`worst_residual_patches`) are public: the *Diagnose* dock widget shows the same
-maps as layers.
+"""``report.md``: the diagnosis in words and tables, for a microscopist.
 """
 
 from __future__ import annotations
 
-import json
 import math
-import os
-from datetime import datetime, timezone
-from pathlib import Path
-from typing import Any
 
-import numpy as np
+from ..core.common.measures import field_fwhm, fwhm_line
+from ..core.diagnosis import metric
+from .figures import PATCH_LIMIT
 
-from . import __version__
-from .core.common.atomic import atomic_write
-from .core.common.measures import field_fwhm, fwhm_line, in_units
-from .core.common.mosaic import mosaic
-from .core.diagnosis import metric
-from .core.diagnosis.residuals import BeadResiduals
-
-#: ``format`` and ``version`` of report.json (docs/report-format.md).
-REPORT_FORMAT = "napari-psfspace/diagnosis-report"
-REPORT_VERSION = 1
-#: Figure files written by :func:`write_report`, with what each shows.
-FIGURES = {
-    "residual_map_before.png": "held-out excess error of each bead over the field, "
-                               "plain model",
-    "residual_map_after.png": "held-out excess error of each bead over the field, "
-                              "final model",
-    "mean_residual_before.png": "mean normalised residual patch over the beads, plain model",
-    "mean_residual_after.png": "mean normalised residual patch over the beads, final model",
-    "residual_patches_before.png": "normalised residual patches of the 16 worst beads, "
-                                   "plain model",
-    "residual_patches_after.png": "normalised residual patches of the 16 worst beads, "
-                                  "final model",
-}
 #: Columns of :func:`steps_table`.
 STEP_COLUMNS = ("effect", "stage", "evidence", "tests", "own test", "held-out error", "chi2/dof",
                 "paired error drop", "p", "paired excess chi2 drop", "p (chi2)",
                 "photometric drop", "decision")
-#: Largest |normalised residual| (noise sd) shown in the patch mosaics.
-PATCH_LIMIT = 5.0
-
-# ------------------------------------------------------------------ maps (numpy only)
-def excess_error(res: BeadResiduals) -> np.ndarray:
-    """Each bead's relative residual energy minus what noise alone leaves, shape (K,)."""
-    return np.asarray(res.rel_energy, float) - np.asarray(res.floor, float)
-
-
-def map_cell_size(shape: tuple[int, int], cells: int = 64) -> float:
-    """Pixels per cell of a :func:`residual_map` of an image of this shape."""
-    return max(shape) / float(cells)
-
-
-def residual_map(positions, values, shape: tuple[int, int], *, cells: int = 64,
-                 radius: float | None = None) -> np.ndarray:
-    """A coarse map of the field where each bead paints a disk of its value.
-
-    Parameters
-    ----------
-    positions : array_like of shape (K, 2)
-        Bead centres (row, column) in pixels of the image.
-    values : array_like of shape (K,)
-        One value per bead (non-finite ones are left out).
-    shape : tuple of int
-        ``(M, N)`` of the image.
-    cells : int
-        Cells along the longer side of the image (square cells of
-        :func:`map_cell_size` pixels).
-    radius : float, optional
-        Disk radius in cells; default ``0.35`` of the mean spacing of the beads, between
-        1 and 6 cells.
-
-    Returns
-    -------
-    ndarray of shape (ceil(M / c), ceil(N / c)), float64
-        NaN where no bead paints; where disks overlap the larger value shows.
-    """
-    pos = np.asarray(positions, float).reshape(-1, 2)
-    val = np.asarray(values, float).reshape(-1)
-    if len(pos) != len(val):
-        raise ValueError(f"{len(pos)} positions but {len(val)} values.")
-    cell = map_cell_size(shape, cells)
-    gh, gw = math.ceil(shape[0] / cell), math.ceil(shape[1] / cell)
-    out = np.full((gh, gw), np.nan)
-    ok = np.isfinite(val) & np.all(np.isfinite(pos), axis=1)
-    pos, val = pos[ok], val[ok]
-    if not len(val):
-        return out
-    if radius is None:
-        radius = float(np.clip(0.35 * np.sqrt(gh * gw / len(val)), 1.0, 6.0))
-    yy, xx = np.mgrid[0:gh, 0:gw] + 0.5
-    for k in np.argsort(val, kind="stable"):  # largest painted last: on top
-        cy, cx = (pos[k] + 0.5) / cell
-        out[(yy - cy) ** 2 + (xx - cx) ** 2 <= radius**2] = val[k]
-    return out
-
-
-def mean_residual_patch(res: BeadResiduals) -> np.ndarray:
-    """Mean normalised residual patch over the beads (pixels in each bead's fit), (P, P).
-
-    Pixels no bead fitted are 0.
-    """
-    if len(res) == 0:
-        return np.zeros(res.data.shape[1:])
-    nres = np.where(res.fit_mask, res.normalised_residual, 0.0)
-    count = res.fit_mask.sum(axis=0)
-    return nres.sum(axis=0) / np.maximum(count, 1)
-
-
-def worst_residual_patches(res: BeadResiduals, n: int = 16) -> tuple[np.ndarray, np.ndarray]:
-    """Normalised residual patches of the ``n`` beads of largest excess error.
-
-    Returns
-    -------
-    patches : ndarray of shape (min(n, K), P, P)
-        Worst first; 0 outside each bead's fit.
-    index : ndarray of shape (min(n, K),)
-        Their entries in ``res``.
-    """
-    order = np.argsort(-np.nan_to_num(excess_error(res), nan=-np.inf), kind="stable")[:n]
-    return np.where(res.fit_mask[order], res.normalised_residual[order], 0.0), order
-
-
-def map_limit(*maps: np.ndarray, percentile: float = 98.0) -> float:
-    """A common upper colour limit for residual maps: a high percentile of their values."""
-    vals = np.concatenate([np.ravel(m) for m in maps]) if maps else np.zeros(0)
-    vals = vals[np.isfinite(vals)]
-    hi = float(np.percentile(vals, percentile)) if len(vals) else 0.0
-    return hi if hi > 0 else 1.0
-
-
-def colorize(values: np.ndarray, vmin: float, vmax: float) -> np.ndarray:
-    """Viridis RGB image of a 2-D array (NaN: dark grey), uint8 (M, N, 3)
-    (:func:`~napari_psfspace.figure.apply_colormap`)."""
-    from .figure import apply_colormap
-
-    return apply_colormap(values, vmin, vmax, "viridis")
-
-
-def diverging_grey(values: np.ndarray, limit: float) -> np.ndarray:
-    """Grey ramp: ``-limit`` black, 0 mid-grey, ``+limit`` white (clipped), uint8."""
-    v = np.nan_to_num(np.asarray(values, float))
-    t = np.clip(v / (limit if limit > 0 else 1.0), -1.0, 1.0)
-    return np.round(127.5 + 127.5 * t).astype(np.uint8)
-
-
-def figure_arrays(diagnosis, *, cells: int = 64, n_patches: int = 16) -> dict[str, Any]:
-    """The figures of a diagnosis as arrays, before and after on common scales.
-
-    Parameters
-    ----------
-    diagnosis : Diagnosis
-    cells : int
-        Cells along the longer side of the residual maps.
-    n_patches : int
-        Worst beads shown in the patch mosaics.
-
-    Returns
-    -------
-    dict
-        ``map_before``, ``map_after`` (float maps, NaN without a bead), ``map_limit``,
-        ``cell_size`` (pixels per cell), ``mean_before``, ``mean_after`` (P, P),
-        ``mean_limit``, ``patches_before``, ``patches_after`` (mosaics of normalised
-        residuals).
-    """
-    shape = diagnosis.context.image.shape
-    out: dict[str, Any] = {"cell_size": map_cell_size(shape, cells)}
-    for when, cf in (("before", diagnosis.crossfit_before), ("after", diagnosis.crossfit_after)):
-        res = cf.residuals
-        out[f"map_{when}"] = residual_map(res.positions, excess_error(res), shape, cells=cells)
-        out[f"mean_{when}"] = mean_residual_patch(res)
-        tiles, _ = worst_residual_patches(res, n_patches)
-        out[f"patches_{when}"] = (mosaic(tiles, gap=1, normalize="none") if len(tiles)
-                                  else np.zeros((1, 1)))
-    out["map_limit"] = map_limit(out["map_before"], out["map_after"])
-    out["mean_limit"] = float(max(np.abs(out["mean_before"]).max(),
-                                  np.abs(out["mean_after"]).max())) or 1.0
-    return out
-
 
 # ------------------------------------------------------------------ tables and text
 def _num(x, fmt: str = ".4g") -> str:
     if x is None or (isinstance(x, float) and not math.isfinite(x)):
         return "n/a"
     return format(x, fmt)
-
 
 def steps_table(diagnosis) -> list[list[str]]:
     """The steps as rows of text, one per step, in the order of :data:`STEP_COLUMNS`."""
@@ -236,7 +52,6 @@ def steps_table(diagnosis) -> list[list[str]]:
                      _decision(s)])
     return rows
 
-
 def own_test_text(stat: dict | None) -> str:
     """A step's own test before -> after, with its threshold ("" without one)."""
     if not stat:
@@ -244,7 +59,6 @@ def own_test_text(stat: dict | None) -> str:
     after = "not read" if stat.get("after") is None else _num(stat["after"], ".3g")
     return (f"{stat['test']} {_num(stat['before'], '.3g')} -> {after} "
             f"(threshold {_num(stat['threshold'], '.3g')})")
-
 
 def _decision(s) -> str:
     if s.effect == "motion" and not s.accepted:
@@ -254,7 +68,6 @@ def _decision(s) -> str:
     if s.accepted and (s.params or {}).get("_kept_by"):
         return "kept (its own test no longer significant, held-out error not worse)"
     return "kept" if s.accepted else "rejected"
-
 
 def summary_text(diagnosis) -> str:
     """A few lines: the verdict, what was added, the held-out error before -> after and
@@ -279,7 +92,6 @@ def summary_text(diagnosis) -> str:
             f"{d.n_beads} beads (noise floor {_num(d.noise_floor)}); chi2/dof "
             f"{_num(d.chi2_before, '.3g')} -> {_num(d.chi2_after, '.3g')}{assumed}")
 
-
 def floor_caveat(noise, ratio: float) -> str:
     """A sentence for a noise floor that rests on an assumed noise model (a fallback)."""
     if noise.kind in ("camera", "photon transfer"):
@@ -294,7 +106,6 @@ def floor_caveat(noise, ratio: float) -> str:
         text += ("; one variance for all pixels understates the shot noise of bright bead "
                  "cores, so the chi-square there is overstated")
     return text + "."
-
 
 def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
     """What a reader must be told of a model: a field model chosen for a handful of beads
@@ -358,7 +169,6 @@ def model_lines(meta: dict, *, markdown: bool = True) -> list[str]:
         return out
     return [line for text in out for line in ("", text)]
 
-
 def noise_text(noise) -> str:
     """The noise model in a sentence: the model, how it was obtained, what it implies."""
     if noise.kind == "constant":
@@ -382,12 +192,10 @@ def noise_text(noise) -> str:
                   f"{_num(chk.get('fit_chi2'), '.3g')}).")
     return text + f"Fallback ({noise.kind}): {noise.note}."
 
-
 def _md_table(header, rows) -> list[str]:
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     lines += ["| " + " | ".join(str(c).replace("|", "/") for c in r) + " |" for r in rows]
     return lines
-
 
 def _tests_section(analysis, when: str) -> list[str]:
     sig = analysis.significant()
@@ -399,10 +207,9 @@ def _tests_section(analysis, when: str) -> list[str]:
     return [f"{when}: {len(sig)} significant test(s), strongest first:", "",
             *_md_table(("test", "z", "threshold", "z / threshold"), rows), ""]
 
-
-def _effect_descriptions(diagnosis) -> dict[str, str]:
-    from .core.diagnosis.corrections import CORRECTIONS
-    from .core.diagnosis.effects import REGISTRY
+def effect_descriptions(diagnosis) -> dict[str, str]:
+    from ..core.diagnosis.corrections import CORRECTIONS
+    from ..core.diagnosis.effects import REGISTRY
 
     out = {}
     for s in diagnosis.steps:
@@ -412,11 +219,10 @@ def _effect_descriptions(diagnosis) -> dict[str, str]:
             out[s.effect] = CORRECTIONS[s.effect]
     return out
 
-
 def report_markdown(diagnosis, run: dict, fig: dict) -> str:
     """The text of report.md (see :func:`write_report`)."""
     d = diagnosis
-    descr = _effect_descriptions(d)
+    descr = effect_descriptions(d)
     px = run.get("pixel_size_um")
     lines = [f"# PSF model diagnosis: {run['image']}", "",
              f"napari-psfspace {run['version']}, {run['date']}. Image "
@@ -536,126 +342,5 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
     return "\n".join(lines)
 
 
-# ------------------------------------------------------------------ JSON
-def to_jsonable(obj: Any) -> Any:
-    """A copy with numpy types as Python ones, tuples as lists, NaN / inf as None."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return to_jsonable(obj.item())
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    return obj
-
-
-def _fwhm_dict(op, pixel_size: float | None) -> dict:
-    """The model's lateral FWHM at the centre and the corners (Gaussian fits with an
-    offset), pixels and, where the pixel size is known, nm."""
-    out = {}
-    for place, m in field_fwhm(op).items():
-        row = {k: m[k] for k in ("row", "col", "fwhm_lateral", "fwhm_row", "fwhm_col",
-                                 "fwhm_major", "fwhm_minor", "ellipticity", "angle")}
-        if pixel_size:
-            nm, _ = in_units(m, (pixel_size, pixel_size))
-            row.update({f"{k}_nm": nm[k] for k in ("fwhm_lateral", "fwhm_row", "fwhm_col",
-                                                   "fwhm_major", "fwhm_minor")})
-        out[place] = row
-    return out
-
-
-def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | None = None,
-                extra: dict | None = None) -> dict:
-    """The content of report.json (docs/report-format.md), JSON-safe."""
-    d = diagnosis
-    r = float(d.context.psf_radius)
-    op = d.operator
-    run = {"image": str(image_name), "image_shape": list(d.context.image.shape),
-           "psf_radius_px": r, "psf_radius_um": r * pixel_size if pixel_size else None,
-           "pixel_size_um": pixel_size, "software": "napari-psfspace",
-           "version": __version__,
-           "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-           **(extra or {})}
-    out = {
-        "format": REPORT_FORMAT, "version": REPORT_VERSION, "run": run,
-        **d.to_dict(),
-        "relative_drop": (1 - d.error_after / d.error_before) if d.error_before else None,
-        "beads_before": d.crossfit_before.summary(),
-        "beads_after": d.crossfit_after.summary(),
-        "effects": _effect_descriptions(d),
-        "model": {"n_psf": int(op.n_psf), "psf_size": int(op.psf_size),
-                  "shape": list(op.shape),
-                  "n_beads_used": op.metadata.get("n_beads_used"),
-                  "field_model": op.metadata.get("field_model"),
-                  "field_model_reason": op.metadata.get("field_model_reason"),
-                  "bead_correction": op.metadata.get("bead_correction"),
-                  "denoise": op.metadata.get("denoise"),
-                  "motion": op.metadata.get("motion"),
-                  "fwhm": _fwhm_dict(op, pixel_size)},
-        "figures": dict(FIGURES),
-    }
-    return to_jsonable(out)
-
-
-# ------------------------------------------------------------------ writing
-def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "image",
-                 pixel_size: float | None = None, extra: dict | None = None) -> Path:
-    """Write report.json, report.md and the PNG figures of a diagnosis into a folder.
-
-    Parameters
-    ----------
-    diagnosis : Diagnosis
-        From :func:`~napari_psfspace.core.diagnosis.loop.diagnose`.
-    out_dir : str or path-like
-        Folder, created if needed; files of the same names are replaced (atomically).
-    image_name : str
-        Name of the image in the report (e.g. its file name).
-    pixel_size : float, optional
-        Pixel size in micrometres, when known.
-    extra : dict, optional
-        More run information for report.json's ``run`` (JSON-serialisable).
-
-    Returns
-    -------
-    Path
-        The path of report.md.
-
-    Raises
-    ------
-    ValueError
-        ``out_dir`` exists and is not a folder.
-    """
-    from .figure import write_figure
-
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"{os.fspath(out)!r} is a file: give a folder for the report.")
-    out.mkdir(parents=True, exist_ok=True)
-    data = report_dict(diagnosis, image_name=image_name, pixel_size=pixel_size, extra=extra)
-    fig = figure_arrays(diagnosis)
-    px = pixel_size or diagnosis.operator.metadata.get("pixel_size_um")
-    for when, which in (("before", "plain"), ("after", "final")):
-        write_figure(out / f"residual_map_{when}.png", fig[f"map_{when}"],
-                     title=f"Held-out excess error, {which} model",
-                     unit="fraction of energy", limits=(0.0, fig["map_limit"]),
-                     pixel_size=px * fig["cell_size"] if px else None,
-                     note="each bead's error less its noise floor; grey: no bead")
-        write_figure(out / f"mean_residual_{when}.png", fig[f"mean_{when}"],
-                     title=f"Mean residual, {which} model", unit="noise sd",
-                     limits=(-fig["mean_limit"], fig["mean_limit"]), cmap="grey",
-                     pixel_size=px, size=256)
-        write_figure(out / f"residual_patches_{when}.png", fig[f"patches_{when}"],
-                     title=f"Residuals of the worst beads, {which} model",
-                     unit="noise sd", limits=(-PATCH_LIMIT, PATCH_LIMIT), cmap="grey")
-    text = json.dumps(data, indent=2, allow_nan=False)
-    atomic_write(out / "report.json", lambda fh: fh.write(text + "\n"), mode="w",
-                 encoding="utf-8")
-    md = report_markdown(diagnosis, data["run"], fig)
-    path = out / "report.md"
-    atomic_write(path, lambda fh: fh.write(md), mode="w", encoding="utf-8")
-    return path
+__all__ = ["floor_caveat", "model_lines", "noise_text", "own_test_text", "report_markdown",
+           "STEP_COLUMNS", "steps_table", "summary_text"]

@@ -1,0 +1,113 @@
+"""``psfspace deblur``."""
+
+from __future__ import annotations
+
+import sys
+import time
+import warnings
+
+from .common import COUNT, INDEX, NON_NEGATIVE, existing, progress_printer
+
+
+def run(args) -> int:
+    from ..core.common.progress import run_with_progress
+    from ..core.model.operator import load_operator
+    from ..core.model.operator_file import archive_format
+    from ..core.restore import identify_operator, iter_deblur
+    from ..core.restore.identify import IdentificationWarning
+    from ..core.subspace.result import load_subspace
+    from ..core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
+    from ..io import check_output_file, read_image, read_points_csv, write_tiff
+
+    out = check_output_file(args.output, "-o")
+    if args.parts:
+        for name in ("sparse", "smooth"):
+            check_output_file(out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}"),
+                              "--parts")
+    if args.subspace is not None:
+        existing(args.subspace, "--subspace")
+    else:
+        existing(args.model, "--model")
+        if args.beads:
+            raise ValueError("--beads identifies an operator of a --subspace; with --model "
+                             "the model is used as it is")
+    if args.beads:
+        existing(args.beads, "--beads")
+    from ..core.common.device import array_module
+
+    device = array_module(args.device)  # gpu without CuPy or a device: one line, no work
+    image, info = read_image(args.image, index=args.slice)
+    t0 = time.perf_counter()
+    if args.subspace is not None:
+        if archive_format(args.subspace) not in (SUBSPACE, None):  # None: for the reader
+            raise ValueError(f"--subspace {args.subspace} is not a subspace file (learn one "
+                             "with psfspace learn); a single model goes with --model")
+        sub = load_subspace(args.subspace)
+        beads = read_points_csv(args.beads) if args.beads else None
+        with warnings.catch_warnings():  # said below, once
+            warnings.simplefilter("ignore", IdentificationWarning)
+            op = identify_operator(image, sub, beads=beads)
+        ident = op.metadata["identification"]
+        spread = ident.get("psf_spread")
+        print(f"operator identified from {ident['n_beads']} beads "
+              f"({'given' if beads is not None else 'detected'}; the family's J = "
+              f"{sub.n_space}{'' if ident['enough_beads'] else ': fewer beads than J'}) "
+              f"in {time.perf_counter() - t0:.1f} s; error on them beyond the noise "
+              f"{ident['model_error']:.3f}"
+              + ("" if spread is None else f", PSF spread {spread:.3f} (relative, mean "
+                                           "over the field)"), file=sys.stderr)
+        if ident.get("warning"):
+            print(f"WARNING: {ident['warning']}", file=sys.stderr)
+    else:
+        op = load_operator(args.model)
+    gen = iter_deblur(image, op, sparse_weight=args.sparse_weight,
+                      smooth_weight=args.smooth_weight, max_iter=args.max_iter,
+                      debias=args.refit_amplitudes, device=device)
+    res = run_with_progress(gen, None if args.quiet else progress_printer())
+    write_tiff(out, res.image, pixel_size=info.pixel_size,
+               metadata={"deblur": res.parameters, "iterations": res.iterations})
+    written = [str(out)]
+    p = res.parameters
+    if args.parts:
+        for name, part in (("sparse", res.sparse), ("smooth", res.smooth)):
+            path = out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}")
+            write_tiff(path, part, pixel_size=info.pixel_size)
+            written.append(str(path))
+    print(f"wrote {', '.join(written)}: {res.iterations} iterations on the "
+          f"{p['device'].upper()} "
+          f"({'converged' if res.converged else 'max_iter reached'}), sparse weight "
+          f"{p['sparse_weight']:.3g}, smooth weight {p['smooth_weight']:.3g}, noise sd "
+          f"{p['noise_sd']:.3g}, {time.perf_counter() - t0:.1f} s"
+          + (f"; {p['saturated_pixels']} saturated pixels (>= {p['saturation']:g}) fitted "
+             "as lower bounds" if p["saturated_pixels"] else ""))
+    return 0
+
+
+def add_parser(sub) -> None:
+    db = sub.add_parser("deblur", help="deblur point sources on a smooth background: with "
+                        "an operator identified from a subspace (blind) or a model")
+    db.add_argument("image", help="TIFF image (a slice of a stack with --slice)")
+    src = db.add_mutually_exclusive_group(required=True)
+    src.add_argument("--subspace", metavar="FILE", help="family of operators (psfspace "
+                     "learn): the image's operator is identified from its beads")
+    src.add_argument("--model", metavar="FILE", help="one operator (psfspace estimate)")
+    db.add_argument("--beads", metavar="CSV", help="bead positions to identify from "
+                    "(napari Points CSV or row,column; default: detected)")
+    db.add_argument("--slice", type=INDEX, help="slice of a stack to deblur")
+    db.add_argument("-o", "--output", required=True, help="deblurred image (TIFF, float32: "
+                    "sparse + smooth parts)")
+    db.add_argument("--parts", action="store_true", help="also write OUT.sparse.tif and "
+                    "OUT.smooth.tif")
+    db.add_argument("--sparse-weight", type=NON_NEGATIVE, help="gamma1 (default: from the noise)")
+    db.add_argument("--smooth-weight", type=NON_NEGATIVE, help="gamma2 (default: 0.05 step^4)")
+    db.add_argument("--max-iter", type=COUNT, default=500)
+    db.add_argument("--refit-amplitudes", action="store_true",
+                    help="then refit each cluster of points' flux by least squares (the l1 "
+                         "term shrinks it; also raises spurious points: see deblur's "
+                         "`debias`)")
+    db.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
+                    help="where the operator's transforms run; auto (default): the GPU "
+                         "when CuPy sees one (pip install 'napari-psfspace[gpu]'), else "
+                         "the CPU")
+    db.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    db.set_defaults(func=run)

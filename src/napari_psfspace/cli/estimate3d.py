@@ -1,0 +1,105 @@
+"""``psfspace estimate3d``."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .common import COUNT, POSITIVE, progress_printer
+
+
+def run(args) -> int:
+    from ..core.common.measures import NAMES, in_units
+    from ..core.common.progress import run_with_progress
+    from ..core.volume import iter_estimate_operator_3d
+    from ..core.volume.measures import (
+        bead_measures,
+        map_uncertainty,
+        measure_maps,
+        measure_table,
+    )
+    from ..io import check_output_file, read_stack
+
+    check_output_file(args.output, "-o")
+    if args.table:
+        check_output_file(args.table, "--table")
+    stack, info = read_stack(args.stack)
+    pixel = args.pixel_size_nm / 1000.0 if args.pixel_size_nm else info.pixel_size
+    dz = args.z_step_nm / 1000.0 if args.z_step_nm else info.z_spacing
+    if args.psf_radius is not None:
+        r = args.psf_radius
+    elif not pixel:
+        raise ValueError("--psf-radius-um needs the pixel size, which the file does not "
+                         "give: pass --pixel-size-nm or --psf-radius in pixels")
+    else:
+        r = args.psf_radius_um / pixel
+    voxel = (dz, pixel, pixel) if pixel and dz else None
+    est = run_with_progress(iter_estimate_operator_3d(
+        stack, psf_radius=r, z_radius=args.z_radius, n_psf=args.n_psf,
+        threshold=args.threshold, voxel_size=voxel),
+        None if args.quiet else progress_printer())
+    op = est.operator
+    op.save(args.output)
+    inl = est.basis.inliers
+    beads = bead_measures(est.patches.subset(inl))
+    unc = map_uncertainty(op, beads, est.patches.centers[inl])
+    _, _, maps = measure_maps(op, 4, 4)
+    print(f"wrote {args.output}: {op.n_psf} 3D PSFs of {'x'.join(map(str, op.kernel_shape))} "
+          f"voxels from {op.metadata['n_beads_used']} beads, bead plane {op.plane}")
+    print("  measures (Gaussian fits with an offset, as napari-psf-analysis quotes them; "
+          + ("nm" if voxel else "px and planes: pass --pixel-size-nm and --z-step-nm for nm")
+          + "):")
+    for name in NAMES:
+        lo, lo_u = in_units({name: float(np.nanmin(maps[name]))}, voxel)
+        hi, _ = in_units({name: float(np.nanmax(maps[name]))}, voxel)
+        sd, _ = in_units({name: unc[name]}, voxel)
+        unit = f" {lo_u[name]}" if lo_u[name] else ""
+        what = "focal_plane (from the first plane)" if name == "focal_plane" else name
+        if not np.isfinite(lo[name]):
+            print(f"  {what}: not measurable over the field")
+            continue
+        spread = (f"+- {sd[name]:.2g} between the beads and the model"
+                  if np.isfinite(sd[name]) else "fewer than 3 beads to compare with the model")
+        print(f"  {what}: {lo[name]:.3g} to {hi[name]:.3g}{unit} over the field ({spread})")
+    held = op.metadata.get("heldout")
+    if held and held.get("n_beads"):
+        print(f"  held-out beads ({held['n_beads']}): residual {held['residual_median']:.3f}, "
+              f"{held['over_floor']:.2f}x their noise floor ({held['noise_kind']}); one 3D "
+              f"PSF {held['single_median']:.3f}")
+    if op.metadata.get("field_model") == "shift-invariant":
+        print(f"  one 3D PSF for the field: {op.metadata['field_model_reason']}")
+    if args.table:
+        import csv
+
+        from ..core.common.atomic import atomic_write
+
+        rows = measure_table(beads, est.patches.centers[inl], voxel)
+
+        def write(fh):
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+
+        atomic_write(args.table, write, mode="w", encoding="utf-8", newline="")
+        print(f"wrote {args.table}: {len(rows)} beads' direct fits")
+    return 0
+
+
+def add_parser(sub) -> None:
+    e3 = sub.add_parser("estimate3d", help="learn the space-varying 3D PSF from a bead "
+                        "z-stack; print its maps (focal shift, FWHM, astigmatism)")
+    e3.add_argument("stack", help="TIFF z-stack of beads on a coverslip (Z, Y, X)")
+    e3.add_argument("-o", "--output", required=True, help="3D model file to write (.npz)")
+    g = e3.add_mutually_exclusive_group(required=True)
+    g.add_argument("--psf-radius", type=POSITIVE,
+                   help="lateral PSF radius on the widest plane used, pixels")
+    g.add_argument("--psf-radius-um", type=POSITIVE, help="the same in micrometres")
+    e3.add_argument("--z-radius", type=COUNT, help="planes kept on each side of the bead "
+                    "plane (default: the whole stack)")
+    e3.add_argument("--n-psf", type=COUNT, help="basis size I (default: held-out beads)")
+    e3.add_argument("--threshold", type=POSITIVE, default=8.0,
+                    help="detection threshold in noise standard deviations (default 8)")
+    e3.add_argument("--pixel-size-nm", type=POSITIVE, help="pixel size (overrides the file's)")
+    e3.add_argument("--z-step-nm", type=POSITIVE, help="plane spacing (overrides the file's)")
+    e3.add_argument("--table", metavar="CSV", help="also write each bead's direct fits")
+    e3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
+    e3.set_defaults(func=run)

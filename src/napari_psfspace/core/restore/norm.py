@@ -1,0 +1,55 @@
+"""``||H||^2`` of a 2-D operator by power iteration: the step of the deblur's gradient
+iterations."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Generator
+
+import numpy as np
+
+from ..common.device import CPU, ArrayModule, array_module
+from ..common.progress import Progress, run_with_progress
+from ..model.operator import ProductConvolution
+
+
+def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
+                        seed: int = 0, workers: int | None = None,
+                        device: str | ArrayModule = CPU
+                        ) -> Generator[tuple[int, float], None, float]:
+    """Generator form of :func:`operator_norm2`: yields ``(iteration, value)`` after each
+    iteration (a point to cancel at: one application of ``H^T H`` apart), returns the
+    value."""
+    device = array_module(device)
+    rng = np.random.default_rng(seed)
+    x = rng.random(op.shape).astype(np.float32)
+    x /= np.linalg.norm(x)
+    value = 0.0
+    for it in range(int(n_iter)):
+        y = device.to_host(op.adjoint(op.apply(x, workers=workers, device=device),
+                                      workers=workers, device=device))
+        new = float(np.linalg.norm(y))
+        if new == 0:
+            return 0.0
+        x = (y / new).astype(np.float32)
+        done = abs(new - value) <= rtol * new
+        value = new
+        yield it + 1, value
+        if done:
+            break
+    return value
+
+
+def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
+                   seed: int = 0, workers: int | None = None,
+                   device: str | ArrayModule = CPU,
+                   progress: Callable[[Progress], None] | None = None) -> float:
+    """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
+    below): at most ``n_iter`` iterations, stopping once an iteration raises the value
+    by less than ``rtol`` (relatively). ``device``: where ``H`` runs
+    (:mod:`~napari_psfspace.core.common.device`)."""
+    return float(run_with_progress(iter_operator_norm2(op, n_iter=n_iter, rtol=rtol,
+                                                       seed=seed, workers=workers,
+                                                       device=device), progress))
+
+
+__all__ = ["iter_operator_norm2", "operator_norm2"]

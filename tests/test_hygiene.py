@@ -1,0 +1,73 @@
+"""The repository's hygiene: no large file, wheel or archive tracked; every package the
+source imports is declared in ``pyproject.toml`` (a dependency, or the extra that the
+importing part needs)."""
+
+import ast
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+#: An import name -> its distribution, where they differ.
+DISTRIBUTION = {"PIL": "pillow", "skimage": "scikit-image", "cupyx": "cupy-cuda12x",
+                "cupy": "cupy-cuda12x"}
+ARCHIVES = (".whl", ".zip", ".tar", ".tar.gz", ".tgz", ".tar.bz2", ".tar.xz", ".7z", ".egg")
+
+
+def _tracked() -> list[Path]:
+    try:
+        out = subprocess.run(["git", "ls-files", "-z"], cwd=ROOT, capture_output=True,
+                             check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("not a git checkout: nothing tracked to check")
+    return [ROOT / p for p in out.decode().split("\0") if p]
+
+
+def test_no_large_file_wheel_or_archive_is_tracked():
+    files = _tracked()
+    assert len(files) > 100
+    big = {str(p.relative_to(ROOT)): p.stat().st_size for p in files
+           if p.exists() and p.stat().st_size > 1_000_000}
+    assert not big, big
+    archives = [str(p.relative_to(ROOT)) for p in files if p.name.endswith(ARCHIVES)]
+    assert not archives, archives
+
+
+def _declared() -> set[str]:
+    tomllib = pytest.importorskip("tomllib")  # Python 3.11+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    specs = list(project["dependencies"])
+    for extra in project["optional-dependencies"].values():
+        specs += extra
+    return {re.split(r"[\[<>=!~ ;]", s, maxsplit=1)[0].lower() for s in specs}
+
+
+def _imported() -> dict[str, str]:
+    """Top-level third-party modules imported under src (anywhere in a module), and one
+    file that imports each."""
+    out = {}
+    for p in sorted((ROOT / "src").rglob("*.py")):
+        for node in ast.walk(ast.parse(p.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                names = [node.module]
+            else:
+                continue
+            for name in names:
+                top = name.split(".")[0]
+                if top not in sys.stdlib_module_names and top != "napari_psfspace":
+                    out.setdefault(top, str(p.relative_to(ROOT)))
+    return out
+
+
+def test_every_imported_package_is_declared():
+    declared = _declared()
+    imported = _imported()
+    assert {"numpy", "scipy", "tifffile"} <= set(imported)
+    missing = {name: where for name, where in imported.items()
+               if DISTRIBUTION.get(name, name).lower() not in declared}
+    assert not missing, missing
