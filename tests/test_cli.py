@@ -69,10 +69,17 @@ def test_errors_are_one_line_messages(workdir, capsys):
                  "--psf-radius-um", "0.5"]) == 2
     assert "pixel size" in capsys.readouterr().err
 
-    if (d / "model.npz").exists():
-        assert main(["apply", str(d / "model.npz"), str(d / "small.tif"), "-o",
-                     str(d / "x.tif")]) == 2
-        assert "(384, 384)" in capsys.readouterr().err
+    # a model of its own (not another test's file): one Gaussian PSF over 384 x 384
+    from napari_psfspace.core.model.operator import ProductConvolution
+
+    y, x = np.mgrid[-4:5, -4:5]
+    psf = np.exp(-(y ** 2 + x ** 2) / 4.0)
+    ProductConvolution((psf / psf.sum())[None], np.ones((1, 1, 1)), shape=(384, 384),
+                       grid=(np.zeros(1), np.zeros(1))).save(d / "own.npz")
+    assert main(["apply", str(d / "own.npz"), str(d / "small.tif"), "-o",
+                 str(d / "x.tif")]) == 2
+    assert "(384, 384)" in capsys.readouterr().err
+    assert not (d / "x.tif").exists()
 
 
 def test_demo_small(tmp_path, capsys):

@@ -204,10 +204,10 @@ def _curve(means, sd, n=20):
 
 def test_a_flat_held_out_curve_keeps_the_prior_weight():
     from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, pick_weight
-    assert PRIOR_WEIGHT == 0.5
-    # minimum at 0.75 by less than the paired scatter: the even blend is kept
-    w, beaten = pick_weight(_curve([0.010, 0.004, 0.0005, 0.0, 0.0008], sd=0.005))
-    assert (w, beaten) == (0.5, True)
+    # minimum at 0.75 by less than the paired scatter: the prior (the even blend) is kept
+    curve = _curve([0.010, 0.004, 0.0005, 0.0, 0.0008], sd=0.005)
+    assert pick_weight(curve, prior=0.5) == (0.5, True)
+    assert pick_weight(curve) == pick_weight(curve, prior=PRIOR_WEIGHT)  # the default
     # a prior on the family's side: 0.75
     w, beaten = pick_weight(_curve([0.010, 0.004, 0.0, 0.0005, 0.0008], sd=0.005),
                             prior=0.75)
@@ -218,7 +218,7 @@ def test_the_prior_leans_to_the_family_as_the_image_s_share_of_its_field_falls()
     from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, prior_weight
     from napari_psfspace.core.subspace.shrink import Fields
     assert prior_weight(1.0) == PRIOR_WEIGHT and prior_weight(0.0) == 1.0
-    assert prior_weight(0.5) == pytest.approx(0.75)
+    assert prior_weight(0.5) == pytest.approx(1 - 0.5 * (1 - PRIOR_WEIGHT))  # linear
     assert prior_weight(float("nan")) == PRIOR_WEIGHT  # unknown: the even blend
     assert prior_weight(1.7) == PRIOR_WEIGHT and prior_weight(-1.0) == 1.0
     # the share: shrink factors weighted by the columns' spread; no spread: their mean
@@ -236,13 +236,15 @@ def test_the_prior_leans_to_the_family_where_the_beads_are_mostly_noise():
     assert prior_weight(1.0, lo) == PRIOR_WEIGHT
     # faint beads: the family's operator, whatever the share
     assert prior_weight(1.0, hi) == 1.0 and prior_weight(1.0, 0.97) == 1.0
-    assert prior_weight(1.0, (lo + hi) / 2) == pytest.approx(0.75)
+    assert prior_weight(1.0, (lo + hi) / 2) == pytest.approx((1 + PRIOR_WEIGHT) / 2)
     # the larger of the two leanings
     assert prior_weight(0.0, 0.0) == 1.0
-    assert prior_weight(0.5, lo + 0.25 * (hi - lo)) == pytest.approx(0.75)
-    assert prior_weight(0.2, lo + 0.25 * (hi - lo)) == pytest.approx(0.9)
+    p = PRIOR_WEIGHT
+    for share in (0.5, 0.2):  # the share's leaning against the floor's (a quarter up)
+        assert prior_weight(share, lo + 0.25 * (hi - lo)) == pytest.approx(
+            max(1 - (1 - p) * share, p + (1 - p) * 0.25))
     # an unknown floor: the share's alone
-    assert prior_weight(0.5, float("nan")) == pytest.approx(0.75)
+    assert prior_weight(0.5, float("nan")) == pytest.approx(1 - (1 - p) * 0.5)
 
 
 def test_the_noise_floor_is_the_held_out_residuals_floor():

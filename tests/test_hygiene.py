@@ -71,3 +71,29 @@ def test_every_imported_package_is_declared():
     missing = {name: where for name, where in imported.items()
                if DISTRIBUTION.get(name, name).lower() not in declared}
     assert not missing, missing
+
+
+def _constant_asserts(source: str) -> list[int]:
+    """Lines of ``assert NAME == number`` (or ``number == NAME``) with NAME in capitals:
+    a test of a constant's value, which checks nothing the code does."""
+    out = []
+    for node in ast.walk(ast.parse(source)):
+        if not (isinstance(node, ast.Assert) and isinstance(node.test, ast.Compare)):
+            continue
+        sides = [node.test.left, *node.test.comparators]
+        names = [s for s in sides if isinstance(s, (ast.Name, ast.Attribute))]
+        numbers = [s for s in sides if isinstance(s, ast.Constant)
+                   and isinstance(s.value, (int, float)) and not isinstance(s.value, bool)]
+        if names and numbers and all(
+                re.fullmatch(r"[A-Z][A-Z0-9_]{2,}",
+                             n.id if isinstance(n, ast.Name) else n.attr) for n in names):
+            out.append(node.lineno)
+    return out
+
+
+def test_no_test_asserts_a_constant():
+    found = {str(p.relative_to(ROOT)): lines for p in sorted((ROOT / "tests").rglob("*.py"))
+             if (lines := _constant_asserts(p.read_text(encoding="utf-8")))}
+    assert not found, found
+    # the finder finds one
+    assert _constant_asserts("assert PRIOR_WEIGHT == 0.5\nassert w == 0.5\n") == [1]
