@@ -26,6 +26,6 @@ lint: install
 	$(BIN)/ruff check src tests bench docs
 
 bench: install
-	$(BIN)/python bench/bench_accuracy.py
-	$(BIN)/python bench/bench_speed.py
-	$(BIN)/python bench/bench_apply.py
+	$(BIN)/python bench/run.py accuracy
+	$(BIN)/python bench/run.py speed
+	$(BIN)/python bench/run.py apply

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from _common import add_generator_argument, optics_type, table
+from benchlib import add_generator_argument, optics_type, table
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.simulation import Optics, simulate_beads

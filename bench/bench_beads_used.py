@@ -32,7 +32,7 @@ import argparse
 import numpy as np
 from scipy.spatial import cKDTree
 
-from _common import optics_type, table
+from benchlib import optics_type, table
 from napari_psfspace.core.beads import detect
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.family import random_scene

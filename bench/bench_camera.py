@@ -26,7 +26,7 @@ import time
 
 import numpy as np
 
-from _common import add_generator_argument, optics_type, table
+from benchlib import add_generator_argument, optics_type, table
 from napari_psfspace.core.beads.detect import detect_beads
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.noise import noise_model

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 SP8 = DATA / "sp8_confocal_beads" / "sp8_series045_beads_zyx_uint8.tif"

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from _common import optics_type, table
+from benchlib import optics_type, table
 from napari_psfspace.core.model import field, pca
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.family import random_scene

@@ -36,7 +36,7 @@ from scipy.spatial import cKDTree
 from skimage.feature import peak_local_max
 from skimage.restoration import richardson_lucy
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.restore import deblur, identify_operator
 from napari_psfspace.core.simulation.stacks import (

@@ -32,8 +32,8 @@ import time
 import numpy as np
 from scipy import ndimage as ndi
 
-from _common import table
 from bench_volume import ours, psfmodels_stack
+from benchlib import table
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.volume import iter_estimate_operator_3d
 from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d, shift_invariant

@@ -20,7 +20,7 @@ import time
 import numpy as np
 import scipy.fft
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.common.threads import by_rows
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.model.operator_fft import (

@@ -32,9 +32,9 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
 from bench_deblur import LOW, detect, scene
 from bench_deblur_measured import corr, fwhm
+from benchlib import table
 from napari_psfspace._sample_data import simulated_beads
 from napari_psfspace.core.beads.detect import detect_beads
 from napari_psfspace.core.model.estimate import estimate_operator

@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.core.simulation import simulate_beads
 

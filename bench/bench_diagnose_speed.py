@@ -22,8 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import SRC, table
 from bench_power import CASES, SETTING
+from benchlib import SRC, table
 from napari_psfspace.core.simulation.family import random_scene
 
 CHILD = r"""

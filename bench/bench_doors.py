@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 
 BAD = ["-1", "0", "nan", "inf", "1e12", "abc", ""]
 

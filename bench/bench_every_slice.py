@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.beads.radius import suggest_psf_radius
 from napari_psfspace.core.common.errors import PsfSpaceError
 from napari_psfspace.core.common.progress import run_with_progress

@@ -26,7 +26,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.family import random_scene

@@ -19,7 +19,7 @@ import time
 import numpy as np
 import scipy.linalg
 
-from _common import table
+from benchlib import table
 
 WRAPPED = [(np.linalg, "svd"), (np.linalg, "eigh"), (np.linalg, "lstsq"),
            (np.linalg, "solve"), (np.linalg, "inv"), (np.linalg, "qr"),

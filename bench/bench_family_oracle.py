@@ -47,7 +47,7 @@ import time
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.model.cone import Cone
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.model.field import assemble_operator

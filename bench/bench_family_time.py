@@ -20,7 +20,7 @@ import time
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 
 
 def main():

@@ -28,7 +28,7 @@ import numpy as np
 import tifffile
 from scipy.spatial import cKDTree
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.beads.detect import NoBeadsError, detect_beads
 from napari_psfspace.core.beads.focus import best_focus_index
 from napari_psfspace.core.beads.radius import suggest_psf_radius

@@ -24,8 +24,8 @@ import argparse
 
 import numpy as np
 
-from _common import table
 from bench_fwhm_reference import simulated_psf
+from benchlib import table
 from napari_psfspace.core.beads.focus import bead_peaks, best_focus_index
 from napari_psfspace.core.volume import estimate_operator_3d
 

@@ -20,7 +20,7 @@ import traceback
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.common.errors import PsfSpaceError
 from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.core.model.estimate import estimate_operator

@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.common.measures import psf_measures
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.volume import iter_estimate_operator_3d

@@ -29,7 +29,7 @@ import time
 
 import numpy as np
 
-from _common import table  # stdlib only; it puts src on the path
+from benchlib import table  # stdlib only; it puts src on the path
 from napari_psfspace.core.common.device import array_module, gpu_status
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.restore.deconvolve import deblur

@@ -20,8 +20,8 @@ import argparse
 
 import numpy as np
 
-from _common import optics_type, table
 from bench_power import SETTING
+from benchlib import optics_type, table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors

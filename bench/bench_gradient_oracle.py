@@ -17,8 +17,8 @@ import argparse
 
 import numpy as np
 
-from _common import table
 from bench_power import SETTING
+from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors

@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import identify_operator
 from napari_psfspace.core.simulation.metrics import grid_errors

@@ -35,8 +35,8 @@ import warnings
 
 import numpy as np
 
-from _common import optics_type, table
 from bench_family_oracle import WIDE
+from benchlib import optics_type, table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import identify_operator
 from napari_psfspace.core.simulation.metrics import grid_errors

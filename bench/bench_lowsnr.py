@@ -37,7 +37,7 @@ import dataclasses
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.beads.window import radial_distance
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.model.denoise import band_limit, refit_basis

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.beads.window import bump_window
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.model.estimate import iter_estimate

@@ -20,7 +20,7 @@ from pathlib import Path
 import napari
 from qtpy.QtWidgets import QApplication
 
-from _common import table
+from benchlib import table
 from napari_psfspace._sample_data import simulated_beads, simulated_focus_series
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "images"

@@ -56,8 +56,8 @@ from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 
-from _common import table
 from bench_motion import motion_of, visible
+from benchlib import table
 from napari_psfspace.core.diagnosis.analysis import THRESHOLDS
 from napari_psfspace.core.diagnosis.effects import REGISTRY
 from napari_psfspace.core.diagnosis.loop import diagnose
@@ -152,7 +152,7 @@ def _oracle(image, truth, p, name) -> bool:
 
 def _optics_type(generator: str):
     if generator in ("pyotf", "psfmodels"):
-        from _common import optics_type
+        from benchlib import optics_type
 
         return optics_type(generator)
     from napari_psfspace.core.simulation.optics import Optics

@@ -45,7 +45,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from _common import optics_type, table
+from benchlib import optics_type, table
 from napari_psfspace.core.beads.detect import HELDOUT, KEPT
 from napari_psfspace.core.beads.radius import suggest_psf_radius
 from napari_psfspace.core.beads.spikes import spike_mask

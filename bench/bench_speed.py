@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import SRC, table
+from benchlib import SRC, table
 from napari_psfspace.core.simulation import simulate_beads
 
 CHILD = r"""

@@ -34,9 +34,9 @@ import time
 
 import numpy as np
 
-from _common import table
 from bench_deblur3d import region_error, scene, true_operator
 from bench_volume import ours, psfmodels_stack
+from benchlib import table
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.volume import iter_estimate_operator_3d
 from napari_psfspace.core.volume.deconvolve3d import STOP_FIT, richardson_lucy_3d

@@ -17,7 +17,7 @@ import time
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.subspace import estimate_subspace
 from napari_psfspace.io import read_image

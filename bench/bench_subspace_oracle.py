@@ -19,7 +19,7 @@ import argparse
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.model.field import assemble_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 
 SHAPE = (2304, 2304)
 N_BEADS = 100

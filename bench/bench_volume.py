@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.simulation.camera import camera
 from napari_psfspace.core.simulation.focus import simulate_focus_series

@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from _common import table
+from benchlib import table
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 MODEL = Path("/tmp") / "psfspace_bench_sp8_3d.npz"

@@ -29,7 +29,6 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import fft as sfft
 
-from _common import SRC  # noqa: F401  (puts src on the path)
 from napari_psfspace.core.simulation import sphere_transfer
 from napari_psfspace.core.simulation.optics import Optics
 

@@ -29,7 +29,7 @@ def private_imports(path: Path, src: Path = SRC) -> list[tuple[int, str, str]]:
             continue
         if node.level:
             if not path.is_relative_to(src):
-                continue  # a bench's own helpers (bench/_common.py)
+                continue  # a bench's own helpers (bench/benchlib.py)
             pkg = _package(path, src)
             base = pkg[: len(pkg) - (node.level - 1)]
             module = ".".join(base + ([node.module] if node.module else []))

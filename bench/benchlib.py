@@ -1,13 +1,13 @@
-"""Shared helpers of the benchmark scripts (run from the repository root or bench/)."""
+"""Shared helpers of the benchmark scripts: their tables, and the optics code of their
+scenes. The benches import the installed package (``make install``); nothing here changes
+``sys.path``."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
+#: This checkout's ``src`` (the benches that time two checkouts name it).
 SRC = Path(__file__).resolve().parents[1] / "src"
-if str(SRC) not in sys.path:
-    sys.path.insert(0, str(SRC))
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:

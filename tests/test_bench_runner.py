@@ -1,0 +1,55 @@
+"""``bench/run.py``: it names every bench, keeps a run's result as data, and writes
+RESULTS.md from the results (without losing a hand-written one)."""
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _runner():
+    spec = importlib.util.spec_from_file_location("bench_run", ROOT / "bench" / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_list_names_every_bench():
+    out = subprocess.run([sys.executable, str(ROOT / "bench" / "run.py"), "--list"],
+                         capture_output=True, text=True, check=True).stdout
+    listed = {line.split()[0] for line in out.splitlines() if line.strip()}
+    scripts = {p.stem[len("bench_"):] for p in (ROOT / "bench").glob("bench_*.py")}
+    assert listed == scripts and len(scripts) > 30
+    # each with what it measures (its docstring's first sentence)
+    assert all(len(line.split(None, 1)) == 2 for line in out.splitlines() if line.strip())
+
+
+def test_render_shows_each_result_with_its_command(tmp_path, monkeypatch):
+    run = _runner()
+    monkeypatch.setattr(run, "RESULTS", tmp_path)
+    result = {"format": run.FORMAT, "version": 1, "bench": "gpu", "label": "smoke",
+              "what": "The deblurring on the GPU.", "command": "python bench/run.py gpu "
+              "--as smoke --small", "args": ["--small"], "commit": "0123456789abcdef",
+              "tree_changed": False, "date": "2026-11-28T00:00:00+00:00",
+              "machine": {"cores": 2, "memory_GiB": 24.0, "gpu": None}, "seconds": 12.0,
+              "output": "\n".join(f"row {i}" for i in range(40)) + "\n"}
+    (tmp_path / "gpu.smoke.json").write_text(json.dumps(result))
+    text = run.render(run.load_results(), run.benches())
+    assert text.startswith(run.HEADER)
+    assert "## gpu (smoke)" in text and "`python bench/run.py gpu --as smoke --small`" in text
+    assert "commit 0123456789" in text and "2 cores, 24.0 GiB, no GPU" in text
+    # the last lines of a long output, and where the rest is
+    assert "row 39" in text and "row 0\n" not in text and "16 lines before" in text
+    assert "## Not yet run as data" in text  # the other benches, named
+
+
+def test_render_keeps_a_hand_written_results_file(tmp_path):
+    hand = tmp_path / "RESULTS.md"
+    hand.write_text("# Results\n\nfigures by hand\n")
+    done = subprocess.run([sys.executable, str(ROOT / "bench" / "run.py"), "--render",
+                           "--out", str(hand)], capture_output=True, text=True)
+    assert done.returncode != 0 and "--force" in done.stderr
+    assert hand.read_text() == "# Results\n\nfigures by hand\n"
