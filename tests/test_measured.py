@@ -229,12 +229,12 @@ def test_the_suggested_radius_follows_focus_or_says_why(shared_data):
     24 at 39 against 12. Now the confocal stack's radius stays within 1.5x of its focus
     on every slice with beads; where the astigmatic beads do spread wider (their line
     foci), the reason names the best focus and both radii."""
-    from napari_psfspace.core.beads.focus import best_focus_index
-    from napari_psfspace.core.beads.scale import (
+    from napari_psfspace.core.beads.focus import (
         SLICE_RATIO,
+        best_focus_index,
         radius_against_focus,
-        suggest_psf_radius,
     )
+    from napari_psfspace.core.beads.radius import suggest_psf_radius
     from napari_psfspace.core.common.errors import PsfSpaceError
 
     for rel, strict, step in (
