@@ -14,6 +14,28 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+#: Tests that took a second or more (``tests/update_slow.py`` writes the list from a
+#: run's durations): marked ``slow``, left out by ``make check``.
+SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
+
+
+def _slow_tests() -> set[str]:
+    if not SLOW_LIST.exists():
+        return set()
+    return {line.split()[-1] for line in SLOW_LIST.read_text(encoding="utf-8").splitlines()
+            if line.strip() and not line.startswith("#")}
+
+
+def pytest_collection_modifyitems(config, items):
+    """Mark the tests of ``slow_tests.txt`` slow (by their id, or for a parametrised one
+    listed without its parameters, all of them)."""
+    slow = _slow_tests()
+    for item in items:
+        rel = item.nodeid if item.nodeid.startswith("tests/") else f"tests/{item.nodeid}"
+        if rel in slow or rel.split("[")[0] in slow:
+            item.add_marker(pytest.mark.slow)
+
+
 # The napari widget tests leave Qt, vispy and napari objects whose destruction during the
 # interpreter's own shutdown can crash it (a segmentation fault after "N passed": CI
 # failed once so, every test having passed). Once the run is over and reported, a run

@@ -97,3 +97,20 @@ def test_no_test_asserts_a_constant():
     assert not found, found
     # the finder finds one
     assert _constant_asserts("assert PRIOR_WEIGHT == 0.5\nassert w == 0.5\n") == [1]
+
+
+def test_every_listed_slow_test_exists():
+    """``tests/slow_tests.txt`` (the tests ``make check`` leaves out) names tests that
+    exist: a renamed test would silently come back into the fast set."""
+    from conftest import _slow_tests
+
+    slow = _slow_tests()
+    assert len(slow) > 20
+    missing = []
+    for node in slow:
+        path, _, name = node.partition("::")
+        func = name.split("[")[0].split("::")[-1]
+        file = ROOT / path
+        if not file.exists() or f"def {func}(" not in file.read_text(encoding="utf-8"):
+            missing.append(node)
+    assert not missing, missing
