@@ -35,8 +35,8 @@ from scipy.spatial import cKDTree
 from benchlib import optics_type, table
 from napari_psfspace.core.beads import detect
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 SHARE = 0.05
 

@@ -1,5 +1,6 @@
 """Real camera data: low counts and 8 bits, noise models, hot pixels, known bead size,
-few beads. Each table is over seeded scenes (``napari_psfspace.core.simulation.family``), never one.
+few beads. Each table is over seeded scenes
+(``napari_psfspace.core.simulation.scene_set``), never one.
 
     python bench/bench_camera.py [--quick]
 
@@ -7,7 +8,7 @@ few beads. Each table is over seeded scenes (``napari_psfspace.core.simulation.f
    gain 0.01-2 ADU/e-: from photon-limited cameras to 8-bit exports of deeper ones):
    recall of the beads isolated by the 2r rule and false detections (matched within
    max(1.5, r/3) px). Targets: recall >= 95 %, false <= 5 %.
-2. Noise model over the 8-bit family and over the whole scene family: which model was
+2. Noise model over the 8-bit family and over the whole scene set: which model was
    used, and photon transfer's gain against the truth where its checks passed.
 3. Hot pixels at 0.05 % and 0.1 % (sCMOS without dark-frame correction; each 1-5 x the
    brightest bead's peak): PSF-field error against the same field without them
@@ -32,9 +33,9 @@ from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.noise import noise_model
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
-from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT as LOW_COUNT
-from napari_psfspace.core.simulation.family import isolated, match, random_scene
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth
+from napari_psfspace.core.simulation.scene_set import LOW_COUNT_8BIT as LOW_COUNT
+from napari_psfspace.core.simulation.scene_set import isolated, match, random_scene
 
 #: the optics class of the scenes (``--generator``)
 OPTICS = [Optics]

@@ -32,8 +32,8 @@ import numpy as np
 from benchlib import optics_type, table
 from napari_psfspace.core.model import field, pca
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 #: wide: bright (a peak of 2,000-20,000 photons over 5-50, 16 bits), so that the noise is
 #: not what limits the field (the issue's premise: a noise-free render erred as much);

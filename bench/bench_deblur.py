@@ -44,7 +44,7 @@ from napari_psfspace.core.simulation.stacks import (
     simulate_stack,
     within,
 )
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 
 LOW = {"amplitude": (4e3, 1.2e4)}
 
@@ -171,7 +171,7 @@ def main():
     shape = (args.size, args.size)
     images, truths, seen = simulate_stack(16, shape, 30, seed=100, **LOW)
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    sub = estimate_family(images, psf_radius=r, holdout=None)
     print(f"family: I = {sub.n_psf}, J = {sub.n_space} from 16 images", flush=True)
     draws = random_conditions(200, seed=7)
     unseen = [c for c, ok in zip(draws, within(draws, seen), strict=True) if ok]

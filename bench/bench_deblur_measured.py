@@ -41,7 +41,7 @@ from skimage.restoration import richardson_lucy
 from napari_psfspace.core.beads.detect import detect_beads
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import deblur, identify_operator
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.io import best_focus_index, read_image, write_png
 
 FILE = "sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif"
@@ -88,7 +88,7 @@ def main():
     train = [z for z in range(f - args.half, f + args.half + 1) if z != t]
     r = 0.5 / pixel
     t0 = time.perf_counter()
-    sub = estimate_subspace([stack[z] for z in train], psf_radius=r, holdout=None)
+    sub = estimate_family([stack[z] for z in train], psf_radius=r, holdout=None)
     t_learn = time.perf_counter() - t0
     target = stack[t].astype(np.float32)
     t0 = time.perf_counter()

@@ -40,7 +40,7 @@ from napari_psfspace.core.beads.detect import detect_beads
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import deblur, identify_operator
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.io import best_focus_index, read_image
 
 MEASURED = {
@@ -55,7 +55,7 @@ def simulated(seeds):
     shape = (512, 512)
     images, truths, seen = simulate_stack(16, shape, 30, seed=100, **LOW)
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    sub = estimate_family(images, psf_radius=r, holdout=None)
     draws = random_conditions(200, seed=7)
     unseen = [c for c, ok in zip(draws, within(draws, seen), strict=True) if ok]
     for seed in seeds:
@@ -96,7 +96,7 @@ def measured(data: Path, name: str, offsets):
     for off in offsets:
         t = f + off
         train = [z for z in range(f - half, f + half + 1) if z != t]
-        sub = estimate_subspace([stack[z] for z in train], psf_radius=r, holdout=None)
+        sub = estimate_family([stack[z] for z in train], psf_radius=r, holdout=None)
         op = identify_operator(stack[t].astype(np.float32), sub)
 
         def refocused(res):

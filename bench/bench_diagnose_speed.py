@@ -24,7 +24,7 @@ import numpy as np
 
 from bench_power import CASES, SETTING
 from benchlib import SRC, table
-from napari_psfspace.core.simulation.family import random_scene
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 CHILD = r"""
 import json, sys, time

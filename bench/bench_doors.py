@@ -188,8 +188,8 @@ def api_calls() -> list[tuple]:
         each(ps.estimate_operator, {"image": img, "psf_radius": r}, name)
     for name in ("psf_radius", "threshold", "folds", "gain", "read_noise"):
         each(ps.diagnose, {"image": img, "psf_radius": r, "effects": []}, name)
-    each(ps.estimate_subspace, {"images": stack, "psf_radius": r}, "psf_radius")
-    each(ps.estimate_subspace, {"images": stack, "psf_radius": r}, "client",
+    each(ps.estimate_family, {"images": stack, "psf_radius": r}, "psf_radius")
+    each(ps.estimate_family, {"images": stack, "psf_radius": r}, "client",
          ["x", 3, [1]])
     for name in ("n_beads", "seed"):
         each(ps.simulate_beads, {"shape": (64, 64), "n_beads": 3}, name,

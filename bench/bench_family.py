@@ -1,9 +1,9 @@
-"""diagnose over the seeded scene family: false alarms on effect-free scenes.
+"""diagnose over the seeded scene set: false alarms on effect-free scenes.
 
     python bench/bench_family.py [--scenes 100] [--workers 2]
 
 Each scene is drawn by
-:func:`~napari_psfspace.core.simulation.family.random_scene` (512 x 512; pixel
+:func:`~napari_psfspace.core.simulation.scene_set.random_scene` (512 x 512; pixel
 size 43-160 nm, NA 0.7-1.49, emission 450-700 nm, aberration presets and random fields,
 20-600 beads, brightness spread sigma 0.1-1.0, background 1-500 photons, camera gain,
 offset, read noise, 8/12/16-bit) with no effect injected, and diagnosed with the true PSF
@@ -29,8 +29,8 @@ import numpy as np
 from benchlib import table
 from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 #: Effects that change the model's settings (its capacity), not a claim about the data.
 MODEL_SETTINGS = ("basis_size", "field_smoothing")

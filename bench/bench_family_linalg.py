@@ -3,7 +3,7 @@ eigendecompositions, least squares, solves; every call in every thread), the par
 could take (issue 48: "the family's heavy linear algebra, where it pays").
 
 ``K`` images simulated as in ``bench_family_time.py`` (bright beads, wide conditions) are
-learnt with ``estimate_subspace`` at the defaults; each LAPACK entry point of NumPy and
+learnt with ``estimate_family`` at the defaults; each LAPACK entry point of NumPy and
 SciPy is wrapped by a timer that adds its seconds and counts its calls and the size of
 its largest matrix.
 
@@ -34,7 +34,7 @@ def main() -> None:
     ap.add_argument("--beads", type=int, default=100)
     args = ap.parse_args()
     from napari_psfspace.core.simulation.stacks import simulate_stack
-    from napari_psfspace.core.subspace import estimate_subspace
+    from napari_psfspace.core.subspace import estimate_family
 
     images, truths, _ = simulate_stack(args.k, (args.size, args.size), args.beads, seed=1)
     radius = int(np.median([t.psf_radius for t in truths]))
@@ -61,7 +61,7 @@ def main() -> None:
     originals = [(mod, name, wrap(mod, name)) for mod, name in WRAPPED]
     t0 = time.perf_counter()
     try:
-        estimate_subspace(images, psf_radius=radius)
+        estimate_family(images, psf_radius=radius)
     finally:
         total = time.perf_counter() - t0
         for mod, name, fn in originals:
@@ -71,7 +71,7 @@ def main() -> None:
     rows.append({"call": "all linear algebra", "calls": sum(r["calls"] for r in rows),
                  "seconds": sum(r["seconds"] for r in rows),
                  "share": sum(r["share"] for r in rows)})
-    print(f"estimate_subspace of {args.k} images of {args.size}^2, {args.beads} beads each: "
+    print(f"estimate_family of {args.k} images of {args.size}^2, {args.beads} beads each: "
           f"{total:.1f} s (thread-seconds below: calls in parallel threads add up)")
     print(table(rows, [("call", "s"), ("calls", "d"), ("seconds", ".2f"),
                        ("largest", "d"), ("share", ".1%")]))

@@ -54,7 +54,7 @@ from napari_psfspace.core.model.field import assemble_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.optics import Optics
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.core.subspace.estimate import coefficient_maps, grid_nodes, pool
 from napari_psfspace.core.subspace.patches import image_patches
 
@@ -112,13 +112,13 @@ def stack_rows(args) -> list[dict]:
     r = int(np.median([t.psf_radius for t in truths]))
     shrinks = shrink_oracle(images, cached, r, args.grid) if args.shrink_oracle else None
     t0 = time.perf_counter()
-    sub = estimate_subspace(images, psf_radius=r)  # default: held-out choice on
+    sub = estimate_family(images, psf_radius=r)  # default: held-out choice on
     t_family = time.perf_counter() - t0
     t0 = time.perf_counter()
     for k in range(args.k):
         sub.operator(k)
     t_operators = time.perf_counter() - t0
-    paper = estimate_subspace(images, psf_radius=r, holdout=None)  # the family alone
+    paper = estimate_family(images, psf_radius=r, holdout=None)  # the family alone
     t0 = time.perf_counter()
     alone = [estimate_operator(im, psf_radius=r) for im in images]
     t_alone = time.perf_counter() - t0
@@ -208,7 +208,7 @@ def shrink_oracle(images, cached, r, grid) -> dict:
         for c in (0.0, 0.25, 0.5, 0.75, 1.0):
             subspace_estimate.shrunk_fields = functools.partial(shrink.shrunk_fields,
                                                                 factor=c)
-            fam = estimate_subspace(images, psf_radius=r, holdout=None)
+            fam = estimate_family(images, psf_radius=r, holdout=None)
             out[c] = np.array([float(np.mean(grid_errors(fam.operator(k), cached[k],
                                                          n=grid)))
                                for k in range(len(images))])

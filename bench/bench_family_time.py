@@ -4,7 +4,7 @@
         [--cache FILE]
 
 ``K`` images under the wide conditions of ``bench_family_oracle.py`` (bright beads,
-defaults everywhere) are simulated once into ``--cache``; then ``estimate_subspace``
+defaults everywhere) are simulated once into ``--cache``; then ``estimate_family``
 (the held-out choice on, the default) and ``K`` calls of ``estimate_operator`` are
 timed in turn, ``--repeats`` times, interleaved so that a change of the machine's load
 falls on both. Issue 24: the family within 1.5x the single estimates. To compare two
@@ -33,7 +33,7 @@ def main():
     args = ap.parse_args()
     import napari_psfspace
     from napari_psfspace.core.model.estimate import estimate_operator
-    from napari_psfspace.core.subspace import estimate_subspace
+    from napari_psfspace.core.subspace import estimate_family
 
     key = (args.k, args.size, args.beads)
     images = None
@@ -51,11 +51,11 @@ def main():
         r = int(np.median([t.psf_radius for t in truths]))
         np.savez(args.cache, key=np.array(key), images=np.stack(images), r=r)
     print(napari_psfspace.__file__, flush=True)
-    estimate_subspace(images[:3], psf_radius=r)  # warm-up
+    estimate_family(images[:3], psf_radius=r)  # warm-up
     rows = []
     for rep in range(args.repeats):
         t0 = time.perf_counter()
-        estimate_subspace(images, psf_radius=r)
+        estimate_family(images, psf_radius=r)
         family = time.perf_counter() - t0
         t0 = time.perf_counter()
         for im in images:

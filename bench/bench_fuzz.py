@@ -25,7 +25,7 @@ from napari_psfspace.core.common.errors import PsfSpaceError
 from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.damage import DAMAGES, damaged
-from napari_psfspace.core.simulation.family import random_scene
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 
 class NonFiniteInput(RuntimeError):

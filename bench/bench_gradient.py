@@ -23,8 +23,8 @@ import numpy as np
 from bench_power import SETTING
 from benchlib import optics_type, table
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 
 def run(generator: str, seed: int, span: float) -> dict:

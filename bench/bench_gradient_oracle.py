@@ -20,8 +20,8 @@ import numpy as np
 from bench_power import SETTING
 from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 
 def rows_for(seed: int, photons: float) -> list[dict]:

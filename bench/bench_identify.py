@@ -22,7 +22,7 @@ from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import identify_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 
 
 def main():
@@ -36,7 +36,7 @@ def main():
         amp = {"amplitude": (2e4 * photons, 6e4 * photons)}
         images, truths, seen = simulate_stack(16, (384, 384), 24, seed=0, **amp)
         r = int(np.median([t.psf_radius for t in truths]))
-        sub = estimate_subspace(images, psf_radius=r, holdout=None)
+        sub = estimate_family(images, psf_radius=r, holdout=None)
         draws = random_conditions(200, seed=11)
         unseen = [c for c, ok in zip(draws, within(draws, seen), strict=True) if ok]
         new, new_truths, _ = simulate_stack(args.images, (384, 384), 24, seed=11,

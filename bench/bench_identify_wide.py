@@ -41,7 +41,7 @@ from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import identify_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 
 
 def spread_picks(positions: np.ndarray, shape, r: float, p: int, margin: float = 2.0
@@ -144,7 +144,7 @@ def main():
                                           conditions=conds, optics=optics, **amp)
     r = int(np.median([t.psf_radius for t in truths]))
     t0 = time.perf_counter()
-    sub = estimate_subspace(images, psf_radius=r)
+    sub = estimate_family(images, psf_radius=r)
     print(f"family: I = {sub.n_psf}, J = {sub.n_space}, {time.perf_counter() - t0:.1f} s",
           flush=True)
     wider = {k: 1.5 * v for k, v in WIDE.items()} if args.outside else WIDE

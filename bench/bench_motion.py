@@ -1,11 +1,11 @@
-"""Motion blur over the scene family: false alarms on effect-free scenes, and the power
+"""Motion blur over the scene set: false alarms on effect-free scenes, and the power
 to find a smear of each length (random direction), with the length and direction found.
 
     python bench/bench_motion.py [--scenes N] [--quick]
     python bench/bench_motion.py --astigmatism    # still beads at an astigmatic line focus
     python bench/bench_motion.py --measured       # every 4th slice of ../shared/data stacks
 
-Scenes from :func:`~napari_psfspace.core.simulation.family.random_scene` (512 x 512; pixel size
+Scenes from :func:`~napari_psfspace.core.simulation.scene_set.random_scene` (512 x 512; pixel size
 43-160 nm, NA 0.7-1.49, emission 450-700 nm, aberration presets and random fields,
 20-600 beads, brightness spread, background 1-500 photons, 8/12/16-bit cameras). A
 smear of ``L`` px can be seen only where its first spectral zero ``1 / L`` lies inside
@@ -42,7 +42,7 @@ from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.model.motion import detect_motion
 from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
-from napari_psfspace.core.simulation.family import random_scene
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 
 def motion_of(image, truth, probe=None):
@@ -286,7 +286,7 @@ def main():
             ("found_of_visible", ".2f"), ("median_len_err_%", ".1f"),
             ("median_len_err_zero_bin_%", ".1f"),
             ("median_angle_err", ".1f"), ("min_ratio", ".3f")]
-    print("\nMotion blur over the scene family (length 0: effect-free, 'detected' is the "
+    print("\nMotion blur over the scene set (length 0: effect-free, 'detected' is the "
           "false-alarm rate)")
     print(table(rows, cols))
 

@@ -8,9 +8,9 @@
 saturation, vignetting, hot pixels, a defocus gradient, motion, companions and a
 compressive response, each at its default strength.
 
-Scenes are drawn by :func:`~napari_psfspace.core.simulation.family.random_scene` in the setting of
-issue 9's foreign-simulator cases (1024 x 1024, 150 beads, moderate aberrations, 100 nm
-pixels, bead brightness spread sigma 0.25), everything else from the family (NA,
+Scenes are drawn by :func:`~napari_psfspace.core.simulation.scene_set.random_scene` in the
+setting of issue 9's foreign-simulator cases (1024 x 1024, 150 beads, moderate aberrations, 100 nm
+pixels, bead brightness spread sigma 0.25), everything else from the scene set (NA,
 emission, background 1-500 photons, camera gain, offset, read noise, 8/12/16-bit), with
 calibration-grade beads (median peak 300-30000 photons). Each scene gets one effect at
 one strength, and is diagnosed with the true PSF radius and nothing else.
@@ -62,8 +62,8 @@ from napari_psfspace.core.diagnosis.analysis import THRESHOLDS
 from napari_psfspace.core.diagnosis.effects import REGISTRY
 from napari_psfspace.core.diagnosis.loop import diagnose
 from napari_psfspace.core.diagnosis.statistics import radial_trend
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.scene_set import random_scene
 
 SETTING = {"shape": (1024, 1024), "n_beads": 150, "aberrations": "moderate",
            "pixel_size": 0.1, "spread": 0.25, "peak_photons": (300.0, 3e4)}

@@ -21,7 +21,7 @@ from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 
 LOW = (4e3, 1.2e4)
 
@@ -32,7 +32,7 @@ def row(k, n_beads, seed, n_psf=None, n_space=None, alone=None, photons=1.0):
                                        amplitude=amplitude)
     r = int(np.median([t.psf_radius for t in truths]))
     t0 = time.perf_counter()
-    sub = estimate_subspace(images, psf_radius=r, n_psf=n_psf, n_space=n_space)
+    sub = estimate_family(images, psf_radius=r, n_psf=n_psf, n_space=n_space)
     seconds = time.perf_counter() - t0
     pooled = np.mean([np.mean(grid_errors(sub.operator(i), truths[i], n=4))
                       for i in range(sub.n_images)])

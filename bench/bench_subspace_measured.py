@@ -2,7 +2,7 @@
 
     python bench/bench_subspace_measured.py [--data ../shared/data]
 
-Each slice of a z-stack is the field at another focus. ``estimate_subspace`` learns one
+Each slice of a z-stack is the field at another focus. ``estimate_family`` learns one
 family from a range of slices around focus, holding about a fifth of each slice's beads
 out (spread over the field), and judges each slice's operator on them;
 ``estimate_operator`` on the slice alone holds out its own fifth (the same detection,
@@ -21,7 +21,7 @@ import numpy as np
 
 from benchlib import table
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.io import read_image
 
 SETS = {
@@ -38,7 +38,7 @@ def run(name: str, data: Path) -> list[dict]:
     if r is None:  # 0.5 um at the file's pixel size
         r = 0.5 / read_image(path, index=a)[1].pixel_size
     t0 = time.perf_counter()
-    sub = estimate_subspace(slices, psf_radius=r, holdout=0.2)
+    sub = estimate_family(slices, psf_radius=r, holdout=0.2)
     seconds = time.perf_counter() - t0
     rows = []
     for k, z in enumerate(sub.metadata["images"]):

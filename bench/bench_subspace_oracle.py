@@ -23,7 +23,7 @@ from benchlib import table
 from napari_psfspace.core.model.field import assemble_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 
 
 class Cached:
@@ -57,7 +57,7 @@ def main():
                                        amplitude=(4e3, 1.2e4))
     r = int(np.median([t.psf_radius for t in truths]))
     cached = [Cached(t) for t in truths]
-    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    sub = estimate_family(images, psf_radius=r, holdout=None)
     size = sub.basis.shape[1]
     nodes = np.stack(np.meshgrid(*sub.grid, indexing="ij"), -1).reshape(-1, 2)
     flat = sub.basis.reshape(sub.n_psf, -1)

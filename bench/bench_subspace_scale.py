@@ -1,4 +1,4 @@
-"""Time and peak memory of estimate_subspace against the number of images (issue 11).
+"""Time and peak memory of estimate_family against the number of images (issue 11).
 
     python bench/bench_subspace_scale.py [--ks 10 30 90] [--cache DIR]
 
@@ -31,12 +31,12 @@ CHILD = """
 import json, resource, sys, time
 import dask
 from napari_psfspace.io import stack_loaders
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 files, r = json.loads(sys.argv[1]), float(sys.argv[2])
 loaders, _ = stack_loaders(files)
 dask.config.set(num_workers=2)
 t0 = time.perf_counter()
-sub = estimate_subspace(loaders, psf_radius=r, holdout=None)
+sub = estimate_family(loaders, psf_radius=r, holdout=None)
 print(json.dumps({"seconds": time.perf_counter() - t0, "I": sub.n_psf, "J": sub.n_space,
                   "beads": sum(sub.metadata["beads_per_image"]),
                   "peak_MB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))

@@ -1,6 +1,6 @@
 """Real camera data: low counts, 8-bit images, hot pixels, known bead size, few beads.
 
-Scenes come from the seeded family of :mod:`napari_psfspace.core.simulation.family`: the optics,
+Scenes come from the seeded family of :mod:`napari_psfspace.core.simulation.scene_set`: the optics,
 camera and slide are drawn per seed, so nothing here holds for one setting only.
 """
 
@@ -14,8 +14,8 @@ from napari_psfspace.core.diagnosis.noise import noise_model
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.model.fewbeads import FEW_BEADS
 from napari_psfspace.core.simulation import FieldAberrations, Optics
-from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT, isolated, match, random_scene
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth, grid_errors
+from napari_psfspace.core.simulation.scene_set import LOW_COUNT_8BIT, isolated, match, random_scene
 
 LOW_COUNT = LOW_COUNT_8BIT
 
@@ -39,7 +39,7 @@ def test_noise_model_is_sane_or_names_its_fallback(seed):
     image, truth, params = random_scene(seed, **LOW_COUNT)
     m = noise_model(image)
     if m.kind == "photon transfer":
-        # measured over the family: gains within 0.8-1.2 x the truth where the checks pass
+        # measured over the scene set: gains within 0.8-1.2 x the truth where the checks pass
         assert 0.5 <= m.gain / params["gain"] <= 2.0
         assert m.checks["slope_z"] >= 3
     else:

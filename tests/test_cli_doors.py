@@ -19,7 +19,7 @@ import napari_psfspace as ps
 from napari_psfspace.cli import main
 from napari_psfspace.core.common.device import gpu_status
 from napari_psfspace.core.model.cone import Cone
-from napari_psfspace.core.subspace import OperatorSubspace
+from napari_psfspace.core.subspace import OperatorFamily
 
 
 @pytest.fixture(scope="module")
@@ -43,7 +43,7 @@ def files(tmp_path_factory):
     n_i = op.basis.shape[0]
     gy, gx = op.grid
     space = np.ones((1, len(gy), len(gx))) / np.sqrt(len(gy) * len(gx))
-    family = OperatorSubspace(op.basis, space, op.grid, op.shape, np.ones((2, n_i, 1)),
+    family = OperatorFamily(op.basis, space, op.grid, op.shape, np.ones((2, n_i, 1)),
                               Cone(np.eye(n_i)), metadata={"psf_radius": truth.psf_radius})
     family.save(d / "family.npz")
     raw = (d / "family.npz").read_bytes()
@@ -94,11 +94,11 @@ CASES = [
     ("psf {d}/text.npz --at 5 5 -o {d}/p.tif", "not an .npz archive", "p.tif"),
     ("apply {d}/trunc.npz {d}/beads.tif -o {d}/x.tif", "damaged model file", "x.tif"),
     ("deblur {d}/beads.tif --model {d}/flip.npz -o {d}/x.tif", "damaged model file", "x.tif"),
-    ("deblur {d}/beads.tif --subspace {d}/missing.npz -o {d}/x.tif",
-     "--subspace {d}/missing.npz: no such file", "x.tif"),
-    ("deblur {d}/beads.tif --subspace {d}/family_trunc.npz -o {d}/x.tif",
-     "damaged subspace file", "x.tif"),
-    ("deblur {d}/beads.tif --subspace {d}/family.npz --beads {d}/positions.csv -o {d}/x.tif",
+    ("deblur {d}/beads.tif --family {d}/missing.npz -o {d}/x.tif",
+     "--family {d}/missing.npz: no such file", "x.tif"),
+    ("deblur {d}/beads.tif --family {d}/family_trunc.npz -o {d}/x.tif",
+     "damaged family file", "x.tif"),
+    ("deblur {d}/beads.tif --family {d}/family.npz --beads {d}/positions.csv -o {d}/x.tif",
      "not a CSV text file", "x.tif"),
     ("deblur {d}/beads.tif --model {d}/model.npz --beads {d}/ok.csv -o {d}/x.tif",
      "--beads identifies", "x.tif"),
@@ -154,7 +154,7 @@ def trapped(monkeypatch):
         raise AssertionError("the long work started before the door was checked")
 
     for module, name in ((estimate, "iter_estimate"), (loop, "iter_diagnose"),
-                         (subspace, "iter_estimate_subspace"), (restore, "iter_deblur"),
+                         (subspace, "iter_estimate_family"), (restore, "iter_deblur"),
                          (restore, "identify_operator"), (simulation, "simulate_beads"),
                          (demo, "run_demo"), (deconvolve3d, "iter_richardson_lucy_3d"),
                          (fista3d, "iter_deblur_3d"), (tiles3d, "richardson_lucy_3d_tiled")):
@@ -206,17 +206,17 @@ def test_damaged_files_are_value_errors_in_the_api(files):
             assert "fuzz.npz" in str(exc)
             damaged += 1
     assert damaged >= 140  # nearly every byte is under a checksum
-    with pytest.raises(ValueError, match="damaged subspace file"):
-        ps.load_subspace(files / "family_trunc.npz")
+    with pytest.raises(ValueError, match="damaged family file"):
+        ps.load_family(files / "family_trunc.npz")
     with pytest.raises(FileNotFoundError):
-        ps.load_subspace(files / "missing.npz")
+        ps.load_family(files / "missing.npz")
 
 
 def test_the_api_names_the_wrong_argument(files):
     image = tifffile.imread(files / "beads.tif")
     op = ps.load_operator(files / "model.npz")
-    family = ps.load_subspace(files / "family.npz")
-    with pytest.raises(TypeError, match="`subspace` must be an OperatorSubspace"):
+    family = ps.load_family(files / "family.npz")
+    with pytest.raises(TypeError, match="`family` must be an OperatorFamily"):
         ps.identify_operator(image, op)
     with pytest.raises(TypeError, match="`operator` must be a ProductConvolution"):
         ps.deblur(image, family)

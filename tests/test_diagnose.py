@@ -154,7 +154,7 @@ def test_assumed_noise_model_chi_square_does_not_decide(monkeypatch):
     from napari_psfspace.core.diagnosis import loop
     from napari_psfspace.core.diagnosis.effects import REGISTRY
     from napari_psfspace.core.diagnosis.effects.nonlinearity import Nonlinearity, _dark_level
-    from napari_psfspace.core.simulation.family import random_scene
+    from napari_psfspace.core.simulation.scene_set import random_scene
 
     class Forced(Nonlinearity):
         name = "_test_nonlinearity"

@@ -15,7 +15,7 @@ from napari_psfspace.core.model.cone import reduce_cone
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
-from napari_psfspace.core.subspace import OperatorSubspace, estimate_subspace
+from napari_psfspace.core.subspace import OperatorFamily, estimate_family
 from napari_psfspace.core.subspace.estimate import family_cone
 
 #: Conditions over about +-1 depth of field at NA 1.3, tilts, spherical drift
@@ -42,7 +42,7 @@ def test_an_image_the_family_explains_worse_keeps_its_own_estimate(wide, tmp_pat
     """A family forced to one PSF shape cannot hold a wide focus series: every image's
     held-out beads say so, and each keeps exactly what estimate_operator gives it."""
     images, truths, r, alone = wide
-    sub = estimate_subspace(images, psf_radius=r, n_psf=1, n_space=1)
+    sub = estimate_family(images, psf_radius=r, n_psf=1, n_space=1)
     choice = sub.metadata["operator_choice"]
     assert [c["model"] for c in choice] == ["own"] * len(images), choice
     assert all(c["heldout_own"] < c["heldout_family"] for c in choice)
@@ -55,7 +55,7 @@ def test_an_image_the_family_explains_worse_keeps_its_own_estimate(wide, tmp_pat
     # the file keeps them, without pickle
     path = tmp_path / "family.npz"
     sub.save(path)
-    back = OperatorSubspace.load(path)
+    back = OperatorFamily.load(path)
     assert sorted(back.own) == list(range(len(images)))
     for k in (0, 5):
         np.testing.assert_array_equal(back.operator(k).psf_at(100.0, 50.0),
@@ -65,7 +65,7 @@ def test_an_image_the_family_explains_worse_keeps_its_own_estimate(wide, tmp_pat
 
 def test_a_version_1_file_reads_as_a_family_without_own_operators(wide, tmp_path):
     images, _, r, _ = wide
-    sub = estimate_subspace(images[:3], psf_radius=r, holdout=None)
+    sub = estimate_family(images[:3], psf_radius=r, holdout=None)
     assert sub.own == {} and sub.metadata["operator_choice"] is None
     path = tmp_path / "v2.npz"
     sub.save(path)
@@ -75,7 +75,7 @@ def test_a_version_1_file_reads_as_a_family_without_own_operators(wide, tmp_path
     header["version"] = 1
     old = tmp_path / "v1.npz"
     np.savez(old, **arrays, header=np.frombuffer(json.dumps(header).encode(), np.uint8))
-    back = OperatorSubspace.load(old)
+    back = OperatorFamily.load(old)
     assert back.own == {}
     np.testing.assert_array_equal(back.operator(1).psf_at(9.0, 9.0),
                                   sub.operator(1).psf_at(9.0, 9.0))
@@ -83,7 +83,7 @@ def test_a_version_1_file_reads_as_a_family_without_own_operators(wide, tmp_path
 
 def test_a_damaged_version_2_file_names_what_is_wrong(wide, tmp_path):
     images, _, r, _ = wide
-    sub = estimate_subspace(images[:3], psf_radius=r, n_psf=1, n_space=1)
+    sub = estimate_family(images[:3], psf_radius=r, n_psf=1, n_space=1)
     assert sub.own  # the family forced to one PSF: the images keep their own estimates
     path = tmp_path / "family.npz"
     sub.save(path)
@@ -102,7 +102,7 @@ def test_a_damaged_version_2_file_names_what_is_wrong(wide, tmp_path):
         out = tmp_path / f"damaged_{name}.npz"
         np.savez(out, **damaged)
         with pytest.raises(ValueError, match=message):
-            OperatorSubspace.load(out)
+            OperatorFamily.load(out)
 
 
 def test_a_wide_focus_series_is_never_worse_in_the_family(wide):
@@ -111,7 +111,7 @@ def test_a_wide_focus_series_is_never_worse_in_the_family(wide):
     image is within the own estimate's error (the family kept where its held-out beads
     say it is at least as good) and the mean is no worse."""
     images, truths, r, alone = wide
-    sub = estimate_subspace(images, psf_radius=r)
+    sub = estimate_family(images, psf_radius=r)
     ratio = _errors([sub.operator(k) for k in range(len(images))], truths) \
         / _errors(alone, truths)
     # measured 1.00, 0.69, 0.95, 1.00, 0.56, 0.83 with issue 45's neighbour rule (mean
@@ -156,7 +156,7 @@ def test_measured_slices_are_never_worse_in_the_family(shared_data, name, first,
     path = shared_data / name
     slices = [read_image(path, index=z)[0] for z in range(first, last)]
     r = radius if radius is not None else 0.5 / read_image(path, index=first)[1].pixel_size
-    sub = estimate_subspace(slices, psf_radius=r)
+    sub = estimate_family(slices, psf_radius=r)
     choice = sub.metadata["operator_choice"]
     for k, z in enumerate(sub.metadata["images"]):
         alone = estimate_operator(slices[z], psf_radius=r).metadata["heldout"]
@@ -177,16 +177,16 @@ def test_too_few_beads_left_for_the_held_out_family_keeps_the_family():
     the error names the count per image."""
     images, truths, _ = simulate_stack(2, (384, 384), 6, seed=0)
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r, n_psf=3, holdout=0.5)
+    sub = estimate_family(images, psf_radius=r, n_psf=3, holdout=0.5)
     assert sum(sub.metadata["beads_per_image"]) >= 8  # enough for the family itself
     assert sub.n_psf == 3
     assert [c["model"] for c in sub.metadata["operator_choice"]] == ["family"] * 2
     assert sub.family_weights.tolist() == [1.0, 1.0]
     sparse, _, _ = simulate_stack(2, (256, 256), 2, seed=0)
     with pytest.raises(ValueError, match=r"at least 5 usable beads over all images, got \d"):
-        estimate_subspace(sparse, psf_radius=r)
+        estimate_family(sparse, psf_radius=r)
     with pytest.raises(ValueError, match=r"`n_psf` = 9 needs at least 20 usable beads"):
-        estimate_subspace(images, psf_radius=r, n_psf=9)
+        estimate_family(images, psf_radius=r, n_psf=9)
 
 
 def _curve(means, sd, n=20):
@@ -270,7 +270,7 @@ def test_faint_images_lean_to_the_family_where_their_held_out_beads_are_noise():
     it to the family (bench/RESULTS.md)."""
     images, truths, _ = simulate_stack(6, (512, 512), 40, seed=1, amplitude=(1200.0, 1800.0))
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r)
+    sub = estimate_family(images, psf_radius=r)
     choices = sub.metadata["operator_choice"]
     priors = [c["prior_weight"] for c in choices]
     # measured 0.94-1.00 (the share's alone: 0.61-0.86)

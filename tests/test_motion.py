@@ -14,8 +14,8 @@ from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.model.motion import detect_motion, motion_transfer
 from napari_psfspace.core.simulation import Optics
-from napari_psfspace.core.simulation.family import random_scene
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth
+from napari_psfspace.core.simulation.scene_set import random_scene
 from napari_psfspace.report import model_lines
 
 OPTICS = Optics(pixel_size=0.1)  # NA 1.3, 600 nm: cutoff 0.43 cycles/px

@@ -50,7 +50,7 @@ def test_the_noise_model_completes_or_names_its_failure_on_120_scenes():
     "zero-size array" from inside the message meant to explain it.)"""
     from napari_psfspace.core.diagnosis.noise import NoiseModelError, noise_model
     from napari_psfspace.core.simulation.damage import damaged
-    from napari_psfspace.core.simulation.family import random_scene
+    from napari_psfspace.core.simulation.scene_set import random_scene
 
     kinds = {}
     seed = -1

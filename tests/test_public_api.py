@@ -28,7 +28,7 @@ from napari_psfspace.cli import build_parser
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 METHOD = ["estimate_operator", "iter_estimate", "diagnose", "iter_diagnose",
-          "estimate_subspace", "iter_estimate_subspace", "OperatorSubspace", "load_subspace",
+          "estimate_family", "iter_estimate_family", "OperatorFamily", "load_family",
           "identify_operator", "deblur", "iter_deblur", "Deblurred", "load_operator",
           "ProductConvolution", "suggest_psf_radius", "Progress", "run_with_progress",
           "estimate_operator_3d", "ProductConvolution3D", "load_operator_3d"]
@@ -111,7 +111,7 @@ TWINS = [
     ("estimate_operator", "iter_estimate", {"beads", "z_threshold", "patch_filter",
                                              "motion_test"}),
     ("diagnose", "iter_diagnose", set()),
-    ("estimate_subspace", "iter_estimate_subspace", set()),
+    ("estimate_family", "iter_estimate_family", set()),
     ("deblur", "iter_deblur", set()),
     ("estimate_operator_3d", "iter_estimate_operator_3d", set()),
     ("core.restore.norm.operator_norm2", "core.restore.norm.iter_operator_norm2",

@@ -211,7 +211,7 @@ def test_to_jsonable():
 def test_an_assumed_noise_model_qualifies_the_floor(tmp_path):
     """An 8-bit export whose background noise is below the integers' rounding: the noise
     model is a named fallback, and the report says its floor is only indicative."""
-    from napari_psfspace.core.simulation.family import LOW_COUNT_8BIT, random_scene
+    from napari_psfspace.core.simulation.scene_set import LOW_COUNT_8BIT, random_scene
     from napari_psfspace.report import summary_text
 
     image, truth, _ = random_scene(14, **{**LOW_COUNT_8BIT, "gain": 0.02})
@@ -260,7 +260,7 @@ def test_a_model_that_does_not_explain_its_beads_says_so_first(tmp_path):
 def test_family_reports_chain(seed):
     """Every line's figures chain on scenes of the family with an effect to find (column
     offsets), as on the measured sets (tests/test_measured.py)."""
-    from napari_psfspace.core.simulation.family import random_scene
+    from napari_psfspace.core.simulation.scene_set import random_scene
 
     image, truth, _ = random_scene(seed, shape=(384, 384), n_beads=(40, 60),
                                    effects={"column_offsets": 6.0})

@@ -21,7 +21,7 @@ from napari_psfspace.core.restore.identify import (
 from napari_psfspace.core.restore.smooth_grid import SmoothGrid
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 from tolerances import U32, U64, abs_dot, gamma, sum_error
 
 LOW = {"amplitude": (4e3, 1.2e4)}  # bead photons x0.2 of the default: noisy beads
@@ -225,7 +225,7 @@ def family():
     0.134 with every bead against 0.061 for the image alone)."""
     images, truths, seen = simulate_stack(16, (384, 384), 24, seed=0, **LOW)
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    sub = estimate_family(images, psf_radius=r, holdout=None)
     draws = random_conditions(40, seed=11)
     unseen = [c for c, ok in zip(draws, within(draws, seen), strict=True) if ok][:3]
     new, new_truths, _ = simulate_stack(3, (384, 384), 24, seed=11, conditions=unseen,
@@ -393,7 +393,7 @@ def test_cli_deblur_with_a_subspace_and_clicked_beads(family, tmp_path):
     rows = "\n".join(f"{i},{y},{x}" for i, (y, x) in enumerate(inner))
     beads.write_text("index,axis-0,axis-1\n" + rows + "\n")  # napari's Points CSV
     out = tmp_path / "out.tif"
-    assert main(["deblur", str(image), "--subspace", str(path), "--beads", str(beads),
+    assert main(["deblur", str(image), "--family", str(path), "--beads", str(beads),
                  "-o", str(out), "--parts", "-q", "--max-iter", "40"]) == 0
     got = tifffile.imread(out)
     assert got.shape == new[0].shape and got.dtype == np.float32 and got.min() >= 0
@@ -405,7 +405,8 @@ def test_cli_deblur_with_a_subspace_and_clicked_beads(family, tmp_path):
     for y, x in inner:
         assert sparse[int(round(y)) - 2:int(round(y)) + 3,
                       int(round(x)) - 2:int(round(x)) + 3].sum() > 0
-    # a single model is used as it is; --beads goes with a subspace only
+    # a single model is used as it is; --beads goes with a family only (and --subspace,
+    # the deprecated name of --family, still refuses a model file)
     model = tmp_path / "model.npz"
     sub.operator(0).save(model)
     assert main(["deblur", str(image), "--model", str(model), "--beads", str(beads),

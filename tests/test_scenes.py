@@ -1,10 +1,10 @@
-"""The scene family (core/simulation/family.py, issue 9): seeded, within its ranges, and
+"""The scene set (core/simulation/scene_set.py, issue 9): seeded, within its ranges, and
 covering them, so that thresholds calibrated on it are calibrated on a family."""
 
 import numpy as np
 import pytest
 
-from napari_psfspace.core.simulation.family import RANGES, random_scene
+from napari_psfspace.core.simulation.scene_set import RANGES, random_scene
 
 SEEDS = range(24)
 

@@ -254,7 +254,7 @@ def test_close_companions_by_distance_in_pixels():
 
 
 def test_scene_defocus_gradient_spans_the_field():
-    from napari_psfspace.core.simulation.family import random_scene
+    from napari_psfspace.core.simulation.scene_set import random_scene
 
     shape = (256, 256)
     _, plain, _ = random_scene(3, shape=shape)

@@ -11,7 +11,7 @@ import pytest
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import OperatorSubspace, estimate_subspace
+from napari_psfspace.core.subspace import OperatorFamily, estimate_family
 from tolerances import U32
 
 LOW = {"amplitude": (4e3, 1.2e4)}  # photons x0.2 of the default: noisy beads
@@ -27,7 +27,7 @@ def few_beads():
     """12 images of 7 beads: one image alone supports only one PSF."""
     images, truths, _ = simulate_stack(12, (384, 384), 7, seed=0, **LOW)
     r = int(np.median([t.psf_radius for t in truths]))
-    return images, truths, r, estimate_subspace(images, psf_radius=r)
+    return images, truths, r, estimate_family(images, psf_radius=r)
 
 
 def test_few_beads_images_gain_from_the_family(few_beads):
@@ -43,7 +43,7 @@ def test_few_beads_images_gain_from_the_family(few_beads):
 def test_a_stack_of_dense_images_does_better_than_each_alone():
     images, truths, _ = simulate_stack(8, (384, 384), 24, seed=1, **LOW)
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r)
+    sub = estimate_family(images, psf_radius=r)
     alone = _errors([estimate_operator(im, psf_radius=r) for im in images], truths)
     pooled = _errors([sub.operator(k) for k in range(len(images))], truths)
     # measured: 0.099 against 0.121 (ratio 0.82). Issue 11 asks for 0.6: out of reach of
@@ -66,7 +66,7 @@ def test_the_family_is_consistent(few_beads, tmp_path):
     # the file: no pickle, the same operators back
     path = tmp_path / "family.npz"
     sub.save(path)
-    back = OperatorSubspace.load(path)
+    back = OperatorFamily.load(path)
     np.testing.assert_array_equal(back.gammas, sub.gammas)
     np.testing.assert_array_equal(back.space, sub.space)
     np.testing.assert_allclose(back.operator(5).psf_at(50.0, 60.0),
@@ -90,7 +90,7 @@ def test_loaders_read_one_image_at_a_time_and_give_the_same_family(few_beads):
             return images[k]
         return load
 
-    again = estimate_subspace([loader(k) for k in range(len(images))], psf_radius=r)
+    again = estimate_family([loader(k) for k in range(len(images))], psf_radius=r)
     assert sorted(calls) == list(range(len(images)))
     np.testing.assert_allclose(again.gammas, sub.gammas, atol=1e-12)
 
@@ -102,7 +102,7 @@ def test_a_distributed_cluster_gives_the_same_family(few_beads):
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False,
                                   dashboard_address=None) as cluster, \
             distributed.Client(cluster) as client:
-        remote = estimate_subspace(images, psf_radius=r, client=client)
+        remote = estimate_family(images, psf_radius=r, client=client)
     np.testing.assert_allclose(remote.gammas, sub.gammas, atol=1e-10)
     np.testing.assert_allclose(remote.basis, sub.basis, atol=1e-12)
 
@@ -111,18 +111,18 @@ def test_bad_stacks_get_clear_errors_or_named_skips():
     images, truths, _ = simulate_stack(3, (256, 256), 6, seed=2, **LOW)
     r = truths[0].psf_radius
     with pytest.raises(ValueError, match="at least 2 images"):
-        estimate_subspace(images[:1], psf_radius=r)
+        estimate_family(images[:1], psf_radius=r)
     with pytest.raises(ValueError, match="one 2-D image"):
-        estimate_subspace(images[0], psf_radius=r)
+        estimate_family(images[0], psf_radius=r)
     with pytest.raises(ValueError, match="image 2 is"):
-        estimate_subspace([images[0], images[1], images[2][:200]], psf_radius=r)
+        estimate_family([images[0], images[1], images[2][:200]], psf_radius=r)
     with pytest.raises(ValueError, match="psf_radius"):
-        estimate_subspace(images, psf_radius=-1)
+        estimate_family(images, psf_radius=-1)
     blank = np.full_like(images[0], 100)
-    sub = estimate_subspace([images[0], blank, images[1], images[2]], psf_radius=r)
+    sub = estimate_family([images[0], blank, images[1], images[2]], psf_radius=r)
     assert "1" in sub.metadata["skipped"] and sub.n_images == 3  # the blank one, named
     with pytest.raises(ValueError, match="with usable beads"):
-        estimate_subspace([blank, blank, images[0]], psf_radius=r)
+        estimate_family([blank, blank, images[0]], psf_radius=r)
 
 
 def test_learn_and_psf_from_the_command_line(tmp_path, capsys):
@@ -141,7 +141,7 @@ def test_learn_and_psf_from_the_command_line(tmp_path, capsys):
     assert main(["learn", str(stack), "--slices", "1:4", "-o", str(out), "--psf-radius", r,
                  "-q"]) == 0
     assert "3 images" in capsys.readouterr().out
-    sub = OperatorSubspace.load(out)
+    sub = OperatorFamily.load(out)
     assert sub.n_images == 3 and sub.metadata["inputs"][0] == "stack.tif[1]"
     assert main(["learn", str(folder), "-o", str(tmp_path / "f2.npz"), "--psf-radius", r,
                  "-q"]) == 0
@@ -176,7 +176,7 @@ def test_faint_dense_stacks_are_not_made_worse_by_the_family():
     patches (and the basis images refitted to each bead's own coefficients)."""
     images, truths, _ = simulate_stack(8, (384, 384), 24, seed=1, amplitude=(1e3, 3e3))
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images, psf_radius=r, holdout=None)
+    sub = estimate_family(images, psf_radius=r, holdout=None)
     assert sub.metadata["psf_size_by"] == "whitened rule"
     assert sub.metadata["space_size_by"] == "rule"
     assert sub.n_psf <= 6, sub.n_psf  # measured 4 (the rule on the filtered patches: 49)

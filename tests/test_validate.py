@@ -106,7 +106,7 @@ def _beads_image():
 
 @pytest.mark.parametrize(("call", "names"), [
     (lambda ps, img: ps.diagnose(img, psf_radius=8, folds=0), "`folds`"),
-    (lambda ps, img: ps.estimate_subspace(np.stack([img] * 3), psf_radius=8, client="x"),
+    (lambda ps, img: ps.estimate_family(np.stack([img] * 3), psf_radius=8, client="x"),
      "`client`"),
     (lambda ps, img: ps.estimate_operator((img > np.percentile(img, 99)).astype(np.uint8),
                                           psf_radius=8), "two values only"),

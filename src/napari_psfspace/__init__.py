@@ -15,7 +15,7 @@ progress and can stop). Typical use::
     op = ps.load_operator("model.npz")
 
 One operator (:func:`estimate_operator`), its diagnosis (:func:`diagnose`), a family
-of operators from many images (:func:`estimate_subspace`, :func:`load_subspace`), the
+of operators from many images (:func:`estimate_family`, :func:`load_family`), the
 operator of the family that explains a few beads (:func:`identify_operator`) and the
 deblurring with it (:func:`deblur`); from a bead z-stack, a space-varying 3D PSF
 (:func:`estimate_operator_3d`).
@@ -39,8 +39,8 @@ from .core.restore import Deblurred, deblur, identify_operator, iter_deblur
 from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
 from .core.simulation.focus import simulate_focus_series
 from .core.simulation.metrics import psf_error
-from .core.subspace import OperatorSubspace, estimate_subspace, iter_estimate_subspace
-from .core.subspace.result import load_subspace
+from .core.subspace import OperatorFamily, estimate_family, iter_estimate_family
+from .core.subspace.result import load_family
 from .core.volume import (
     ProductConvolution3D,
     deblur_3d,
@@ -60,7 +60,7 @@ __all__ = [
     "Estimation",
     "FieldAberrations",
     "NoBeadsError",
-    "OperatorSubspace",
+    "OperatorFamily",
     "Optics",
     "Patches",
     "ProductConvolution",
@@ -76,7 +76,7 @@ __all__ = [
     "diagnose",
     "estimate_operator",
     "estimate_operator_3d",
-    "estimate_subspace",
+    "estimate_family",
     "extract_patches",
     "identify_operator",
     "iter_deblur",
@@ -84,12 +84,12 @@ __all__ = [
     "iter_diagnose",
     "iter_estimate",
     "iter_estimate_operator_3d",
-    "iter_estimate_subspace",
+    "iter_estimate_family",
     "iter_heldout_error",
     "iter_richardson_lucy_3d",
     "load_operator",
     "load_operator_3d",
-    "load_subspace",
+    "load_family",
     "psf_error",
     "richardson_lucy_3d",
     "richardson_lucy_3d_tiled",
@@ -100,3 +100,14 @@ __all__ = [
     "spot_scale",
     "suggest_psf_radius",
 ]
+
+
+def __getattr__(name: str):
+    """The old names of the family of operators ("subspace"): deprecated, still there."""
+    from .core.common.deprecate import module_getattr
+
+    return module_getattr(__name__, {
+        "OperatorSubspace": ("OperatorFamily", lambda: OperatorFamily),
+        "estimate_subspace": ("estimate_family", lambda: estimate_family),
+        "iter_estimate_subspace": ("iter_estimate_family", lambda: iter_estimate_family),
+        "load_subspace": ("load_family", lambda: load_family)})(name)

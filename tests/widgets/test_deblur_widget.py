@@ -7,14 +7,14 @@ from conftest import wait_task
 from napari_psfspace._widgets._deblur import SMOOTH, SOURCES, SPARSE, DeblurWidget
 from napari_psfspace._widgets._layers import SUBSPACE_KEY
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import estimate_subspace
+from napari_psfspace.core.subspace import estimate_family
 
 
 @pytest.fixture(scope="module")
 def family():
     images, truths, _ = simulate_stack(6, (256, 256), 12, seed=5)
     r = int(np.median([t.psf_radius for t in truths]))
-    sub = estimate_subspace(images[:5], psf_radius=r, holdout=None)
+    sub = estimate_family(images[:5], psf_radius=r, holdout=None)
     return sub, images[5], truths[5]
 
 

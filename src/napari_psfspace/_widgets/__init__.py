@@ -5,7 +5,7 @@ One module per dock widget; ``_layers`` converts between layers and core objects
 names the classes directly, so importing this package stays cheap.
 """
 
-__all__ = ["DeblurWidget", "DiagnoseWidget", "LearnOperatorWidget", "LearnSubspaceWidget",
+__all__ = ["DeblurWidget", "DiagnoseWidget", "LearnOperatorWidget", "LearnFamilyWidget",
            "PickBeadsWidget", "ReviewPatchesWidget", "Volume3DWidget"]
 
 
@@ -26,10 +26,10 @@ def __getattr__(name: str):
         from ._diagnose import DiagnoseWidget
 
         return DiagnoseWidget
-    if name == "LearnSubspaceWidget":
-        from ._learn_subspace import LearnSubspaceWidget
+    if name == "LearnFamilyWidget":
+        from ._learn_family import LearnFamilyWidget
 
-        return LearnSubspaceWidget
+        return LearnFamilyWidget
     if name == "DeblurWidget":
         from ._deblur import DeblurWidget
 

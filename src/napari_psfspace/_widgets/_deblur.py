@@ -1,6 +1,6 @@
 """Dock widget 6: deblur an image of point sources with a model or a family of operators.
 
-With a family (a subspace file, or the *Learn subspace* result in the viewer), the
+With a family (a family file, or the *Learn family* result in the viewer), the
 image's operator is first identified from its beads (a Points layer, or detected); with a
 single model it is used as it is. The work (:func:`~napari_psfspace.core.restore.
 identify_operator` then :func:`~napari_psfspace.core.restore.iter_deblur`) runs in a
@@ -54,15 +54,15 @@ if TYPE_CHECKING:
 #: Names of the result layers, before the slice and the unit.
 SPARSE = "deblurred: sparse part"
 SMOOTH = "deblurred: smooth part"
-SOURCES = ("file (subspace or model)", "from the viewer")
+SOURCES = ("file (family or model)", "from the viewer")
 
 
 def _identify_and_deblur(plane, model, beads, **kwargs):
     """Identify the operator when ``model`` is a family, then deblur (in the worker)."""
-    from ..core.subspace import OperatorSubspace
+    from ..core.subspace import OperatorFamily
 
     op, note = model, "the model as it is"
-    if isinstance(model, OperatorSubspace):
+    if isinstance(model, OperatorFamily):
         yield Progress("identify", 0.0, "identifying the operator from the beads")
         with warnings.catch_warnings():  # shown in the note instead
             warnings.simplefilter("ignore", IdentificationWarning)
@@ -213,18 +213,18 @@ class DeblurWidget(Container):
             model = None if name is None else _model_of(self._viewer, name)
             if model is None:
                 raise ValueError("in the viewer: no model or family yet (learn one with "
-                                 "Learn operator or Learn subspace, or open a file)")
+                                 "Learn operator or Learn family, or open a file)")
             return model
         path = str(self.path.value)
         if path in ("", "."):
-            raise ValueError("file: choose a model or subspace file (.npz)")
+            raise ValueError("file: choose a model or family file (.npz)")
         from ..core.model.operator import load_operator
         from ..core.model.operator_file import archive_format
-        from ..core.subspace.result import load_subspace
+        from ..core.subspace.result import load_family
         from ..core.subspace.subspace_file import FORMAT_NAME
 
         p = Path(path)
-        return load_subspace(p) if archive_format(p) == FORMAT_NAME else load_operator(p)
+        return load_family(p) if archive_format(p) == FORMAT_NAME else load_operator(p)
 
     def run(self, *_) -> None:
         """Deblur in a worker thread; add the sparse and smooth parts when done."""

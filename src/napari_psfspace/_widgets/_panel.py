@@ -30,8 +30,8 @@ from qtpy.QtWidgets import (
 from ._deblur import DeblurWidget
 from ._diagnose import DiagnoseWidget
 from ._layers import BEADS, OPERATOR_KEY, SUBSPACE_KEY, group_layers, remove_step
+from ._learn_family import LearnFamilyWidget
 from ._learn_operator import LearnOperatorWidget
-from ._learn_subspace import LearnSubspaceWidget
 from ._pick_beads import PickBeadsWidget
 from ._review_patches import ReviewPatchesWidget
 from ._volume import Volume3DWidget
@@ -46,7 +46,7 @@ STEPS = (
     ("Review", ReviewPatchesWidget, "a beads layer: detect beads in the Beads step first"),
     ("Model", LearnOperatorWidget, "an image layer: open a bead image"),
     ("Diagnose", DiagnoseWidget, "an image layer: open a bead image"),
-    ("Family", LearnSubspaceWidget, "several images: a z-stack, or two or more 2-D images"),
+    ("Family", LearnFamilyWidget, "several images: a z-stack, or two or more 2-D images"),
     ("Deblur", DeblurWidget, "a learnt model or family: run the Model or Family step, or "
                              "open a model file"),
     ("3D", Volume3DWidget, "a z-stack image layer (Z, Y, X)"),

@@ -15,21 +15,28 @@ def run(args) -> int:
     from ..core.model.operator_file import archive_format
     from ..core.restore import identify_operator, iter_deblur
     from ..core.restore.identify import IdentificationWarning
-    from ..core.subspace.result import load_subspace
-    from ..core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
+    from ..core.subspace.result import load_family
+    from ..core.subspace.subspace_file import FORMAT_NAME as FAMILY
     from ..io import check_output_file, read_image, read_points_csv, write_tiff
 
     out = check_output_file(args.output, "-o")
+    option = "--family"
+    if args.subspace is not None:  # its old name: said once, then the same run
+        from ..core.common.deprecate import message
+
+        print(f"psfspace deblur: FutureWarning: {message('--subspace', '--family')}",
+              file=sys.stderr)
+        args.family, option = args.subspace, "--subspace"
     if args.parts:
         for name in ("sparse", "smooth"):
             check_output_file(out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}"),
                               "--parts")
-    if args.subspace is not None:
-        existing(args.subspace, "--subspace")
+    if args.family is not None:
+        existing(args.family, option)
     else:
         existing(args.model, "--model")
         if args.beads:
-            raise ValueError("--beads identifies an operator of a --subspace; with --model "
+            raise ValueError("--beads identifies an operator of a --family; with --model "
                              "the model is used as it is")
     if args.beads:
         existing(args.beads, "--beads")
@@ -38,11 +45,11 @@ def run(args) -> int:
     device = array_module(args.device)  # gpu without CuPy or a device: one line, no work
     image, info = read_image(args.image, index=args.slice)
     t0 = time.perf_counter()
-    if args.subspace is not None:
-        if archive_format(args.subspace) not in (SUBSPACE, None):  # None: for the reader
-            raise ValueError(f"--subspace {args.subspace} is not a subspace file (learn one "
+    if args.family is not None:
+        if archive_format(args.family) not in (FAMILY, None):  # None: for the reader
+            raise ValueError(f"{option} {args.family} is not a family file (learn one "
                              "with psfspace learn); a single model goes with --model")
-        sub = load_subspace(args.subspace)
+        sub = load_family(args.family)
         beads = read_points_csv(args.beads) if args.beads else None
         with warnings.catch_warnings():  # said below, once
             warnings.simplefilter("ignore", IdentificationWarning)
@@ -85,11 +92,12 @@ def run(args) -> int:
 
 def add_parser(sub) -> None:
     db = sub.add_parser("deblur", help="deblur point sources on a smooth background: with "
-                        "an operator identified from a subspace (blind) or a model")
+                        "an operator identified from a family (blind) or a model")
     db.add_argument("image", help="TIFF image (a slice of a stack with --slice)")
     src = db.add_mutually_exclusive_group(required=True)
-    src.add_argument("--subspace", metavar="FILE", help="family of operators (psfspace "
+    src.add_argument("--family", metavar="FILE", help="family of operators (psfspace "
                      "learn): the image's operator is identified from its beads")
+    src.add_argument("--subspace", metavar="FILE", help="deprecated: --family")
     src.add_argument("--model", metavar="FILE", help="one operator (psfspace estimate)")
     db.add_argument("--beads", metavar="CSV", help="bead positions to identify from "
                     "(napari Points CSV or row,column; default: detected)")

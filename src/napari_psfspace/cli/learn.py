@@ -12,7 +12,7 @@ def run(args) -> int:
     from ..core.beads.radius import suggest_series_radius
     from ..core.common.errors import NoBeadsError
     from ..core.common.progress import run_with_progress
-    from ..core.subspace import iter_estimate_subspace
+    from ..core.subspace import iter_estimate_family
     from ..core.subspace.estimate import max_space
     from ..io import check_output_file, read_image, read_slice, stack_loaders
 
@@ -56,7 +56,7 @@ def run(args) -> int:
             raise ValueError(f"--scheduler {args.scheduler}: no dask scheduler answered "
                              f"within {common.SCHEDULER_TIMEOUT} ({type(exc).__name__})") from None
     try:
-        gen = iter_estimate_subspace(loaders, psf_radius=r, n_psf=args.n_psf,
+        gen = iter_estimate_family(loaders, psf_radius=r, n_psf=args.n_psf,
                                      n_space=args.n_space, client=client,
                                      threshold=args.threshold)
         sub = run_with_progress(gen, None if args.quiet else progress_printer())
@@ -74,12 +74,12 @@ def run(args) -> int:
 
 
 def add_parser(sub) -> None:
-    ln = sub.add_parser("learn", help="learn the subspace of a microscope's operators from "
+    ln = sub.add_parser("learn", help="learn the family of a microscope's operators from "
                         "bead images under many conditions")
     ln.add_argument("inputs", nargs="+", metavar="INPUT",
                     help="TIFF images (one per condition), a folder of them, or a stack "
                          "whose slices are the conditions")
-    ln.add_argument("-o", "--output", required=True, help="subspace file to write (.npz)")
+    ln.add_argument("-o", "--output", required=True, help="family file to write (.npz)")
     g = ln.add_mutually_exclusive_group()
     g.add_argument("--psf-radius", type=POSITIVE,
                    help="PSF radius r in pixels (default: suggested from the first image)")

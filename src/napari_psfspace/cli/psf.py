@@ -8,23 +8,23 @@ from .common import FINITE, INDEX, existing
 def run(args) -> int:
     from ..core.model.operator import load_operator
     from ..core.model.operator_file import archive_format
-    from ..core.subspace.result import load_subspace
+    from ..core.subspace.result import load_family
     from ..core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
     from ..io import check_output_file, write_tiff
 
     existing(args.model, "MODEL")
     check_output_file(args.output, "-o")
     if archive_format(args.model) == SUBSPACE:
-        sub = load_subspace(args.model)
+        sub = load_family(args.model)
         if args.image is None:
-            raise ValueError(f"{args.model} is a subspace of {sub.n_images} images: pass "
+            raise ValueError(f"{args.model} is a family of {sub.n_images} images: pass "
                              f"--image K (0 to {sub.n_images - 1})")
         if not args.image < sub.n_images:
             raise ValueError(f"--image {args.image} is out of range: {args.model} holds "
                              f"{sub.n_images} images (0 to {sub.n_images - 1})")
         op = sub.operator(args.image)
     elif args.image is not None:
-        raise ValueError(f"--image is for a subspace; {args.model} is a single model")
+        raise ValueError(f"--image is for a family; {args.model} is a single model")
     else:
         op = load_operator(args.model)
     y, x = args.at
@@ -43,10 +43,10 @@ def run(args) -> int:
 
 
 def add_parser(sub) -> None:
-    f = sub.add_parser("psf", help="write the PSF of a model (or of image K of a subspace) "
+    f = sub.add_parser("psf", help="write the PSF of a model (or of image K of a family) "
                        "at a field position")
-    f.add_argument("model", help="model or subspace file (.npz)")
-    f.add_argument("--image", type=INDEX, metavar="K", help="image K of a subspace")
+    f.add_argument("model", help="model or family file (.npz)")
+    f.add_argument("--image", type=INDEX, metavar="K", help="image K of a family")
     f.add_argument("--at", type=FINITE, nargs=2, required=True, metavar=("ROW", "COL"))
     f.add_argument("-o", "--output", required=True, help="output TIFF")
     f.set_defaults(func=run)

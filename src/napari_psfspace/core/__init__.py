@@ -16,7 +16,7 @@ Data flow one way, from the image to the restored sample::
   :mod:`~napari_psfspace.core.restore` (issue 12): a family of operators from many
   images, and blind deblurring with it.
 - :mod:`~napari_psfspace.core.simulation`: the bead-image simulator with its known truth
-  and the scene family, for tests and benches (beside the flow: nothing in it is needed
+  and the scene set, for tests and benches (beside the flow: nothing in it is needed
   to process a measured image, and no stage imports it).
 - :mod:`~napari_psfspace.core.common`: plumbing every stage may use (atomic writes,
   threads, input checks, mosaics).

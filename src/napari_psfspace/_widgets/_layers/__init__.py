@@ -46,13 +46,13 @@ from .points import (
 )
 from .results import (
     GALLERY_GAP,
+    family_layers,
     gallery_cell,
     gallery_index,
     gallery_layers,
     heldout_layers,
     operator_layers,
     psf_layers,
-    subspace_layers,
 )
 
 __all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "bead_plane",
@@ -61,4 +61,4 @@ __all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "bead_
            "free_slot", "gallery_cell", "gallery_index", "gallery_layers", "group_layers",
            "heldout_layers", "hot_pixels_from_layer", "hot_pixels_layer", "image_plane",
            "map_layers", "operator_layers", "psf_layers", "remove_step", "set_statuses",
-           "show_layers", "step_layers", "subspace_layers", "titles_layer", "user_beads"]
+           "show_layers", "step_layers", "family_layers", "titles_layer", "user_beads"]

@@ -55,7 +55,7 @@ SUB_SPACE = "family spatial basis a_j (relative)"
 SUB_CONDITIONS = "family conditions (principal coordinates)"
 MODEL_TITLES = "titles: model"
 FAMILY_TITLES = "titles: family"
-#: Key of the subspace layer metadata that holds the OperatorSubspace.
+#: Key of the subspace layer metadata that holds the OperatorFamily.
 SUBSPACE_KEY = "psfspace_subspace"
 HOT_PIXELS = "hot pixels"
 #: Key of the layer metadata that holds the operator (read by the model writer).

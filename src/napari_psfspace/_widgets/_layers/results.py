@@ -104,18 +104,18 @@ def _flat_mosaic(stack: np.ndarray, frame: Frame, fill: float, *, gap: int
     return tiles, float(scale), cols
 
 
-def subspace_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
+def family_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
                     coords: np.ndarray, frame: Frame, *,
                     stack_axis: tuple[float, float] = (0.0, 1.0)) -> list[LayerTuple]:
     """Layer-data tuples showing a family of operators.
 
     Parameters
     ----------
-    sub : OperatorSubspace
+    sub : OperatorFamily
     ys, xs, psfs
-        :meth:`OperatorSubspace.psf_grids`: psfs of shape (K, n, n, P, P).
+        :meth:`OperatorFamily.psf_grids`: psfs of shape (K, n, n, P, P).
     coords : ndarray of shape (K, 2)
-        :meth:`OperatorSubspace.condition_coordinates`.
+        :meth:`OperatorFamily.condition_coordinates`.
     frame : Frame
         One image's frame (the spatial basis gets its scale and position).
     stack_axis : (float, float)

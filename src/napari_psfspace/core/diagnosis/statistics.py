@@ -34,7 +34,7 @@ def chi2_to_z(chi2: float, dof: float) -> float:
 #: Relative uncertainty of the variance scale of an *assumed* noise model (a fallback:
 #: constant variance, unit-gain Poisson), for the tests that compare a chi-square with
 #: its noise-only value. The unit-gain fallback overestimated an 8-bit low-gain scene's
-#: variance 3-20 times on the scene family.
+#: variance 3-20 times on the scene set.
 FALLBACK_SCALE_ERROR = 0.5
 
 

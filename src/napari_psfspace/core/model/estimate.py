@@ -380,7 +380,7 @@ def basis_record(basis: PsfBasis, n_psf, spline, smoothing, few) -> dict:
 #: A detection whose flux is below this fraction of the median kept bead's carries too
 #: little of the PSF to shape it (a noise spot, a speck of dust): it is left out as faint.
 #: A bead two and a half sd below the median of a log-normal brightness spread of sd 1 (the
-#: widest of the scene family) still has 8 % of it.
+#: widest of the scene set) still has 8 % of it.
 FAINT_RATIO = 0.05
 #: Take the other detections' modelled light out of each patch (issue 45).
 SUBTRACT_NEIGHBOURS = True

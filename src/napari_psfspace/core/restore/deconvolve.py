@@ -211,8 +211,8 @@ def iter_deblur(
     there to cancel), returns the :class:`Deblurred`."""
     t0 = time.perf_counter()
     check_instance(operator, ProductConvolution, "operator",
-                   "A family (OperatorSubspace) gives its operator for an image with "
-                   "identify_operator(image, subspace).")
+                   "A family (OperatorFamily) gives its operator for an image with "
+                   "identify_operator(image, family).")
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     raw = np.asarray(image)
     y = as_image(image, dtype=np.float32)

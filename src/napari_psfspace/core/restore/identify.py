@@ -1,6 +1,6 @@
 """Identify the operator of one blurred image from a few of its beads (paper, Appendix D).
 
-A family of operators (:class:`~napari_psfspace.core.subspace.OperatorSubspace`) is known:
+A family of operators (:class:`~napari_psfspace.core.subspace.OperatorFamily`) is known:
 ``H u = sum_ij Gamma[i, j] h_i * (a_j . u)`` with ``Gamma`` in the cone of the ``Gamma_k``.
 Each bead ``p`` of the image, centred and free of background, gives its coefficients
 ``c_p = <p_p, h_i>``; problem (9) is
@@ -41,6 +41,7 @@ import warnings
 import numpy as np
 from scipy.optimize import nnls
 
+from ..common.deprecate import renamed_keyword
 from ..common.spacing import partial_border
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
@@ -57,7 +58,7 @@ from ..model.heldout import (
 from ..model.operator import ProductConvolution
 from ..subspace.choice import Choice, blend, choose_between, own_estimate
 from ..subspace.patches import image_patches
-from ..subspace.result import OperatorSubspace, space_at
+from ..subspace.result import OperatorFamily, space_at
 from .posterior import FieldPrior, Posterior, bilinear, family_prior, posterior_field
 
 #: Default range of the beads' amplitudes relative to the family's (patches are
@@ -140,7 +141,7 @@ WARN_FLOOR = 0.03
 WARN_BEAD_RATIO = 4.0
 
 
-def family_model_error(subspace: OperatorSubspace) -> float | None:
+def family_model_error(subspace: OperatorFamily) -> float | None:
     """The family's error beyond the noise on beads it never saw: the median over its
     images of ``sqrt(residual^2 - floor^2)`` of their held-out beads (None without)."""
     held = [h for h in subspace.metadata.get("heldout") or []
@@ -151,7 +152,7 @@ def family_model_error(subspace: OperatorSubspace) -> float | None:
                             for h in held]))
 
 
-def warn_bound(subspace: OperatorSubspace) -> float:
+def warn_bound(subspace: OperatorFamily) -> float:
     """The ``model_error`` above which :func:`identify_operator` warns."""
     ref = family_model_error(subspace)
     return WARN_MODEL_ERROR if ref is None else max(WARN_FLOOR, WARN_RATIO * ref)
@@ -200,7 +201,7 @@ def spread_subset(centers: np.ndarray, n: int) -> np.ndarray:
     return np.sort(np.array(picks))
 
 
-def posterior_of(subspace: OperatorSubspace, c: np.ndarray, centers: np.ndarray,
+def posterior_of(subspace: OperatorFamily, c: np.ndarray, centers: np.ndarray,
                  sd: np.ndarray, *, amplitude_range=AMPLITUDE_RANGE,
                  prior: FieldPrior | None = None,
                  log_scales: np.ndarray | None = None, spread: bool = True) -> Posterior:
@@ -219,7 +220,7 @@ def posterior_of(subspace: OperatorSubspace, c: np.ndarray, centers: np.ndarray,
                            spread=spread, **kw)
 
 
-def field_operator(subspace: OperatorSubspace, field: np.ndarray, c: np.ndarray, *,
+def field_operator(subspace: OperatorFamily, field: np.ndarray, c: np.ndarray, *,
                    at: np.ndarray | None = None) -> ProductConvolution:
     """The operator of a coefficient field (G, I) at the family's nodes, its PSFs kept in
     the cone of the family's observed PSFs and the clicked beads' (``c``, (P, I), their
@@ -264,7 +265,7 @@ def _identify(subspace, c, centers, sd, *, prior: bool, amplitude_range, max_ite
 MIN_BEADS_JUDGED = 15
 
 
-def judge_against_own(patches, c: np.ndarray, subspace: OperatorSubspace, *,
+def judge_against_own(patches, c: np.ndarray, subspace: OperatorFamily, *,
                       prior: bool = True, sd: np.ndarray | None = None,
                       amplitude_range=AMPLITUDE_RANGE, max_iter: int = 100,
                       log_scales: np.ndarray | None = None) -> Choice | None:
@@ -303,7 +304,7 @@ class IdentificationWarning(UserWarning):
     leave part of the field undetermined."""
 
 
-def resample(patches, c: np.ndarray, subspace: OperatorSubspace, *,
+def resample(patches, c: np.ndarray, subspace: OperatorFamily, *,
              prior: bool = True, sd: np.ndarray | None = None,
              amplitude_range=AMPLITUDE_RANGE, max_iter: int = 100, n_folds: int = N_FOLDS,
              n_grid: int = 4, log_scales: np.ndarray | None = None) -> dict:
@@ -411,10 +412,11 @@ def spread_warning(spread: np.ndarray, nodes: np.ndarray, bound: float) -> str |
             "held-out beads)")
 
 
+@renamed_keyword("subspace", "family")
 @blas_threads
 def identify_operator(
     image: np.ndarray,
-    subspace: OperatorSubspace,
+    family: OperatorFamily,
     *,
     beads: np.ndarray | None = None,
     psf_radius: float | None = None,
@@ -429,8 +431,9 @@ def identify_operator(
     ----------
     image : ndarray of shape (H, W)
         The blurred image, of the shape the family was learnt on.
-    subspace : OperatorSubspace
-        The family of operators (:func:`~napari_psfspace.core.subspace.estimate_subspace`).
+    family : OperatorFamily
+        The family of operators (:func:`~napari_psfspace.core.subspace.estimate_family`).
+        ``subspace=`` is its deprecated name.
     beads : ndarray of shape (N, 2), optional
         Bead positions (row, column), pixels, e.g. a Points layer's; they are centred
         sub-pixel and checked (neighbours, saturation; a bead at least ``r`` from the
@@ -481,9 +484,10 @@ def identify_operator(
         An image of another shape than the family's, a radius giving another patch size,
         bad bead positions, or no usable bead.
     """
-    check_instance(subspace, OperatorSubspace, "subspace",
-                   "Learn a family with estimate_subspace, or load one with "
-                   "load_subspace; a single image's operator needs no identification.")
+    subspace = family
+    check_instance(family, OperatorFamily, "family",
+                   "Learn a family with estimate_family, or load one with "
+                   "load_family; a single image's operator needs no identification.")
     max_iter = check_int(max_iter, "max_iter", minimum=1)
     img = as_image(image)
     if tuple(img.shape) != tuple(subspace.shape):

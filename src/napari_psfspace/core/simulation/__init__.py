@@ -1,10 +1,10 @@
-"""Beside the flow: the bead-image simulator, its known truth, and the scene family.
+"""Beside the flow: the bead-image simulator, its known truth, and the scene set.
 
 Gives synthetic bead images with their ground truth for tests and benches: optics and
 field aberrations, the bead scene, the camera and the effects a real image holds
 (:mod:`.optics`, :mod:`.aberrations`, :mod:`.scene`, :mod:`.render`, :mod:`.camera`,
-:mod:`.effects`, :mod:`.truth`), Zernike polynomials (:mod:`.zernike`), seeded random scenes over a
-family of settings (:mod:`.family`) and errors against the truth (:mod:`.metrics`).
+:mod:`.effects`, :mod:`.truth`), Zernike polynomials (:mod:`.zernike`), seeded random
+scenes over a set of settings (:mod:`.scene_set`) and errors against the truth (:mod:`.metrics`).
 Nothing in it is needed to process a measured image, and no stage imports it; it may
 import ``beads`` (a bead's size) and ``common``.
 

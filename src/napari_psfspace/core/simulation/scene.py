@@ -95,7 +95,7 @@ def simulate_beads(
     bead_photons : array_like of shape (n_beads,), optional
         Total photons of each bead, instead of drawing them uniformly from
         ``amplitude`` (e.g. a log-normal brightness spread,
-        :mod:`~napari_psfspace.core.simulation.family`).
+        :mod:`~napari_psfspace.core.simulation.scene_set`).
     effects : Mapping[str, Any] or None
         Effects beyond the PSF model to inject, each key switching one on
         (``r`` below is ``truth.psf_radius``); all recorded in

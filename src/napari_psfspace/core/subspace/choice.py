@@ -6,7 +6,7 @@ estimate does not have). The family acts as a prior: each image with enough bead
 the blend ``w H_family + (1 - w) H_own`` of the family's operator and its own estimate
 (PSFs ``w h_family + (1 - w) h_own``, still of sum 1) whose weight ``w`` in
 :data:`WEIGHTS` best explains beads of its own that neither model saw (the held-out
-split of :func:`~napari_psfspace.core.subspace.estimate.iter_estimate_subspace`; among
+split of :func:`~napari_psfspace.core.subspace.estimate.iter_estimate_family`; among
 the weights those beads cannot tell apart, the one nearest :func:`prior_weight`: the
 even blend where the image's beads determine its own field, leaning to the family where
 they do not or where each bead is mostly noise; :func:`pick_weight`). ``w = 0`` is the
@@ -207,7 +207,7 @@ def choose(family, k: int, own_operator: ProductConvolution | None,
 
     Parameters
     ----------
-    family : OperatorSubspace
+    family : OperatorFamily
         The family learnt without the held-out beads (its ``metadata["field_share"]``,
         when there, and the held-out beads' noise set each image's :func:`prior_weight`).
     k : int

@@ -52,7 +52,7 @@ from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .choice import Choice, choose, own_estimate
 from .patches import ImagePatches, image_patches
-from .result import OperatorSubspace, space_at
+from .result import OperatorFamily, space_at
 from .shrink import Fields, shrunk_fields
 from .sizes import RULE_TRUSTED, confirmed_size, white_rank
 
@@ -255,7 +255,7 @@ def grid_nodes(shape, grid_step):
 
 
 def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
-           grid_step: float, refine: bool, denoise: bool) -> OperatorSubspace:
+           grid_step: float, refine: bool, denoise: bool) -> OperatorFamily:
     """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
     (gy, gx), nodes = grid_nodes(shape, grid_step)
     pooled = pool(used, n_psf, denoise, grid=(gy, gx))
@@ -300,7 +300,7 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
     if pooled.fields is not None:  # each image's share of its own field (shrink.py)
         meta["field_share"] = [round(float(v), 4) for v in pooled.fields.share()]
         meta["field_downweighted"] = [int(np.sum(w < 1.0)) for w in pooled.fields.weights]
-    return OperatorSubspace(images, space_grid, (gy, gx), shape, gammas, cone,
+    return OperatorFamily(images, space_grid, (gy, gx), shape, gammas, cone,
                             grid_step=float(grid_step), metadata=meta)
 
 
@@ -316,7 +316,7 @@ def max_space(n_images: int, n_psf: int | None = None, *,
 
 
 @blas_threads
-def iter_estimate_subspace(
+def iter_estimate_family(
     images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
     *,
     psf_radius: float,
@@ -329,8 +329,8 @@ def iter_estimate_subspace(
     denoise: bool = True,
     holdout: float | None = 0.2,
     chunk: int = 8,
-) -> Generator[Progress, None, OperatorSubspace]:
-    """Generator form of :func:`estimate_subspace`: yields progress, returns the result."""
+) -> Generator[Progress, None, OperatorFamily]:
+    """Generator form of :func:`estimate_family`: yields progress, returns the result."""
     t0 = time.perf_counter()
     items = _items(images)
     if len(items) < 2:
@@ -482,7 +482,7 @@ def iter_estimate_subspace(
     return sub
 
 
-def estimate_subspace(
+def estimate_family(
     images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
     *,
     psf_radius: float,
@@ -496,7 +496,7 @@ def estimate_subspace(
     holdout: float | None = 0.2,
     chunk: int = 8,
     progress: Callable[[Progress], None] | None = None,
-) -> OperatorSubspace:
+) -> OperatorFamily:
     """Learn the subspace of a microscope's operators from images of beads.
 
     Parameters
@@ -533,9 +533,18 @@ def estimate_subspace(
 
     Returns
     -------
-    OperatorSubspace
+    OperatorFamily
     """
-    return run_with_progress(iter_estimate_subspace(
+    return run_with_progress(iter_estimate_family(
         images, psf_radius=psf_radius, n_psf=n_psf, n_space=n_space, client=client,
         threshold=threshold, grid_step=grid_step, refine=refine, denoise=denoise,
         holdout=holdout, chunk=chunk), progress)
+
+
+def __getattr__(name: str):
+    """Old names of the learning (deprecated)."""
+    from ..common.deprecate import module_getattr
+
+    return module_getattr(__name__, {
+        "estimate_subspace": ("estimate_family", lambda: estimate_family),
+        "iter_estimate_subspace": ("iter_estimate_family", lambda: iter_estimate_family)})(name)

@@ -1,4 +1,4 @@
-"""A learnt family of operators: :class:`OperatorSubspace` (section 2.4).
+"""A learnt family of operators: :class:`OperatorFamily` (section 2.4).
 
 The operator of condition ``k`` is ``H_k u = sum_ij Gamma_k[i, j] h_i * (a_j . u)``: a PSF
 basis ``h_i`` (I, P, P), a basis of spatial variations ``a_j`` sampled on the coarse grid
@@ -20,7 +20,7 @@ from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
 from ..model.psf_field import interp_weights
 from .choice import blend
-from .subspace_file import read_subspace, write_subspace
+from .subspace_file import read_family, write_family
 
 
 def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
@@ -49,7 +49,7 @@ def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
 
 
 @dataclass
-class OperatorSubspace:
+class OperatorFamily:
     """Bases ``h_i`` and ``a_j``, one ``Gamma_k`` per image, and the cone they span.
 
     Attributes
@@ -235,12 +235,12 @@ class OperatorSubspace:
                 raise ValueError(f"image {k}'s own operator must have coarse maps (a grid)")
             own[k] = {"basis": op.basis, "coefficients": op.coefficients,
                       "grid_y": op.grid[0], "grid_x": op.grid[1]}
-        write_subspace(path, arrays, own, grid_step=self.grid_step,
+        write_family(path, arrays, own, grid_step=self.grid_step,
                        metadata=self.metadata,
                        own_metadata={k: op.metadata for k, op in self.own.items()})
 
     @classmethod
-    def load(cls, path) -> OperatorSubspace:
+    def load(cls, path) -> OperatorFamily:
         """Read a subspace written by :meth:`save`.
 
         Raises
@@ -251,7 +251,7 @@ class OperatorSubspace:
         FileNotFoundError
             If ``path`` does not exist.
         """
-        arr, own_arrays, weights, header = read_subspace(path)
+        arr, own_arrays, weights, header = read_family(path)
         shape = (int(arr["shape"][0]), int(arr["shape"][1]))
         meta = header.get("own_metadata", {})
         own = {}
@@ -261,7 +261,7 @@ class OperatorSubspace:
                                             grid=(a["grid_y"], a["grid_x"]),
                                             metadata=meta.get(str(k), {}))
             except ValueError as exc:
-                raise ValueError(f"{os.fspath(path)!r}: inconsistent subspace file: image "
+                raise ValueError(f"{os.fspath(path)!r}: inconsistent family file: image "
                                  f"{k}'s own operator: {exc}") from exc
         return cls(arr["basis"], arr["space"], (arr["grid_y"], arr["grid_x"]), shape,
                    arr["gammas"], Cone(arr["cone"]),
@@ -269,11 +269,21 @@ class OperatorSubspace:
                    metadata=header.get("metadata", {}), own=own, family_weights=weights)
 
 
-def save_subspace(subspace: OperatorSubspace, path) -> None:
-    """Write ``subspace`` to ``path``: :meth:`OperatorSubspace.save`."""
+def save_family(subspace: OperatorFamily, path) -> None:
+    """Write ``subspace`` to ``path``: :meth:`OperatorFamily.save`."""
     subspace.save(path)
 
 
-def load_subspace(path) -> OperatorSubspace:
-    """Read a subspace written by :func:`save_subspace`: :meth:`OperatorSubspace.load`."""
-    return OperatorSubspace.load(path)
+def load_family(path) -> OperatorFamily:
+    """Read a subspace written by :func:`save_family`: :meth:`OperatorFamily.load`."""
+    return OperatorFamily.load(path)
+
+
+def __getattr__(name: str):
+    """Old names of this module's family (deprecated)."""
+    from ..common.deprecate import module_getattr
+
+    return module_getattr(__name__, {
+        "OperatorSubspace": ("OperatorFamily", lambda: OperatorFamily),
+        "load_subspace": ("load_family", lambda: load_family),
+        "save_subspace": ("save_family", lambda: save_family)})(name)

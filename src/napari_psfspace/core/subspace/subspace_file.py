@@ -1,11 +1,11 @@
 """The file format of a family of operators (an
-:class:`~.result.OperatorSubspace`): the same family as the single operator's
+:class:`~.result.OperatorFamily`): the same family as the single operator's
 (``docs/file-format.md``): a NumPy ``.npz`` archive of plain arrays and a JSON header,
 written atomically, read without pickle.
 
 Like :mod:`~napari_psfspace.core.model.operator_file` for the operator, this module
-writes and reads arrays and knows no class: :meth:`~.result.OperatorSubspace.save` and
-:meth:`~.result.OperatorSubspace.load` turn a family into its arrays and back.
+writes and reads arrays and knows no class: :meth:`~.result.OperatorFamily.save` and
+:meth:`~.result.OperatorFamily.load` turn a family into its arrays and back.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ _ARRAYS = ("basis", "space", "grid_y", "grid_x", "shape", "gammas", "cone")
 OWN_PARTS = ("basis", "coefficients", "grid_y", "grid_x")
 
 
-def write_subspace(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
+def write_family(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
                    own: dict[int, dict[str, np.ndarray]], *, grid_step: float,
                    metadata: dict, own_metadata: dict[int, dict]) -> None:
     """Write a family's arrays to ``path`` (atomically: an existing file is replaced only
@@ -66,23 +66,23 @@ def _own_arrays(path: str, header: dict, n_images: int
         return {}, None
     index, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
                             entries=("own_images", "family_weights", "header"),
-                            kind="subspace")
+                            kind="family")
     ks = [int(k) for k in np.atleast_1d(index["own_images"])]
     weights = np.asarray(index["family_weights"], dtype=np.float64)
     bad = [k for k in ks if not 0 <= k < n_images]
     if (bad or weights.shape != (n_images,) or not np.all(np.isfinite(weights))
             or weights.min(initial=1.0) < 0 or weights.max(initial=0.0) > 1):
-        raise ValueError(f"{path!r}: inconsistent subspace file: own operators for images "
+        raise ValueError(f"{path!r}: inconsistent family file: own operators for images "
                          f"{ks} and family weights {weights.tolist()} for {n_images} images "
                          "(expected indices in [0, K) and K weights in [0, 1])")
     names = tuple(f"own_{k}_{part}" for k in ks for part in OWN_PARTS)
     arr, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
-                          entries=(*names, "header"), kind="subspace")
+                          entries=(*names, "header"), kind="family")
     return {k: {part: arr[f"own_{k}_{part}"] for part in OWN_PARTS} for k in ks}, weights
 
 
-def read_subspace(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray | None, dict]:
-    """Read the arrays written by :func:`write_subspace`, checked for consistency.
+def read_family(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray | None, dict]:
+    """Read the arrays written by :func:`write_family`, checked for consistency.
 
     Returns
     -------
@@ -105,7 +105,7 @@ def read_subspace(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray 
     """
     path = os.fspath(path)
     arr, header = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
-                               entries=(*_ARRAYS, "header"), kind="subspace")
+                               entries=(*_ARRAYS, "header"), kind="family")
     basis, space, gammas = arr["basis"], arr["space"], arr["gammas"]
     ok = (basis.ndim == 3 and space.ndim == 3 and gammas.ndim == 3
           and gammas.shape[1:] == (basis.shape[0], space.shape[0])
@@ -113,7 +113,7 @@ def read_subspace(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray 
           and arr["shape"].shape == (2,) and arr["cone"].ndim == 2
           and arr["cone"].shape[1] == basis.shape[0])
     if not ok:
-        raise ValueError(f"{path!r}: inconsistent subspace file: basis {basis.shape}, space "
+        raise ValueError(f"{path!r}: inconsistent family file: basis {basis.shape}, space "
                          f"{space.shape}, gammas {gammas.shape}, grid "
                          f"({arr['grid_y'].size}, {arr['grid_x'].size}), cone "
                          f"{arr['cone'].shape}")
@@ -123,4 +123,4 @@ def read_subspace(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray 
     return arrays, own, weights, header
 
 
-__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "OWN_PARTS", "read_subspace", "write_subspace"]
+__all__ = ["FORMAT_NAME", "FORMAT_VERSION", "OWN_PARTS", "read_family", "write_family"]

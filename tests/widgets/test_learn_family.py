@@ -1,4 +1,4 @@
-"""Learn subspace: a stack's slices, 2-D layers and a folder; what is shown; saving;
+"""Learn family: a stack's slices, 2-D layers and a folder; what is shown; saving;
 cancel; bad choices."""
 
 import numpy as np
@@ -12,10 +12,10 @@ from napari_psfspace._widgets._layers import (
     SUB_SPACE,
     SUBSPACE_KEY,
 )
-from napari_psfspace._widgets._learn_subspace import SOURCES, LearnSubspaceWidget
+from napari_psfspace._widgets._learn_family import SOURCES, LearnFamilyWidget
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import OperatorSubspace, estimate_subspace
+from napari_psfspace.core.subspace import OperatorFamily, estimate_family
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,7 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     v = make_napari_viewer()
     r = float(np.median([t.psf_radius for t in truths]))
     v.add_image(data, name="z-stack", metadata={"psf_radius": r})
-    w = LearnSubspaceWidget(v)
+    w = LearnFamilyWidget(v)
     assert w.stack.value is v.layers["z-stack"]
     assert (w.first.value, w.last.value) == (0, 5)
     w.first.value, w.last.value = 1, 5  # five of the six slices
@@ -43,7 +43,7 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     assert sub is not None and sub.n_images == 5
     assert sub.metadata["labels"] == [f"z-stack[{z}]" for z in range(1, 6)]
     # the same family as the API on the same slices (same radius, held-out split)
-    ref = estimate_subspace(list(data[1:6]), psf_radius=w.radius.pixels)
+    ref = estimate_family(list(data[1:6]), psf_radius=w.radius.pixels)
     assert np.allclose(sub.gammas, ref.gammas, atol=1e-8)
     # shown: a PSF grid per image (slider), h_i, a_j, one point per condition
     grid = v.layers[SUB_GRID]
@@ -71,7 +71,7 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     # the family is a good model of slice 3 (the truth of image 3 of the stack)
     assert np.mean(grid_errors(sub.operator(2), truths[3], n=3)) < 0.15  # measured 0.064
     assert "held-out beads" in w.result.value and str(path) in w.result.value
-    loaded = OperatorSubspace.load(path)
+    loaded = OperatorFamily.load(path)
     assert np.allclose(loaded.gammas, sub.gammas)
 
 
@@ -82,7 +82,7 @@ def test_image_layers_and_folder(make_napari_viewer, qtbot, stack, tmp_path):
     v = make_napari_viewer()
     for k in range(3):
         v.add_image(data[k], name=f"condition {k}")
-    w = LearnSubspaceWidget(v)
+    w = LearnFamilyWidget(v)
     w.radius.set_calibration(None, float(np.median([t.psf_radius for t in truths])))
     w.source.value = SOURCES[1]
     assert not w.layers.native.isHidden() and w.stack.native.isHidden()
@@ -106,7 +106,7 @@ def test_image_layers_and_folder(make_napari_viewer, qtbot, stack, tmp_path):
 
 
 def test_bad_choices_are_named(make_napari_viewer, qtbot, stack, tmp_path, monkeypatch):
-    import napari_psfspace._widgets._learn_subspace as mod
+    import napari_psfspace._widgets._learn_family as mod
     import napari_psfspace._widgets._worker as worker_mod
 
     shown = []
@@ -115,7 +115,7 @@ def test_bad_choices_are_named(make_napari_viewer, qtbot, stack, tmp_path, monke
     data, _ = stack
     v = make_napari_viewer()
     v.add_image(data, name="z-stack")
-    w = LearnSubspaceWidget(v)
+    w = LearnFamilyWidget(v)
     w.first.value = w.last.value = 2
     w.learn.clicked()
     assert not w.task.running and "last slice" in shown[-1]
@@ -143,7 +143,7 @@ def test_cancel_adds_nothing(make_napari_viewer, qtbot, stack, tmp_path):
     v = make_napari_viewer()
     v.add_image(data, name="z-stack",
                 metadata={"psf_radius": float(np.median([t.psf_radius for t in truths]))})
-    w = LearnSubspaceWidget(v)
+    w = LearnFamilyWidget(v)
     path = tmp_path / "family.npz"
     w.save_path.value = path
     n = len(v.layers)

@@ -1,4 +1,4 @@
-"""A seeded family of realistic bead scenes, so that thresholds are never tuned on one.
+"""A seeded set of realistic bead scenes, so that thresholds are never tuned on one.
 
 :func:`random_scene` draws the microscope, the slide and the camera from wide ranges
 (:data:`RANGES`) and renders the image with
@@ -6,7 +6,7 @@
 pixel size, NA, emission wavelength, aberrations (presets or a random field), bead
 count, log-normal bead brightness spread, background, camera gain, offset, read noise
 and bit depth. Any parameter can be fixed, or given its own range, by keyword, e.g. the
-low-count 8-bit family of the detection bench::
+low-count 8-bit set of the detection bench::
 
     image, truth, params = random_scene(3, shape=(512, 512), bits=8, background=(1, 5),
                                         peak_adu=(50, 250))
@@ -47,7 +47,7 @@ RANGES: dict[str, Any] = {
     "fill": (0.3, 0.95),
     "per_bead": False,
 }
-#: The 8-bit low-count family: background 1-5 photons, bead peaks 50-250 ADU drawn per
+#: The 8-bit low-count set: background 1-5 photons, bead peaks 50-250 ADU drawn per
 #: bead, from photon-limited cameras (gain up to 2 ADU/e-) to 8-bit exports of deeper
 #: ones (gain down to 0.01 ADU/e-, the background's noise far below one ADU); beads may
 #: lie as close as one PSF radius. Use as ``random_scene(seed, **LOW_COUNT_8BIT)``.
@@ -84,7 +84,7 @@ def random_scene(
     optics_type: type[Optics] = Optics,
     **overrides,
 ) -> tuple[np.ndarray, SimulationTruth, dict]:
-    """Draw one bead scene of the family and render it.
+    """Draw one bead scene of the set and render it.
 
     Parameters
     ----------

@@ -2,7 +2,7 @@
 
 The images come from a z-stack layer (a range of its slices: each slice a condition),
 from several 2-D image layers, or from a folder of TIFFs (read one at a time inside the
-tasks). The work is :func:`~napari_psfspace.core.subspace.iter_estimate_subspace` in a
+tasks). The work is :func:`~napari_psfspace.core.subspace.iter_estimate_family` in a
 worker thread (dask's threaded scheduler inside it); the widget shows the PSF grid of
 each image's operator under a slider, the PSF basis ``h_i``, the spatial basis ``a_j``
 and the conditions as points.
@@ -29,15 +29,15 @@ from napari.layers import Image
 from napari.utils.notifications import show_error, show_info
 
 from ..core.common.progress import Progress
-from ..core.subspace import OperatorSubspace, iter_estimate_subspace
+from ..core.subspace import OperatorFamily, iter_estimate_family
 from ._layers import (
     SUB_GRID,
     Frame,
     below_others,
+    family_layers,
     find_layer,
     focus_on_step,
     show_layers,
-    subspace_layers,
 )
 from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of, result_text
 
@@ -54,13 +54,13 @@ def _plane(data, z: int | None) -> np.ndarray:
 
 def _learn_and_show(loaders, *, grid: int, **kwargs):
     """The family, then what the widget shows of it (all in the worker)."""
-    sub = yield from iter_estimate_subspace(loaders, **kwargs)
+    sub = yield from iter_estimate_family(loaders, **kwargs)
     yield Progress("display", 1.0, f"PSF grids of {sub.n_images} images")
     ys, xs, psfs = sub.psf_grids(grid)
     return sub, ys, xs, psfs, sub.condition_coordinates(2)
 
 
-class LearnSubspaceWidget(Container):
+class LearnFamilyWidget(Container):
     """Learn ``h_i``, ``a_j`` and one ``Gamma_k`` per image; show and save the family."""
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
@@ -82,14 +82,14 @@ class LearnSubspaceWidget(Container):
         self.save_path = FileEdit(mode="w", filter="*.npz", label="save family to")
         self.save_path.tooltip = ("Optional: a file to save the family to when it is "
                                   "learnt (empty: nothing is written).")
-        self.learn = PushButton(text="Learn subspace")
+        self.learn = PushButton(text="Learn family")
         self.task = CoreTask(self.learn)
         self.result = result_text()
         super().__init__(widgets=[
             self.source, self.stack, self.first, self.last, self.layers, self.folder,
             self.radius, self.n_psf, self.n_space, self.holdout, self.save_path,
             self.learn, self.task, self.result])
-        self.subspace: OperatorSubspace | None = None
+        self.subspace: OperatorFamily | None = None
         self.source.changed.connect(self._on_source)
         self.stack.changed.connect(self._on_stack)
         self.learn.changed.connect(self.run)
@@ -195,7 +195,7 @@ class LearnSubspaceWidget(Container):
             sub.metadata["labels"] = [labels[i] for i in sub.metadata.get("images", [])]
             self.subspace = sub
             place = below_others(self._viewer, frame, 2.0, "Family")
-            show_layers(self._viewer, subspace_layers(sub, ys, xs, psfs, coords, place,
+            show_layers(self._viewer, family_layers(sub, ys, xs, psfs, coords, place,
                                                       stack_axis=axis),
                         step="Family", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)
@@ -209,7 +209,7 @@ class LearnSubspaceWidget(Container):
         self.task.run(gen, on_result)
 
     @staticmethod
-    def _describe(sub: OperatorSubspace) -> str:
+    def _describe(sub: OperatorFamily) -> str:
         meta = sub.metadata
         beads = meta.get("beads_per_image", [])
         text = (f"I = {sub.n_psf} PSFs, J = {sub.n_space} spatial maps, from "
