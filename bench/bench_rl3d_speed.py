@@ -12,27 +12,22 @@ A synthetic 71 x 1024 x 1024 stack (the SP8 stack's size) and a field of 6 kerne
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+
+from benchlib import CHECKOUT, use_checkout
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--src", default=str(Path(__file__).resolve().parents[1]),
+    ap.add_argument("--src", default=str(CHECKOUT),
                     help="the checkout whose src/ is timed")
     ap.add_argument("--iterations", type=int, default=4)
     args = ap.parse_args()
-    src = str(Path(args.src).resolve() / "src")
-    sys.path.insert(0, src)
-    import napari_psfspace
+    use_checkout(args.src)
     from napari_psfspace.core.volume.deconvolve3d import richardson_lucy_3d
     from napari_psfspace.core.volume.operator3d import ProductConvolution3D
-
-    if not napari_psfspace.__file__.startswith(src):
-        raise SystemExit(f"imported {napari_psfspace.__file__}, not {src}")
     rng = np.random.default_rng(0)
     shape = (71, 1024, 1024)
     basis = rng.random((6, 79, 41, 41))

@@ -14,11 +14,11 @@ iterations, no polish), the 3D operator on the whole volume (16 x 512 x 512, 4 k
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
+
+from benchlib import CHECKOUT, use_checkout
 
 
 def _median(fn, repeat: int) -> float:
@@ -33,21 +33,17 @@ def _median(fn, repeat: int) -> float:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--src", default=str(Path(__file__).resolve().parents[1]),
+    ap.add_argument("--src", default=str(CHECKOUT),
                     help="the checkout whose src/ is timed")
     ap.add_argument("--repeat", type=int, default=7)
     ap.add_argument("--iterations", type=int, default=20)
     args = ap.parse_args()
-    src = str(Path(args.src).resolve() / "src")
-    sys.path.insert(0, src)
+    use_checkout(args.src)
     import napari_psfspace
     from napari_psfspace.core.model.operator import ProductConvolution
     from napari_psfspace.core.restore.deconvolve import deblur
     from napari_psfspace.core.volume.fista3d import deblur_3d
     from napari_psfspace.core.volume.operator3d import ProductConvolution3D
-
-    if not napari_psfspace.__file__.startswith(src):
-        raise SystemExit(f"imported {napari_psfspace.__file__}, not {src}")
     rng = np.random.default_rng(0)
     n = 2048
     basis = rng.random((8, 41, 41))

@@ -1,6 +1,6 @@
 """Shared helpers of the benchmark scripts: their tables, and the optics code of their
-scenes. The benches import the installed package (``make install``); nothing here changes
-``sys.path``."""
+scenes. The benches import the installed package (``make install``); only :func:`use_checkout`,
+asked for by the benches that time two checkouts, changes ``sys.path``."""
 
 from __future__ import annotations
 
@@ -8,6 +8,22 @@ from pathlib import Path
 
 #: This checkout's ``src`` (the benches that time two checkouts name it).
 SRC = Path(__file__).resolve().parents[1] / "src"
+#: This checkout (the default of ``--src``).
+CHECKOUT = SRC.parent
+
+
+def use_checkout(path) -> str:
+    """Import ``napari_psfspace`` from the checkout at ``path`` (its ``src``), before the
+    installed one; returns that ``src``. Stops if another copy was imported already."""
+    import sys
+
+    src = str(Path(path).resolve() / "src")
+    sys.path.insert(0, src)
+    import napari_psfspace
+
+    if not napari_psfspace.__file__.startswith(src):
+        raise SystemExit(f"imported {napari_psfspace.__file__}, not {src}")
+    return src
 
 
 def table(rows: list[dict], columns: list[tuple[str, str]]) -> str:

@@ -109,6 +109,34 @@ class ArrayModule:
 CPU = ArrayModule("cpu", np)
 
 
+class DeviceCache:
+    """What an operator keeps on a device (kernel spectra, maps), copied there once per
+    key and given back by :meth:`release`. The class using it has a ``_lock``."""
+
+    def _on_device(self, am: ArrayModule, key: tuple, host: np.ndarray):
+        """``host`` on ``am``'s device (``host`` itself on the CPU)."""
+        if not am.gpu:
+            return host
+        with self._lock:
+            cache = self.__dict__.setdefault("_device_cache", {})
+            full = (am, *key)
+            if full not in cache:
+                cache[full] = am.asarray(host)
+            return cache[full]
+
+    def release(self) -> None:
+        """Free what this operator holds on a device (kernel spectra, maps, and the
+        device's FFT plans and pooled blocks); rebuilt when it runs there again. Nothing
+        to do on the CPU."""
+        with self._lock:
+            cache = self.__dict__.pop("_device_cache", None)
+        if cache:
+            modules = {key[0] for key in cache}
+            cache.clear()
+            for am in modules:
+                am.free_cache()
+
+
 def available_host_bytes() -> int:
     """The machine's available memory, bytes (``/proc/meminfo``'s MemAvailable; the
     physical memory where that cannot be read)."""
@@ -215,5 +243,6 @@ def array_module(device: str | ArrayModule = "auto") -> ArrayModule:
     return ArrayModule("gpu", cupy)
 
 
-__all__ = ["CPU", "DEVICES", "GPU_EXTRA", "ArrayModule", "array_module", "available_host_bytes",
-           "check_device", "gpu_status", "module_of", "namespace", "on_device", "resolve"]
+__all__ = ["CPU", "DEVICES", "GPU_EXTRA", "ArrayModule", "DeviceCache", "array_module",
+           "available_host_bytes", "check_device", "gpu_status", "module_of", "namespace",
+           "on_device", "resolve"]

@@ -39,7 +39,7 @@ import scipy.fft
 from numpy.typing import ArrayLike, DTypeLike
 from scipy.sparse.linalg import LinearOperator
 
-from ..common.device import CPU, ArrayModule, resolve
+from ..common.device import CPU, ArrayModule, DeviceCache, resolve
 from ..common.threads import by_rows, by_rows_many
 from .operator_fft import (
     check_dc,
@@ -60,7 +60,7 @@ from .psf_field import PsfField
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "ProductConvolution", "load_operator"]
 
 
-class ProductConvolution(PsfField):
+class ProductConvolution(DeviceCache, PsfField):
     """Space-varying blur operator ``H u = sum_i h_i * (alpha_i . u)``.
 
     Parameters
@@ -123,36 +123,11 @@ class ProductConvolution(PsfField):
                 spectra = kernel_spectra(self._basis, fshape, dt)
                 spectra.flags.writeable = False
                 self._spectra_cache[key] = spectra
-            if not am.gpu:
-                return spectra
-            cache = self.__dict__.setdefault("_device_cache", {})
-            dkey = ("spectra", am, fshape, dt)
-            if dkey not in cache:
-                cache[dkey] = am.asarray(spectra)
-            return cache[dkey]
+        return self._on_device(am, ("spectra", fshape, dt), spectra)
 
     def _maps_on(self, dt: np.dtype, am: ArrayModule):
         """The coefficient maps in ``dt``, on ``am``'s device (cached there)."""
-        maps = self.coefficient_maps(dt)
-        if not am.gpu:
-            return maps
-        with self._lock:
-            cache = self.__dict__.setdefault("_device_cache", {})
-            key = ("maps", am, dt)
-            if key not in cache:
-                cache[key] = am.asarray(maps)
-            return cache[key]
-
-    def release(self) -> None:
-        """Free what this operator holds on a device (kernel spectra, maps, FFT plans);
-        rebuilt when it runs there again. Nothing to do for the CPU."""
-        with self._lock:
-            cache = self.__dict__.pop("_device_cache", None)
-        if cache:
-            modules = {key[1] for key in cache}
-            cache.clear()
-            for am in modules:
-                am.free_cache()
+        return self._on_device(am, ("maps", dt), self.coefficient_maps(dt))
 
     def _check_image(self, u: ArrayLike, name: str, am: ArrayModule = CPU
                      ) -> tuple[np.ndarray, np.dtype]:

@@ -241,12 +241,12 @@ class OperatorFamily:
 
     @classmethod
     def load(cls, path) -> OperatorFamily:
-        """Read a subspace written by :meth:`save`.
+        """Read a family written by :meth:`save`.
 
         Raises
         ------
         ValueError
-            If the file is not a napari-psfspace subspace, has a newer format version, or
+            If the file is not a napari-psfspace family, has a newer format version, or
             holds inconsistent arrays (the message says which).
         FileNotFoundError
             If ``path`` does not exist.

@@ -98,7 +98,7 @@ def read_family(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray | 
     Raises
     ------
     ValueError
-        If the file is not a napari-psfspace subspace, has a newer format version, or
+        If the file is not a napari-psfspace family, has a newer format version, or
         holds inconsistent arrays (the message says which).
     FileNotFoundError
         If ``path`` does not exist.

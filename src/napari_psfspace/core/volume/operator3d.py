@@ -27,7 +27,7 @@ import numpy as np
 import scipy.fft
 from numpy.typing import ArrayLike
 
-from ..common.device import CPU, ArrayModule, resolve
+from ..common.device import CPU, ArrayModule, DeviceCache, resolve
 from ..common.version import software_string
 from ..model.operator_checks import as_real_array, normalise_metadata
 from ..model.operator_fft import check_dc, computation_dtype
@@ -41,7 +41,7 @@ FORMAT_VERSION = 1
 _ENTRIES = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header")
 
 
-class ProductConvolution3D:
+class ProductConvolution3D(DeviceCache):
     """Space-varying 3D blur learnt from a bead z-stack.
 
     Parameters
@@ -248,28 +248,7 @@ class ProductConvolution3D:
                     spec[i] = scipy.fft.rfftn(big)
                 spec.flags.writeable = False
                 self._spectra[key] = spec
-            return self._on(am, ("spectra", fshape, dt), spec)
-
-    def _on(self, am: ArrayModule, key: tuple, host: np.ndarray):
-        """``host`` on ``am``'s device, copied there once per key (cache freed by
-        :meth:`release`)."""
-        if not am.gpu:
-            return host
-        cache = self.__dict__.setdefault("_device_cache", {})
-        key = (am, *key)
-        if key not in cache:
-            cache[key] = am.asarray(host)
-        return cache[key]
-
-    def release(self) -> None:
-        """Free what this operator holds on a device (kernel spectra, maps, FFT plans)."""
-        with self._lock:
-            cache = self.__dict__.pop("_device_cache", None)
-        if cache:
-            modules = {key[0] for key in cache}
-            cache.clear()
-            for am in modules:
-                am.free_cache()
+            return self._on_device(am, ("spectra", fshape, dt), spec)
 
     def _check_volume(self, u: ArrayLike, name: str, am: ArrayModule = CPU
                       ) -> tuple[np.ndarray, np.dtype]:
@@ -306,7 +285,7 @@ class ProductConvolution3D:
         arr = arr.astype(dt, copy=False)
         fshape = self.fft_shape(arr.shape[0])
         spectra = self._kernel_spectra(fshape, dt, am)
-        maps = self._on(am, ("maps", dt), self.coefficient_maps(dt))
+        maps = self._on_device(am, ("maps", dt), self.coefficient_maps(dt))
         z, h, w = arr.shape
         pad = xp.zeros(fshape, dt)  # the product alpha_i u, zero-padded, reused
         acc = None
@@ -342,7 +321,7 @@ class ProductConvolution3D:
         xp = am.xp
         fshape = self.fft_shape(arr.shape[0])
         spectra = self._kernel_spectra(fshape, dt, am)
-        maps = self._on(am, ("maps", dt), self.coefficient_maps(dt))
+        maps = self._on_device(am, ("maps", dt), self.coefficient_maps(dt))
         z, h, w = arr.shape
         vhat = am.rfftn(arr.astype(dt, copy=False), s=fshape, workers=workers)
         check_dc(vhat, "v")
