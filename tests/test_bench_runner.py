@@ -35,14 +35,16 @@ def test_render_shows_each_result_with_its_command(tmp_path, monkeypatch):
               "--as smoke --small", "args": ["--small"], "commit": "0123456789abcdef",
               "tree_changed": False, "date": "2026-11-28T00:00:00+00:00",
               "machine": {"cores": 2, "memory_GiB": 24.0, "gpu": None}, "seconds": 12.0,
-              "output": "\n".join(f"row {i}" for i in range(40)) + "\n"}
+              "output": "first table\nits rows\n\nlast table\n"
+              + "\n".join(f"row {i}" for i in range(40)) + "\n"}
     (tmp_path / "gpu.smoke.json").write_text(json.dumps(result))
     text = run.render(run.load_results(), run.benches())
     assert text.startswith(run.HEADER)
     assert "## gpu (smoke)" in text and "`python bench/run.py gpu --as smoke --small`" in text
     assert "commit 0123456789" in text and "2 cores, 24.0 GiB, no GPU" in text
-    # the last lines of a long output, and where the rest is
-    assert "row 39" in text and "row 0\n" not in text and "16 lines before" in text
+    # the last table of the output, as much of it as fits, and where the rest is
+    assert "    last table" in text and "    row 0" in text and "first table" not in text
+    assert "row 39" not in text and "more lines: " in text
     assert "## Not yet run as data" in text  # the other benches, named
 
 
@@ -53,3 +55,24 @@ def test_render_keeps_a_hand_written_results_file(tmp_path):
                            "--out", str(hand)], capture_output=True, text=True)
     assert done.returncode != 0 and "--force" in done.stderr
     assert hand.read_text() == "# Results\n\nfigures by hand\n"
+
+
+def test_many_results_fit_in_the_line_budget(tmp_path, monkeypatch):
+    """Every bench's result, each with a long last table: RESULTS.md stays within
+    MAX_LINES and shows a few lines of each."""
+    run = _runner()
+    monkeypatch.setattr(run, "RESULTS", tmp_path)
+    names = run.benches()
+    for name in names:
+        result = {"format": run.FORMAT, "version": 1, "bench": name, "label": None,
+                  "what": "what it measures.", "command": f"python bench/run.py {name}",
+                  "args": [], "commit": "0123456789abcdef", "tree_changed": False,
+                  "date": "2026-11-28T00:00:00+00:00", "machine": {"cores": 2},
+                  "seconds": 1.0,
+                  "output": "\n".join(f"{name} row {i}" for i in range(50)) + "\n"}
+        (tmp_path / f"{name}.json").write_text(json.dumps(result))
+    text = run.render(run.load_results(), names)
+    assert len(text.splitlines()) <= run.MAX_LINES
+    assert "Not yet run" not in text
+    for name in names:
+        assert f"    {name} row 2\n" in text and f"{name} row 49" not in text
