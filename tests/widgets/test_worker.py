@@ -41,3 +41,26 @@ def test_cancel_while_the_core_is_blocked(qtbot):
     assert closed.wait(30)  # closed after its step ...
     assert after == ["the step under way ended"]  # ... and nothing after it ran
     assert results == []  # no result handler after a Cancel
+
+
+def test_a_cancel_after_the_last_step_drops_the_result(qtbot):
+    """Cancel clicked after the core's last step, before its result reached the panel
+    (a busy machine): the result is dropped and the panel says cancelled, as for a Cancel
+    in any other step (not 'cancelling...' for ever, with the result applied)."""
+    returning, results, cancels = threading.Event(), [], []
+
+    def core():
+        yield Progress("one", 0.5, "first")
+        returning.set()
+        return "value"
+
+    start = PushButton(text="go")
+    task = CoreTask(start)
+    task.run(core(), results.append, on_cancel=lambda: cancels.append(True))
+    # the core has returned in its thread; the panel has not yet run its result handler
+    # (that waits for this thread's event loop, which runs only in waitUntil below)
+    assert returning.wait(30)
+    task.request_cancel()
+    qtbot.waitUntil(lambda: not task.running, timeout=30_000)
+    assert results == [] and cancels == [True]
+    assert task.status.value.startswith("cancelled") and start.enabled

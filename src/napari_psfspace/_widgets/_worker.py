@@ -74,6 +74,7 @@ class CoreTask(Container):
         self.cancel.changed.connect(self.request_cancel)
         self.worker: GeneratorWorker | None = None
         self._job: Generator | None = None
+        self._cancelled = False
 
     @property
     def running(self) -> bool:
@@ -106,10 +107,12 @@ class CoreTask(Container):
         job = _guarded(responsive(gen))
         worker = thread_worker(_drive, start_thread=False)(job)
         self.worker, self._job = worker, job
+        self._cancelled = False
         worker.yielded.connect(self._on_progress)
         if on_progress is not None:
             worker.yielded.connect(on_progress)
-        worker.returned.connect(lambda value: self._on_returned(value, on_result))
+        worker.returned.connect(lambda value: self._on_returned(value, on_result, on_cancel))
+        worker.finished.connect(lambda: self._on_cancel_unanswered(on_cancel))
         worker.aborted.connect(lambda: self._on_aborted(on_cancel))
         worker.finished.connect(self._on_finished)
         self.progress.value = 0
@@ -124,6 +127,7 @@ class CoreTask(Container):
         """Ask the running job to stop at its next step."""
         if self.worker is not None:
             self.status.value = "cancelling..."
+            self._cancelled = True
             self.cancel.enabled = False
             self.worker.quit()
 
@@ -133,7 +137,10 @@ class CoreTask(Container):
             self.progress.value = int(round(100 * float(fraction)))
         self.status.value = str(getattr(rec, "message", rec))
 
-    def _on_returned(self, value, on_result) -> None:
+    def _on_returned(self, value, on_result, on_cancel=None) -> None:
+        if self._cancelled:  # Cancel came after the job's last step: its result is dropped
+            self._on_aborted(on_cancel)
+            return
         if isinstance(value, Failure):
             self.status.value = "failed: see the notification"
             show_error(value.message)
@@ -154,6 +161,12 @@ class CoreTask(Container):
         self.status.value = "cancelled: nothing was changed"
         if on_cancel is not None:
             on_cancel()
+
+    def _on_cancel_unanswered(self, on_cancel) -> None:
+        # a Cancel after the job's last step: napari's worker then emits neither returned
+        # nor aborted, only finished (the result is dropped, as for any other Cancel)
+        if self._cancelled and self._job is not None:
+            self._on_aborted(on_cancel)
 
     def _on_finished(self) -> None:
         self.worker, self._job = None, None
