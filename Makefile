@@ -19,8 +19,9 @@ install: $(BIN)/psfspace
 demo: install
 	$(BIN)/psfspace demo --out demo-output
 
+# one worker per core (pytest-xdist), the longest tests first (tests/conftest.py)
 test: install
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n auto --dist load
 
 # the inner loop: the tests that take under a second (tests/slow_tests.txt lists the others)
 check: install

@@ -1,3 +1,4 @@
+import os
 from pathlib import Path
 
 import pytest
@@ -19,21 +20,32 @@ def shared_data() -> Path:
 SLOW_LIST = Path(__file__).with_name("slow_tests.txt")
 
 
-def _slow_tests() -> set[str]:
+def _slow_tests() -> dict[str, float]:
+    """The listed tests and their seconds."""
     if not SLOW_LIST.exists():
-        return set()
-    return {line.split()[-1] for line in SLOW_LIST.read_text(encoding="utf-8").splitlines()
-            if line.strip() and not line.startswith("#")}
+        return {}
+    out = {}
+    for line in SLOW_LIST.read_text(encoding="utf-8").splitlines():
+        if line.strip() and not line.startswith("#"):
+            seconds, test = line.split()
+            out[test] = float(seconds)
+    return out
 
 
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of ``slow_tests.txt`` slow (by their id, or for a parametrised one
-    listed without its parameters, all of them)."""
+    listed without its parameters, all of them). Under pytest-xdist (``make test``), the
+    longest come first, so that the workers end together (each worker sorts alike)."""
     slow = _slow_tests()
+    seconds = {}
     for item in items:
         rel = item.nodeid if item.nodeid.startswith("tests/") else f"tests/{item.nodeid}"
-        if rel in slow or rel.split("[")[0] in slow:
+        took = slow.get(rel, slow.get(rel.split("[")[0]))
+        if took is not None:
             item.add_marker(pytest.mark.slow)
+            seconds[item.nodeid] = took
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        items.sort(key=lambda item: -seconds.get(item.nodeid, 0.0))  # stable: ties keep order
 
 
 # The napari widget tests leave Qt, vispy and napari objects whose destruction during the

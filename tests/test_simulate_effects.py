@@ -124,26 +124,42 @@ def test_invalid_effect_value_raises(name, value):
 # --- one test per effect ----------------------------------------------------------------
 
 
-def test_illumination():
-    kw = dict(shape=(384, 384), n_beads=30, dtype=np.float32, seed=5)
+@pytest.mark.parametrize("seed", [5, 6, 7])  # a bound from one seed, judged on three
+def test_illumination(seed):
+    kw = dict(shape=(384, 384), n_beads=12, dtype=np.float32, seed=seed)
     image, truth = simulate_beads(**kw, effects={"illumination": 0.8})
     _, plain = simulate_beads(**kw)
     field = truth.effects["illumination_map"]
     assert field.shape == truth.shape and field.dtype == np.float32
     # The background is the smooth background times the map (float32 round-off).
     assert np.abs(truth.background - plain.background * field).max() < 1e-3
-    # Measured bead fluxes over the drawn amplitudes follow the map at the beads.
+    # The photons of each bead whose window lies inside the image, with no other bead's
+    # light in it, are its drawn amplitude times the map at the bead: within 5 sigma of
+    # the Poisson noise of the window (its background and the bead; the read noise and
+    # the light beyond the window, a fraction of a sigma, are left out of sigma). (A
+    # correlation over all beads, once here, held on one seed only: windows clipped by
+    # the border were empty, and neighbours added their light.)
     radius = 2 * truth.psf_radius
+    pos = truth.positions
+    centre = np.round(pos)
+    inside = np.all((centre >= radius) & (centre + radius < np.array(truth.shape)), axis=1)
+    gaps = np.hypot(*(pos[:, None] - pos[None]).transpose(2, 0, 1))
+    gaps[np.diag_indices(len(pos))] = np.inf
+    alone = gaps.min(axis=1) > radius + 3 * truth.psf_radius + 1  # render radius 3 psf_radius
+    keep = np.flatnonzero(inside & alone)
+    assert len(keep) >= 1
     photons = _photons(image, truth)
-    flux = np.array([_window(photons, y, x, radius).sum() for y, x in truth.positions])
-    at_beads = np.array([field[round(y), round(x)] for y, x in truth.positions])
-    corr = np.corrcoef(flux / plain.amplitudes, at_beads)[0, 1]
-    assert corr > 0.9  # measured 0.968 (map 0.50-0.98 at the beads)
+    flux = np.array([_window(photons, *pos[i], radius).sum() for i in keep])
+    light = np.array([_window(truth.background, *pos[i], radius).sum() for i in keep])
+    expected = plain.amplitudes[keep] * np.array([field[round(y), round(x)]
+                                                   for y, x in pos[keep]])
+    assert np.all(np.abs(flux - expected) < 5 * np.sqrt(light + expected))
     assert np.allclose(truth.amplitudes, plain.amplitudes * truth.effects["illumination_factors"])
 
 
-def test_row_and_column_offsets():
-    kw = dict(shape=(256, 256), n_beads=4, background=100.0, seed=2)
+@pytest.mark.parametrize("seed", [2, 3, 4])  # a bound from one seed, judged on three
+def test_row_and_column_offsets(seed):
+    kw = dict(shape=(256, 256), n_beads=4, background=100.0, seed=seed)
     effects = {"row_offsets": 10.0, "column_offsets": 10.0}
     image, truth = simulate_beads(**kw, effects=effects)
     plain, _ = simulate_beads(**kw)
@@ -157,8 +173,8 @@ def test_row_and_column_offsets():
     far = _far_from_beads(truth)
     excess = image.astype(float) - truth.offset - truth.gain * truth.background
     excess[~far] = np.nan
-    assert np.corrcoef(np.nanmedian(excess, axis=1), rows)[0, 1] > 0.95  # measured 0.977
-    assert np.corrcoef(np.nanmedian(excess, axis=0), cols)[0, 1] > 0.95  # measured 0.986
+    assert np.corrcoef(np.nanmedian(excess, axis=1), rows)[0, 1] > 0.95  # measured 0.977 on seed 2
+    assert np.corrcoef(np.nanmedian(excess, axis=0), cols)[0, 1] > 0.95  # measured 0.986 on seed 2
 
 
 def test_hot_pixels():
