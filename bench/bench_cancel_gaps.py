@@ -118,7 +118,7 @@ def main() -> None:
     if args.steps in ("2d", "all"):
         focus = best_focus_index(stack)
         rows += steps_2d(stack[focus].astype(np.float32), f"SP8 slice {focus}")
-        from napari_psfspace.core.subspace.estimate import iter_estimate_family
+        from napari_psfspace.core.family.estimate import iter_estimate_family
         part, _ = gaps(iter_estimate_family(
             [stack[k] for k in range(focus - 10, focus + 10, 2)], psf_radius=16.0))
         rows += labelled(part, "SP8, 10 slices", "Family")

@@ -37,6 +37,7 @@ from skimage.feature import peak_local_max
 from skimage.restoration import richardson_lucy
 
 from benchlib import table
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.restore import deblur, identify_operator
 from napari_psfspace.core.simulation.stacks import (
@@ -44,7 +45,6 @@ from napari_psfspace.core.simulation.stacks import (
     simulate_stack,
     within,
 )
-from napari_psfspace.core.subspace import estimate_family
 
 LOW = {"amplitude": (4e3, 1.2e4)}
 

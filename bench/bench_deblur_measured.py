@@ -39,9 +39,9 @@ from scipy import ndimage as ndi
 from skimage.restoration import richardson_lucy
 
 from napari_psfspace.core.beads.detect import detect_beads
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import deblur, identify_operator
-from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.io import best_focus_index, read_image, write_png
 
 FILE = "sp8_confocal_beads/sp8_series045_beads_zyx_uint8.tif"

@@ -37,10 +37,10 @@ from bench_deblur_measured import corr, fwhm
 from benchlib import table
 from napari_psfspace._sample_data import simulated_beads
 from napari_psfspace.core.beads.detect import detect_beads
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import deblur, identify_operator
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.io import best_focus_index, read_image
 
 MEASURED = {

@@ -33,8 +33,8 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--beads", type=int, default=100)
     args = ap.parse_args()
+    from napari_psfspace.core.family import estimate_family
     from napari_psfspace.core.simulation.stacks import simulate_stack
-    from napari_psfspace.core.subspace import estimate_family
 
     images, truths, _ = simulate_stack(args.k, (args.size, args.size), args.beads, seed=1)
     radius = int(np.median([t.psf_radius for t in truths]))

@@ -32,7 +32,7 @@ way (``assemble_operator`` on the family's basis, grid and cone), so a stage's s
 is what that stage costs.
 
 ``--shrink-oracle`` adds the oracle of the empirical Bayes shrink (:mod:`~napari_psfspace.
-core.subspace.shrink`): the family alone learnt with one fixed shrink ``c`` of every
+core.family.shrink`): the family alone learnt with one fixed shrink ``c`` of every
 image's departure from the family's mean field (``c`` in 0, 0.25, ..., 1, everything
 else as learnt), and for each image the ``c`` whose operator the truth prefers
 (``shrink_oracle``, ``c_best``): how close a per-image choice of the shrink could bring
@@ -48,15 +48,15 @@ import time
 import numpy as np
 
 from benchlib import table
+from napari_psfspace.core.family import estimate_family
+from napari_psfspace.core.family.estimate import coefficient_maps, grid_nodes, pool
+from napari_psfspace.core.family.patches import image_patches
 from napari_psfspace.core.model.cone import Cone
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.model.field import assemble_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.optics import Optics
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
-from napari_psfspace.core.subspace import estimate_family
-from napari_psfspace.core.subspace.estimate import coefficient_maps, grid_nodes, pool
-from napari_psfspace.core.subspace.patches import image_patches
 
 #: Wide conditions: defocus through about +-1 depth of field at NA 1.3 (600 nm, oil:
 #: lambda n / NA^2 = 0.54 um, about 0.2 waves rms), tilts, spherical drift.
@@ -200,8 +200,8 @@ def shrink_oracle(images, cached, r, grid) -> dict:
     every image's departure from the family's mean field, for each ``c``."""
     import functools
 
-    from napari_psfspace.core.subspace import estimate as subspace_estimate
-    from napari_psfspace.core.subspace import shrink
+    from napari_psfspace.core.family import estimate as subspace_estimate
+    from napari_psfspace.core.family import shrink
 
     out = {}
     try:

@@ -32,8 +32,8 @@ def main():
     ap.add_argument("--cache", default="/tmp/psfspace-bench-family-time.npz")
     args = ap.parse_args()
     import napari_psfspace
+    from napari_psfspace.core.family import estimate_family
     from napari_psfspace.core.model.estimate import estimate_operator
-    from napari_psfspace.core.subspace import estimate_family
 
     key = (args.k, args.size, args.beads)
     images = None

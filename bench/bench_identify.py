@@ -18,11 +18,11 @@ import argparse
 import numpy as np
 
 from benchlib import table
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import identify_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_family
 
 
 def main():

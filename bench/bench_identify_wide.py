@@ -37,11 +37,11 @@ import numpy as np
 
 from bench_family_oracle import WIDE
 from benchlib import optics_type, table
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.restore import identify_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_family
 
 
 def spread_picks(positions: np.ndarray, shape, r: float, p: int, margin: float = 2.0
@@ -75,8 +75,8 @@ def warn_kind(warning: str | None) -> str:
 def clean_oracle(sub, truth, pick, r, alone) -> dict:
     """Identification from the truth's noise-free PSFs, and the family's best Gamma."""
     from napari_psfspace.core.beads.window import bump_window
+    from napari_psfspace.core.family.result import space_at
     from napari_psfspace.core.restore import identify as idt
-    from napari_psfspace.core.subspace.result import space_at
 
     size = sub.basis.shape[1]
     window = bump_window(size, float(r), 1.2 * float(r))

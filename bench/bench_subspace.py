@@ -18,10 +18,10 @@ import time
 import numpy as np
 
 from benchlib import table
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import estimate_family
 
 LOW = (4e3, 1.2e4)
 

@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from benchlib import table
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
-from napari_psfspace.core.subspace import estimate_family
 from napari_psfspace.io import read_image
 
 SETS = {

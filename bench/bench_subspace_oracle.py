@@ -20,10 +20,10 @@ import argparse
 import numpy as np
 
 from benchlib import table
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.field import assemble_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import estimate_family
 
 
 class Cached:

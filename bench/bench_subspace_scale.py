@@ -31,7 +31,7 @@ CHILD = """
 import json, resource, sys, time
 import dask
 from napari_psfspace.io import stack_loaders
-from napari_psfspace.core.subspace import estimate_family
+from napari_psfspace.core.family import estimate_family
 files, r = json.loads(sys.argv[1]), float(sys.argv[2])
 loaders, _ = stack_loaders(files)
 dask.config.set(num_workers=2)

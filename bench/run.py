@@ -101,6 +101,8 @@ def run(name: str, args: list[str], label: str | None = None) -> Path:
                          f"`python bench/run.py --list` names them")
     command = " ".join(["python bench/run.py", name, *(["--as", label] if label else []),
                         *args])
+    commit = _git("rev-parse", "HEAD")  # what runs: the tree as it is when the bench starts
+    tree_changed = bool(_git("status", "--porcelain", "--untracked-files=no"))
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, script.name, *args], cwd=HERE,
                             stdout=subprocess.PIPE, text=True)
@@ -116,8 +118,7 @@ def run(name: str, args: list[str], label: str | None = None) -> Path:
                          "saved")
     result = {"format": FORMAT, "version": FORMAT_VERSION, "bench": name, "label": label,
               "what": _first_line(script), "command": command, "args": args,
-              "commit": _git("rev-parse", "HEAD"),
-              "tree_changed": bool(_git("status", "--porcelain", "--untracked-files=no")),
+              "commit": commit, "tree_changed": tree_changed,
               "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
               "machine": machine(), "seconds": round(time.perf_counter() - t0, 1),
               "output": "".join(lines)}

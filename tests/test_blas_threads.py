@@ -85,7 +85,7 @@ def test_an_estimate_runs_on_one_blas_thread_and_gives_them_back(two_blas_thread
 
 @pytest.mark.parametrize("module, name", [
     ("napari_psfspace.core.model.estimate", "iter_estimate"),
-    ("napari_psfspace.core.subspace.estimate", "iter_estimate_family"),
+    ("napari_psfspace.core.family.estimate", "iter_estimate_family"),
     ("napari_psfspace.core.restore.identify", "identify_operator"),
     ("napari_psfspace.core.volume.estimate3d", "iter_estimate_operator_3d"),
     ("napari_psfspace.core.diagnosis.loop", "iter_diagnose"),

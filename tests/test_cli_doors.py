@@ -18,8 +18,8 @@ import tifffile
 import napari_psfspace as ps
 from napari_psfspace.cli import main
 from napari_psfspace.core.common.device import gpu_status
+from napari_psfspace.core.family import OperatorFamily
 from napari_psfspace.core.model.cone import Cone
-from napari_psfspace.core.subspace import OperatorFamily
 
 
 @pytest.fixture(scope="module")
@@ -141,10 +141,10 @@ if not gpu_status()[0]:
 def trapped(monkeypatch):
     """Every long computation the command line starts fails the test if reached."""
     import napari_psfspace.core.diagnosis.loop as loop
+    import napari_psfspace.core.family as subspace
     import napari_psfspace.core.model.estimate as estimate
     import napari_psfspace.core.restore as restore
     import napari_psfspace.core.simulation as simulation
-    import napari_psfspace.core.subspace as subspace
     import napari_psfspace.core.volume.deconvolve3d as deconvolve3d
     import napari_psfspace.core.volume.fista3d as fista3d
     import napari_psfspace.core.volume.tiles3d as tiles3d

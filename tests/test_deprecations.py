@@ -15,15 +15,21 @@ from napari_psfspace.core.common.deprecate import SINCE, UNTIL
     ("napari_psfspace", "estimate_subspace", "estimate_family"),
     ("napari_psfspace", "iter_estimate_subspace", "iter_estimate_family"),
     ("napari_psfspace", "load_subspace", "load_family"),
-    ("napari_psfspace.core.subspace", "OperatorSubspace", "OperatorFamily"),
-    ("napari_psfspace.core.subspace", "estimate_subspace", "estimate_family"),
-    ("napari_psfspace.core.subspace.result", "load_subspace", "load_family"),
-    ("napari_psfspace.core.subspace.result", "save_subspace", "save_family"),
-    ("napari_psfspace.core.subspace.estimate", "iter_estimate_subspace",
+    ("napari_psfspace.core.family", "OperatorSubspace", "OperatorFamily"),
+    ("napari_psfspace.core.family", "estimate_subspace", "estimate_family"),
+    ("napari_psfspace.core.family.result", "load_subspace", "load_family"),
+    ("napari_psfspace.core.family.result", "save_subspace", "save_family"),
+    ("napari_psfspace.core.family.estimate", "iter_estimate_subspace",
      "iter_estimate_family"),
+    ("napari_psfspace.core.subspace.result", "load_subspace", "load_family"),
 ])
 def test_an_old_name_is_the_new_one_with_a_warning(module, old, new):
     import importlib
+    import warnings
+
+    with warnings.catch_warnings():  # the old stage path's own warning: the test below
+        warnings.simplefilter("ignore", FutureWarning)
+        import napari_psfspace.core.subspace  # noqa: F401
 
     mod = importlib.import_module(module)
     with pytest.warns(FutureWarning) as record:
@@ -78,3 +84,30 @@ def test_the_command_line_takes_subspace_for_family(tmp_path, capsys):
         assert len(warned) == (option == "--subspace")
         if warned:
             assert "`--family`" in warned[0]
+
+
+def test_the_old_stage_path_is_the_new_one_with_a_warning():
+    """``napari_psfspace.core.subspace`` (the stage's folder until 0.2.0) and each of its
+    modules are the ``core.family`` ones; the first import says so (a fresh process)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        import warnings
+        with warnings.catch_warnings(record=True) as seen:
+            warnings.simplefilter("always")
+            import napari_psfspace.core.subspace.result as old_result
+            from napari_psfspace.core.subspace.subspace_file import FORMAT_NAME
+            from napari_psfspace.core.subspace import estimate_family
+        import napari_psfspace.core.family as family
+        import napari_psfspace.core.family.family_file as family_file
+        import napari_psfspace.core.family.result as result
+        assert old_result is result and estimate_family is family.estimate_family
+        assert FORMAT_NAME == family_file.FORMAT_NAME
+        future = [str(w.message) for w in seen if w.category is FutureWarning]
+        assert len(future) == 1 and "`napari_psfspace.core.family`" in future[0], future
+        print("ok")
+    """)
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr

@@ -2,7 +2,7 @@
 
 Each image with enough beads is judged on held-out beads of its own: it keeps the
 family's operator only where that explains them at least as well as its own estimate
-(core/subspace/choice.py). The metric is bench_accuracy's aligned PSF error on a 4 x 4
+(core/family/choice.py). The metric is bench_accuracy's aligned PSF error on a 4 x 4
 grid, against each image's truth.
 """
 
@@ -11,12 +11,12 @@ import json
 import numpy as np
 import pytest
 
+from napari_psfspace.core.family import OperatorFamily, estimate_family
+from napari_psfspace.core.family.estimate import family_cone
 from napari_psfspace.core.model.cone import reduce_cone
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack
-from napari_psfspace.core.subspace import OperatorFamily, estimate_family
-from napari_psfspace.core.subspace.estimate import family_cone
 
 #: Conditions over about +-1 depth of field at NA 1.3, tilts, spherical drift
 #: (bench_family_oracle.py's WIDE).
@@ -195,7 +195,7 @@ def _curve(means, sd, n=20):
     weight's mean, and a scatter of +-``sd`` whose sign alternates over the beads and
     flips from one weight to the next (paired differences of neighbouring weights
     scatter by 2 sd, of weights two apart not at all)."""
-    from napari_psfspace.core.subspace.choice import WEIGHTS
+    from napari_psfspace.core.family.choice import WEIGHTS
     base = np.linspace(0.1, 0.3, n)
     signs = (-1.0) ** np.arange(n)
     return {w: base + m + sd * signs * (-1.0) ** round(4 * w)
@@ -203,7 +203,7 @@ def _curve(means, sd, n=20):
 
 
 def test_a_flat_held_out_curve_keeps_the_prior_weight():
-    from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, pick_weight
+    from napari_psfspace.core.family.choice import PRIOR_WEIGHT, pick_weight
     # minimum at 0.75 by less than the paired scatter: the prior (the even blend) is kept
     curve = _curve([0.010, 0.004, 0.0005, 0.0, 0.0008], sd=0.005)
     assert pick_weight(curve, prior=0.5) == (0.5, True)
@@ -215,8 +215,8 @@ def test_a_flat_held_out_curve_keeps_the_prior_weight():
 
 
 def test_the_prior_leans_to_the_family_as_the_image_s_share_of_its_field_falls():
-    from napari_psfspace.core.subspace.choice import PRIOR_WEIGHT, prior_weight
-    from napari_psfspace.core.subspace.shrink import Fields
+    from napari_psfspace.core.family.choice import PRIOR_WEIGHT, prior_weight
+    from napari_psfspace.core.family.shrink import Fields
     assert prior_weight(1.0) == PRIOR_WEIGHT and prior_weight(0.0) == 1.0
     assert prior_weight(0.5) == pytest.approx(1 - 0.5 * (1 - PRIOR_WEIGHT))  # linear
     assert prior_weight(float("nan")) == PRIOR_WEIGHT  # unknown: the even blend
@@ -229,7 +229,7 @@ def test_the_prior_leans_to_the_family_as_the_image_s_share_of_its_field_falls()
 
 
 def test_the_prior_leans_to_the_family_where_the_beads_are_mostly_noise():
-    from napari_psfspace.core.subspace.choice import NOISE_FLOOR_RANGE, PRIOR_WEIGHT, prior_weight
+    from napari_psfspace.core.family.choice import NOISE_FLOOR_RANGE, PRIOR_WEIGHT, prior_weight
     lo, hi = NOISE_FLOOR_RANGE
     # a bright image whose beads determine its departure: the even blend
     assert prior_weight(1.0, 0.0) == PRIOR_WEIGHT
@@ -283,7 +283,7 @@ def test_faint_images_lean_to_the_family_where_their_held_out_beads_are_noise():
 
 
 def test_beads_that_are_mostly_noise_turn_the_burden_of_proof():
-    from napari_psfspace.core.subspace.choice import pick_weight
+    from napari_psfspace.core.family.choice import pick_weight
     # every blend ahead of the own estimate by less than the scatter, 0.5 ahead of the
     # other blends beyond theirs (none): the own estimate stays where the beads can
     # judge; where they are mostly noise, the best blend (the own is within its scatter)
@@ -306,7 +306,7 @@ def test_beads_that_are_mostly_noise_turn_the_burden_of_proof():
 
 
 def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
-    from napari_psfspace.core.subspace.choice import pick_weight
+    from napari_psfspace.core.family.choice import pick_weight
     # the family alone better beyond the scatter: the family
     w, beaten = pick_weight(_curve([0.05, 0.04, 0.03, 0.015, 0.0], sd=0.002))
     assert (w, beaten) == (1.0, True)

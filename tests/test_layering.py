@@ -30,15 +30,16 @@ def _run(code: str) -> subprocess.CompletedProcess:
 
 
 #: The stage folders, and what each may import besides itself (data flow one way:
-#: beads -> model -> diagnosis / subspace -> restore -> volume (3D); the simulator beside
+#: beads -> model -> diagnosis / family -> restore -> volume (3D); the simulator beside
 #: the flow).
 ALLOWED = {
     "common": set(),
     "beads": {"common"},
     "model": {"common", "beads"},
     "diagnosis": {"common", "beads", "model"},
-    "subspace": {"common", "beads", "model"},
-    "restore": {"common", "beads", "model", "subspace", "diagnosis"},
+    "family": {"common", "beads", "model"},
+    "subspace": {"common", "family"},  # family's name until 0.2.0: an alias, deprecated
+    "restore": {"common", "beads", "model", "family", "diagnosis"},
     "simulation": {"common", "beads"},
     "volume": {"common", "beads", "model", "diagnosis", "restore"},
 }

@@ -8,6 +8,7 @@ import pytest
 from scipy import ndimage as ndi
 from scipy.spatial import cKDTree
 
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.model.operator import ProductConvolution
 from napari_psfspace.core.restore.deconvolve import deblur, iter_deblur
@@ -21,7 +22,6 @@ from napari_psfspace.core.restore.identify import (
 from napari_psfspace.core.restore.smooth_grid import SmoothGrid
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import random_conditions, simulate_stack, within
-from napari_psfspace.core.subspace import estimate_family
 from tolerances import U32, U64, abs_dot, gamma, sum_error
 
 LOW = {"amplitude": (4e3, 1.2e4)}  # bead photons x0.2 of the default: noisy beads
@@ -470,7 +470,7 @@ def test_clicked_beads_near_the_border_are_kept_with_a_masked_patch(family):
     in the image; only the window's tail, background, is masked), where the estimate's
     rule drops it."""
     from napari_psfspace.core.common.spacing import bead_border, partial_border
-    from napari_psfspace.core.subspace.patches import image_patches
+    from napari_psfspace.core.family.patches import image_patches
 
     sub, r, _, _ = family
     image, truths, _ = simulate_stack(1, (384, 384), 24, seed=7, amplitude=(2e4, 3e4),

@@ -1,12 +1,12 @@
-"""The family as the prior of each image's fields (core/subspace/shrink.py)."""
+"""The family as the prior of each image's fields (core/family/shrink.py)."""
 
 import numpy as np
 import pytest
 
+from napari_psfspace.core.family.estimate import grid_nodes
+from napari_psfspace.core.family.shrink import shrunk_fields
 from napari_psfspace.core.model.tps import ThinPlateSpline
 from napari_psfspace.core.model.voronoi import voronoi_areas
-from napari_psfspace.core.subspace.estimate import grid_nodes
-from napari_psfspace.core.subspace.shrink import shrunk_fields
 
 SHAPE = (512, 512)
 
@@ -92,7 +92,7 @@ def test_the_shrunk_fields_at_the_beads_are_those_at_the_nodes(noise):
     # the bead values are the mean field interpolated bilinearly plus the departure's
     # spline at the bead: against the nodes' field interpolated the same way, the
     # difference is the bilinear interpolation of the departure (small on 32 px cells)
-    from napari_psfspace.core.subspace.result import space_at
+    from napari_psfspace.core.family.result import space_at
     for k in range(4):
         grid_field = fields.nodes[k].T.reshape(2, len(gy), len(gx))
         at = space_at(grid_field, (gy, gx), centers[k])
@@ -134,7 +134,7 @@ def test_a_factor_outside_zero_one_is_refused(bad):
 
 
 def test_bead_weights_cap_only_the_outlying_beads():
-    from napari_psfspace.core.subspace.shrink import MIN_BEADS_ROBUST, bead_weights
+    from napari_psfspace.core.family.shrink import MIN_BEADS_ROBUST, bead_weights
 
     rng = np.random.default_rng(3)
     res = rng.normal(0, 0.01, (30, 8))
@@ -157,7 +157,7 @@ def test_bead_weights_cap_only_the_outlying_beads():
 
 @pytest.mark.parametrize("seed", [5, 6])
 def test_an_outlying_bead_does_not_carry_its_image_s_field(monkeypatch, seed):
-    from napari_psfspace.core.subspace import shrink
+    from napari_psfspace.core.family import shrink
 
     centers, values = _stack(0.02, k=6, seed=seed)
     bad = values[0].copy()

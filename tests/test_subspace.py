@@ -1,4 +1,4 @@
-"""A family of operators from many bead images (core/subspace, issue 11; paper 2.4-2.5).
+"""A family of operators from many bead images (core/family, issue 11; paper 2.4-2.5).
 
 Stacks from core/simulation/stacks.py: K images of one microscope, each under a hidden
 condition (focus shift, tilt, spherical drift), each with its true operator. The metric
@@ -8,10 +8,10 @@ is bench_accuracy's aligned PSF error on a 4 x 4 grid, against each image's trut
 import numpy as np
 import pytest
 
+from napari_psfspace.core.family import OperatorFamily, estimate_family
 from napari_psfspace.core.model.estimate import estimate_operator
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import OperatorFamily, estimate_family
 from tolerances import U32
 
 LOW = {"amplitude": (4e3, 1.2e4)}  # photons x0.2 of the default: noisy beads
@@ -187,7 +187,7 @@ def test_faint_dense_stacks_are_not_made_worse_by_the_family():
 
 def test_whitened_rank_finds_the_signal_of_beads_of_unequal_noise():
     from napari_psfspace.core.beads.window import bump_window
-    from napari_psfspace.core.subspace.sizes import white_rank
+    from napari_psfspace.core.family.sizes import white_rank
 
     rng = np.random.default_rng(0)
     size, n = 31, 300
@@ -210,7 +210,7 @@ def test_whitened_rank_finds_the_signal_of_beads_of_unequal_noise():
 
 def test_whitened_rank_survives_a_bead_without_measured_noise():
     from napari_psfspace.core.beads.window import bump_window
-    from napari_psfspace.core.subspace.sizes import white_rank
+    from napari_psfspace.core.family.sizes import white_rank
 
     rng = np.random.default_rng(1)
     window = bump_window(21, 6.0, 9.0)

@@ -33,14 +33,14 @@ from .core.beads.scale import spot_scale
 from .core.common.errors import PsfSpaceError
 from .core.common.progress import Progress, run_with_progress
 from .core.diagnosis.loop import Diagnosis, diagnose, iter_diagnose, iter_heldout_error
+from .core.family import OperatorFamily, estimate_family, iter_estimate_family
+from .core.family.result import load_family
 from .core.model.estimate import Estimation, estimate_operator, iter_estimate
 from .core.model.operator import ProductConvolution, load_operator
 from .core.restore import Deblurred, deblur, identify_operator, iter_deblur
 from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
 from .core.simulation.focus import simulate_focus_series
 from .core.simulation.metrics import psf_error
-from .core.subspace import OperatorFamily, estimate_family, iter_estimate_family
-from .core.subspace.result import load_family
 from .core.volume import (
     ProductConvolution3D,
     deblur_3d,

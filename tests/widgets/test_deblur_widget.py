@@ -6,8 +6,8 @@ import pytest
 from conftest import wait_task
 from napari_psfspace._widgets._deblur import SMOOTH, SOURCES, SPARSE, DeblurWidget
 from napari_psfspace._widgets._layers import SUBSPACE_KEY
+from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import estimate_family
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ from napari_psfspace._widgets._layers import (
     SUBSPACE_KEY,
 )
 from napari_psfspace._widgets._learn_family import SOURCES, LearnFamilyWidget
+from napari_psfspace.core.family import OperatorFamily, estimate_family
 from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.stacks import simulate_stack
-from napari_psfspace.core.subspace import OperatorFamily, estimate_family
 
 
 @pytest.fixture(scope="module")

@@ -59,7 +59,7 @@ SOURCES = ("file (family or model)", "from the viewer")
 
 def _identify_and_deblur(plane, model, beads, **kwargs):
     """Identify the operator when ``model`` is a family, then deblur (in the worker)."""
-    from ..core.subspace import OperatorFamily
+    from ..core.family import OperatorFamily
 
     op, note = model, "the model as it is"
     if isinstance(model, OperatorFamily):
@@ -218,10 +218,10 @@ class DeblurWidget(Container):
         path = str(self.path.value)
         if path in ("", "."):
             raise ValueError("file: choose a model or family file (.npz)")
+        from ..core.family.family_file import FORMAT_NAME
+        from ..core.family.result import load_family
         from ..core.model.operator import load_operator
         from ..core.model.operator_file import archive_format
-        from ..core.subspace.result import load_family
-        from ..core.subspace.subspace_file import FORMAT_NAME
 
         p = Path(path)
         return load_family(p) if archive_format(p) == FORMAT_NAME else load_operator(p)

@@ -2,7 +2,7 @@
 
 The images come from a z-stack layer (a range of its slices: each slice a condition),
 from several 2-D image layers, or from a folder of TIFFs (read one at a time inside the
-tasks). The work is :func:`~napari_psfspace.core.subspace.iter_estimate_family` in a
+tasks). The work is :func:`~napari_psfspace.core.family.iter_estimate_family` in a
 worker thread (dask's threaded scheduler inside it); the widget shows the PSF grid of
 each image's operator under a slider, the PSF basis ``h_i``, the spatial basis ``a_j``
 and the conditions as points.
@@ -29,7 +29,7 @@ from napari.layers import Image
 from napari.utils.notifications import show_error, show_info
 
 from ..core.common.progress import Progress
-from ..core.subspace import OperatorFamily, iter_estimate_family
+from ..core.family import OperatorFamily, iter_estimate_family
 from ._layers import (
     SUB_GRID,
     Frame,

@@ -11,12 +11,12 @@ from .common import COUNT, INDEX, NON_NEGATIVE, existing, progress_printer
 
 def run(args) -> int:
     from ..core.common.progress import run_with_progress
+    from ..core.family.family_file import FORMAT_NAME as FAMILY
+    from ..core.family.result import load_family
     from ..core.model.operator import load_operator
     from ..core.model.operator_file import archive_format
     from ..core.restore import identify_operator, iter_deblur
     from ..core.restore.identify import IdentificationWarning
-    from ..core.subspace.result import load_family
-    from ..core.subspace.subspace_file import FORMAT_NAME as FAMILY
     from ..io import check_output_file, read_image, read_points_csv, write_tiff
 
     out = check_output_file(args.output, "-o")

@@ -12,8 +12,8 @@ def run(args) -> int:
     from ..core.beads.radius import suggest_series_radius
     from ..core.common.errors import NoBeadsError
     from ..core.common.progress import run_with_progress
-    from ..core.subspace import iter_estimate_family
-    from ..core.subspace.estimate import max_space
+    from ..core.family import iter_estimate_family
+    from ..core.family.estimate import max_space
     from ..io import check_output_file, read_image, read_slice, stack_loaders
 
     check_output_file(args.output, "-o")

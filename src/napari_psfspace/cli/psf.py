@@ -6,15 +6,15 @@ from .common import FINITE, INDEX, existing
 
 
 def run(args) -> int:
+    from ..core.family.family_file import FORMAT_NAME as FAMILY
+    from ..core.family.result import load_family
     from ..core.model.operator import load_operator
     from ..core.model.operator_file import archive_format
-    from ..core.subspace.result import load_family
-    from ..core.subspace.subspace_file import FORMAT_NAME as SUBSPACE
     from ..io import check_output_file, write_tiff
 
     existing(args.model, "MODEL")
     check_output_file(args.output, "-o")
-    if archive_format(args.model) == SUBSPACE:
+    if archive_format(args.model) == FAMILY:
         sub = load_family(args.model)
         if args.image is None:
             raise ValueError(f"{args.model} is a family of {sub.n_images} images: pass "

@@ -2,7 +2,7 @@
 
 The fitting half of :func:`~napari_psfspace.core.model.estimate.iter_estimate`, once the
 beads are found, centred and cut out; the family
-(:func:`~napari_psfspace.core.subspace.estimate_family`) calls it too, on each image's
+(:func:`~napari_psfspace.core.family.estimate_family`) calls it too, on each image's
 own patches, for the single-image estimate each image's family operator must not lose to.
 """
 

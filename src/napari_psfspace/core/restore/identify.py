@@ -1,6 +1,6 @@
 """Identify the operator of one blurred image from a few of its beads (paper, Appendix D).
 
-A family of operators (:class:`~napari_psfspace.core.subspace.OperatorFamily`) is known:
+A family of operators (:class:`~napari_psfspace.core.family.OperatorFamily`) is known:
 ``H u = sum_ij Gamma[i, j] h_i * (a_j . u)`` with ``Gamma`` in the cone of the ``Gamma_k``.
 Each bead ``p`` of the image, centred and free of background, gives its coefficients
 ``c_p = <p_p, h_i>``; problem (9) is
@@ -45,6 +45,9 @@ from ..common.deprecate import renamed_keyword
 from ..common.spacing import partial_border
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
+from ..family.choice import Choice, blend, choose_between, own_estimate
+from ..family.patches import image_patches
+from ..family.result import OperatorFamily, space_at
 from ..model.cone import Cone, reduce_cone
 from ..model.field import assemble_operator
 from ..model.heldout import (
@@ -56,9 +59,6 @@ from ..model.heldout import (
     split_holdout,
 )
 from ..model.operator import ProductConvolution
-from ..subspace.choice import Choice, blend, choose_between, own_estimate
-from ..subspace.patches import image_patches
-from ..subspace.result import OperatorFamily, space_at
 from .posterior import FieldPrior, Posterior, bilinear, family_prior, posterior_field
 
 #: Default range of the beads' amplitudes relative to the family's (patches are
@@ -258,7 +258,7 @@ def _identify(subspace, c, centers, sd, *, prior: bool, amplitude_range, max_ite
 #: Fewest usable beads at which the identified operator is judged against the image's own
 #: estimate on held-out beads (a fifth of them): with as many, the image's own estimate
 #: is a real alternative, and the identification is kept no worse than it (blended with
-#: it, or replaced, as the family's images are: :mod:`~napari_psfspace.core.subspace.
+#: it, or replaced, as the family's images are: :mod:`~napari_psfspace.core.family.
 #: choice`). From all of an image's beads the identified operator could be worse than
 #: ``estimate_operator`` on wide focus series (``bench/bench_identify_wide.py``, column
 #: ``all``; bench/RESULTS.md).
@@ -273,8 +273,8 @@ def judge_against_own(patches, c: np.ndarray, subspace: OperatorFamily, *,
 
     About a fifth of the beads, spread over the field, are held out; the operator
     identified from the others and the image's own estimate from the same others
-    (:func:`~napari_psfspace.core.subspace.choice.own_estimate`) are blended at each
-    weight and judged on them (:func:`~napari_psfspace.core.subspace.choice.
+    (:func:`~napari_psfspace.core.family.choice.own_estimate`) are blended at each
+    weight and judged on them (:func:`~napari_psfspace.core.family.choice.
     choose_between`). None below :data:`MIN_BEADS_JUDGED` beads.
     """
     if len(c) < MIN_BEADS_JUDGED:
@@ -432,7 +432,7 @@ def identify_operator(
     image : ndarray of shape (H, W)
         The blurred image, of the shape the family was learnt on.
     family : OperatorFamily
-        The family of operators (:func:`~napari_psfspace.core.subspace.estimate_family`).
+        The family of operators (:func:`~napari_psfspace.core.family.estimate_family`).
         ``subspace=`` is its deprecated name.
     beads : ndarray of shape (N, 2), optional
         Bead positions (row, column), pixels, e.g. a Points layer's; they are centred

@@ -1,6 +1,6 @@
 """The family as a Gaussian prior over an image's PSF field; a few beads as its likelihood.
 
-A family of operators (:class:`~napari_psfspace.core.subspace.OperatorFamily`) holds the
+A family of operators (:class:`~napari_psfspace.core.family.OperatorFamily`) holds the
 coefficient field ``F_k(x)`` (``I`` numbers at each node ``x`` of the coarse grid) of
 each of ``K`` images. The field of a new image is modelled as a Gaussian process
 

@@ -1,31 +1,18 @@
-"""Stage 4, subspace (issue 11): a family of operators from many bead images.
+"""Deprecated: the family stage's name until version 0.2.0, now
+:mod:`napari_psfspace.core.family`. Importing it, or any of its modules (``result``,
+``estimate``, ...), gives the new module, with a FutureWarning."""
 
-Takes images of one microscope under varying conditions (a list, a stack's slices, or
-loaders that read one image at a time); gives an :class:`~.result.OperatorFamily`: a
-PSF basis ``h_i``, a basis of spatial variations ``a_j`` on the coarse grid, one small
-matrix ``Gamma_k`` per image, and the cone of the ``Gamma_k`` (paper, sections 2.4-2.5).
-The per-image work runs as dask tasks (:mod:`.estimate`, :mod:`.patches`); the result's
-file format is in :mod:`.subspace_file`. Imports ``model``, ``beads`` and ``common``.
-"""
+import importlib
+import sys
 
-from .estimate import estimate_family, iter_estimate_family
-from .result import OperatorFamily
+from ..common.deprecate import warn
 
-__all__ = ["OperatorFamily", "estimate_family", "iter_estimate_family"]
+_MODULES = ("choice", "estimate", "patches", "result", "shrink", "sizes")
 
-
-def _aliases():
-    from . import result
-
-    return {"OperatorSubspace": ("OperatorFamily", lambda: OperatorFamily),
-            "estimate_subspace": ("estimate_family", lambda: estimate_family),
-            "iter_estimate_subspace": ("iter_estimate_family", lambda: iter_estimate_family),
-            "load_subspace": ("load_family", lambda: result.load_family),
-            "save_subspace": ("save_family", lambda: result.save_family)}
-
-
-def __getattr__(name: str):
-    """The stage's old names (before "family" was its one name): deprecated."""
-    from ..common.deprecate import module_getattr
-
-    return module_getattr(__name__, _aliases())(name)
+warn("napari_psfspace.core.subspace", "napari_psfspace.core.family", stacklevel=2)
+for _name in _MODULES:
+    sys.modules[f"{__name__}.{_name}"] = importlib.import_module(f"..family.{_name}",
+                                                                 __package__)
+sys.modules[f"{__name__}.subspace_file"] = importlib.import_module("..family.family_file",
+                                                                   __package__)
+sys.modules[__name__] = importlib.import_module("..family", __package__)

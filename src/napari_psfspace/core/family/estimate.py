@@ -524,7 +524,7 @@ def estimate_family(
     holdout : float or None
         Fraction of each image's beads held out: they measure each image's operator and
         choose its blend with the image's own estimate
-        (:mod:`~napari_psfspace.core.subspace.choice`); None: the paper's model, the
+        (:mod:`~napari_psfspace.core.family.choice`); None: the paper's model, the
         family's operators alone, and no held-out figures.
     chunk : int
         Images per dask task.

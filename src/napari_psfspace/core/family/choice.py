@@ -6,7 +6,7 @@ estimate does not have). The family acts as a prior: each image with enough bead
 the blend ``w H_family + (1 - w) H_own`` of the family's operator and its own estimate
 (PSFs ``w h_family + (1 - w) h_own``, still of sum 1) whose weight ``w`` in
 :data:`WEIGHTS` best explains beads of its own that neither model saw (the held-out
-split of :func:`~napari_psfspace.core.subspace.estimate.iter_estimate_family`; among
+split of :func:`~napari_psfspace.core.family.estimate.iter_estimate_family`; among
 the weights those beads cannot tell apart, the one nearest :func:`prior_weight`: the
 even blend where the image's beads determine its own field, leaning to the family where
 they do not or where each bead is mostly noise; :func:`pick_weight`). ``w = 0`` is the
@@ -66,7 +66,7 @@ def prior_weight(share: float, floor: float = 0.0) -> float:
     """The family's weight a blend leans to, from the image's share of its own field
     and its beads' noise.
 
-    ``share`` (:meth:`~napari_psfspace.core.subspace.shrink.Fields.share`, in [0, 1]) is
+    ``share`` (:meth:`~napari_psfspace.core.family.shrink.Fields.share`, in [0, 1]) is
     how much of its departure from the family's mean field the image's own beads
     determine (empirical Bayes: its departure's spread over the family against its
     noise). Where they determine it (bright or many beads, ``share`` 1) the even blend

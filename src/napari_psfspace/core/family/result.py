@@ -20,7 +20,7 @@ from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
 from ..model.psf_field import interp_weights
 from .choice import blend
-from .subspace_file import read_family, write_family
+from .family_file import read_family, write_family
 
 
 def space_at(space: np.ndarray, grid, points: np.ndarray) -> np.ndarray:
