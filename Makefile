@@ -19,9 +19,10 @@ install: $(BIN)/psfspace
 demo: install
 	$(BIN)/psfspace demo --out demo-output
 
-# one worker per core (pytest-xdist), the longest tests first (tests/conftest.py)
+# one worker per core (pytest-xdist; a file runs on one worker, its module fixtures once), the
+# files with the longest tests first (tests/conftest.py)
 test: install
-	$(BIN)/python -m pytest -n auto --dist load
+	$(BIN)/python -m pytest -n auto --dist loadfile
 
 # the inner loop: the tests that take under a second (tests/slow_tests.txt lists the others)
 check: install

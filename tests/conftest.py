@@ -34,8 +34,9 @@ def _slow_tests() -> dict[str, float]:
 
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of ``slow_tests.txt`` slow (by their id, or for a parametrised one
-    listed without its parameters, all of them). Under pytest-xdist (``make test``), the
-    longest come first, so that the workers end together (each worker sorts alike)."""
+    listed without its parameters, all of them). Under pytest-xdist (``make test``, a file
+    per worker at a time), the longest tests come first and with them their files, so
+    that the workers end together (each worker sorts alike)."""
     slow = _slow_tests()
     seconds = {}
     for item in items:

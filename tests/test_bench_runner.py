@@ -76,3 +76,38 @@ def test_many_results_fit_in_the_line_budget(tmp_path, monkeypatch):
     assert "Not yet run" not in text
     for name in names:
         assert f"    {name} row 2\n" in text and f"{name} row 49" not in text
+
+
+def test_results_md_is_the_render_of_the_results():
+    """bench/RESULTS.md is what ``run.py --render`` writes from bench/results (rendered
+    again after every new result), within its line budget."""
+    run = _runner()
+    text = (ROOT / "bench" / "RESULTS.md").read_text(encoding="utf-8")
+    assert len(text.splitlines()) <= run.MAX_LINES
+    assert text == run.render(run.load_results(), run.benches()) + "\n", (
+        "bench/RESULTS.md is stale: run `python bench/run.py --render`")
+
+
+def test_the_docs_cite_the_figures_of_the_results():
+    """Each paragraph of docs/benchmarks.md names the benches it cites (``bench/run.py
+    NAME``), and every decimal figure in it is printed in one of their results: the
+    page cannot drift from the results."""
+    import re
+
+    run = _runner()
+    outputs: dict[str, str] = {}
+    for r in run.load_results():
+        outputs[r["bench"]] = outputs.get(r["bench"], "") + r["output"]
+    text = (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8")
+    cited = 0
+    for block in re.split(r"\n(?=- )|\n\n", text):
+        names = re.findall(r"bench/run\.py (\w+)", block)
+        figures = re.findall(r"(?<![\w.])\d+\.\d+(?![\w.])", block)
+        if not figures:
+            continue
+        assert names, f"figures without the command that prints them: {block[:80]!r}"
+        printed = "".join(outputs.get(n, "") for n in names)
+        missing = [f for f in figures if f not in printed]
+        assert not missing, (names, missing)
+        cited += len(figures)
+    assert cited >= 20

@@ -38,7 +38,7 @@ PROFILE_BEADS = 64
 #: Only neighbours closer than this many PSF radii have their light taken out of a
 #: patch: their light reaches the bead's own support. Farther ones reach only the ring
 #: the background is fitted on, where the isotropic model's error costs about what it
-#: removes (bench/RESULTS.md, issue 45).
+#: removes (bench/RESULTS.md@9b74991, issue 45).
 SUBTRACT_DISTANCE = 2.0
 
 

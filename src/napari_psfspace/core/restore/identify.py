@@ -127,7 +127,7 @@ N_FOLDS = 5
 #: over its images of the same measure on their held-out beads). The bound separates,
 #: on wide focus series, the images whose operator is more than twice as far from the
 #: truth as one estimated from all their beads from the others, and passes the measured
-#: stacks (``bench/bench_identify_wide.py``, bench/RESULTS.md).
+#: stacks (``bench/bench_identify_wide.py``, bench/RESULTS.md@9b74991).
 WARN_RATIO = 1.1
 #: The bound without held-out figures (a family learnt with ``holdout=None``), and its
 #: floor otherwise.
@@ -137,7 +137,7 @@ WARN_FLOOR = 0.03
 #: median (``model_error``) hides one bead of five that the family cannot explain (a
 #: corner of a tilted field beyond the focus learnt: its PSF a third outside the
 #: family's PSF basis; an unresolved pair). Set above the worst bead of 5 on all but a
-#: few images of wide focus series (``bench/bench_identify_wide.py``; bench/RESULTS.md).
+#: few images of wide focus series (``bench/bench_identify_wide.py``; bench/RESULTS.md@9b74991).
 WARN_BEAD_RATIO = 4.0
 
 
@@ -261,7 +261,7 @@ def _identify(subspace, c, centers, sd, *, prior: bool, amplitude_range, max_ite
 #: it, or replaced, as the family's images are: :mod:`~napari_psfspace.core.family.
 #: choice`). From all of an image's beads the identified operator could be worse than
 #: ``estimate_operator`` on wide focus series (``bench/bench_identify_wide.py``, column
-#: ``all``; bench/RESULTS.md).
+#: ``all``; bench/RESULTS.md@9b74991).
 MIN_BEADS_JUDGED = 15
 
 

@@ -30,7 +30,7 @@ def locate_companion(res: BeadResiduals, i: int
     detected, then both are refined together (Nelder-Mead on the four coordinates, the
     amplitudes solved at each point). The detector centres a doublet between its two
     beads, so with the bead held where it was detected the pair's residual stayed
-    elongated well beyond the test's threshold (bench/RESULTS.md, issue 46, third
+    elongated well beyond the test's threshold (bench/RESULTS.md@9b74991, issue 46, third
     session). The model PSF does not change over 3.5 px."""
     msk = res.fit_mask[i]
     d = res.data[i][msk]
@@ -93,7 +93,7 @@ class Neighbours(Effect):
     tests = ("secondary_peaks", "elongated_beads")
     #: A few beads carry it: the held-out mean over all beads can fall by half while its
     #: test of a drop stays above the rule's p, the median bead unchanged; the beads its
-    #: tests count are what the pair fit changes (bench/RESULTS.md, issue 46, third
+    #: tests count are what the pair fit changes (bench/RESULTS.md@9b74991, issue 46, third
     #: session).
     own_evidence = True
 
