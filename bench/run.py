@@ -92,15 +92,17 @@ def _which(cmd: str) -> bool:
     return which(cmd) is not None
 
 
-def run(name: str, args: list[str], label: str | None = None) -> Path:
+def run(name: str, args: list[str], label: str | None = None, table: int | None = None
+        ) -> Path:
     """Run ``bench_NAME.py ARGS`` from ``bench/`` (its output shown as it comes), save the
-    result; returns the JSON file's path. A bench that fails saves nothing."""
+    result; returns the JSON file's path. A bench that fails saves nothing. ``table``:
+    the printed table RESULTS.md shows (1: the first; default: the last)."""
     script = HERE / f"bench_{name}.py"
     if not script.exists():
         raise SystemExit(f"run.py: no bench {name!r} (bench/bench_{name}.py); "
                          f"`python bench/run.py --list` names them")
     command = " ".join(["python bench/run.py", name, *(["--as", label] if label else []),
-                        *args])
+                        *(["--table", str(table)] if table is not None else []), *args])
     commit = _git("rev-parse", "HEAD")  # what runs: the tree as it is when the bench starts
     tree_changed = bool(_git("status", "--porcelain", "--untracked-files=no"))
     t0 = time.perf_counter()
@@ -121,6 +123,7 @@ def run(name: str, args: list[str], label: str | None = None) -> Path:
               "commit": commit, "tree_changed": tree_changed,
               "date": datetime.now(timezone.utc).isoformat(timespec="seconds"),
               "machine": machine(), "seconds": round(time.perf_counter() - t0, 1),
+              "table": table,
               "output": "".join(lines)}
     RESULTS.mkdir(exist_ok=True)
     path = _result_path(name, label)
@@ -144,12 +147,17 @@ def suite(path: Path = SUITE) -> list[dict]:
         timed = words[0] == "timed"
         words = words[1:] if timed else words
         name, rest, label = words[0], words[1:], None
-        if rest[:1] == ["--as"]:
+        table = None
+        while rest[:1] in (["--as"], ["--table"]):
             if len(rest) < 2:
-                raise SystemExit(f"run.py: {path.name}:{number}: --as needs a LABEL")
-            label, rest = rest[1], rest[2:]
-        out.append({"name": name, "label": label, "args": rest, "timed": timed,
-                    "line": number})
+                raise SystemExit(f"run.py: {path.name}:{number}: {rest[0]} needs a value")
+            if rest[0] == "--as":
+                label = rest[1]
+            else:
+                table = int(rest[1])
+            rest = rest[2:]
+        out.append({"name": name, "label": label, "table": table, "args": rest,
+                    "timed": timed, "line": number})
     return out
 
 
@@ -174,7 +182,7 @@ def run_all(*, missing: bool = False, timed: bool | None = None) -> None:
         print(f"run.py: {entry['name']} {' '.join(entry['args'])}", file=sys.stderr,
               flush=True)
         try:
-            run(entry["name"], entry["args"], entry["label"])
+            run(entry["name"], entry["args"], entry["label"], entry["table"])
         except SystemExit as exc:
             print(exc, file=sys.stderr)
             failed.append(entry["name"])
@@ -200,19 +208,31 @@ MAX_LINES = 600
 SHOWN_LINES = 24
 
 
-def _last_table(output: str) -> list[str]:
-    """The last block of a bench's printed output (its summary table, or its last one):
-    the lines after the last blank line that is followed by text."""
-    out = output.rstrip("\n").splitlines()
-    while out and not out[-1].strip():
-        out.pop()
-    for i in range(len(out) - 1, -1, -1):
-        if not out[i].strip():
-            # a block of a single line (a note under the table) takes the one above too
-            if len(out) - i - 1 < 2 and i > 0:
-                continue
-            return out[i + 1:]
-    return out
+def _blocks(output: str) -> list[list[str]]:
+    """A bench's printed output in blocks (its tables): runs of lines between blank
+    lines; a block of one line (a note under a table) joins the block before it."""
+    blocks: list[list[str]] = [[]]
+    for line in output.splitlines():
+        if line.strip():
+            blocks[-1].append(line)
+        elif blocks[-1]:
+            blocks.append([])
+    blocks = [b for b in blocks if b]
+    merged: list[list[str]] = []
+    for b in blocks:
+        if merged and len(b) == 1:
+            merged[-1] = merged[-1] + b
+        else:
+            merged.append(b)
+    return merged or [[]]
+
+
+def _shown_table(result: dict) -> list[str]:
+    """The table of a result that RESULTS.md shows: its ``table`` (1: the first), or
+    the last one."""
+    blocks = _blocks(result["output"])
+    k = result.get("table")
+    return blocks[min(k, len(blocks)) - 1] if k else blocks[-1]
 
 
 def _entries(results: list[dict]) -> list[dict]:
@@ -240,14 +260,15 @@ def render(results: list[dict], names: dict[str, str]) -> str:
     command, in at most :data:`MAX_LINES` lines."""
     head = [HEADER, "",
             "Generated by `python bench/run.py --render` from `bench/results/*.json`: for each "
-            "bench, the last table of its current result and the command that reproduces it "
-            "(`python bench/run.py --all` runs every command of `bench/suite.txt`). A "
+            "bench, a table of its current result (its last, unless the run names one) and "
+            "the command that reproduces it (`python bench/run.py --all` runs every command "
+            "of `bench/suite.txt`). A "
             "result's whole output is in its JSON file. Earlier figures, and the notes that "
             "went with them, are in git's history of this file.", ""]
     entries = _entries(results)
     missing = sorted(set(names) - {r["bench"] for r in entries})
     tail = (["## Not yet run as data", "", ", ".join(missing)] if missing else [])
-    blocks = [_last_table(r["output"]) for r in entries]
+    blocks = [_shown_table(r) for r in entries]
     room = MAX_LINES - len(head) - len(tail) - 3 * len(entries) - 1
     k = _budget(blocks, room)
     lines = list(head)
@@ -285,6 +306,8 @@ def main() -> None:
                     help="with --all: only those without a result")
     ap.add_argument("--timed", choices=("only", "no"),
                     help="with --all: only the timed runs (a quiet machine), or none")
+    ap.add_argument("--table", type=int, help="the printed table RESULTS.md shows (1: the "
+                    "first; default: the last)")
     ap.add_argument("--as", dest="label", help="keep the result under NAME.LABEL")
     ap.add_argument("name", nargs="?", help="the bench (bench_NAME.py)")
     args, rest = ap.parse_known_args()
@@ -310,7 +333,7 @@ def main() -> None:
         return
     if not args.name:
         ap.error("give a bench's NAME, --list or --render")
-    run(args.name, rest, args.label)
+    run(args.name, rest, args.label, args.table)
 
 
 if __name__ == "__main__":

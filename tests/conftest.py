@@ -64,7 +64,8 @@ def pytest_unconfigure(config):
     import os
     import sys
 
-    if _EXIT_STATUS and any(m in sys.modules for m in ("PyQt6", "PyQt5", "PySide6")):
+    if (_EXIT_STATUS and any(m in sys.modules for m in ("PyQt6", "PyQt5", "PySide6"))
+            and not os.environ.get("PSFSPACE_TESTS_NO_HARD_EXIT")):  # e.g. under cProfile
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(_EXIT_STATUS[-1])

@@ -111,3 +111,16 @@ def test_the_docs_cite_the_figures_of_the_results():
         assert not missing, (names, missing)
         cited += len(figures)
     assert cited >= 20
+
+
+def test_a_run_may_name_the_table_shown():
+    """``--table K`` (in suite.txt too): the K-th printed table, a note under a table
+    staying with it; without it, the last."""
+    run = _runner()
+    output = "first | table\n1 | 2\n\nnote\n\nlast\n3\n"
+    assert run._shown_table({"output": output, "table": 1}) == [
+        "first | table", "1 | 2", "note"]
+    assert run._shown_table({"output": output}) == ["last", "3"]
+    assert run._shown_table({"output": output, "table": 9}) == ["last", "3"]
+    entries = {e["name"]: e for e in run.suite()}
+    assert entries["accuracy"]["table"] == 1 and "--table" not in entries["accuracy"]["args"]
