@@ -117,6 +117,9 @@ CASES = [
      "f.npz"),
     ("learn {d}/beads.tif {d}/beads2.tif --slices 0:2 -o {d}/f.npz", "--slices", "f.npz"),
     ("learn {d}/stack.tif -o {d}/f.npz --n-space 1e9", "--n-space", "f.npz"),
+    # a radius too large for the images (once a MemoryError in the bound on --n-space)
+    ("learn {d}/stack.tif -o {d}/f.npz --psf-radius 1e12", "--psf-radius: the PSF radius",
+     "f.npz"),
     ("learn {d}/stack.tif -o {d}/f.npz --psf-radius 5 --n-space 1000000000",
      "--n-space 1000000000 is more", "f.npz"),
     ("psf {d}/model.npz --at nan 5 -o {d}/p.tif", "--at", "p.tif"),

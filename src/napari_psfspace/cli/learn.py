@@ -12,6 +12,7 @@ def run(args) -> int:
     from ..core.beads.radius import suggest_series_radius
     from ..core.common.errors import NoBeadsError
     from ..core.common.progress import run_with_progress
+    from ..core.common.validate import check_psf_radius
     from ..core.family import iter_estimate_family
     from ..core.family.estimate import max_space
     from ..io import check_output_file, read_image, read_slice, stack_loaders
@@ -22,8 +23,8 @@ def run(args) -> int:
         raise ValueError(f"learn needs at least 2 images (conditions), got {len(loaders)}: "
                          "pass several TIFFs, a folder, or a stack (with --slices)")
     r = args.psf_radius
+    first, info = read_image(loaders[0].args[0], index=loaders[0].args[1])
     if r is None:
-        _, info = read_image(loaders[0].args[0], index=loaders[0].args[1])
         if args.psf_radius_um is not None:
             if not info.pixel_size:
                 raise ValueError("--psf-radius-um needs the pixel size, which the file does "
@@ -39,6 +40,12 @@ def run(args) -> int:
                                  "give --psf-radius") from None
             print(f"no --psf-radius given: using {r:g} px, measured from {labels[i]}",
                   file=sys.stderr)
+    try:  # before any work (the bound below would allocate a window of that radius)
+        check_psf_radius(r, first.shape[-2:])
+    except ValueError as exc:
+        option = "--psf-radius" if args.psf_radius is not None else "--psf-radius-um"
+        raise ValueError(f"{option}: {exc}".replace("`psf_radius`", "the PSF radius")
+                         ) from None
     most = max_space(len(loaders), args.n_psf, psf_radius=r)
     if args.n_space is not None and args.n_space > most:
         raise ValueError(f"--n-space {args.n_space} is more spatial maps than {len(loaders)} "
