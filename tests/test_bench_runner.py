@@ -101,7 +101,7 @@ def test_the_docs_cite_the_figures_of_the_results():
     text = (ROOT / "docs" / "benchmarks.md").read_text(encoding="utf-8")
     cited = 0
     for block in re.split(r"\n(?=- )|\n\n", text):
-        names = re.findall(r"bench/run\.py (\w+)", block)
+        names = re.findall(r"bench/run\.py\s+(\w+)", block)
         figures = re.findall(r"(?<![\w.])\d+\.\d+(?![\w.])", block)
         if not figures:
             continue
