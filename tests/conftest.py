@@ -32,6 +32,22 @@ def _slow_tests() -> dict[str, float]:
     return out
 
 
+#: Thread pools of the numerical libraries, one thread each in a parallel run.
+_THREAD_VARIABLES = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def pytest_configure(config):
+    """Under pytest-xdist (``make test``: one worker per core), each worker's BLAS keeps one
+    thread: OpenBLAS threads wait for work by spinning, so workers with a pool of one
+    thread per core each spend much of the run's CPU time waiting on one another. The
+    controller sets the variables before it
+    starts the workers, which inherit them; a variable the caller set is kept."""
+    workers = getattr(config.option, "numprocesses", None)
+    if workers and not os.environ.get("PYTEST_XDIST_WORKER"):
+        for name in _THREAD_VARIABLES:
+            os.environ.setdefault(name, "1")
+
+
 def pytest_collection_modifyitems(config, items):
     """Mark the tests of ``slow_tests.txt`` slow (by their id, or for a parametrised one
     listed without its parameters, all of them). Under pytest-xdist (``make test``, a file
@@ -69,3 +85,4 @@ def pytest_unconfigure(config):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(_EXIT_STATUS[-1])
+

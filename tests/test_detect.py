@@ -189,3 +189,30 @@ def test_suggest_radius_on_noise_raises():
     noise = np.random.default_rng(0).normal(100, 5, (300, 300))
     with pytest.raises(NoBeadsError, match="psf_radius"):
         suggest_psf_radius(noise)
+
+
+def test_a_reusing_block_gives_the_same_beads_and_scale_and_leaves_the_image_alone():
+    """``scale.reusing`` (the radius suggestion's: one image detected at several radii)
+    prepares the image and filters its scales once; every result equals the call's
+    without the block, its kept arrays are read-only, and the caller's own array, a
+    float32 one the preparation would not copy, stays writable."""
+    from napari_psfspace import simulate_beads
+    from napari_psfspace.core.beads.scale import prepare, reusing, spot_scale
+
+    image, _ = simulate_beads((256, 256), 20, seed=2)
+    image = image.astype(np.float32)
+    plain = [detect_beads(image, r) for r in (6.0, 9.0)], spot_scale(image, max_sigma=8.0)
+    other = image.copy()
+    with reusing(image):
+        held = [detect_beads(image, r) for r in (6.0, 9.0)], spot_scale(image, max_sigma=8.0)
+        assert prepare(image) is prepare(image)  # kept for this object
+        assert prepare(other) is not prepare(other)  # and for no other
+        assert not prepare(image).image.flags.writeable
+        assert not np.shares_memory(prepare(image).image, image)
+    assert prepare(image) is not prepare(image)  # nothing kept after the block
+    assert image.flags.writeable
+    for a, b in zip(plain[0], held[0], strict=True):
+        np.testing.assert_array_equal(a.positions, b.positions)
+        np.testing.assert_array_equal(a.status, b.status)
+    assert plain[1].sigma == held[1].sigma and plain[1].responses == held[1].responses
+    np.testing.assert_array_equal(plain[1].spots, held[1].spots)

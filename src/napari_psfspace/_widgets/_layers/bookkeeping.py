@@ -3,6 +3,8 @@ by the step that made them, replaced together on a re-run and removed together."
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 
 from .frame import LayerTuple
@@ -39,12 +41,21 @@ def group_layers(viewer, step: str) -> list:
             if str((layer.metadata or {}).get(STEP_KEY, "")).split("/")[0] == step]
 
 
+def remove_layers(viewer, layers) -> None:
+    """Remove ``layers`` in one batch of the layer list: napari's canvas then cleans its
+    scene graph (a full garbage collection) once for the batch, not once per layer, which
+    took a quarter of a second a layer in a viewer holding a few dozen."""
+    batch = getattr(viewer.layers, "batched_update", None)
+    with batch() if batch is not None else contextlib.nullcontext():
+        for layer in layers:
+            viewer.layers.remove(layer)
+
+
 def remove_step(viewer, step: str) -> int:
     """Remove the layers of one step's group and sub-groups, titles and colour bars
     included; how many went."""
     gone = group_layers(viewer, step)
-    for layer in gone:
-        viewer.layers.remove(layer)
+    remove_layers(viewer, gone)
     return len(gone)
 
 
@@ -76,9 +87,8 @@ def show_layers(viewer, tuples: list[LayerTuple], *, step: str | None = None,
             layer = getattr(viewer, f"add_{kind}")(data, **kwargs)
         out.append(layer)
     if step is not None and replace:
-        for layer in step_layers(viewer, step):
-            if (layer.metadata or {}).get(MADE_AS) not in names:
-                viewer.layers.remove(layer)
+        remove_layers(viewer, [layer for layer in step_layers(viewer, step)
+                               if (layer.metadata or {}).get(MADE_AS) not in names])
     return out
 
 def _update(layer, data, kwargs: dict) -> None:

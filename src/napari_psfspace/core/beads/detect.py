@@ -20,9 +20,8 @@ from ..common.validate import as_image, check_positive, check_psf_radius
 from .log import local_peaks, log_response
 from .overlap import NEIGHBOUR_SHARE, patch_shares
 from .saturation import saturated_cores
-from .scale import block_mean, characteristic_scale, detection_image, spot_scale
+from .scale import block_mean, characteristic_scale, detection_image, prepare, spot_scale
 from .spikes import (
-    find_spikes,
     inpaint_pixels,
     is_integer_valued,
     pixel_noise_sd,
@@ -243,13 +242,16 @@ def detect_beads(
             "the background and its peak). Pass the raw image."
         )
 
-    integer = is_integer_valued(raw)
-    pixel_sd = pixel_noise_sd(raw, integer=integer)
-    spikes = (find_spikes(img, noise_sd=pixel_sd, integer=integer) if hot_pixels
-              else np.zeros((0, 2), np.int64))
-    if len(spikes):
-        img = inpaint_pixels(img, spikes)
-    det, stabilised, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
+    if hot_pixels:  # found and inpainted (once per image in a `scale.reusing` block)
+        prepared = prepare(image)
+        img, integer, pixel_sd, spikes = (prepared.image, prepared.integer,
+                                          prepared.noise_sd, prepared.spikes)
+        det, floor = prepared.detection, prepared.sd_floor
+    else:
+        integer = is_integer_valued(raw)
+        pixel_sd = pixel_noise_sd(raw, integer=integer)
+        spikes = np.zeros((0, 2), np.int64)
+        det, _, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
     resp = log_response(det, sigma, pixel_sd_floor=floor)
     peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
     scales = []  # the wider scales that added maxima

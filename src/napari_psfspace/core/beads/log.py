@@ -4,6 +4,8 @@ maxima. Below :mod:`.scale` (which measures the spots' size with it) and :mod:`.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy import ndimage as ndi
 
@@ -11,6 +13,7 @@ from ..common.threads import filter_by_rows
 from ..common.validate import as_image
 
 
+@lru_cache(maxsize=512)  # a pure function of the scale, asked for at every scale and window
 def log_kernel_norm(sigma: float) -> float:
     """l2 norm of the scale-normalised LoG kernel ``sigma^2 LoG`` as sampled by
     :func:`scipy.ndimage.gaussian_laplace` (about ``1 / (sigma sqrt(2 pi))``): the

@@ -20,7 +20,7 @@ from scipy.spatial import cKDTree
 from ..common.errors import NoBeadsError, PsfSpaceError
 from ..common.validate import check_int, check_positive
 from .detect import detect_beads
-from .scale import prepare_image, spot_scale
+from .scale import prepare_image, reusing, spot_scale
 
 #: :func:`suggest_psf_radius` looks this many spot scales around each spot (and at least
 #: :data:`MIN_SEARCH` pixels): far enough for the wings of a spot in focus, near enough
@@ -145,6 +145,12 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
     n_beads = check_int(n_beads, "n_beads", minimum=1)
     if not 0 < check_positive(energy, "energy") < 1:
         raise ValueError(f"`energy` must be a fraction in (0, 1), got {energy!r}.")
+    with reusing(image):  # the image prepared, its scales filtered, once for all radii
+        return _suggest(image, n_beads, energy, max_radius, wings)
+
+
+def _suggest(image, n_beads: int, energy: float, max_radius: float | None,
+             wings: float) -> float:
     img, _, _, _ = prepare_image(image)
     h, w = img.shape
     rmax = int(max_radius or max(6, min(h, w) // 8))

@@ -25,6 +25,8 @@ The PSF radius that follows from that scale is :mod:`.radius`'s.
 
 from __future__ import annotations
 
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import numpy as np
@@ -221,9 +223,90 @@ def block_mean(img: np.ndarray, b: int) -> np.ndarray:
     return img[:h, :w].reshape(h // b, b, w // b, b).mean(axis=(1, 3))
 
 
-def prepare_image(image) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """The image as float32 with its hot pixels inpainted, the detection image, its
-    pixel noise sd floor and whether it was stabilised (:func:`detection_image`)."""
+@dataclass(frozen=True)
+class Prepared:
+    """An image made ready for detection (:func:`prepare`).
+
+    Attributes
+    ----------
+    image : ndarray of shape (M, N), float32
+        The image with its hot pixels inpainted.
+    detection : ndarray of shape (M, N), float32
+        The image the filters run on (:func:`detection_image`).
+    sd_floor : float
+        Its least pixel noise sd.
+    stabilised : bool
+        Whether it is the variance-stabilised image.
+    integer : bool
+        The pixel values are integers.
+    noise_sd : float
+        The background's pixel noise sd, image units.
+    spikes : ndarray of shape (K, 2), int
+        The hot pixels found (row, column).
+    """
+
+    image: np.ndarray
+    detection: np.ndarray
+    sd_floor: float
+    stabilised: bool
+    integer: bool
+    noise_sd: float
+    spikes: np.ndarray
+
+
+class _Reuse:
+    """What :func:`prepare` and :func:`spot_scale` computed on one image, kept while a
+    :func:`reusing` block runs: the prepared image and the scale pyramid's levels."""
+
+    def __init__(self, image) -> None:
+        self.image = image
+        self.prepared: Prepared | None = None
+        self.levels: dict[int, tuple | None] = {}
+
+
+_REUSE: ContextVar[_Reuse | None] = ContextVar("napari_psfspace_scale_reuse", default=None)
+
+
+@contextmanager
+def reusing(image):
+    """Within the block, :func:`prepare`, :func:`spot_scale` and
+    :func:`~napari_psfspace.core.beads.detect.detect_beads` called on this very object
+    (``is``, unchanged meanwhile) prepare it and build its scale pyramid once: a radius
+    suggestion detects the beads of one image at several radii. The results are those of
+    the calls without the block; the arrays kept are read-only."""
+    token = _REUSE.set(_Reuse(image))
+    try:
+        yield
+    finally:
+        _REUSE.reset(token)
+
+
+def _reuse_for(image) -> _Reuse | None:
+    memo = _REUSE.get()
+    return memo if memo is not None and memo.image is image else None
+
+
+def _read_only(*arrays: np.ndarray) -> None:
+    for a in arrays:
+        a.flags.writeable = False
+
+
+def prepare(image) -> Prepared:
+    """The image as float32 with its hot pixels found and inpainted
+    (:func:`~napari_psfspace.core.beads.spikes.find_spikes`), and the image detection
+    filters (:func:`detection_image`).
+
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+
+    Returns
+    -------
+    Prepared
+    """
+    memo = _reuse_for(image)
+    if memo is not None and memo.prepared is not None:
+        return memo.prepared
     raw = np.asarray(image)
     img = as_image(raw, dtype=np.float32)
     integer = is_integer_valued(raw)
@@ -232,7 +315,55 @@ def prepare_image(image) -> tuple[np.ndarray, np.ndarray, float, bool]:
     if len(spikes):
         img = inpaint_pixels(img, spikes)
     det, stabilised, floor = detection_image(img, integer=integer, noise_sd=sd)
-    return img, det, floor, stabilised
+    out = Prepared(img, det, floor, stabilised, integer, sd, spikes)
+    if memo is not None:
+        if img is raw:  # kept read-only: a copy, never the caller's own array
+            img = img.copy()
+            det = img if det is raw else det
+            out = Prepared(img, det, floor, stabilised, integer, sd, spikes)
+        _read_only(img, det, spikes)
+        memo.prepared = out
+    return out
+
+
+def prepare_image(image) -> tuple[np.ndarray, np.ndarray, float, bool]:
+    """The image as float32 with its hot pixels inpainted, the detection image, its
+    pixel noise sd floor and whether it was stabilised (:func:`prepare`)."""
+    p = prepare(image)
+    return p.image, p.detection, p.sd_floor, p.stabilised
+
+
+def _level(k: int, prepared: Prepared) -> tuple | None:
+    """Level ``k`` of :func:`spot_scale`'s pyramid (scale ``2^(k/2)`` px): ``(sigma,
+    binning, near, near_n, norm)``, None where the binned image is too small."""
+    from .log import log_kernel_norm
+
+    memo = _REUSE.get()
+    memo = memo if memo is not None and memo.prepared is prepared else None
+    if memo is not None and k in memo.levels:
+        return memo.levels[k]
+    img, det, floor = prepared.image, prepared.detection, prepared.sd_floor
+    s = float(2 ** (k / 2))
+    b = max(1, int(s / 1.4))
+    x = block_mean(det, b)
+    out = None
+    if min(x.shape) >= 8:
+        sb = s / b
+        resp = -(sb**2) * ndi.gaussian_laplace(x.astype(np.float32), sb, mode="reflect")
+        med, mad = _normalised(resp, floor * log_kernel_norm(sb) / b)
+        norm = (resp - med) / mad
+        if prepared.stabilised:  # significance on the stabilised image, the scale on the image
+            resp = -(sb**2) * ndi.gaussian_laplace(block_mean(img, b).astype(np.float32), sb,
+                                                   mode="reflect")
+            med = float(np.median(resp[::4, ::4]))
+        size = 2 * int(np.ceil(sb)) + 1
+        out = (s, b, ndi.maximum_filter(resp - med, size=size, mode="nearest"),
+               ndi.maximum_filter(norm, size=size, mode="nearest"), norm)
+        if memo is not None:
+            _read_only(*out[2:])
+    if memo is not None:
+        memo.levels[k] = out
+    return out
 
 
 def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
@@ -255,38 +386,29 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
         No maximum stands ``threshold`` noise sd out at any scale.
     """
     from ..common.errors import NoBeadsError
-    from .log import local_peaks, log_kernel_norm
+    from .log import local_peaks
 
-    img, det, floor, stabilised = prepare_image(image)
-    h, w = img.shape
+    prepared = prepare(image)
+    stabilised = prepared.stabilised
+    h, w = prepared.image.shape
     smax = float(max_sigma) if max_sigma else max(2.0, min(h, w) / 16.0)
     levels = []  # (sigma, binning, amplitude-normalised response, its median)
     candidates = []  # (row, column, strength)
     k = 0
     while True:
-        s = float(2 ** (k / 2))
+        if float(2 ** (k / 2)) > smax:
+            break
+        level = _level(k, prepared)
         k += 1
-        if s > smax:
+        if level is None:
             break
-        b = max(1, int(s / 1.4))
-        x = block_mean(det, b)
-        if min(x.shape) < 8:
-            break
+        s, b, near, near_n, norm = level
         sb = s / b
-        resp = -(sb**2) * ndi.gaussian_laplace(x.astype(np.float32), sb, mode="reflect")
-        med, mad = _normalised(resp, floor * log_kernel_norm(sb) / b)
-        norm = (resp - med) / mad
-        if stabilised:  # significance on the stabilised image, the scale on the image
-            resp = -(sb**2) * ndi.gaussian_laplace(block_mean(img, b).astype(np.float32), sb,
-                                                   mode="reflect")
-            med = float(np.median(resp[::4, ::4]))
-        size = 2 * int(np.ceil(sb)) + 1
-        levels.append((s, b, ndi.maximum_filter(resp - med, size=size, mode="nearest"),
-                       ndi.maximum_filter(norm, size=size, mode="nearest")))
+        levels.append((s, b, near, near_n))
         peaks = local_peaks(norm, max(1, int(round(2 * sb))), threshold)
         edge = int(np.ceil(sb))
         if len(peaks):
-            inside = np.all((peaks >= edge) & (peaks < np.array(x.shape) - edge), axis=1)
+            inside = np.all((peaks >= edge) & (peaks < np.array(norm.shape) - edge), axis=1)
             peaks = peaks[inside]
         for py, px in peaks[:max_candidates]:
             candidates.append(((py + 0.5) * b - 0.5, (px + 0.5) * b - 0.5, norm[py, px]))
@@ -361,5 +483,5 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
                      cand[unique, :2])
 
 
-__all__ = ["LOW_COUNT_SD", "SpotScale", "characteristic_scale", "detection_image",
-           "prepare_image", "spot_scale"]
+__all__ = ["LOW_COUNT_SD", "Prepared", "SpotScale", "characteristic_scale",
+           "detection_image", "prepare", "prepare_image", "reusing", "spot_scale"]
