@@ -40,8 +40,8 @@ def pytest_configure(config):
     """Under pytest-xdist (``make test``: one worker per core), each worker's BLAS keeps one
     thread: OpenBLAS threads wait for work by spinning, so workers with a pool of one
     thread per core each spend much of the run's CPU time waiting on one another. The
-    controller sets the variables before it
-    starts the workers, which inherit them; a variable the caller set is kept."""
+    controller sets the variables before it starts the workers, which inherit them; a
+    variable the caller set is kept."""
     workers = getattr(config.option, "numprocesses", None)
     if workers and not os.environ.get("PYTEST_XDIST_WORKER"):
         for name in _THREAD_VARIABLES:
@@ -85,4 +85,3 @@ def pytest_unconfigure(config):
         sys.stdout.flush()
         sys.stderr.flush()
         os._exit(_EXIT_STATUS[-1])
-
