@@ -20,7 +20,7 @@ explain the clicked beads; ``bead``: one of them; ``spread``: they leave part of
 field undetermined). Issue 24: mean ratio <= 1.5, worst <= 2, and a warning on every
 image worse than 2. Issue 45 (``--outside --border``): mean <= 1.5, worst <= 2.
 
-``--oracle`` adds, per image, what the family's identification (the posterior) gives
+``--oracle`` adds, per image, what the family's identification (its few dimensions) gives
 from the truth's noise-free PSFs (windowed and normalised as patches are): ``clean5`` at
 the ``P`` picked positions, ``clean_all`` at every bead's; ``span_all`` the paper's cone
 of the ``Gamma_k`` from every bead, and ``best`` the family's best ``Gamma`` (least
@@ -91,11 +91,15 @@ def clean_oracle(sub, truth, pick, r, alone) -> dict:
         op = sub.operator_from(gamma, project=False)
         return float(np.mean(grid_errors(op, truth, n=4))) / alone
 
+    from napari_psfspace.core.family.coordinates import identify_field
+    from napari_psfspace.core.family.dimensions import family_model
+
     out = {}
     for name, points in (("clean5", pick), ("clean_all", truth.positions)):
         c = coef(points)
-        post = idt.posterior_of(sub, c, np.asarray(points, float), np.full(len(c), 1e-4))
-        out[name] = float(np.mean(grid_errors(idt.field_operator(sub, post.mean, c), truth,
+        field, _, _ = identify_field(family_model(sub), c, np.full(len(c), 1e-4),
+                                     np.asarray(points, float), spread=False)
+        out[name] = float(np.mean(grid_errors(idt.field_operator(sub, field, c), truth,
                                               n=4))) / alone
     at = space_at(sub.space, sub.grid, truth.positions)
     lam, g, _ = idt.solve_identification(coef(truth.positions),

@@ -183,3 +183,31 @@ def test_randomized_svd_matches_full():
     ang = np.rad2deg(subspace_angles(full.basis.reshape(3, -1).T,
                                      rand.basis.reshape(3, -1).T)).max()
     assert ang < 1e-6
+
+
+def test_a_condition_at_the_edge_of_a_family_keeps_its_beads_with_groups():
+    """Two images under different conditions, 110 beads of one (round PSFs) and 10 of
+    the other (elongated along rows, smooth over its field): against the pooled patches
+    the second image's beads are all outliers; each against its own image's neighbours
+    (``groups``), every single bead is kept, and a doublet and a noise patch are still
+    rejected."""
+    rng = np.random.default_rng(3)
+    pos = rng.uniform(0, 500, (K, 2))
+    u = pos[:, 1] / 250.0 - 1.0
+    a = np.column_stack([np.ones(K), 0.1 + 0.05 * u, np.full(K, 0.1)])
+    a[110:] = np.column_stack([np.full(10, 0.2), 1.0 + 0.2 * u[110:], np.full(10, 0.1)])
+    x = np.einsum("ki,ipq->kpq", a, SHAPES)
+    x /= x.sum(axis=(1, 2), keepdims=True)
+    x += NOISE * rng.standard_normal(x.shape)
+    owner = np.r_[np.zeros(110, int), np.ones(10, int)]
+    pooled = learn_basis(x, 3)
+    assert not pooled.inliers[110:].any()  # the pooled test: the whole image rejected
+    grouped = learn_basis(x, 3, positions=pos, groups=owner)
+    assert grouped.inliers.all()
+    bad = _with_outliers(x, rng)  # patches 0 and 1 of the first image
+    grouped = learn_basis(bad, 3, positions=pos, groups=owner)
+    assert not grouped.inliers[0] and not grouped.inliers[1] and grouped.inliers[2:].all()
+    with pytest.raises(ValueError, match="groups"):
+        learn_basis(x, 3, groups=owner)  # needs the positions
+    with pytest.raises(ValueError, match="groups"):
+        learn_basis(x, "heldout", positions=pos, groups=owner)

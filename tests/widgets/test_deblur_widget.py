@@ -5,7 +5,7 @@ import pytest
 
 from conftest import wait_task
 from napari_psfspace._widgets._deblur import SMOOTH, SOURCES, SPARSE, DeblurWidget
-from napari_psfspace._widgets._layers import SUBSPACE_KEY
+from napari_psfspace._widgets._layers import MORE_BEADS, SUBSPACE_KEY
 from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.simulation.stacks import simulate_stack
 
@@ -48,6 +48,12 @@ def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
     for y, x in truth.positions[:5]:
         yy, xx = int(round(y)), int(round(x))
         assert sparse.data[yy - 2:yy + 3, xx - 2:xx + 3].sum() > 0
+    # where one more bead would help most: a cross on the input, in its world units
+    info = w.operator.metadata["identification"]
+    cross = v.layers[MORE_BEADS]
+    np.testing.assert_allclose(cross.data_to_world(cross.data[0]),
+                               np.asarray(info["more_beads_at"]) * 0.065, rtol=1e-9)
+    assert "where one more bead would help most" in w.result.value
 
 
 def test_model_file_cancel_and_errors(make_napari_viewer, qtbot, family, tmp_path,

@@ -39,6 +39,7 @@ from ._layers import (
     SUBSPACE_KEY,
     Frame,
     LayerTuple,
+    advice_layers,
     beside,
     focus_on_step,
     free_slot,
@@ -67,14 +68,24 @@ def _identify_and_deblur(plane, model, beads, **kwargs):
         with warnings.catch_warnings():  # shown in the note instead
             warnings.simplefilter("ignore", IdentificationWarning)
             op = identify_operator(plane, model, beads=beads)
-        info = op.metadata["identification"]
-        note = (f"identified from {info['n_beads']} beads"
-                + ("" if info["enough_beads"] else f" (fewer than J = {info['n_space']})")
-                + ("" if info.get("psf_spread") is None
-                   else f"; PSF spread {info['psf_spread']:.2f}")
-                + (f". WARNING: {info['warning']}" if info.get("warning") else ""))
+        note = identification_note(op.metadata["identification"])
     res = yield from iter_deblur(plane, op, **kwargs)
     return res, op, note
+
+
+def identification_note(info: dict) -> str:
+    """One paragraph on an identification: its beads, its error band, its warning."""
+    left = info.get("left_out") or []
+    band = info.get("error_band")
+    return (f"identified from {info['n_beads']} beads"
+            + (f" ({len(left)} clicked left out: they disagree with the others)"
+               if left else "")
+            + ("" if band is None
+               else f"; its PSFs are off by {100 * band[0]:.0f}-{100 * band[1]:.0f} % "
+                    "over the field (90 % range)")
+            + (f". WARNING: {info['warning']}" if info.get("warning") else "")
+            + ("" if info.get("more_beads_at") is None
+               else ". The yellow cross: where one more bead would help most"))
 
 
 def _limits(values: np.ndarray) -> tuple[float, float]:
@@ -151,7 +162,7 @@ class DeblurWidget(Container):
         self.path = FileEdit(mode="r", filter="*.npz", label="file")
         self.in_viewer = ComboBox(label="in the viewer", choices=self._models, visible=False)
         self.points = ComboBox(label="beads", choices=self._points)
-        self.points.tooltip = ("Beads to identify a family's operator from (at least J; "
+        self.points.tooltip = ("Beads to identify a family's operator from (5 or more; "
                                "10 spread over the field identify it better than 5); "
                                "(detect) finds them. Ignored for a model.")
         self.auto = CheckBox(value=True, text="weights from the noise")
@@ -253,8 +264,12 @@ class DeblurWidget(Container):
         def on_result(got) -> None:
             res, op, note = got
             self.last, self.operator = res, op
-            show_layers(self._viewer, result_layers(self._viewer, res, frame, layer),
-                        step="Deblur", replace=True)
+            tuples = result_layers(self._viewer, res, frame, layer)
+            info = (op.metadata or {}).get("identification")
+            if info:  # on the input: where one more bead would help, beads left out
+                tuples += advice_layers(info, frame, (float(layer.scale[0]),
+                                                      float(layer.translate[0])))
+            show_layers(self._viewer, tuples, step="Deblur", replace=True)
             focus_on_step(self._viewer, "Deblur", layer)
             p = res.parameters
             self.result.value = (

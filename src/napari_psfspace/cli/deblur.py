@@ -55,14 +55,15 @@ def run(args) -> int:
             warnings.simplefilter("ignore", IdentificationWarning)
             op = identify_operator(image, sub, beads=beads)
         ident = op.metadata["identification"]
-        spread = ident.get("psf_spread")
+        band = ident.get("error_band")
+        left = ident.get("left_out") or []
         print(f"operator identified from {ident['n_beads']} beads "
-              f"({'given' if beads is not None else 'detected'}; the family's J = "
-              f"{sub.n_space}{'' if ident['enough_beads'] else ': fewer beads than J'}) "
-              f"in {time.perf_counter() - t0:.1f} s; error on them beyond the noise "
+              f"({'given' if beads is not None else 'detected'}"
+              + (f", {len(left)} left out: they disagree with the others" if left else "")
+              + f") in {time.perf_counter() - t0:.1f} s; error on them beyond the noise "
               f"{ident['model_error']:.3f}"
-              + ("" if spread is None else f", PSF spread {spread:.3f} (relative, mean "
-                                           "over the field)"), file=sys.stderr)
+              + ("" if band is None else f"; PSF error over the field {band[0]:.3f} to "
+                                         f"{band[1]:.3f} (90 % range)"), file=sys.stderr)
         if ident.get("warning"):
             print(f"WARNING: {ident['warning']}", file=sys.stderr)
     else:

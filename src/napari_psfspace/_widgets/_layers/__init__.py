@@ -34,6 +34,7 @@ from .names import *  # noqa: F403 (the names are the module's whole content)
 from .names import __all__ as _names
 from .points import (
     FIT_VERDICTS,
+    advice_layers,
     beads_from_points,
     beads_layer,
     ensure_bead_features,
@@ -55,8 +56,9 @@ from .results import (
     psf_layers,
 )
 
-__all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "bead_plane",
-           "beads_from_points", "beads_layer", "below_others", "beside", "colorbar_layers",
+__all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "advice_layers",
+           "bead_plane", "beads_from_points", "beads_layer", "below_others", "beside",
+           "colorbar_layers",
            "ensure_bead_features", "find_layer", "fix_ids", "focus_on_step", "for_a_new_fit",
            "free_slot", "gallery_cell", "gallery_index", "gallery_layers", "group_layers",
            "heldout_layers", "hot_pixels_from_layer", "hot_pixels_layer", "image_plane",

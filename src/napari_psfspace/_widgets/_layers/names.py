@@ -58,6 +58,10 @@ FAMILY_TITLES = "titles: family"
 #: Key of the subspace layer metadata that holds the OperatorFamily.
 SUBSPACE_KEY = "psfspace_subspace"
 HOT_PIXELS = "hot pixels"
+#: Where one more clicked bead would help an identification most, and the clicked beads
+#: it left out.
+MORE_BEADS = "one more bead here"
+LEFT_OUT = "clicked beads left out"
 #: Key of the layer metadata that holds the operator (read by the model writer).
 OPERATOR_KEY = "psfspace_operator"
 #: Metadata key marking a layer the plugin made, with the name it asked for: found again
@@ -70,7 +74,8 @@ MADE_AS = "psfspace_layer"
 STEP_KEY = "psfspace_step"
 
 __all__ = ["ALL_STATUSES", "BASIS", "BEADS", "CURRENT", "FAMILY_TITLES",
-           "GALLERY", "HELDOUT_LAYER", "HOT_PIXELS", "MADE_AS", "MAPS", "MODEL_TITLES",
+           "GALLERY", "HELDOUT_LAYER", "HOT_PIXELS", "LEFT_OUT", "MADE_AS", "MAPS",
+           "MODEL_TITLES", "MORE_BEADS",
            "OPERATOR_KEY", "PSF_AT", "PSF_GRID", "STATUS_COLORS", "STATUS_MEANING",
            "STEP_KEY", "SUBSPACE_KEY", "SUB_BASIS", "SUB_CONDITIONS", "SUB_GRID",
            "SUB_SPACE"]

@@ -8,7 +8,7 @@ import numpy as np
 from ...core.beads.detect import HELDOUT, KEPT, OUTLIER, Beads
 from .bookkeeping import find_layer
 from .frame import Frame, LayerTuple
-from .names import ALL_STATUSES, BEADS, HOT_PIXELS, STATUS_COLORS
+from .names import ALL_STATUSES, BEADS, HOT_PIXELS, LEFT_OUT, MORE_BEADS, STATUS_COLORS
 
 
 def beads_layer(beads: Beads, frame: Frame, psf_radius: float, *,
@@ -46,6 +46,34 @@ def hot_pixels_layer(pixels: np.ndarray, frame: Frame) -> LayerTuple:
               "size": 3.0, "symbol": "x", "face_color": "#ff2020", "border_width": 0,
               "opacity": 0.9}
     return np.asarray(pixels, dtype=float).reshape(-1, 2), kwargs, "points"
+
+
+def advice_layers(identification: dict, frame: Frame,
+                  slice_at: tuple[float, float] | None = None) -> list[LayerTuple]:
+    """Points layer-data tuples on the image an operator was identified from: where one
+    more bead would help most (a yellow cross) and the clicked beads it left out (red x).
+
+    ``slice_at``: the world (scale, translate) of the stack's axis when the image is a
+    slice of one (``frame.index`` its slice), so that the points lie on that slice.
+    """
+    size = max(frame.shape) / 20.0
+    out = []
+    for name, points, symbol, colour in (
+            (MORE_BEADS, [identification.get("more_beads_at")], "cross", "#ffd400"),
+            (LEFT_OUT, [e["position"] for e in identification.get("left_out") or []], "x",
+             "#ff2020")):
+        pts = np.asarray([p for p in points if p is not None], float).reshape(-1, 2)
+        if not len(pts):
+            continue
+        kwargs = {"name": name, "scale": frame.scale, "translate": frame.translate,
+                  "size": size, "symbol": symbol, "face_color": colour, "border_width": 0,
+                  "opacity": 0.9}
+        if frame.index is not None and slice_at is not None:
+            pts = np.column_stack([np.full(len(pts), float(frame.index)), pts])
+            kwargs |= {"scale": (slice_at[0], *frame.scale),
+                       "translate": (slice_at[1], *frame.translate)}
+        out.append((pts, kwargs, "points"))
+    return out
 
 
 def hot_pixels_from_layer(layer) -> np.ndarray:

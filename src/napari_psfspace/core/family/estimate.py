@@ -4,8 +4,9 @@ Steps, on top of the single-image pipeline:
 
 1. every image's bead patches (:func:`~.patches.image_patches`), one dask task per
    image, read one at a time;
-2-4. one PCA of the patches of all images with z-score outlier rejection and a second
-   PCA (:func:`~napari_psfspace.core.model.pca.learn_basis`); with ``denoise`` (the
+2-4. one PCA of the patches of all images with z-score outlier rejection (each bead
+   against its own image's neighbours: the thin-plate fit of that image's beads) and a
+   second PCA (:func:`~napari_psfspace.core.model.pca.learn_basis`); with ``denoise`` (the
    default) the PSF basis ``h_i`` is then learnt from each bead's value of its image's
    field of the first :data:`FIELD_COMPONENTS` ``x I`` components, with the family as the
    fields' prior (:mod:`.shrink`): faint beads' noise no longer picks the later
@@ -51,6 +52,7 @@ from ..model.pca import learn_basis, min_beads_for, orient, rank_by_threshold
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .choice import Choice, choose, own_estimate
+from .dimensions import Beads, choose_dimensions, family_fields
 from .patches import ImagePatches, image_patches
 from .result import OperatorFamily, space_at
 from .shrink import Fields, shrunk_fields
@@ -213,8 +215,9 @@ def pool(used: list[ImagePatches], n_psf, denoise: bool,
     if denoise:  # as for one image: one Wiener filter, beads weighted by their noise
         weights = 1.0 / (psf[:, support] ** 2).sum(axis=1)
         learn, _ = band_limit(psf, sd, window)
+    centers = np.concatenate([f.patches.centers for f in used])
     basis = learn_basis(learn, int(n_psf) if n_psf is not None else "rule", support=support,
-                        weights=weights, svd="gram",
+                        weights=weights, svd="gram", positions=centers, groups=owner,
                         components=FIELD_COMPONENTS * (int(n_psf) if n_psf is not None
                                                        else FIELD_PSF) if denoise else 0)
     out = _Pooled(psf, owner, sd, weights, window, support, basis)
@@ -255,8 +258,10 @@ def grid_nodes(shape, grid_step):
 
 
 def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
-           grid_step: float, refine: bool, denoise: bool) -> OperatorFamily:
-    """Steps 2-8 on the patches of the images ``used`` (each with beads)."""
+           grid_step: float, refine: bool, denoise: bool,
+           dimensions: bool = False) -> OperatorFamily:
+    """Steps 2-8 on the patches of the images ``used`` (each with beads); with
+    ``dimensions``, the family's few dimensions too (:mod:`.dimensions`)."""
     (gy, gx), nodes = grid_nodes(shape, grid_step)
     pooled = pool(used, n_psf, denoise, grid=(gy, gx))
     basis, psf, sd, weights, window = (pooled.basis, pooled.psf, pooled.sd, pooled.weights,
@@ -297,11 +302,33 @@ def _learn(used: list[ImagePatches], shape: tuple[int, int], *, n_psf, n_space,
         "n_space": int(n_j), "n_space_rule": int(rank_by_threshold(s, stacked.shape)[0]),
         "refine": bool(refine), "denoise": bool(denoise),
     }
+    if dimensions:
+        meta["dimensions"] = _dimensions(pooled, bead_coef, images, space_grid, gammas,
+                                         (gy, gx), shape)
     if pooled.fields is not None:  # each image's share of its own field (shrink.py)
         meta["field_share"] = [round(float(v), 4) for v in pooled.fields.share()]
         meta["field_downweighted"] = [int(np.sum(w < 1.0)) for w in pooled.fields.weights]
     return OperatorFamily(images, space_grid, (gy, gx), shape, gammas, cone,
                             grid_step=float(grid_step), metadata=meta)
+
+
+def _dimensions(pooled: _Pooled, bead_coef: list[tuple], images: np.ndarray,
+                space: np.ndarray, gammas: np.ndarray, grid, shape) -> dict:
+    """The choice of the family's few dimensions (:func:`.dimensions.choose_dimensions`):
+    each image's inlier beads as a clicked bead is seen, its raw patch projected on the
+    final basis."""
+    inl = pooled.basis.inliers
+    flat = images.reshape(len(images), -1)
+    raw = np.linalg.lstsq(flat.T, pooled.psf[inl].reshape(int(np.count_nonzero(inl)), -1).T,
+                          rcond=None)[0].T
+    owner, sd = pooled.owner[inl], pooled.sd[inl]
+    beads = [Beads(centers, raw[owner == k], sd[owner == k]) if len(centers) else None
+             for k, (centers, _) in enumerate(bead_coef)]
+    out = choose_dimensions(family_fields(space, gammas), beads, grid, shape, flat @ flat.T)
+    # the family's own error from its beads' noise alone: the band's lower floor
+    out["floor"] = (None if pooled.fields is None
+                    else float(np.median(pooled.fields.relative_noise())))
+    return out
 
 
 def max_space(n_images: int, n_psf: int | None = None, *,
@@ -459,7 +486,7 @@ def iter_estimate_family(
         yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged; "
                                         f"{n_own} blend in their own estimate")
     blended = [i for i, c in enumerate(choices) if c.weight < 1.0]
-    tasks = [dask.delayed(_learn)(used, shape, **options)] + [
+    tasks = [dask.delayed(_learn)(used, shape, dimensions=True, **options)] + [
         dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
                                    denoise=denoise) for i in blended]
     sub, *owns = yield from wait_with_progress(

@@ -93,6 +93,7 @@ class OperatorFamily:
     own: dict = field(default_factory=dict)
     family_weights: np.ndarray | None = None
     _operators: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+    _cache: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def n_psf(self) -> int:

@@ -92,6 +92,16 @@ class Fields:
     tau2: np.ndarray
     weights: list | None = None
 
+    def relative_noise(self) -> np.ndarray:
+        """Each image's field's posterior standard deviation from its beads' noise,
+        relative to the field's mean norm over the nodes, shape (K,): per column the
+        shrunk field's variance ``shrink v_k``, ``v_k = tau^2 (1 - shrink) / shrink``
+        the noise of its own departure (0 where its beads determine it exactly)."""
+        s = np.clip(self.shrink, 1e-12, 1.0)
+        var = (s * self.tau2[None, :] * (1.0 - s) / s).sum(axis=1)
+        norm = np.array([float(np.sqrt((n ** 2).sum(axis=1)).mean()) for n in self.nodes])
+        return np.sqrt(var) / np.maximum(norm, 1e-300)
+
     def share(self) -> np.ndarray:
         """Each image's share of its own field, shape (K,): the shrink factors weighted
         by the columns' spread ``tau^2`` (1: its beads determine its departure from the

@@ -143,6 +143,7 @@ def learn_basis(
     max_psf: int | None = None,
     weights: np.ndarray | None = None,
     components: int = 0,
+    groups: np.ndarray | None = None,
 ) -> PsfBasis:
     """Learn an orthonormal PSF basis from sum-normalised patches.
 
@@ -189,6 +190,14 @@ def learn_basis(
     components : int
         Also return the first ``components`` principal directions of the inliers
         (:attr:`PsfBasis.components`; 0: none).
+    groups : ndarray of shape (K,), optional
+        The image each patch comes from, with ``positions`` on each image's own field:
+        the z-score test then takes each patch's leave-one-out residual about the
+        thin-plate fit of its own image's beads, standardized within that image. The
+        beads of a family's images under other conditions are not its neighbours: tested
+        against the pooled patches, the beads of a condition at the edge of those
+        learnt are all outliers, and the family loses that condition where it differs
+        most (a corner of a tilted field). Needs an integer ``n_psf`` or "rule".
 
     Returns
     -------
@@ -231,6 +240,15 @@ def learn_basis(
             f"{min_beads_for(n_psf)} usable beads, got {k}. Lower `n_psf` or use more beads."
         )
     pos = None if positions is None else np.asarray(positions, dtype=np.float64).reshape(k, 2)
+    if groups is not None:
+        groups = np.asarray(groups).reshape(-1)
+        if pos is None or groups.shape != (k,):
+            raise ValueError(f"`groups` needs `positions` and one group per patch ({k}), got "
+                             f"{groups.shape[0]} groups"
+                             + ("" if pos is not None else " and no positions"))
+        if select == "heldout":
+            raise ValueError("`groups` needs `n_psf` an integer or 'rule': the held-out "
+                             "choice of the size fits one field")
     mask = np.ones(patch_shape, bool) if support is None else np.asarray(support, bool)
     x = psfs[:, mask]
     norms = np.linalg.norm(x, axis=1)
@@ -257,12 +275,13 @@ def learn_basis(
     s, vt = _svd(xn, n_psf, method)
     n_first = n_psf if n_psf is not None else min(5, n_from_rule(s, xn.shape, k)[2])
     coef = xn @ vt[:n_first].T
-    if pos is not None:
-        coef = ThinPlateSpline(pos, coef).loo_residuals
-    std = coef.std(axis=0)
-    std[std == 0] = 1.0
-    z = np.abs(coef - coef.mean(axis=0)) / std
-    zmax = z.max(axis=1)
+    if groups is not None:
+        zmax = np.zeros(k)
+        for g in np.unique(groups):
+            sel = groups == g
+            zmax[sel] = _zmax(_loo_residuals(pos[sel], coef[sel]))
+    else:
+        zmax = _zmax(coef if pos is None else ThinPlateSpline(pos, coef).loo_residuals)
     inliers = zmax <= z_threshold
     if np.count_nonzero(inliers) < min_beads_for(n_psf or 1):
         inliers[:] = True  # too few left: keep everything rather than fail
@@ -290,6 +309,21 @@ def learn_basis(
     basis[:, mask] = vt
     beta = psfs[inliers][:, mask] @ vt.T
     return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors, more)
+
+
+def _loo_residuals(positions: np.ndarray, coef: np.ndarray) -> np.ndarray:
+    """Leave-one-out residuals of a thin-plate fit of ``coef`` (n, m) over ``positions``
+    (n, 2); below 4 beads (too few for a thin-plate fit) the deviations from their mean."""
+    if len(positions) < 4:
+        return coef - coef.mean(axis=0)
+    return ThinPlateSpline(positions, coef).loo_residuals
+
+
+def _zmax(values: np.ndarray) -> np.ndarray:
+    """Each row's largest absolute z-score over the columns of ``values`` (n, m)."""
+    std = values.std(axis=0)
+    std[std == 0] = 1.0
+    return (np.abs(values - values.mean(axis=0)) / std).max(axis=1)
 
 
 def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, *,

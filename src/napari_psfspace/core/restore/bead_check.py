@@ -1,0 +1,150 @@
+"""Which of a few clicked beads disagrees with the others.
+
+Among five clicked beads one may be a pair too close to resolve, saturated, or lying on a
+structure; an operator identified from five bends towards it, and the four others then
+disagree with the result as much as it does. Each bead is therefore judged left out: the
+image's coordinates fitted to the other beads (:func:`~napari_psfspace.core.family.
+coordinates.fit_coordinates`, with the family's miss kriged from their residuals) predict
+its coefficients, and its score is its squared residual in the PSF's norm over the one
+expected,
+
+    rho_p = ||c_p / g_p - pred_p||^2 / (I sd_p^2 / g_p^2 + var_p),
+
+``sd_p / g_p`` its per-pixel noise at unit amplitude (the noise of its ``I`` coefficients
+on the PSF basis adds ``I sd^2`` to the squared norm) and ``var_p`` the prediction's own
+variance (the coordinates' and the miss's). A single bead scores about 1; the worst bead
+scoring above :data:`OUTLIER` is left out, and the others judged again without it, at
+most a fifth of the beads.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..family.coordinates import Model, design, fit_coordinates, krige_miss
+
+#: The score above which a clicked bead is left out. Single beads of simulated images
+#: from three optics codes score below it in all but a few draws of five, and an
+#: unresolved pair, a saturated bead or a bead on a bright line far above it
+#: (``bench/bench_bead_check.py``).
+OUTLIER = 20.0
+#: Fewest beads judged: with fewer, a left-out bead is predicted from two.
+MIN_JUDGED = 4
+#: Largest share of the beads left out.
+MOST_LEFT_OUT = 0.2
+#: Most beads whose left-out prediction krige the family's miss from the others.
+MAX_KRIGED_CHECK = 12
+
+
+@dataclass
+class BeadCheck:
+    """The judgement of the clicked beads (:func:`check_beads`).
+
+    Attributes
+    ----------
+    keep : ndarray of shape (P,), bool
+        The beads kept.
+    scores : ndarray of shape (P,)
+        Each bead's score when it was judged last (NaN below :data:`MIN_JUDGED` beads).
+    left_out : list of int
+        The beads left out, in the order they were.
+    """
+
+    keep: np.ndarray
+    scores: np.ndarray
+    left_out: list
+
+
+def _expected(model: Model, n_i: int, noise: float, a_p: np.ndarray, cov: np.ndarray,
+              miss_var: float) -> float:
+    """The expected squared residual of a bead: its noise's, and its prediction's."""
+    return n_i * noise ** 2 + miss_var + float(np.trace(model.gram @ a_p @ cov @ a_p.T))
+
+
+def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
+                  n_directions: int | None = None,
+                  amplitude_range: tuple[float, float] = (0.5, 2.0)
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """Each bead's score (P,) predicted from the others (see the module's notes), and how
+    well the others then agree among themselves (P,): the mean score of their own
+    residuals about the fit without that bead."""
+    c = np.asarray(c, np.float64)
+    n_p, n_i = c.shape
+    at = design(model, centers)
+    krige = n_p <= MAX_KRIGED_CHECK
+    prior_miss = float(np.trace(model.gram @ model.miss_cov))
+    scores, rest_scores = np.empty(n_p), np.empty(n_p)
+    for p in range(n_p):
+        rest = np.arange(n_p) != p
+        fit = fit_coordinates(model, c[rest], sd[rest], centers[rest],
+                              n_directions=n_directions, amplitude_range=amplitude_range,
+                              at_beads=(at[0][rest], at[1][rest]))
+        n_l = len(fit.z)
+        a = at[1][:, :, :n_l]  # (P, I, L)
+        if krige:
+            add, miss_var = krige_miss(model, fit, centers[p:p + 1])
+        else:  # many beads: the miss's short reach adds little to their prediction
+            add, miss_var = np.zeros((1, n_i)), np.array([prior_miss])
+        pred = at[0][p] + a[p] @ fit.z + add[0]
+        mm = float(pred @ model.gram @ pred)
+        g = float(np.clip(pred @ model.gram @ c[p] / mm if mm > 0 else 1.0,
+                          *amplitude_range))
+        r = c[p] / g - pred
+        scores[p] = float(r @ model.gram @ r) / max(
+            _expected(model, n_i, float(sd[p]) / g, a[p], fit.cov, float(miss_var[0])),
+            1e-300)
+        own = [float(q @ model.gram @ q) / max(n_i * noise ** 2 + prior_miss, 1e-300)
+               for q, noise in zip(fit.residuals, fit.noise, strict=True)]
+        rest_scores[p] = float(np.mean(own))
+    return scores, rest_scores
+
+
+def check_beads(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
+                n_directions: int | None = None,
+                amplitude_range: tuple[float, float] = (0.5, 2.0),
+                outlier: float = OUTLIER) -> BeadCheck:
+    """Leave out the clicked beads that disagree with the others, the worst first.
+
+    Parameters
+    ----------
+    model : Model
+        The family's few-dimensional model.
+    c : ndarray of shape (P, I)
+        The beads' coefficients on the family's PSF basis.
+    sd : ndarray of shape (P,)
+        Per-pixel noise of each bead's sum-1 patch.
+    centers : ndarray of shape (P, 2)
+        Their positions, pixels.
+    n_directions : int, optional
+        ``L``; default the model's.
+    amplitude_range : (float, float)
+        Range of each bead's amplitude.
+    outlier : float
+        The score above which a bead is left out.
+
+    Returns
+    -------
+    BeadCheck
+    """
+    c = np.asarray(c, np.float64)
+    n_p = len(c)
+    keep = np.ones(n_p, bool)
+    scores = np.full(n_p, np.nan)
+    left: list[int] = []
+    most = int(np.floor(MOST_LEFT_OUT * n_p))
+    while keep.sum() >= MIN_JUDGED:
+        idx = np.flatnonzero(keep)
+        s, rest = leave_one_out(model, c[idx], np.asarray(sd)[idx],
+                                np.asarray(centers)[idx], n_directions=n_directions,
+                                amplitude_range=amplitude_range)
+        scores[idx] = s
+        # the bead whose absence leaves the others agreeing best: a bad bead bends the
+        # fit that predicts each other bead, so that theirs may score above its own
+        worst = int(np.argmin(rest))
+        if s[worst] <= outlier or len(left) >= most:
+            break
+        keep[idx[worst]] = False
+        left.append(int(idx[worst]))
+    return BeadCheck(keep, scores, left)

@@ -1,0 +1,199 @@
+"""A family's few dimensions (core/family/dimensions, coordinates) and the clicked-bead
+check (core/restore/bead_check), on fields and beads drawn from known models."""
+
+import numpy as np
+import pytest
+from scipy.linalg import cho_factor, cho_solve
+
+from napari_psfspace.core.family.coordinates import (
+    CoordinateFit,
+    Model,
+    fit_coordinates,
+    krige_miss,
+    relative_field_error,
+)
+from napari_psfspace.core.family.dimensions import (
+    Beads,
+    build_model,
+    choose_dimensions,
+    misses,
+    principal,
+)
+from napari_psfspace.core.restore.bead_check import OUTLIER, check_beads
+
+SHAPE = (256, 256)
+GRID = (np.linspace(0, 255, 9), np.linspace(0, 255, 9))
+N_I = 6
+
+
+def _nodes():
+    gy, gx = GRID
+    return np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _smooth_fields(rng, n, scale=1.0):
+    """``n`` smooth fields (n, G, I): low-order polynomials of the position."""
+    u = _nodes() / 255.0 - 0.5
+    feats = np.column_stack([np.ones(len(u)), u, u ** 2, u[:, :1] * u[:, 1:]])  # (G, 6)
+    return scale * np.einsum("gf,nfi->ngi", feats, rng.standard_normal((n, feats.shape[1], N_I)))
+
+
+def _model(rng, n_l=3, miss=0.0, length=60.0):
+    mean = _smooth_fields(rng, 1)[0] + np.r_[4.0, np.zeros(N_I - 1)]  # a strong first PSF
+    dirs = _smooth_fields(rng, n_l)
+    flat = np.linalg.qr(dirs.reshape(n_l, -1).T)[0].T  # orthonormal directions
+    cov = miss ** 2 * np.eye(N_I)
+    return Model(GRID, SHAPE, mean, flat.reshape(n_l, *mean.shape),
+                 np.array([4.0, 1.0, 0.25])[:n_l], cov, length, np.eye(N_I))
+
+
+def _beads(model, z, rng, n=5, sd=0.0, amplitude=None):
+    centers = rng.uniform(20, 235, (n, 2))
+    from napari_psfspace.core.family.coordinates import bilinear
+
+    c = bilinear(model.grid, centers) @ model.field(z)
+    g = np.ones(n) if amplitude is None else amplitude
+    c = c * g[:, None] + sd * rng.standard_normal(c.shape)
+    return c, np.full(n, sd if sd else 1e-9), centers
+
+
+def test_noise_free_beads_give_the_coordinates_and_amplitudes_exactly():
+    rng = np.random.default_rng(0)
+    model = _model(rng)
+    z = np.array([1.5, -0.7, 0.3])
+    g = np.array([0.8, 1.0, 1.3, 1.1, 0.9])
+    c, sd, centers = _beads(model, z, rng, amplitude=g)
+    fit = fit_coordinates(model, c, sd, centers, n_iter=200)
+    # the prior's pull is (sd / coordinate sd)^2 ~ 1e-18 of the data's: float64 round-off
+    np.testing.assert_allclose(fit.z, z, atol=1e-6)
+    np.testing.assert_allclose(fit.amplitudes, g, rtol=1e-6)
+    assert np.abs(fit.residuals).max() < 1e-6
+
+
+def test_the_posterior_covariance_is_the_spread_of_the_fits():
+    """200 noisy draws of the same beads: the fits scatter about the truth as their
+    posterior covariance says (each coordinate's squared standardized error averages 1;
+    its mean over 200 draws lies within 1 +- 0.3, 3 sd of a chi^2_200 / 200)."""
+    rng = np.random.default_rng(1)
+    model = _model(rng)
+    z = np.array([0.5, 0.2, -0.4])
+    c0, _, centers = _beads(model, z, rng)
+    sd = 0.02
+    errs, covs = [], []
+    for _ in range(200):
+        c = c0 + sd * rng.standard_normal(c0.shape)
+        fit = fit_coordinates(model, c, np.full(5, sd), centers, amplitude_range=(1.0, 1.0))
+        errs.append(fit.z - z)
+        covs.append(fit.cov)
+    chi = [e @ np.linalg.solve(cv, e) / 3 for e, cv in zip(errs, covs, strict=True)]
+    assert 0.7 < np.mean(chi) < 1.3
+
+
+def test_kriging_of_the_miss_against_the_dense_formula():
+    """The separable shortcut of the variance (one P x P matrix) equals the posterior
+    variance computed from the dense covariances; the mean interpolates the residual of a
+    noise-free bead at its own position."""
+    rng = np.random.default_rng(2)
+    model = _model(rng, miss=0.3, length=50.0)
+    centers = rng.uniform(20, 235, (4, 2))
+    res = 0.3 * rng.standard_normal((4, N_I))
+    noise = np.array([0.05, 0.1, 0.02, 0.07])
+    fit = CoordinateFit(np.zeros(3), np.zeros((3, 3)), np.ones(4), np.zeros((4, N_I)), res,
+                        noise, centers)
+    pts = rng.uniform(0, 255, (7, 2))
+    mean, var = krige_miss(model, fit, pts)
+
+    def k(a, b):
+        d2 = ((a[:, None] - b[None]) ** 2).sum(-1)
+        return np.exp(-0.5 * d2 / 50.0 ** 2)
+
+    s = np.kron(k(centers, centers), model.miss_cov) + np.kron(np.diag(noise ** 2),
+                                                               np.eye(N_I))
+    cross = np.kron(k(pts, centers), model.miss_cov)  # (Q I, P I)
+    f = cho_factor(s)
+    dense_mean = (cross @ cho_solve(f, res.ravel())).reshape(7, N_I)
+    post = np.kron(np.ones((1, 1)), model.miss_cov)
+    dense_var = [np.trace(post - cross[q * N_I:(q + 1) * N_I] @ cho_solve(
+        f, cross[q * N_I:(q + 1) * N_I].T)) for q in range(7)]
+    np.testing.assert_allclose(mean, dense_mean, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(var, dense_var, rtol=1e-9, atol=1e-12)
+    # a noise-free bead: the kriged miss at it is its residual
+    exact = CoordinateFit(np.zeros(3), np.zeros((3, 3)), np.ones(4), np.zeros((4, N_I)),
+                          res, np.full(4, 1e-9), centers)
+    at, var_at = krige_miss(model, exact, centers)
+    np.testing.assert_allclose(at, res, atol=1e-6)
+    assert var_at.max() < 1e-6 * np.trace(model.miss_cov)
+
+
+def test_the_choice_of_dimensions_finds_the_family_rank():
+    """Twelve fields on three directions (and a little of a field each one alone holds):
+    leaving each out and identifying it from 5 noisy beads, three directions do best,
+    and its error there is close to what the noise and the miss allow."""
+    rng = np.random.default_rng(3)
+    base = _model(rng)
+    z = rng.standard_normal((12, 3)) * np.sqrt(base.variances)
+    fields = np.array([base.field(zk) for zk in z]) + _smooth_fields(rng, 12, 0.002)
+    beads = []
+    for k in range(12):
+        c, sd, centers = _beads(base, z[k], rng, n=30, sd=0.01)
+        beads.append(Beads(centers, c, sd))
+    out = choose_dimensions(fields, beads, GRID, SHAPE, np.eye(N_I))
+    table = {row["n"]: row["error"] for row in out["table"]}
+    assert out["n_directions"] >= 3
+    assert table[3] < 0.5 * table[2] and table[3] < 0.25 * table[0]
+    assert out["band"]["low"] < out["band"]["median"] < out["band"]["high"]
+
+
+def test_misses_are_zero_for_fields_on_few_directions():
+    rng = np.random.default_rng(4)
+    base = _model(rng)
+    fields = np.array([base.field(zk) for zk in rng.standard_normal((6, 3))])
+    assert np.abs(misses(fields, 3)).max() < 1e-9 * np.abs(fields).max()
+    mean, dirs, var = principal(fields)
+    assert len(dirs) == 3  # rank 3: the rest of the K - 1 directions are dropped
+    model = build_model(fields, 3, GRID, SHAPE, np.eye(N_I))
+    assert np.abs(model.miss_cov).max() < 1e-18
+
+
+def test_relative_field_error_ignores_amplitude():
+    rng = np.random.default_rng(5)
+    f = _smooth_fields(rng, 1)[0] + 3.0
+    assert relative_field_error(2.5 * f, f) < 1e-12
+    other = f + 0.1 * _smooth_fields(rng, 1)[0]
+    assert relative_field_error(other, f) > 1e-3
+
+
+def test_one_bad_bead_among_five_is_left_out_and_single_beads_are_kept():
+    """Five beads of a known field: none is left out; one of them replaced by a PSF the
+    field does not hold at that place (its coefficients those of another position and
+    condition, as a pair or a saturated core changes them): that one is left out."""
+    rng = np.random.default_rng(6)
+    model = _model(rng, miss=0.005)
+    for trial in range(20):
+        z = rng.standard_normal(3) * np.sqrt(model.variances)
+        c, sd, centers = _beads(model, z, rng, sd=0.01)
+        check = check_beads(model, c, sd, centers)
+        assert not check.left_out, (trial, check.scores)
+        assert np.nanmax(check.scores) < OUTLIER
+        bad = int(rng.integers(5))
+        c[bad] = c[bad] + 0.3 * np.abs(c[bad]).max() * rng.standard_normal(N_I)
+        check = check_beads(model, c, sd, centers)
+        assert check.left_out == [bad], (trial, check.scores)
+
+
+def test_few_beads_are_not_judged():
+    rng = np.random.default_rng(7)
+    model = _model(rng)
+    c, sd, centers = _beads(model, np.zeros(3), rng, n=3, sd=0.01)
+    check = check_beads(model, c, sd, centers)
+    assert check.keep.all() and np.isnan(check.scores).all()
+
+
+@pytest.mark.parametrize("n_l", [0, 1, 3])
+def test_any_number_of_directions_fits(n_l):
+    rng = np.random.default_rng(8)
+    model = _model(rng)
+    c, sd, centers = _beads(model, np.zeros(3), rng, sd=0.01)
+    fit = fit_coordinates(model, c, sd, centers, n_directions=n_l)
+    assert fit.z.shape == (n_l,) and fit.cov.shape == (n_l, n_l)
+    assert np.all(np.isfinite(fit.residuals))
