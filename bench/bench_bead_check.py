@@ -32,7 +32,7 @@ from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.family.dimensions import family_model
 from napari_psfspace.core.family.patches import image_patches
 from napari_psfspace.core.restore.bead_check import OUTLIER, leave_one_out
-from napari_psfspace.core.restore.identify import _coefficients
+from napari_psfspace.core.restore.identify import coefficients_on
 
 THRESHOLDS = (4.0, 6.0, 10.0, 20.0, 30.0, 50.0)
 
@@ -43,7 +43,7 @@ def scores_of(image, fam, model, r, picks):
     p = found.patches
     if p is None or len(p.centers) < 4:
         return None, None
-    c = _coefficients(p.psf, fam.basis)
+    c = coefficients_on(p.psf, fam.basis)
     return leave_one_out(model, c, p.noise / p.flux, p.centers), p.centers
 
 

@@ -197,3 +197,20 @@ def test_any_number_of_directions_fits(n_l):
     fit = fit_coordinates(model, c, sd, centers, n_directions=n_l)
     assert fit.z.shape == (n_l,) and fit.cov.shape == (n_l, n_l)
     assert np.all(np.isfinite(fit.residuals))
+
+
+def test_many_beads_are_judged_by_downdating_the_full_fit(monkeypatch):
+    """Beyond MAX_KRIGED_CHECK beads each fit without one bead is the full fit's normal
+    equations less its rows: with the amplitudes fixed and no miss to krige, the same
+    scores as fitting each subset anew, to round-off."""
+    from napari_psfspace.core.restore import bead_check
+
+    rng = np.random.default_rng(9)
+    model = _model(rng)
+    c, sd, centers = _beads(model, np.array([0.3, -0.2, 0.1]), rng, n=20, sd=0.01)
+    fixed = (1.0, 1.0)
+    fast = bead_check.leave_one_out(model, c, sd, centers, amplitude_range=fixed)
+    monkeypatch.setattr(bead_check, "MAX_KRIGED_CHECK", 100)
+    slow = bead_check.leave_one_out(model, c, sd, centers, amplitude_range=fixed)
+    np.testing.assert_allclose(fast[0], slow[0], rtol=1e-8)
+    np.testing.assert_allclose(fast[1], slow[1], rtol=1e-8)

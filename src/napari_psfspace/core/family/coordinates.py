@@ -213,9 +213,11 @@ def fit_coordinates(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.nda
         mm = (fit * fit).sum(axis=1)
         g_new = np.where(mm > 0, (fit * cw).sum(axis=1) / np.maximum(mm, 1e-300),
                          1.0).clip(lo, hi)
-        done = (np.allclose(z_new, z, rtol=1e-10, atol=1e-14)
-                and np.allclose(g_new, g, rtol=1e-10, atol=0))
+        change = max(float(np.max(np.abs(z_new - z), initial=0.0))
+                     / max(float(np.max(np.abs(z_new), initial=0.0)), 1e-300),
+                     float(np.max(np.abs(g_new - g) / g_new)))
         z, g = z_new, g_new
+        done = change <= 1e-10
         if done:
             break
     cov = np.linalg.inv(lhs) if n_l else np.zeros((0, 0))
@@ -303,12 +305,12 @@ def spread_at(model: Model, fit: CoordinateFit, field: np.ndarray,
 def identify_field(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
                    n_directions: int | None = None,
                    amplitude_range: tuple[float, float] = (0.5, 2.0), krige: bool = True,
-                   spread: bool = True, at_beads: tuple | None = None
+                   spread: bool = True, at_beads: tuple | None = None, n_iter: int = 50
                    ) -> tuple[np.ndarray, np.ndarray | None, CoordinateFit]:
     """The image's field at the nodes (G, I), its relative spread (G,; None without
     ``spread``), and the fit (:func:`fit_coordinates`; ``krige``: with the miss)."""
     fit = fit_coordinates(model, c, sd, centers, n_directions=n_directions,
-                          amplitude_range=amplitude_range, at_beads=at_beads)
+                          amplitude_range=amplitude_range, at_beads=at_beads, n_iter=n_iter)
     field = model.field(fit.z)
     if krige:
         add, miss_var = krige_miss(model, fit, model.nodes)

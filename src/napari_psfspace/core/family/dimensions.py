@@ -39,6 +39,9 @@ N_DRAWS = 4
 MAX_DIRECTIONS = 12
 #: Nodes the miss's correlation is measured on (a subset spread over the grid).
 CORRELATION_NODES = 300
+#: Alternations of each fit of the choice (each compares ``L``'s on the same beads: the
+#: amplitudes' last digits change no choice).
+CHOICE_ITERATIONS = 10
 #: Quantiles of the ratio of actual to predicted error that bound the reported band.
 BAND_QUANTILES = (0.05, 0.95)
 
@@ -186,7 +189,8 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
             for n in range(most + 1):
                 field, _, _ = identify_field(model, b.coefficients[pick], b.sd[pick],
                                              b.centers[pick], n_directions=n, krige=False,
-                                             spread=False, at_beads=at)
+                                             spread=False, at_beads=at,
+                                             n_iter=CHOICE_ITERATIONS)
                 errors[n, col_j * N_DRAWS + d] = relative_field_error(field, fields[j], gram)
     mean = errors.mean(axis=1)
     best = int(np.argmin(mean))

@@ -449,6 +449,10 @@ def iter_estimate_family(
         sizes_meta["space_size_by"] = "rule"
     heldout = None
     choices: list[Choice] = []
+    # the family from every bead does not depend on the held-out judgement (only which
+    # images blend in their own estimate does): it is learnt beside the judgement's tasks
+    final = dask.delayed(_learn)(used, shape, dimensions=True, **options)
+    sub = None
     if holdout:
         # the error of each image's operator on beads of its own (about a fifth, spread
         # over the field) that the family never saw
@@ -472,10 +476,10 @@ def iter_estimate_family(
             dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
                                        denoise=denoise, n_image=used[i].n_beads)
             for i in judged]
-        trained, *owns = (yield from wait_with_progress(
-            lambda: _compute(tasks, client),
-            Progress("held-out", 0.6, "learning without the held-out beads"))
-            ) if held else (None,)
+        trained, *owns, sub = (yield from wait_with_progress(
+            lambda: _compute([*tasks, final], client),
+            Progress("held-out", 0.6, "learning with and without the held-out beads"))
+            ) if held else (None, None)
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
                                         f"held-out beads of {len(held)} images")
         own_train = dict(zip(judged, owns, strict=True))
@@ -486,12 +490,17 @@ def iter_estimate_family(
         yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged; "
                                         f"{n_own} blend in their own estimate")
     blended = [i for i, c in enumerate(choices) if c.weight < 1.0]
-    tasks = [dask.delayed(_learn)(used, shape, dimensions=True, **options)] + [
-        dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
-                                   denoise=denoise) for i in blended]
-    sub, *owns = yield from wait_with_progress(
-        lambda: _compute(tasks, client),
+    tasks = [dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
+                                        denoise=denoise) for i in blended]
+    if sub is None:
+        tasks.insert(0, final)
+    done = yield from wait_with_progress(
+        lambda: _compute(tasks, client) if tasks else [],
         Progress("subspace", 0.8, f"learning from the {len(used)} images"))
+    if sub is None:
+        sub, *owns = done
+    else:
+        owns = done
     weights = np.ones(len(used))
     for i, own in zip(blended, owns, strict=True):
         if own is not None:

@@ -34,7 +34,8 @@ OUTLIER = 20.0
 MIN_JUDGED = 4
 #: Largest share of the beads left out.
 MOST_LEFT_OUT = 0.2
-#: Most beads whose left-out prediction krige the family's miss from the others.
+#: Most beads each refitted without one bead (and the miss kriged from the others to
+#: predict it); beyond, :func:`leave_one_out` downdates the full fit.
 MAX_KRIGED_CHECK = 12
 
 
@@ -69,11 +70,20 @@ def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarr
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Each bead's score (P,) predicted from the others (see the module's notes), and how
     well the others then agree among themselves (P,): the mean score of their own
-    residuals about the fit without that bead."""
+    residuals about the fit without that bead.
+
+    Up to :data:`MAX_KRIGED_CHECK` beads each fit without a bead is made anew (a bad
+    bead's pull on the others' amplitudes goes with it); beyond, one bead moves the
+    others' amplitudes little, and the fit without it is the full fit's normal equations
+    less its rows, at the full fit's amplitudes (the miss not kriged: its short reach
+    adds little to a prediction from many beads).
+    """
     c = np.asarray(c, np.float64)
+    sd = np.asarray(sd, np.float64)
     n_p, n_i = c.shape
     at = design(model, centers)
-    krige = n_p <= MAX_KRIGED_CHECK
+    if n_p > MAX_KRIGED_CHECK:
+        return _downdated(model, c, sd, centers, at, n_directions, amplitude_range)
     prior_miss = float(np.trace(model.gram @ model.miss_cov))
     scores, rest_scores = np.empty(n_p), np.empty(n_p)
     for p in range(n_p):
@@ -81,23 +91,56 @@ def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarr
         fit = fit_coordinates(model, c[rest], sd[rest], centers[rest],
                               n_directions=n_directions, amplitude_range=amplitude_range,
                               at_beads=(at[0][rest], at[1][rest]))
-        n_l = len(fit.z)
-        a = at[1][:, :, :n_l]  # (P, I, L)
-        if krige:
-            add, miss_var = krige_miss(model, fit, centers[p:p + 1])
-        else:  # many beads: the miss's short reach adds little to their prediction
-            add, miss_var = np.zeros((1, n_i)), np.array([prior_miss])
-        pred = at[0][p] + a[p] @ fit.z + add[0]
-        mm = float(pred @ model.gram @ pred)
-        g = float(np.clip(pred @ model.gram @ c[p] / mm if mm > 0 else 1.0,
-                          *amplitude_range))
-        r = c[p] / g - pred
-        scores[p] = float(r @ model.gram @ r) / max(
-            _expected(model, n_i, float(sd[p]) / g, a[p], fit.cov, float(miss_var[0])),
-            1e-300)
-        own = [float(q @ model.gram @ q) / max(n_i * noise ** 2 + prior_miss, 1e-300)
-               for q, noise in zip(fit.residuals, fit.noise, strict=True)]
-        rest_scores[p] = float(np.mean(own))
+        a_p = at[1][p, :, :len(fit.z)]  # (I, L)
+        add, miss_var = krige_miss(model, fit, centers[p:p + 1])
+        pred = at[0][p] + a_p @ fit.z + add[0]
+        scores[p] = _score(model, c[p], float(sd[p]), pred, amplitude_range,
+                           float(np.trace(model.gram @ a_p @ fit.cov @ a_p.T))
+                           + float(miss_var[0]))
+        rest_scores[p] = float(np.mean(
+            [float(q @ model.gram @ q) / max(n_i * noise ** 2 + prior_miss, 1e-300)
+             for q, noise in zip(fit.residuals, fit.noise, strict=True)]))
+    return scores, rest_scores
+
+
+def _score(model: Model, c: np.ndarray, sd: float, pred: np.ndarray, amplitude_range,
+           var: float) -> float:
+    """A bead's squared residual about ``pred`` (its amplitude fitted) over the expected
+    one: its noise's (``I sd^2 / g^2``) and the prediction's variance ``var``."""
+    mm = float(pred @ model.gram @ pred)
+    g = float(np.clip(pred @ model.gram @ c / mm if mm > 0 else 1.0, *amplitude_range))
+    r = c / g - pred
+    return float(r @ model.gram @ r) / max(len(c) * (sd / g) ** 2 + var, 1e-300)
+
+
+def _downdated(model, c, sd, centers, at, n_directions, amplitude_range):
+    """:func:`leave_one_out` for many beads: each fit without a bead from the full fit's
+    normal equations less that bead's rows."""
+    n_p, n_i = c.shape
+    full = fit_coordinates(model, c, sd, centers, n_directions=n_directions,
+                           amplitude_range=amplitude_range, at_beads=at)
+    n_l = len(full.z)
+    g, base, a = full.amplitudes, at[0], at[1][:, :, :n_l]
+    white = np.linalg.cholesky(model.gram + 1e-12 * np.trace(model.gram) / n_i
+                               * np.eye(n_i)).T
+    aw = np.einsum("ji,pil->pjl", white, a) * (g / sd)[:, None, None]  # rows of each bead
+    yw = ((c - g[:, None] * base) @ white.T) / sd[:, None]
+    lhs = np.einsum("pil,pim->lm", aw, aw) + np.diag(
+        1.0 / np.maximum(model.variances[:n_l], 1e-300))
+    rhs = np.einsum("pil,pi->l", aw, yw)
+    prior_miss = float(np.trace(model.gram @ model.miss_cov))
+    scores, rest_scores = np.empty(n_p), np.empty(n_p)
+    for p in range(n_p):
+        lhs_p = lhs - aw[p].T @ aw[p]
+        z = np.linalg.solve(lhs_p, rhs - aw[p].T @ yw[p])
+        cov = np.linalg.inv(lhs_p)
+        pred = base[p] + a[p] @ z
+        scores[p] = _score(model, c[p], float(sd[p]), pred, amplitude_range,
+                           float(np.trace(model.gram @ a[p] @ cov @ a[p].T)) + prior_miss)
+        res = c / g[:, None] - (base + a @ z)
+        own = np.einsum("pi,ij,pj->p", res, model.gram, res) / (
+            n_i * (sd / g) ** 2 + prior_miss)
+        rest_scores[p] = float((own.sum() - own[p]) / (n_p - 1))
     return scores, rest_scores
 
 

@@ -62,12 +62,12 @@ from .identify_report import (
     warn_bound,
 )
 
-__all__ = ["AMPLITUDE_RANGE", "IdentificationWarning", "MIN_BEADS_JUDGED",
+__all__ = ["AMPLITUDE_RANGE", "IdentificationWarning", "MIN_BEADS_JUDGED", "coefficients_on",
            "family_model_error", "field_operator", "identify_operator", "judge_against_own",
            "solve_identification", "warn_bound"]
 
 
-def _coefficients(psf: np.ndarray, basis: np.ndarray) -> np.ndarray:
+def coefficients_on(psf: np.ndarray, basis: np.ndarray) -> np.ndarray:
     """Least-squares coefficients (P, I) of patches (P, S, S) on the basis (I, S, S) (the
     refitted basis images are not exactly orthonormal)."""
     b = basis.reshape(len(basis), -1)
@@ -283,7 +283,7 @@ def identify_operator(
         raise ValueError(f"`psf_radius` = {r:g} px gives {patches.psf.shape[1]} px patches; "
                          f"the family's PSFs are {size} px: use the family's radius "
                          f"({family.metadata.get('psf_radius')})")
-    c = _coefficients(patches.psf, family.basis)  # (P, I)
+    c = coefficients_on(patches.psf, family.basis)  # (P, I)
     sd = patches.noise / patches.flux  # per-pixel noise of the sum-1 patches
     left, scores = [], np.full(len(c), np.nan)
     if prior:
