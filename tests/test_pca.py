@@ -211,3 +211,21 @@ def test_a_condition_at_the_edge_of_a_family_keeps_its_beads_with_groups():
         learn_basis(x, 3, groups=owner)  # needs the positions
     with pytest.raises(ValueError, match="groups"):
         learn_basis(x, "heldout", positions=pos, groups=owner)
+
+
+@pytest.mark.parametrize("shape", [(300, 80), (60, 200)])
+def test_leading_directions_against_numpy_svd(shape):
+    """The family's confirmed size takes its leading directions from the smaller Gram
+    matrix: the same subspaces as numpy's SVD (a few singular values well apart, then
+    noise), to round-off."""
+    from napari_psfspace.core.family.sizes import leading_directions
+
+    rng = np.random.default_rng(0)
+    n, m = shape
+    x = (rng.standard_normal((n, 5)) * [50, 30, 20, 10, 5]) @ rng.standard_normal((5, m))
+    x += 0.01 * rng.standard_normal((n, m))
+    ref = np.linalg.svd(x, full_matrices=False)[2][:5]
+    got = leading_directions(x, 5)
+    assert got.shape == (5, m)
+    assert np.rad2deg(subspace_angles(ref.T, got.T)).max() < 1e-6
+    np.testing.assert_allclose(np.abs(np.sum(ref * got, axis=1)), 1.0, atol=1e-9)

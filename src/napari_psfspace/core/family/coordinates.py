@@ -192,10 +192,31 @@ def fit_coordinates(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.nda
                                                                model.n_directions)
     base, a = design(model, centers) if at_beads is None else at_beads
     a = a[:, :, :n_l]
-    white = _whitener(model.gram)
-    cw, bw = c @ white.T, base @ white.T
-    aw = np.einsum("ji,pil->pjl", white, a)
-    prec = np.diag(1.0 / np.maximum(model.variances[:n_l], 1e-300))
+    cw, bw, aw = whitened(model.gram, c, base, a)
+    z, g, cov = solve_coordinates(cw, bw, aw, sd, model.variances[:n_l],
+                                  amplitude_range=amplitude_range, n_iter=n_iter)
+    fitted = base + a @ z if n_l else base
+    return CoordinateFit(z, cov, g, fitted, c / g[:, None] - fitted, sd / g, centers)
+
+
+def whitened(gram: np.ndarray, c: np.ndarray, base: np.ndarray, a: np.ndarray
+             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The beads' coefficients (P, I), the mean (P, I) and the directions (P, I, L) at
+    them, whitened by the basis's Gram matrix (their l2 norm is the PSF's)."""
+    white = _whitener(gram)
+    return c @ white.T, base @ white.T, np.einsum("ji,pil->pjl", white, a)
+
+
+def solve_coordinates(cw: np.ndarray, bw: np.ndarray, aw: np.ndarray, sd: np.ndarray,
+                      variances: np.ndarray, *,
+                      amplitude_range: tuple[float, float] = (0.5, 2.0), n_iter: int = 50
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`fit_coordinates` on whitened arrays (:func:`whitened`): the coordinates
+    (L,), the amplitudes (P,) and the coordinates' posterior covariance (L, L), by
+    alternating exact least squares (at most ``n_iter`` alternations; they stop once
+    neither changes by more than ``1e-10`` relatively)."""
+    n_p, n_l = len(cw), aw.shape[2]
+    prec = np.diag(1.0 / np.maximum(variances, 1e-300))
     lo, hi = amplitude_range
     g = np.ones(n_p)
     z = np.zeros(n_l)
@@ -217,12 +238,9 @@ def fit_coordinates(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.nda
                      / max(float(np.max(np.abs(z_new), initial=0.0)), 1e-300),
                      float(np.max(np.abs(g_new - g) / g_new)))
         z, g = z_new, g_new
-        done = change <= 1e-10
-        if done:
+        if change <= 1e-10:
             break
-    cov = np.linalg.inv(lhs) if n_l else np.zeros((0, 0))
-    fitted = base + a @ z if n_l else base
-    return CoordinateFit(z, cov, g, fitted, c / g[:, None] - fitted, sd / g, centers)
+    return z, g, (np.linalg.inv(lhs) if n_l else np.zeros((0, 0)))
 
 
 def spread_subset(centers: np.ndarray, n: int) -> np.ndarray:

@@ -7,38 +7,55 @@ few dimensions (:mod:`.coordinates`):
 
 - the mean field ``m`` and the first ``L`` principal directions ``d_l`` of the
   ``F_k - m``, the variance ``v_l`` of each coordinate over the images its prior;
+- the first ``M`` of those coordinates also varying as planes over the field
+  (:func:`planar`): a tilted slide puts each part of the field under another focus, so
+  an image between those learnt is their mix in proportions that change across it;
 - the family's *miss* ``R``, what an image under a condition the family did not see
-  holds beyond those directions: each ``F_j`` fitted at every node by the model of the
-  other ``K - 1``, the residuals pooled give its covariance ``C_R`` at a node and its
-  spatial correlation length ``ell``.
+  holds beyond that model: each ``F_j`` fitted at every node by the model of the other
+  ``K - 1``, the residuals pooled give its covariance ``C_R`` at a node and its spatial
+  correlation length ``ell``.
 
-``L`` is chosen as a user would judge it (:func:`choose_dimensions`): each image of the
-family is left out in turn, identified from :data:`N_CLICKS` of its beads by the model of
-the others, and compared with its own field; the ``L`` of least error over the images and
-draws is kept. The same left-out identifications calibrate the reported spread
-(:func:`spread_band`): the ratio of each one's actual error to the error its spread
-predicts, whose quantiles make a band. Both go to the family's metadata
+``L`` and ``M`` are chosen as a user would judge them (:func:`choose_dimensions`): each
+image of the family is left out in turn, identified from :data:`N_CLICKS` of its beads
+by the model of the others, and compared with its own field; the sizes of least error
+over the images and draws are kept. The same left-out identifications calibrate the
+reported spread (:func:`spread_band`): the ratio of each one's actual error to the error
+its spread predicts, whose quantiles make a band. Both go to the family's metadata
 (``metadata["dimensions"]``); :func:`family_model` builds the model of a family.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from .coordinates import Model, design, identify_field, relative_field_error
+from .coordinates import (
+    Model,
+    design,
+    fit_coordinates,
+    krige_miss,
+    relative_field_error,
+    solve_coordinates,
+    spread_at,
+    whitened,
+)
 
 #: Beads a left-out image is identified from when ``L`` is chosen: the paper's "typically
 #: 5", the few a user clicks.
 N_CLICKS = 5
 #: Draws of those beads per left-out image.
-N_DRAWS = 4
+N_DRAWS = 3
 #: Most directions ``L`` (a family of ``K`` images has at most ``K - 1``).
 MAX_DIRECTIONS = 12
 #: Nodes the miss's correlation is measured on (a subset spread over the grid).
 CORRELATION_NODES = 300
+#: Most of the directions whose coordinates also vary as planes over the field.
+MAX_PLANAR = 1
+#: The prior standard deviation of a coordinate's slope across the field (from one side
+#: to the other), in units of the coordinate's own.
+PLANAR_SCALE = 1.0
 #: Alternations of each fit of the choice (each compares ``L``'s on the same beads: the
 #: amplitudes' last digits change no choice).
 CHOICE_ITERATIONS = 10
@@ -85,15 +102,42 @@ def principal(fields: np.ndarray, n: int | None = None
     return mean, dirs.reshape(len(s2), *mean.shape), s2 / max(k - 1, 1)
 
 
-def misses(fields: np.ndarray, n: int) -> np.ndarray:
-    """Each field (K, G, I) minus its best fit at every node by the mean and ``n``
-    directions of the other fields: the family's miss on conditions it did not see."""
+def planar(mean: np.ndarray, dirs: np.ndarray, variances: np.ndarray, n_planar: int,
+           nodes: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """The directions (n + 2 m, G, I) and their prior variances of a model whose first
+    ``m = n_planar`` coordinates also vary over the field as planes: each of those
+    directions times the scaled row and column (-0.5 to 0.5 across the image), its
+    variance the direction's times :data:`PLANAR_SCALE` squared."""
+    m = min(int(n_planar), len(dirs))
+    if m == 0:
+        return dirs, variances
+    rel = nodes / np.maximum(np.asarray(shape, np.float64) - 1, 1) - 0.5  # (G, 2)
+    lead = dirs[:m]
+    out = np.concatenate([dirs, lead * rel[None, :, 0:1], lead * rel[None, :, 1:2]])
+    tilt = PLANAR_SCALE ** 2 * variances[:m]
+    return out, np.concatenate([variances, tilt, tilt])
+
+
+def misses(fields: np.ndarray, n: int, n_planar: int = 0, nodes: np.ndarray | None = None,
+           shape=None) -> np.ndarray:
+    """Each field (K, G, I) minus its best fit at every node by the model of the other
+    fields (their mean, ``n`` directions, the first ``n_planar`` of them also varying as
+    planes over the field at ``nodes`` of an image of ``shape``): the family's miss on
+    conditions it did not see."""
     out = np.empty_like(fields)
     for j in range(len(fields)):
-        mean, dirs, _ = principal(np.delete(fields, j, axis=0), n)
+        mean, dirs, var = principal(np.delete(fields, j, axis=0), n)
+        if n_planar:
+            dirs, _ = planar(mean, dirs, var, n_planar, nodes, shape)
         dev = (fields[j] - mean).reshape(-1)
         flat = dirs.reshape(len(dirs), mean.size)
-        out[j] = (dev - (flat @ dev) @ flat).reshape(mean.shape)
+        if not len(flat):
+            out[j] = fields[j] - mean
+            continue
+        # least squares by the small normal equations (the planar directions are not
+        # orthogonal to the others)
+        coef = np.linalg.lstsq(flat @ flat.T, flat @ dev, rcond=None)[0]
+        out[j] = (dev - coef @ flat).reshape(mean.shape)
     return out
 
 
@@ -123,18 +167,29 @@ def miss_model(residuals: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, fl
 
 
 def build_model(fields: np.ndarray, n: int, grid, shape, gram: np.ndarray, *,
-                miss: bool = True) -> Model:
-    """The model of fields (K, G, I) with ``n`` directions (and the miss's covariance,
-    measured by leaving each field out; ``miss=False``: none)."""
+                n_planar: int = 0, miss: bool = True) -> Model:
+    """The model of fields (K, G, I) with ``n`` directions, the first ``n_planar`` of them
+    also varying as planes over the field (:func:`planar`), and the miss's covariance
+    (measured by leaving each field out; ``miss=False``: none)."""
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     mean, dirs, var = principal(fields, n)
+    dirs, var = planar(mean, dirs, var, n_planar, nodes, shape)
     n_i = fields.shape[-1]
     cov, length = np.zeros((n_i, n_i)), 1.0
     if miss and len(fields) >= 3:
-        cov, length = miss_model(misses(fields, min(n, len(fields) - 2)), nodes)
+        cov, length = miss_model(misses(fields, min(n, len(fields) - 2),
+                                        min(n_planar, n, len(fields) - 2), nodes, shape),
+                                 nodes)
     return Model((np.asarray(gy), np.asarray(gx)), tuple(shape), mean, dirs, var, cov,
                  length, np.asarray(gram, np.float64))
+
+
+def _columns(n: int, m: int, most: int, most_planar: int) -> np.ndarray:
+    """The directions of a model with ``n`` directions, ``m`` of them planar, among those
+    of :func:`build_model` with ``most`` directions and ``most_planar`` planar ones: the
+    first ``n``, then the first ``m`` row slopes and the first ``m`` column slopes."""
+    return np.r_[np.arange(n), most + np.arange(m), most + most_planar + np.arange(m)]
 
 
 def _draws(beads: Beads, seed: int) -> list[np.ndarray]:
@@ -146,8 +201,8 @@ def _draws(beads: Beads, seed: int) -> list[np.ndarray]:
 
 def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape,
                       gram: np.ndarray, *, seed: int = 0) -> dict:
-    """``L`` by leaving each image out and identifying it from a few of its beads, and the
-    calibration of the spread at that ``L``.
+    """``L`` and ``M`` by leaving each image out and identifying it from a few of its
+    beads, and the calibration of the spread there.
 
     Parameters
     ----------
@@ -165,9 +220,12 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     Returns
     -------
     dict
-        ``n_directions``; ``by`` (how it was chosen); ``table`` (each ``L`` tried and
-        the mean relative field error of the left-out identifications); ``band``
-        (:func:`spread_band`'s calibration, None without left-out images).
+        ``n_directions`` (``L``) and ``n_planar`` (``M``: the first ``M`` directions'
+        coordinates also vary as planes over the field, as a tilted slide makes the
+        focus do); ``by`` (how they were chosen); ``table`` (each ``L`` and ``M`` tried,
+        ``n`` and ``planar``, and the mean relative field error of the left-out
+        identifications, ``error``); ``band`` (:func:`spread_band`'s calibration, None
+        without left-out images).
     """
     k = len(fields)
     most = min(MAX_DIRECTIONS, k - 2)
@@ -177,49 +235,71 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         n = max(0, min(MAX_DIRECTIONS, k - 1))
         why = ("too few images to leave one out" if most < 1
                else f"no image with {N_CLICKS} beads to leave out")
-        return {"n_directions": int(n), "by": f"all the family's directions ({why})",
-                "table": [], "band": None}
-    errors = np.zeros((most + 1, len(usable) * N_DRAWS))
+        return {"n_directions": int(n), "n_planar": 0,
+                "by": f"all the family's directions ({why})", "table": [], "band": None}
+    sizes = [(n, m) for n in range(most + 1) for m in range(min(n, MAX_PLANAR) + 1)]
+    errors = np.zeros((len(sizes), len(usable) * N_DRAWS))
+    white = np.linalg.cholesky(gram + 1e-12 * np.trace(gram) / len(gram) * np.eye(len(gram)))
+    gy, gx = grid
+    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+    zero = np.zeros((len(gram), len(gram)))
     for col_j, j in enumerate(usable):
-        model = build_model(np.delete(fields, j, axis=0), most, grid, shape, gram,
-                            miss=False)
+        mean, dirs, var = principal(np.delete(fields, j, axis=0), most)
+        n_c, m_c = len(dirs), min(MAX_PLANAR, len(dirs))  # fewer where the fields are
+        dirs, var = planar(mean, dirs, var, m_c, nodes, shape)
+        full = Model((np.asarray(gy), np.asarray(gx)), tuple(shape), mean, dirs, var, zero,
+                     1.0, gram)
+        truth = fields[j] @ white
+        mean_w = full.mean @ white
+        dirs_w = full.directions @ white  # (L + 2 M, G, I), whitened
         b = beads[j]
         for d, pick in enumerate(_draws(b, seed + j)):
-            at = design(model, b.centers[pick])
-            for n in range(most + 1):
-                field, _, _ = identify_field(model, b.coefficients[pick], b.sd[pick],
-                                             b.centers[pick], n_directions=n, krige=False,
-                                             spread=False, at_beads=at,
-                                             n_iter=CHOICE_ITERATIONS)
-                errors[n, col_j * N_DRAWS + d] = relative_field_error(field, fields[j], gram)
+            base, a = design(full, b.centers[pick])
+            cw, bw, aw = whitened(gram, b.coefficients[pick], base, a)
+            for row, (n, m) in enumerate(sizes):
+                idx = _columns(min(n, n_c), min(m, m_c, n), n_c, m_c)
+                z, _, _ = solve_coordinates(cw, bw, aw[:, :, idx], b.sd[pick],
+                                            full.variances[idx],
+                                            n_iter=CHOICE_ITERATIONS)
+                field = mean_w.copy()
+                for zk, k in zip(z, idx, strict=True):
+                    field += zk * dirs_w[k]
+                errors[row, col_j * N_DRAWS + d] = relative_field_error(field, truth)
     mean = errors.mean(axis=1)
     best = int(np.argmin(mean))
-    table = [{"n": n, "error": round(float(e), 6)} for n, e in enumerate(mean)]
-    band = spread_band(fields, beads, usable, best, grid, shape, gram, seed=seed)
-    return {"n_directions": best,
+    n, m = sizes[best]
+    table = [{"n": a, "planar": c, "error": round(float(e), 6)}
+             for (a, c), e in zip(sizes, mean, strict=True)]
+    band = spread_band(fields, beads, usable, n, m, grid, shape, gram, seed=seed)
+    return {"n_directions": n, "n_planar": m,
             "by": f"leaving each of {len(usable)} images out, identified from {N_CLICKS} of "
                   f"its beads ({N_DRAWS} draws)",
             "table": table, "band": band}
 
 
 def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int], n: int,
-                grid, shape, gram: np.ndarray, *, seed: int = 0) -> dict:
+                n_planar: int, grid, shape, gram: np.ndarray, *, seed: int = 0) -> dict:
     """The reported spread's calibration: for each left-out identification (as in
     :func:`choose_dimensions`, with the miss), the ratio of its actual error (against
     the image's own field) to the error its spread predicts (the rms over the field's
-    central nodes, :attr:`~.coordinates.Model.central`, of the PSF's relative posterior
-    standard deviation); the quantiles
+    central nodes, :attr:`~.coordinates.Model.central`, every third, of the PSF's
+    relative posterior standard deviation); the quantiles
     :data:`BAND_QUANTILES` of the ratios scale a prediction into a band."""
     ratios = []
     for j in usable:
-        model = build_model(np.delete(fields, j, axis=0), n, grid, shape, gram)
-        inside = model.central
+        model = build_model(np.delete(fields, j, axis=0), n, grid, shape, gram,
+                            n_planar=n_planar)
+        # every third node of the field's central part: the same rms, a third the cost
+        inside = np.flatnonzero(model.central)[::3]
+        at = replace(model, mean=model.mean[inside], directions=model.directions[:, inside])
         for pick in _draws(beads[j], seed + j):
             b = beads[j]
-            field, spread, _ = identify_field(model, b.coefficients[pick], b.sd[pick],
-                                              b.centers[pick])
-            predicted = float(np.sqrt(np.mean(spread[inside] ** 2)))
-            actual = relative_field_error(field, fields[j], gram, inside)
+            fit = fit_coordinates(model, b.coefficients[pick], b.sd[pick], b.centers[pick])
+            add, miss_var = krige_miss(model, fit, model.nodes[inside])
+            field = at.field(fit.z) + add
+            spread = spread_at(at, fit, field, miss_var)
+            predicted = float(np.sqrt(np.mean(spread ** 2)))
+            actual = relative_field_error(field, fields[j][inside], gram)
             if predicted > 0 and np.isfinite(actual):
                 ratios.append(actual / predicted)
     if not ratios:
@@ -231,8 +311,9 @@ def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int]
 
 def family_model(family) -> Model:
     """The few-dimensional model of a family (:class:`~.result.OperatorFamily`), its
-    ``L`` the one its learning chose (``metadata["dimensions"]``; a family without:
-    all its directions, at most :data:`MAX_DIRECTIONS`). Built once per family."""
+    ``L`` and ``M`` those its learning chose (``metadata["dimensions"]``; a family
+    without: all its directions, at most :data:`MAX_DIRECTIONS`, none planar). Built
+    once per family."""
     cache = family._cache
     if "model" not in cache:
         fields = family_fields(family.space, family.gammas)
@@ -242,5 +323,5 @@ def family_model(family) -> Model:
             n = min(MAX_DIRECTIONS, family.n_images - 1)
         flat = family.basis.reshape(family.n_psf, -1)
         cache["model"] = build_model(fields, int(n), family.grid, family.shape,
-                                     flat @ flat.T)
+                                     flat @ flat.T, n_planar=int(dims.get("n_planar") or 0))
     return cache["model"]

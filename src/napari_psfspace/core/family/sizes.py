@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..common.threads import map_threads
 from ..model.pca import rank_by_threshold
 
 
@@ -61,6 +62,23 @@ def white_rank(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray, *,
 RULE_TRUSTED = 12
 
 
+def leading_directions(x: np.ndarray, n: int) -> np.ndarray:
+    """The first ``n`` right singular vectors (n, S) of ``x`` (N, S), from the leading
+    eigenvectors of its smaller Gram matrix (only they are wanted: a full SVD of a
+    family's pooled patches computes hundreds more)."""
+    from scipy.linalg import eigh
+
+    n_rows, n_cols = x.shape
+    n = max(1, min(int(n), n_rows, n_cols))
+    if n_cols <= n_rows:
+        _, vecs = eigh(x.T @ x, subset_by_index=[n_cols - n, n_cols - 1])
+        return vecs[:, ::-1].T
+    vals, vecs = eigh(x @ x.T, subset_by_index=[n_rows - n, n_rows - 1])
+    vals, vecs = vals[::-1], vecs[:, ::-1]
+    keep = vals > 0
+    return (vecs[:, keep].T @ x) / np.sqrt(vals[keep])[:, None]
+
+
 def confirmed_size(psf: list[np.ndarray], centers: list[np.ndarray], support: np.ndarray,
                    n_max: int, *, min_beads: int = 4) -> int:
     """The basis size the held-out beads support, at most ``n_max``.
@@ -86,13 +104,16 @@ def confirmed_size(psf: list[np.ndarray], centers: list[np.ndarray], support: np
 
     x = np.concatenate([p[:, support] for p in psf])
     xn = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-300)
-    vt = np.linalg.svd(xn, full_matrices=False)[2][:int(n_max)]
-    errors = []
-    for p, c in zip(psf, centers, strict=True):
-        if len(p) >= min_beads:
-            xi = p[:, support]
-            scale = float((xi ** 2).sum(axis=1).mean())  # back to one scale for all
-            errors.append(heldout_basis_errors(xi, vt, c, per_bead=True) * scale)
+    vt = leading_directions(xn, int(n_max))
+    def image_errors(item):
+        p, c = item
+        xi = p[:, support]
+        scale = float((xi ** 2).sum(axis=1).mean())  # back to one scale for all
+        return heldout_basis_errors(xi, vt, c, per_bead=True) * scale
+
+    # one thin-plate fit an image, in LAPACK's GIL-free calls: on the pool of threads
+    errors = map_threads(image_errors, [(p, c) for p, c in zip(psf, centers, strict=True)
+                                        if len(p) >= min_beads])
     if not errors:
         return int(n_max)
     curve = np.concatenate(errors).mean(axis=0)

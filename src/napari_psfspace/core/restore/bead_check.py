@@ -25,11 +25,12 @@ import numpy as np
 
 from ..family.coordinates import Model, design, fit_coordinates, krige_miss
 
-#: The score above which a clicked bead is left out. Single beads of simulated images
-#: from three optics codes score below it in all but a few draws of five, and an
-#: unresolved pair, a saturated bead or a bead on a bright line far above it
-#: (``bench/bench_bead_check.py``).
-OUTLIER = 20.0
+#: The score above which a clicked bead is left out. On simulated images from three
+#: optics codes (``bench/bench_bead_check.py``), single beads judged in sets of five
+#: score above it in a few percent of the sets, and an unresolved pair, a saturated bead
+#: or a bead under a bright line are caught in most: a bad bead kept costs more than
+#: one of five good beads left out.
+OUTLIER = 10.0
 #: Fewest beads judged: with fewer, a left-out bead is predicted from two.
 MIN_JUDGED = 4
 #: Largest share of the beads left out.

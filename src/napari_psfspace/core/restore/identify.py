@@ -168,8 +168,12 @@ def _few_dimensions(family, found, c, centers, amplitude_range) -> dict:
     predicted = float(np.sqrt(np.mean(spread[inside] ** 2)))
     band = error_band(family, predicted)
     where = nodes[inside][int(np.argmax(spread[inside]))]
-    return {"gamma": gamma, "weights": _image_weights(family, fit.z),
-            "coordinates": fit.z.tolist(), "n_directions": int(len(fit.z)),
+    n_planar = int((family.metadata.get("dimensions") or {}).get("n_planar") or 0)
+    n_const = len(fit.z) - 2 * n_planar
+    slopes = fit.z[n_const:].reshape(2, n_planar).T  # each planar coordinate's (row, col)
+    return {"gamma": gamma, "weights": _image_weights(family, fit.z[:n_const]),
+            "coordinates": fit.z[:n_const].tolist(), "n_directions": n_const,
+            "slopes": slopes.tolist(), "n_planar": n_planar,
             "amplitudes": fit.amplitudes, "objective": [],
             "psf_spread": float(np.mean(spread)), "psf_spread_max": float(np.max(spread)),
             "psf_spread_where": where.tolist(), "error_predicted": predicted,
@@ -183,6 +187,7 @@ def _paper(family, found, c) -> dict:
         raise ValueError("the beads' PSFs lie outside the family's cone (every weight "
                          "is 0): is this image from the same microscope and PSF radius?")
     return {"gamma": gamma, "weights": lam, "coordinates": None, "n_directions": None,
+            "slopes": None, "n_planar": None,
             "amplitudes": g, "objective": history, "psf_spread": None,
             "psf_spread_max": None, "psf_spread_where": None, "error_predicted": None,
             "error_band": None, "more_beads_at": None}
@@ -235,7 +240,9 @@ def identify_operator(
         beads' (or, blended with the image's own estimate, between the two).
         ``metadata["identification"]`` holds ``gamma`` (I, J: the field on the family's
         spatial basis), ``weights`` (K,: the family's images mixed in, or the cone's),
-        ``coordinates`` (L,) and ``n_directions``, the beads' ``positions`` and
+        ``coordinates`` (L,) and ``n_directions``, ``slopes`` (M, 2: how the first ``M``
+        coordinates change from one side of the field to the other along rows and
+        columns) and ``n_planar``, the beads' ``positions`` and
         ``amplitudes``, ``n_beads``, ``left_out`` (the clicked beads left out, with
         their ``scores``: :mod:`.bead_check`), how well the operator fits the beads it
         kept (the median relative residual of their patches, its noise floor, and
