@@ -114,3 +114,17 @@ def test_every_listed_slow_test_exists():
         if not file.exists() or f"def {func}(" not in file.read_text(encoding="utf-8"):
             missing.append(node)
     assert not missing, missing
+
+
+def test_source_comments_hold_no_diary():
+    """Comments say what the code does, in the present tense: no issue numbers, no
+    session words and no pointers into the benches' history (a reader has the code, not
+    the project's diary). Another project's issue (``dask issue 11349``) is a fact about
+    that code and stays."""
+    diary = re.compile(r"RESULTS\.md@|(?<!dask )\bissue \d+|\b(first|second|third|fourth|"
+                       r"fifth|sixth) session\b", re.IGNORECASE)
+    found = [f"{path.relative_to(ROOT)}:{n}: {line.strip()}"
+             for path in sorted((ROOT / "src").rglob("*.py"))
+             for n, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1)
+             if diary.search(line)]
+    assert not found, "\n".join(found)

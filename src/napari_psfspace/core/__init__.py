@@ -12,8 +12,8 @@ Data flow one way, from the image to the restored sample::
   and the product-convolution operator itself with its file format.
 - :mod:`~napari_psfspace.core.diagnosis`: judge a model by honest residuals (noise model,
   cross-fitting, residual tests) and close the loop with effects the model lacks.
-- :mod:`~napari_psfspace.core.family` (issue 11) and
-  :mod:`~napari_psfspace.core.restore` (issue 12): a family of operators from many
+- :mod:`~napari_psfspace.core.family` and
+  :mod:`~napari_psfspace.core.restore`: a family of operators from many
   images, and blind deblurring with it.
 - :mod:`~napari_psfspace.core.simulation`: the bead-image simulator with its known truth
   and the scene set, for tests and benches (beside the flow: nothing in it is needed

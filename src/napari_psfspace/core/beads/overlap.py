@@ -26,7 +26,7 @@ import numpy as np
 from .centering import gather_windows
 
 #: A bead whose neighbours add at least this share of the energy in its patch (disk of
-#: radius ``1.2 r``) is crowded: the definition of an isolated bead (issue 45).
+#: radius ``1.2 r``) is crowded: the definition of an isolated bead.
 NEIGHBOUR_SHARE = 0.05
 #: Radius of the patch whose energy is shared, in PSF radii (the window's ``r_ext``).
 PATCH_FACTOR = 1.2
@@ -38,7 +38,7 @@ PROFILE_BEADS = 64
 #: Only neighbours closer than this many PSF radii have their light taken out of a
 #: patch: their light reaches the bead's own support. Farther ones reach only the ring
 #: the background is fitted on, where the isotropic model's error costs about what it
-#: removes (bench/RESULTS.md@9b74991, issue 45).
+#: removes.
 SUBTRACT_DISTANCE = 2.0
 
 

@@ -92,7 +92,7 @@ def _spot_radius(win: np.ndarray, own: np.ndarray, energy: float) -> int | None:
 
 
 #: Spots whose energy radius exceeds this many times the median spot's do not set the
-#: radius (the defocused slices of the measured stacks: ``bench/RESULTS.md@9b74991``).
+#: radius (the defocused slices of the measured stacks).
 MAX_OVER_MEDIAN = 2.5
 
 
@@ -189,7 +189,6 @@ def _suggest(image, n_beads: int, energy: float, max_radius: float | None,
     radii = np.asarray(radii, float)
     # a spot far wider than the median spot is an aggregate, dust or structure, not a
     # bead: on a defocused slice of few beads one such spot set the radius
-    # (bench/RESULTS.md@9b74991)
     radii = radii[radii <= MAX_OVER_MEDIAN * np.median(radii)]
     visible = float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
     if not wings > 1.0:

@@ -16,7 +16,7 @@ def bead_border(psf_radius: float) -> float:
     ``ceil(1.2 r) + 2`` (its windowed patch, a little wider than ``r``, and the pixels its
     sub-pixel centring moves it by). A patch reaching past the edge can be extracted
     (:func:`~napari_psfspace.core.beads.patches.extract_patches` masks the part beyond it),
-    but the loop's measured sets read such beads differently (bench/RESULTS.md@9b74991, issue 45),
+    but the loop's measured sets read such beads differently,
     so the rule stays until that is understood."""
     return float(np.ceil(1.2 * psf_radius) + 2)
 

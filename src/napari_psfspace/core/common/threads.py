@@ -22,7 +22,7 @@ import numpy as np
 #: process has them). The estimates' linear algebra is many small SVDs and
 #: eigendecompositions (patches, thin-plate kernels of a few hundred beads) run from
 #: several threads at once; OpenBLAS's own threads on top of them made learning slower,
-#: not faster (bench/RESULTS.md@9b74991, "BLAS threads"). ``PSFSPACE_BLAS_THREADS`` in the
+#: not faster ("BLAS threads"). ``PSFSPACE_BLAS_THREADS`` in the
 #: environment overrides it (0: leave BLAS as it is).
 BLAS_THREADS: int | None = 1
 

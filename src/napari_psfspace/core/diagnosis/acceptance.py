@@ -34,7 +34,7 @@ def next_effect(candidates: list[Effect], tried: set[str], ctx: Context, cf: Cro
                    and any(an.tests[t].significant for t in EXPLAIN_TESTS if t in an.tests))
     floor = 1.0 if not (explore and unexplained) else min(1.0, explore)
     # an effect whose own test reads it is tried on that test only: explored, a response
-    # "explained" a model's misfit on an effect-free scene (bench/RESULTS.md@9b74991, issue 46)
+    # "explained" a model's misfit on an effect-free scene.
     ranked = [(ev, e) for ev, e in ranked if ev > (1.0 if e.own_evidence else floor)]
     return ranked[0] if ranked else None
 

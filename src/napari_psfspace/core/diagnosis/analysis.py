@@ -81,7 +81,7 @@ from .statistics import chi2_to_z, noise_scale_error, radial_trend, spearman_z
 THRESHOLDS: dict[str, float] = {
     "trend": 4.0,
     # a Spearman z, set from its spread on effect-free scenes of the three optics codes
-    # (bench/RESULTS.md@9b74991, the compressive response): a weak response reads a few sd
+    # (the compressive response): a weak response reads a few sd
     "core_vs_amplitude": 3.0,
     "mean_residual": 5.0,
     "coherent_residual": 5.0,

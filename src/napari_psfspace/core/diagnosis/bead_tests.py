@@ -21,7 +21,7 @@ ELONGATION_Z = 6.0
 #: ... and stretched by more than this fraction of the PSF core's variance along one
 #: axis (:data:`CORE_FRACTION`): the variance over the whole patch grows with the wings
 #: that aberrations and diffraction rings carry, and hid the stretch of doublets whose
-#: cores it doubles (bench/RESULTS.md@9b74991, companions).
+#: cores it doubles (companions).
 MIN_STRETCH = 0.3
 #: Beads whose elongation score exceeds this are left out of the response's trend
 #: (:func:`round_beads`).

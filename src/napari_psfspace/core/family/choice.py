@@ -50,14 +50,14 @@ WEIGHTS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: even blend of two estimates with partly independent errors) for an image whose beads
 #: determine its own field. Leaning to the family on every image (0.75, or from 0.5 to 1
 #: with the noise's share of the held-out residuals) helps faint stacks but made one
-#: image of a bright stack worse than its own estimate (bench/RESULTS.md@9b74991).
+#: image of a bright stack worse than its own estimate.
 PRIOR_WEIGHT = 0.5
 #: Per-bead noise (the held-out beads' median noise floor: their windowed noise's norm
 #: over their windowed patch's) at and below which the prior weight is the share's
 #: alone, and at and above which it is the family's operator (1); linear between. Where
 #: one bead is mostly noise the image's own estimate is mostly noise too, whatever the
 #: empirical Bayes share says of its departure from the family's mean. Set on a photon
-#: sweep of both generators (bench/RESULTS.md@9b74991, "the prior weight from the beads' noise");
+#: sweep of both generators ("the prior weight from the beads' noise");
 #: ranges from (0.2, 0.9) to (0.3, 0.8) gave nearly the same errors there.
 NOISE_FLOOR_RANGE = (0.25, 0.85)
 
@@ -78,7 +78,7 @@ def prior_weight(share: float, floor: float = 0.0) -> float:
     :data:`NOISE_FLOOR_RANGE`, the family's operator at or above its high end. The
     larger of the two weights is kept. Faint beads can carry departures from the
     family's mean that are consistent over an image's beads, so that the share stays
-    high, but do not bring its PSFs closer to the truth (bench/RESULTS.md@9b74991).
+    high, but do not bring its PSFs closer to the truth.
     """
     s = float(np.clip(share, 0.0, 1.0)) if np.isfinite(share) else 1.0
     lo, hi = NOISE_FLOOR_RANGE

@@ -421,8 +421,7 @@ def iter_estimate_family(
             f"all images, got {n_total}: lower `n_psf` or use more beads")
 
     # I: the rank rule on the patches whitened by their noise, bounded by what the beads
-    # support; beyond RULE_TRUSTED only as far as held-out beads confirm (bench/RESULTS.md@9b74991,
-    # issue 45); J: the rule on the maps
+    # support; beyond RULE_TRUSTED only as far as held-out beads confirm; J: the rule on the maps
     sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
     if n_psf is None:
         first = used[0].patches

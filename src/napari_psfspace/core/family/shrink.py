@@ -2,7 +2,7 @@
 
 One image's thin-plate field follows its own beads only. With faint beads the noise of
 a bead's coefficients can be many times their spread over the field (faint stacks of
-``bench/bench_family_oracle.py``; bench/RESULTS.md@9b74991), and each image's field then carries
+``bench/bench_family_oracle.py``), and each image's field then carries
 mostly noise, while the family holds the same microscope under other conditions. A
 two-level model pools them:
 
@@ -28,8 +28,7 @@ The paper's per-image thin-plate field is the special case ``tau^2 >> v_k``.
 
 Faint beads' values have heavy tails: a bead whose background fit took most of its flux
 is normalised by a small sum, and its values are then many times as noisy as its
-neighbours' (bench/RESULTS.md@9b74991, "Issue 24, sixth session: outlying beads in the family's
-fields"). Each image's own field is therefore refitted: a bead whose standardized
+neighbours'. Each image's own field is therefore refitted: a bead whose standardized
 residual about the fit is beyond :data:`ROBUST_SCALE` robust standard deviations keeps a
 weight that caps its share of it (:func:`bead_weights`; at most :data:`ROBUST_PASSES`
 refits), and the departure and its noise are those of the weighted fit.
@@ -54,7 +53,7 @@ MIN_BEADS_FIELD = 4
 #: bead's weight in its image's field is capped (:func:`bead_weights`). Gaussian noise
 #: passes 2 with probability exp(-4) on 2 columns and about 1e-4 on 8 (the family's
 #: fields have 2 I columns); 3 gave nearly the same fields on the faint stacks it was
-#: set on (bench/RESULTS.md@9b74991).
+#: set on.
 ROBUST_SCALE = 2.0
 #: Refits of an image's field with the robust weights, at most.
 ROBUST_PASSES = 3

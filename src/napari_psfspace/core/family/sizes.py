@@ -58,7 +58,7 @@ def white_rank(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray, *,
 
 #: Basis size the whitened rule is trusted up to; beyond it, only as far as held-out
 #: beads confirm (:func:`confirmed_size`): on a measured confocal stack the rule kept
-#: noise the whitening does not model as PSFs (bench/RESULTS.md@9b74991, issue 45).
+#: noise the whitening does not model as PSFs.
 RULE_TRUSTED = 12
 
 

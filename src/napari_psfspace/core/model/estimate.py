@@ -382,7 +382,7 @@ def basis_record(basis: PsfBasis, n_psf, spline, smoothing, few) -> dict:
 #: A bead two and a half sd below the median of a log-normal brightness spread of sd 1 (the
 #: widest of the scene set) still has 8 % of it.
 FAINT_RATIO = 0.05
-#: Take the other detections' modelled light out of each patch (issue 45).
+#: Take the other detections' modelled light out of each patch.
 SUBTRACT_NEIGHBOURS = True
 
 #: Why a detection of each status is not used, for :func:`left_out_record`.

@@ -23,7 +23,7 @@ from .voronoi import voronoi_areas
 #: Default of :func:`assemble_operator`'s ``constraint``: the paper kept every node in a
 #: cone of at most 20 generators; on wide strongly aberrated fields that cone cost much of
 #: the field error, and the field needs it only where its PSFs turn implausible
-#: (``bench/bench_caps.py``; the figures in ``bench/RESULTS.md@9b74991``).
+#: (``bench/bench_caps.py``).
 CONSTRAINT = "where-needed"
 
 

@@ -18,7 +18,7 @@ lens (a cylindrical lens for 3-D localisation, or astigmatism with about as much
 defocus). In geometric optics a line focus *is* a uniform segment, with the same
 straight zero lines; on simulated beads with 0.1-0.3 waves rms of uniform astigmatism
 and 0.5-1.5 times as much defocus, the test reads a line in 29 of 52 scenes
-(``bench/RESULTS.md@9b74991``, motion). The record says so. A z-stack tells them apart: a smear
+(motion). The record says so. A z-stack tells them apart: a smear
 keeps its length and direction through focus, a line focus shrinks and turns by 90
 degrees on the other side of the best focus.
 

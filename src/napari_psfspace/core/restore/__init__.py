@@ -1,4 +1,4 @@
-"""Stage 5, restore (issue 12): blind deblurring with a family of operators.
+"""Stage 5, restore: blind deblurring with a family of operators.
 
 Takes an image of a sample with a few beads and a family of stage 4: identifies the
 operator of the family that explains the beads (:mod:`.identify`: in the family's own few

@@ -77,7 +77,7 @@ DEBIAS_MAX_ITER = 100
 #: ``c`` of the blocks' majorisation ``||H(u1 + U w)||^2 <= (1 + c) ||H u1||^2 +
 #: (1 + 1/c) ||H U w||^2`` (any c > 0 is valid). 1 halves the sparse block's step; 0.25
 #: gives it 0.8 of the full step and the few background nodes 0.2: fewer iterations for
-#: the same result (``bench/bench_deblur.py``, bench/RESULTS.md@9b74991).
+#: the same result (``bench/bench_deblur.py``).
 BLOCK_SPLIT = 0.25
 #: With ``polish``, FISTA runs to this tolerance (its support found), then coordinate
 #: descent on the support to ``tol`` (:mod:`.polish`); the tolerance is the loosest that
@@ -94,7 +94,7 @@ POLISH_MAX_SUPPORT = 60000
 KKT_SLACK = 1e-3
 #: The operator is compressed to this fraction of its own error (``model_error``) by
 #: default: a tenth (errors in quadrature: 0.5 % more error) changes no figure of
-#: ``bench/bench_deblur_tol.py``, a third does (bench/RESULTS.md@9b74991).
+#: ``bench/bench_deblur_tol.py``, a third does.
 COMPRESSION = 0.1
 #: With ``polish``, FISTA's search for the support uses the operator compressed to this
 #: fraction of its error (the sweeps, the optimality check and any FISTA after them use
@@ -522,9 +522,9 @@ def deblur(
         off it then wants in. Gradient steps spend most of their iterations
         concentrating each source's cluster (neighbouring pixels are nearly the same
         column of ``H``); one pixel at a time is exact there and reaches a lower
-        objective in less time, with sharper beads (``bench/bench_deblur_tol.py``,
-        ``bench/RESULTS.md@9b74991``). Off: FISTA to ``tol``. Supports of more than
-        ``POLISH_MAX_SUPPORT`` pixels are not polished.
+        objective in less time, with sharper beads (``bench/bench_deblur_tol.py``).
+        Off: FISTA to ``tol``. Supports of more than ``POLISH_MAX_SUPPORT`` pixels are not
+        polished.
     workers : int, optional
         FFT threads.
     device : {"auto", "cpu", "gpu"}

@@ -1,4 +1,4 @@
-"""Stacks of bead images of one microscope under hidden conditions (issue 11).
+"""Stacks of bead images of one microscope under hidden conditions.
 
 A microscope is not one operator: focus, tilts and temperature change its blur. A stack
 is ``K`` images of the same optics, each under its own *condition* drawn at random and

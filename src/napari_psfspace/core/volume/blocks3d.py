@@ -43,7 +43,7 @@ from .operator3d import ProductConvolution3D
 BLOCK = 256
 #: Default relative error of a block's PSF (against the model's) when compressed: well
 #: below a learnt model's own error, and the deblurred volumes of
-#: ``bench/bench_deblur3d.py`` do not move from the exact operator's (bench/RESULTS.md@9b74991).
+#: ``bench/bench_deblur3d.py`` do not move from the exact operator's.
 RTOL = 0.05
 #: Default budget for cached block spectra, bytes.
 CACHE_BYTES = 1 << 30

@@ -35,7 +35,7 @@ TINY = 1e-6
 STATS_VOXELS = 1 << 22
 #: The stopping rule's default: an iteration that improves the data fit (Poisson
 #: deviance) by less than this fraction of itself ends the iteration (``stop``; its
-#: effect on the result: bench/bench_deblur3d_panel.py, figures in bench/RESULTS.md@9b74991).
+#: effect on the result: bench/bench_deblur3d_panel.py).
 STOP_FIT = 3e-3
 #: Largest extrapolation factor of the accelerated iteration (Biggs and Andrews 1997,
 #: who bound it below 1).

@@ -114,7 +114,7 @@ class Effect:
     #: show: a compressive response goes into the learnt PSF, a camera pattern sits
     #: in the background). Not the bead size: its bead-width test is the compressive
     #: response's too (bright beads look wider either way), and on its own test it took
-    #: the response's place (bench/RESULTS.md@9b74991, issue 46).
+    #: the response's place.
     own_evidence: ClassVar[bool] = False
 
     def __init_subclass__(cls, **kwargs):

@@ -12,7 +12,7 @@ from .base import Context, Effect
 #: passes of the neighbour filter: the offsets are the line levels less their
 #: ``SMOOTHING``-fold neighbour mean, a low-pass of about ``sqrt(15 SMOOTHING)`` lines'
 #: width, where one pass leaves an eighth of white offsets' variance for the
-#: pattern test to read (bench/RESULTS.md@9b74991, issue 46, third session)
+#: pattern test to read.
 SMOOTHING = 8
 
 

@@ -30,8 +30,7 @@ def locate_companion(res: BeadResiduals, i: int
     detected, then both are refined together (Nelder-Mead on the four coordinates, the
     amplitudes solved at each point). The detector centres a doublet between its two
     beads, so with the bead held where it was detected the pair's residual stayed
-    elongated well beyond the test's threshold (bench/RESULTS.md@9b74991, issue 46, third
-    session). The model PSF does not change over 3.5 px."""
+    elongated well beyond the test's threshold. The model PSF does not change over 3.5 px."""
     msk = res.fit_mask[i]
     d = res.data[i][msk]
     h = (res.model[i] - res.background[i]) / max(float(res.amplitude[i]), 1e-300)
@@ -93,8 +92,7 @@ class Neighbours(Effect):
     tests = ("secondary_peaks", "elongated_beads")
     #: A few beads carry it: the held-out mean over all beads can fall by half while its
     #: test of a drop stays above the rule's p, the median bead unchanged; the beads its
-    #: tests count are what the pair fit changes (bench/RESULTS.md@9b74991, issue 46, third
-    #: session).
+    #: tests count are what the pair fit changes.
     own_evidence = True
 
     def fit(self, ctx: Context, analysis) -> dict:

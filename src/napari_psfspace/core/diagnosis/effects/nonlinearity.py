@@ -22,7 +22,7 @@ from .base import Context, Effect
 #: Candidate response coefficients ``c`` (``c < 1/4`` keeps the response increasing up to
 #: ``x_ref``): compressive ones only. A detector compresses (pile-up, dead time, full
 #: well); the one expansive fit the power bench made was on a vignetted scene with no
-#: response at all (bench/RESULTS.md@9b74991, issue 46, third session). The sign of the trend
+#: response at all. The sign of the trend
 #: does not tell the two apart: a compressive response reads z -9 on an aberration-free
 #: field and +5 to +10 on the family's aberrated ones.
 C_GRID = np.round(np.arange(0.0, 0.2451, 0.02), 4)
