@@ -93,8 +93,15 @@ def test_kriging_of_the_miss_against_the_dense_formula():
     """The separable shortcut of the variance (one P x P matrix) equals the posterior
     variance computed from the dense covariances; the mean interpolates the residual of a
     noise-free bead at its own position."""
+    from dataclasses import replace
+
+    from napari_psfspace.core.family.coordinates import bilinear
+
     rng = np.random.default_rng(2)
     model = _model(rng, miss=0.3, length=50.0)
+    nodes = _nodes()
+    scale = 0.5 + ((nodes - 128.0) ** 2).sum(axis=1) / 128.0 ** 2  # larger at the rim
+    model = replace(model, miss_scale=scale)
     centers = rng.uniform(20, 235, (4, 2))
     res = 0.3 * rng.standard_normal((4, N_I))
     noise = np.array([0.05, 0.1, 0.02, 0.07])
@@ -103,18 +110,21 @@ def test_kriging_of_the_miss_against_the_dense_formula():
     pts = rng.uniform(0, 255, (7, 2))
     mean, var = krige_miss(model, fit, pts)
 
+    def sc(a):
+        return bilinear(GRID, a) @ scale
+
     def k(a, b):
         d2 = ((a[:, None] - b[None]) ** 2).sum(-1)
-        return np.exp(-0.5 * d2 / 50.0 ** 2)
+        return np.exp(-0.5 * d2 / 50.0 ** 2) * np.outer(sc(a), sc(b))
 
     s = np.kron(k(centers, centers), model.miss_cov) + np.kron(np.diag(noise ** 2),
                                                                np.eye(N_I))
     cross = np.kron(k(pts, centers), model.miss_cov)  # (Q I, P I)
     f = cho_factor(s)
     dense_mean = (cross @ cho_solve(f, res.ravel())).reshape(7, N_I)
-    post = np.kron(np.ones((1, 1)), model.miss_cov)
-    dense_var = [np.trace(post - cross[q * N_I:(q + 1) * N_I] @ cho_solve(
-        f, cross[q * N_I:(q + 1) * N_I].T)) for q in range(7)]
+    dense_var = [np.trace(sc(pts[q:q + 1])[0] ** 2 * model.miss_cov
+                          - cross[q * N_I:(q + 1) * N_I] @ cho_solve(
+                              f, cross[q * N_I:(q + 1) * N_I].T)) for q in range(7)]
     np.testing.assert_allclose(mean, dense_mean, rtol=1e-9, atol=1e-12)
     np.testing.assert_allclose(var, dense_var, rtol=1e-9, atol=1e-12)
     # a noise-free bead: the kriged miss at it is its residual
@@ -123,6 +133,25 @@ def test_kriging_of_the_miss_against_the_dense_formula():
     at, var_at = krige_miss(model, exact, centers)
     np.testing.assert_allclose(at, res, atol=1e-6)
     assert var_at.max() < 1e-6 * np.trace(model.miss_cov)
+
+
+def test_the_miss_scale_follows_residuals_that_grow_to_the_rim():
+    """Residual fields whose power grows as exp(0.8 r^2) to the rim (r: distance from
+    the centre, -1 to 1 per axis): the scale's log is a quadratic of the position, so the
+    fit gives it back exactly up to the mean's normalisation; the residuals' shape over
+    the field (a smooth random field) does not enter."""
+    from napari_psfspace.core.family.dimensions import miss_model
+
+    rng = np.random.default_rng(11)
+    nodes = _nodes()
+    u = nodes / 127.5 - 1.0
+    true = np.exp(0.4 * (u ** 2).sum(axis=1))  # standard deviation
+    # many fields: the mean squared residual at each node is its expectation to 1 %
+    res = rng.standard_normal((4000, len(nodes), N_I)) * true[None, :, None]
+    cov, length, scale = miss_model(res, nodes)
+    want = true / np.sqrt(np.mean(true ** 2))
+    np.testing.assert_allclose(scale, want, rtol=0.02)
+    assert np.mean(scale ** 2) == pytest.approx(1.0)
 
 
 def test_the_choice_of_dimensions_finds_the_family_rank():

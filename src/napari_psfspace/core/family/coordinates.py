@@ -75,6 +75,10 @@ class Model:
         ``ell``, pixels.
     gram : ndarray of shape (I, I)
         The PSF basis's Gram matrix (the PSF's norm is ``sqrt(c Gram c)``).
+    miss_scale : ndarray of shape (G,), optional
+        The miss's standard deviation at each node relative to its mean (larger at the
+        rim, where the family's fields are extrapolated from their beads): the miss at
+        ``x`` is ``s(x) R(x)``, ``s`` bilinear between the nodes. None: 1 everywhere.
     """
 
     grid: tuple[np.ndarray, np.ndarray]
@@ -85,6 +89,7 @@ class Model:
     miss_cov: np.ndarray
     miss_length: float
     gram: np.ndarray
+    miss_scale: np.ndarray | None = None
 
     @property
     def n_directions(self) -> int:
@@ -104,6 +109,19 @@ class Model:
         extrapolated from the beads inside)."""
         rel = self.nodes / np.maximum(np.asarray(self.shape, np.float64) - 1, 1)
         return np.all((rel >= MARGIN) & (rel <= 1 - MARGIN), axis=1)
+
+    def scale_at(self, points: np.ndarray) -> np.ndarray:
+        """The miss's relative standard deviation :attr:`miss_scale` at ``points``
+        (P, 2), bilinear between the nodes, (P,)."""
+        pts = np.asarray(points, np.float64).reshape(-1, 2)
+        if self.miss_scale is None:
+            return np.ones(len(pts))
+        return bilinear(self.grid, pts) @ self.miss_scale
+
+    def miss_var(self, points: np.ndarray) -> np.ndarray:
+        """The miss's prior variance at ``points`` (P, 2) in the PSF's squared l2 norm,
+        (P,)."""
+        return self.scale_at(points) ** 2 * float(np.trace(self.gram @ self.miss_cov))
 
     def field(self, z: np.ndarray) -> np.ndarray:
         """``m + sum_l z_l d_l`` at the nodes (G, I)."""
@@ -259,9 +277,11 @@ def spread_subset(centers: np.ndarray, n: int) -> np.ndarray:
 
 
 def _kernel(model: Model, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """The miss's spatial correlation between positions (P, 2) and (Q, 2), (P, Q)."""
+    """The miss's spatial covariance factor between positions (P, 2) and (Q, 2),
+    (P, Q): its correlation times its relative standard deviation at each end."""
     d2 = ((a[:, None, :] - b[None, :, :]) ** 2).sum(axis=-1)
-    return np.exp(-0.5 * d2 / max(model.miss_length, 1e-9) ** 2)
+    corr = np.exp(-0.5 * d2 / max(model.miss_length, 1e-9) ** 2)
+    return corr * np.outer(model.scale_at(a), model.scale_at(b))
 
 
 def _miss_factor(model: Model, fit: CoordinateFit):
@@ -286,10 +306,10 @@ def krige_miss(model: Model, fit: CoordinateFit, points: np.ndarray
     """
     pts = np.asarray(points, np.float64).reshape(-1, 2)
     n_i = model.mean.shape[1]
-    prior = float(np.trace(model.gram @ model.miss_cov))
+    prior = model.miss_var(pts)
     n_p = len(fit.residuals)
-    if not n_p or prior <= 0:
-        return np.zeros((len(pts), n_i)), np.full(len(pts), max(prior, 0.0))
+    if not n_p or not np.any(prior > 0):
+        return np.zeros((len(pts), n_i)), np.clip(prior, 0.0, None)
     if n_p > MAX_KRIGED:
         keep = spread_subset(fit.centers, MAX_KRIGED)
         fit = CoordinateFit(fit.z, fit.cov, fit.amplitudes[keep], fit.fitted[keep],
@@ -334,7 +354,7 @@ def identify_field(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndar
         add, miss_var = krige_miss(model, fit, model.nodes)
         field = field + add
     else:
-        miss_var = np.full(len(field), float(np.trace(model.gram @ model.miss_cov)))
+        miss_var = model.miss_var(model.nodes)
     return field, spread_at(model, fit, field, miss_var) if spread else None, fit
 
 

@@ -12,8 +12,9 @@ few dimensions (:mod:`.coordinates`):
   an image between those learnt is their mix in proportions that change across it;
 - the family's *miss* ``R``, what an image under a condition the family did not see
   holds beyond that model: each ``F_j`` fitted at every node by the model of the other
-  ``K - 1``, the residuals pooled give its covariance ``C_R`` at a node and its spatial
-  correlation length ``ell``.
+  ``K - 1``, the residuals pooled give its covariance ``C_R`` at a node, its size over
+  the field (largest at the rim, where the fields are extrapolated from the beads) and
+  its spatial correlation length ``ell``.
 
 ``L`` and ``M`` are chosen as a user would judge them (:func:`choose_dimensions`): each
 image of the family is left out in turn, identified from :data:`N_CLICKS` of its beads
@@ -141,20 +142,30 @@ def misses(fields: np.ndarray, n: int, n_planar: int = 0, nodes: np.ndarray | No
     return out
 
 
-def miss_model(residuals: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, float]:
-    """The miss's covariance at a node (I, I) and its correlation length (pixels) from
-    residual fields (K, G, I) at ``nodes`` (G, 2): the length of the Gaussian correlation
-    ``exp(-d^2 / 2 ell^2)`` closest to the measured one over pairs of nodes."""
+def miss_model(residuals: np.ndarray, nodes: np.ndarray
+               ) -> tuple[np.ndarray, float, np.ndarray]:
+    """The miss's covariance at a node (I, I), its correlation length (pixels) and its
+    relative standard deviation at each node (G,), from residual fields (K, G, I) at
+    ``nodes`` (G, 2).
+
+    The residuals are largest at the rim, where the family's fields are extrapolated
+    from their images' beads: the scale is the smooth fit (a quadratic of the position,
+    to the log of each node's mean squared residual) scaled to a mean square of 1. The
+    length is that of the Gaussian correlation ``exp(-d^2 / 2 ell^2)`` closest to the
+    measured one of the residuals divided by their scale, over pairs of nodes.
+    """
     k, g, n_i = residuals.shape
     cov = np.einsum("kgi,kgj->ij", residuals, residuals) / (k * g)
     total = float(np.trace(cov))
     if total <= 0 or g < 2:
-        return cov, 1.0
+        return cov, 1.0, np.ones(g)
+    scale = _scale_map(np.einsum("kgi,kgi->g", residuals, residuals) / k, nodes)
     step = max(1, g // CORRELATION_NODES)
     sub = np.arange(0, g, step)
     pts = nodes[sub]
     dist = np.sqrt(((pts[:, None] - pts[None]) ** 2).sum(axis=-1))
-    corr = np.einsum("kai,kbi->ab", residuals[:, sub], residuals[:, sub]) / (k * total)
+    std = residuals[:, sub] / scale[None, sub, None]
+    corr = np.einsum("kai,kbi->ab", std, std) / (k * total)
     span = float(dist.max())
     d2 = dist ** 2
 
@@ -163,7 +174,20 @@ def miss_model(residuals: np.ndarray, nodes: np.ndarray) -> tuple[np.ndarray, fl
 
     best = minimize_scalar(cost, bounds=(np.log(span / 200), np.log(span)),
                            method="bounded", options={"xatol": 1e-3})
-    return cov, float(np.exp(best.x))
+    return cov, float(np.exp(best.x)), scale
+
+
+def _scale_map(power: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """A smooth relative standard deviation (G,) from each node's mean squared residual
+    (G,): ``exp`` of the least-squares quadratic of the position fitted to its log, its
+    mean square 1."""
+    span = np.maximum(nodes.max(axis=0) - nodes.min(axis=0), 1e-9)
+    u = 2 * (nodes - nodes.min(axis=0)) / span - 1  # -1 to 1
+    feats = np.column_stack([np.ones(len(u)), u, u ** 2, u[:, :1] * u[:, 1:]])
+    floor = 1e-12 * max(float(power.mean()), 1e-300)
+    coef = np.linalg.lstsq(feats, np.log(power + floor), rcond=None)[0]
+    var = np.exp(feats @ coef)
+    return np.sqrt(var / var.mean())
 
 
 def build_model(fields: np.ndarray, n: int, grid, shape, gram: np.ndarray, *,
@@ -176,13 +200,13 @@ def build_model(fields: np.ndarray, n: int, grid, shape, gram: np.ndarray, *,
     mean, dirs, var = principal(fields, n)
     dirs, var = planar(mean, dirs, var, n_planar, nodes, shape)
     n_i = fields.shape[-1]
-    cov, length = np.zeros((n_i, n_i)), 1.0
+    cov, length, scale = np.zeros((n_i, n_i)), 1.0, None
     if miss and len(fields) >= 3:
-        cov, length = miss_model(misses(fields, min(n, len(fields) - 2),
-                                        min(n_planar, n, len(fields) - 2), nodes, shape),
-                                 nodes)
+        cov, length, scale = miss_model(misses(fields, min(n, len(fields) - 2),
+                                               min(n_planar, n, len(fields) - 2), nodes,
+                                               shape), nodes)
     return Model((np.asarray(gy), np.asarray(gx)), tuple(shape), mean, dirs, var, cov,
-                 length, np.asarray(gram, np.float64))
+                 length, np.asarray(gram, np.float64), scale)
 
 
 def _columns(n: int, m: int, most: int, most_planar: int) -> np.ndarray:

@@ -85,7 +85,7 @@ def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarr
     at = design(model, centers)
     if n_p > MAX_KRIGED_CHECK:
         return _downdated(model, c, sd, centers, at, n_directions, amplitude_range)
-    prior_miss = float(np.trace(model.gram @ model.miss_cov))
+    prior_miss = model.miss_var(centers)  # each bead's
     scores, rest_scores = np.empty(n_p), np.empty(n_p)
     for p in range(n_p):
         rest = np.arange(n_p) != p
@@ -99,8 +99,9 @@ def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarr
                            float(np.trace(model.gram @ a_p @ fit.cov @ a_p.T))
                            + float(miss_var[0]))
         rest_scores[p] = float(np.mean(
-            [float(q @ model.gram @ q) / max(n_i * noise ** 2 + prior_miss, 1e-300)
-             for q, noise in zip(fit.residuals, fit.noise, strict=True)]))
+            [float(q @ model.gram @ q) / max(n_i * noise ** 2 + miss, 1e-300)
+             for q, noise, miss in zip(fit.residuals, fit.noise, prior_miss[rest],
+                                       strict=True)]))
     return scores, rest_scores
 
 
@@ -129,7 +130,7 @@ def _downdated(model, c, sd, centers, at, n_directions, amplitude_range):
     lhs = np.einsum("pil,pim->lm", aw, aw) + np.diag(
         1.0 / np.maximum(model.variances[:n_l], 1e-300))
     rhs = np.einsum("pil,pi->l", aw, yw)
-    prior_miss = float(np.trace(model.gram @ model.miss_cov))
+    prior_miss = model.miss_var(centers)  # each bead's
     scores, rest_scores = np.empty(n_p), np.empty(n_p)
     for p in range(n_p):
         lhs_p = lhs - aw[p].T @ aw[p]
@@ -137,7 +138,8 @@ def _downdated(model, c, sd, centers, at, n_directions, amplitude_range):
         cov = np.linalg.inv(lhs_p)
         pred = base[p] + a[p] @ z
         scores[p] = _score(model, c[p], float(sd[p]), pred, amplitude_range,
-                           float(np.trace(model.gram @ a[p] @ cov @ a[p].T)) + prior_miss)
+                           float(np.trace(model.gram @ a[p] @ cov @ a[p].T))
+                           + float(prior_miss[p]))
         res = c / g[:, None] - (base + a @ z)
         own = np.einsum("pi,ij,pj->p", res, model.gram, res) / (
             n_i * (sd / g) ** 2 + prior_miss)
