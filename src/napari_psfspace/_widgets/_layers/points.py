@@ -56,7 +56,7 @@ def advice_layers(identification: dict, frame: Frame,
     ``slice_at``: the world (scale, translate) of the stack's axis when the image is a
     slice of one (``frame.index`` its slice), so that the points lie on that slice.
     """
-    size = max(frame.shape) / 20.0
+    size = max(frame.shape) / 12.0  # seen at a glance over the whole image
     out = []
     for name, points, symbol, colour in (
             (MORE_BEADS, [identification.get("more_beads_at")], "cross", "#ffd400"),
