@@ -14,7 +14,9 @@ image: an unresolved pair (a copy of the bead 3 or 5 px beside it, the PSF's FWH
 line (a ridge of 1.5 px sd and a third of its peak through it). Prints the quantiles of
 the single sets' judged scores, of the bad beads' scores, and the share of each caught
 (the bead judged, its score above the threshold) and of single sets with a bead left
-out, at a few thresholds.
+out, at a few thresholds; the shape scores (a patch's energy outside the family's PSF
+basis over its noise's) of the beads judged; and what the check's rule (both above their
+thresholds) leaves out of each set.
 """
 
 from __future__ import annotations
@@ -27,24 +29,33 @@ from scipy import ndimage as ndi
 
 from benchlib import table
 from identify_scenes import inner, make_scene
+from napari_psfspace.core.beads.window import bump_window
 from napari_psfspace.core.common.spacing import partial_border
 from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.family.dimensions import family_model
 from napari_psfspace.core.family.patches import image_patches
-from napari_psfspace.core.restore.bead_check import OUTLIER, leave_one_out
+from napari_psfspace.core.restore.bead_check import (
+    OUTLIER,
+    SHAPE_OUTLIER,
+    leave_one_out,
+    shape_scores,
+)
 from napari_psfspace.core.restore.identify import coefficients_on
 
 THRESHOLDS = (4.0, 6.0, 10.0, 20.0, 30.0, 50.0)
 
 
 def scores_of(image, fam, model, r, picks):
-    """The check's scores of beads clicked at ``picks`` (those kept by the patches)."""
+    """The check's scores of beads clicked at ``picks`` (those kept by the patches):
+    ``(scores, rest scores, shape scores)`` and their centres."""
     found = image_patches(image, r, positions=picks, border=partial_border(r))
     p = found.patches
     if p is None or len(p.centers) < 4:
         return None, None
     c = coefficients_on(p.psf, fam.basis)
-    return leave_one_out(model, c, p.noise / p.flux, p.centers), p.centers
+    shapes = shape_scores(p.psf, c, fam.basis, p.noise / p.flux,
+                          bump_window(p.size, p.r, p.r_ext))
+    return (*leave_one_out(model, c, p.noise / p.flux, p.centers), shapes), p.centers
 
 
 def isolated(positions, shape, r, far):
@@ -113,7 +124,8 @@ def main():
                         s, _ = scores_of(image, fam, model, r,
                                          pts[rng.choice(len(pts), 5, replace=False)])
                         if s is not None and len(s[0]) == 5:
-                            single.append(float(s[0][int(np.argmin(s[1]))]))
+                            j = int(np.argmin(s[1]))
+                            single.append((float(s[0][j]), float(s[2][j])))
                     alone = isolated(truth.positions, image.shape, r, 4 * r)
                     for kind in kinds:
                         for b in alone[rng.choice(len(alone), min(args.bad, len(alone)),
@@ -126,28 +138,40 @@ def main():
                                 continue
                             j = int(np.argmin(np.hypot(*(cen - click).T)))
                             chosen = int(np.argmin(s[1]))
-                            bad[kind].append((float(s[0][j]), bool(j == chosen)))
+                            bad[kind].append((float(s[0][j]), bool(j == chosen),
+                                              float(s[2][j])))
             print(f"{gen} seed {seed}: {len(single)} single sets", flush=True)
-        q = np.quantile(single, [0.5, 0.9, 0.95, 0.99]) if single else [np.nan] * 4
-        rows.append({"gen": gen, "set": "single x5", "n": len(single), "q50": q[0],
-                     "q90": q[1], "q95": q[2], "q99": q[3], "max": max(single),
-                     **{f"at{t:g}": np.mean(np.array(single) > t) for t in THRESHOLDS}})
+        sv = np.array([a for a, _ in single])
+        sh = np.array([b for _, b in single])
+        q = np.quantile(sv, [0.5, 0.9, 0.95, 0.99]) if len(sv) else [np.nan] * 4
+        rows.append({"gen": gen, "set": "single x5", "n": len(sv), "q50": q[0],
+                     "q90": q[1], "q95": q[2], "q99": q[3], "max": float(sv.max()),
+                     "shape_q95": float(np.quantile(sh, 0.95)), "shape_max": float(sh.max()),
+                     **{f"at{t:g}": np.mean(sv > t) for t in THRESHOLDS},
+                     "rule": float(np.mean((sv > OUTLIER) & (sh > SHAPE_OUTLIER)))})
         for kind in kinds:
-            v = np.array([s for s, _ in bad[kind]])
-            top = np.array([t for _, t in bad[kind]])
+            v = np.array([a for a, _, _ in bad[kind]])
+            top = np.array([t for _, t, _ in bad[kind]])
+            shp = np.array([b for _, _, b in bad[kind]])
             if not len(v):
                 continue
             qq = np.quantile(v, [0.5, 0.9, 0.95, 0.99])
             rows.append({"gen": gen, "set": kind, "n": len(v), "q50": qq[0], "q90": qq[1],
                          "q95": qq[2], "q99": qq[3], "max": float(v.max()),
-                         "min": float(v.min()),
-                         **{f"at{t:g}": float(np.mean(top & (v > t))) for t in THRESHOLDS}})
+                         "min": float(v.min()), "shape_min": float(shp.min()),
+                         **{f"at{t:g}": float(np.mean(top & (v > t))) for t in THRESHOLDS},
+                         "rule": float(np.mean(top & (v > OUTLIER) & (shp > SHAPE_OUTLIER)))})
     cols = [("gen", "s"), ("set", "s"), ("n", "d"), ("min", ".1f"), ("q50", ".1f"),
             ("q90", ".1f"), ("q95", ".1f"), ("q99", ".1f"), ("max", ".1f")]
     cols += [(f"at{t:g}", ".2f") for t in THRESHOLDS]
-    print(f"\nScores of 5 clicked beads each left out (threshold now {OUTLIER:g}); at T: "
-          "single sets whose judged bead scores above T (left out wrongly), bad beads "
-          "caught (judged, above T)")
+    cols += [("shape_q95", ".2f"), ("shape_max", ".2f"), ("shape_min", ".2f"),
+             ("rule", ".2f")]
+    print(f"\nScores of 5 clicked beads each left out; at T: single sets whose judged "
+          "bead scores above T (left out on the score alone), bad beads caught (judged, "
+          f"above T); shape: the judged single beads' shape scores (95th percentile, "
+          f"largest) and the bad beads' least; rule: the check's (score above {OUTLIER:g} "
+          f"and shape above {SHAPE_OUTLIER:g}): single sets with a bead left out, bad beads "
+          "left out")
     print(table(rows, cols))
 
 

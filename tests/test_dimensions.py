@@ -243,3 +243,45 @@ def test_many_beads_are_judged_by_downdating_the_full_fit(monkeypatch):
     slow = bead_check.leave_one_out(model, c, sd, centers, amplitude_range=fixed)
     np.testing.assert_allclose(fast[0], slow[0], rtol=1e-8)
     np.testing.assert_allclose(fast[1], slow[1], rtol=1e-8)
+
+
+def test_shape_scores_are_the_noise_for_patches_the_basis_holds():
+    """Patches made of the basis plus white noise of a known sd under the window: the
+    energy outside the basis is the noise's less what falls in the basis's span (the mean
+    of 400 patches within 0.05 of it: each a chi^2 of about 300 degrees of freedom over
+    its mean, sd 0.08, their mean's 0.004); a patch holding a shape outside the basis
+    scores many times that."""
+    from napari_psfspace.core.restore.bead_check import shape_scores
+
+    rng = np.random.default_rng(12)
+    size, n_i = 21, 6
+    yy, xx = np.indices((size, size)) - size // 2
+    window = np.clip(1.0 - np.hypot(yy, xx) / 10.5, 0.0, 1.0)
+    flat = np.linalg.qr(rng.standard_normal((size * size, n_i)) * window.reshape(-1, 1))[0]
+    basis = flat.T.reshape(n_i, size, size)
+    coef = rng.standard_normal((400, n_i))
+    sd = 0.01
+    psf = np.einsum("pi,ixy->pxy", coef, basis) + sd * window * rng.standard_normal(
+        (400, size, size))
+    c = np.einsum("pxy,ixy->pi", psf, basis)  # orthonormal: the least squares
+    got = shape_scores(psf, c, basis, np.full(400, sd), window)
+    w2 = float((window ** 2).sum())
+    # the noise's energy (sd w)^2 less what falls in the basis's span
+    taken = sum(float((basis[i] ** 2 * window ** 2).sum()) for i in range(n_i))
+    assert abs(got.mean() - (w2 - taken) / w2) < 0.05
+    odd = psf[:1] + 0.2 * np.roll(psf[:1], 4, axis=2)  # a second bead beside it
+    odd_c = np.einsum("pxy,ixy->pi", odd, basis)
+    assert shape_scores(odd, odd_c, basis, np.full(1, sd), window)[0] > 5 * got.mean()
+
+
+def test_a_disagreeing_bead_of_a_single_shape_is_kept():
+    """A bead the others do not predict (the family misses the image there) but of a
+    single bead's shape keeps its information: left out only when its shape is odd."""
+    rng = np.random.default_rng(13)
+    model = _model(rng, miss=0.005)
+    c, sd, centers = _beads(model, np.zeros(3), rng, sd=0.01)
+    c[2] = c[2] + 0.3 * np.abs(c[2]).max() * rng.standard_normal(N_I)
+    single = check_beads(model, c, sd, centers, shapes=np.ones(5))
+    assert single.left_out == [] and single.scores[2] > OUTLIER
+    odd = check_beads(model, c, sd, centers, shapes=np.array([1.0, 1.0, 6.0, 1.0, 1.0]))
+    assert odd.left_out == [2]

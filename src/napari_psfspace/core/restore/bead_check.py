@@ -12,9 +12,20 @@ expected,
 
 ``sd_p / g_p`` its per-pixel noise at unit amplitude (the noise of its ``I`` coefficients
 on the PSF basis adds ``I sd^2`` to the squared norm) and ``var_p`` the prediction's own
-variance (the coordinates' and the miss's). A single bead scores about 1; the worst bead
-scoring above :data:`OUTLIER` is left out, and the others judged again without it, at
-most a fifth of the beads.
+variance (the coordinates' and the miss's, larger at the rim). A single bead scores about
+1. A bad bead bends the fit that predicts each of the others, so that one of them may
+score above it: the bead judged is the one whose absence leaves the others agreeing best
+(the least mean score of their residuals about the fit without it).
+
+A bead can disagree with the others for two reasons: it is not a single point (a pair, a
+saturated core, a structure under it), or the family's model misses this image there (a
+place or a condition it represents poorly). Left out, the second takes away the very
+information the others lack. Its shape tells them apart: a single bead's PSF is one the
+family's PSF basis holds, whatever the condition, so its patch's energy outside the
+basis is about its noise's; a pair, a clipped core or a ridge leaves more
+(:func:`shape_scores`). The judged bead is left out when its score is above
+:data:`OUTLIER` and its shape score above :data:`SHAPE_OUTLIER`, and the others are
+judged again without it, at most a fifth of the beads.
 """
 
 from __future__ import annotations
@@ -31,6 +42,12 @@ from ..family.coordinates import Model, design, fit_coordinates, krige_miss
 #: or a bead under a bright line are caught in most: a bad bead kept costs more than
 #: one of five good beads left out.
 OUTLIER = 10.0
+#: The shape score (energy of a patch outside the family's PSF basis, in units of its
+#: noise's) above which a disagreeing bead is taken for not a single point. Single beads
+#: of simulated images from three optics codes stay below it but for a few percent, and
+#: unresolved pairs, clipped cores and beads under a line are above it in most
+#: (``bench/bench_bead_check.py``).
+SHAPE_OUTLIER = 2.0
 #: Fewest beads judged: with fewer, a left-out bead is predicted from two.
 MIN_JUDGED = 4
 #: Largest share of the beads left out.
@@ -52,11 +69,43 @@ class BeadCheck:
         Each bead's score when it was judged last (NaN below :data:`MIN_JUDGED` beads).
     left_out : list of int
         The beads left out, in the order they were.
+    shapes : ndarray of shape (P,), optional
+        Each bead's shape score (:func:`shape_scores`; None: not given).
     """
 
     keep: np.ndarray
     scores: np.ndarray
     left_out: list
+    shapes: np.ndarray | None = None
+
+
+def shape_scores(psf: np.ndarray, coefficients: np.ndarray, basis: np.ndarray,
+                 noise: np.ndarray, window: np.ndarray) -> np.ndarray:
+    """Each patch's energy outside the family's PSF basis in units of its noise's, (P,).
+
+    Parameters
+    ----------
+    psf : ndarray of shape (P, S, S)
+        The beads' windowed sum-1 patches.
+    coefficients : ndarray of shape (P, I)
+        Their least-squares coefficients on ``basis``.
+    basis : ndarray of shape (I, S, S)
+        The family's PSF basis.
+    noise : ndarray of shape (P,)
+        Per-pixel noise of each sum-1 patch before the window.
+    window : ndarray of shape (S, S)
+        The window the patches were multiplied by (its squares sum the noise's energy).
+
+    Returns
+    -------
+    ndarray of shape (P,)
+        About 1 for a single bead whatever its condition (the basis holds its PSF);
+        more for a pair, a clipped core or a structure under it.
+    """
+    rec = np.einsum("pi,ixy->pxy", np.asarray(coefficients, np.float64), basis)
+    res = ((np.asarray(psf, np.float64) - rec) ** 2).sum(axis=(1, 2))
+    expected = np.asarray(noise, np.float64) ** 2 * float((np.asarray(window) ** 2).sum())
+    return res / np.maximum(expected, 1e-300)
 
 
 def _expected(model: Model, n_i: int, noise: float, a_p: np.ndarray, cov: np.ndarray,
@@ -148,9 +197,10 @@ def _downdated(model, c, sd, centers, at, n_directions, amplitude_range):
 
 
 def check_beads(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
-                n_directions: int | None = None,
+                shapes: np.ndarray | None = None, n_directions: int | None = None,
                 amplitude_range: tuple[float, float] = (0.5, 2.0),
-                outlier: float = OUTLIER) -> BeadCheck:
+                outlier: float = OUTLIER, shape_outlier: float = SHAPE_OUTLIER
+                ) -> BeadCheck:
     """Leave out the clicked beads that disagree with the others, the worst first.
 
     Parameters
@@ -163,12 +213,15 @@ def check_beads(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray
         Per-pixel noise of each bead's sum-1 patch.
     centers : ndarray of shape (P, 2)
         Their positions, pixels.
+    shapes : ndarray of shape (P,), optional
+        Their shape scores (:func:`shape_scores`); None: a bead is left out on its score
+        alone.
     n_directions : int, optional
         ``L``; default the model's.
     amplitude_range : (float, float)
         Range of each bead's amplitude.
-    outlier : float
-        The score above which a bead is left out.
+    outlier, shape_outlier : float
+        The score and the shape score above which a bead is left out.
 
     Returns
     -------
@@ -189,8 +242,10 @@ def check_beads(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray
         # the bead whose absence leaves the others agreeing best: a bad bead bends the
         # fit that predicts each other bead, so that theirs may score above its own
         worst = int(np.argmin(rest))
-        if s[worst] <= outlier or len(left) >= most:
+        odd = shapes is None or shapes[idx[worst]] > shape_outlier
+        if s[worst] <= outlier or not odd or len(left) >= most:
             break
         keep[idx[worst]] = False
         left.append(int(idx[worst]))
-    return BeadCheck(keep, scores, left)
+    return BeadCheck(keep, scores, left,
+                     None if shapes is None else np.asarray(shapes, np.float64))

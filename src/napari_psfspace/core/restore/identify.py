@@ -31,6 +31,7 @@ import warnings
 
 import numpy as np
 
+from ..beads.window import bump_window
 from ..common.deprecate import renamed_keyword
 from ..common.spacing import partial_border
 from ..common.threads import blas_threads
@@ -49,7 +50,7 @@ from ..model.heldout import (
     split_holdout,
 )
 from ..model.operator import ProductConvolution
-from .bead_check import check_beads
+from .bead_check import check_beads, shape_scores
 from .cone_identify import AMPLITUDE_RANGE, identify_gamma, solve_identification
 from .identify_report import (
     IdentificationWarning,
@@ -244,7 +245,8 @@ def identify_operator(
         coordinates change from one side of the field to the other along rows and
         columns) and ``n_planar``, the beads' ``positions`` and
         ``amplitudes``, ``n_beads``, ``left_out`` (the clicked beads left out, with
-        their ``scores``: :mod:`.bead_check`), how well the operator fits the beads it
+        their ``score`` and ``shape``: :mod:`.bead_check`), every given bead's
+        ``scores`` and ``shapes``, how well the operator fits the beads it
         kept (the median relative residual of their patches, its noise floor, and
         ``model_error = sqrt(median residual^2 - median floor^2)``, the relative error
         beyond the noise, which :func:`~napari_psfspace.core.restore.deconvolve.deblur`
@@ -293,8 +295,10 @@ def identify_operator(
     c = coefficients_on(patches.psf, family.basis)  # (P, I)
     sd = patches.noise / patches.flux  # per-pixel noise of the sum-1 patches
     left, scores = [], np.full(len(c), np.nan)
+    shapes = shape_scores(patches.psf, c, family.basis, patches.noise / patches.flux,
+                          bump_window(patches.size, patches.r, patches.r_ext))
     if prior:
-        check = check_beads(family_model(family), c, sd, patches.centers,
+        check = check_beads(family_model(family), c, sd, patches.centers, shapes=shapes,
                             amplitude_range=amplitude_range)
         left, scores = check.left_out, check.scores
         if left:
@@ -323,9 +327,10 @@ def identify_operator(
         "bead_model_errors": beyond_noise_each(fit.residual, fit.noise_floor).tolist(),
         **{k: (v.tolist() if isinstance(v, np.ndarray) else v) for k, v in own.items()},
         "positions": patches.centers.tolist(),
-        "left_out": [{"position": every[i].tolist(), "score": float(scores[i])}
-                     for i in left],
+        "left_out": [{"position": every[i].tolist(), "score": float(scores[i]),
+                      "shape": float(shapes[i])} for i in left],
         "scores": [None if not np.isfinite(s) else float(s) for s in scores],
+        "shapes": shapes.tolist(),
         "n_beads": int(len(c)), "n_space": family.n_space,
         "enough_beads": bool(len(c) >= 5), "beads_table": found_beads.summary}}
     # many beads: no worse than the image's own estimate from them (held-out judgement)

@@ -111,9 +111,9 @@ def left_out_warning(positions: np.ndarray, scores: np.ndarray) -> str | None:
     one = len(positions) == 1
     return (f"the clicked bead{'' if one else 's'} at {named} disagree{'s' if one else ''} "
             "with the others (its PSF misses what they predict there by that many times "
-            "the expected error) and "
-            f"{'was' if one else 'were'} left out: a pair of beads too close to resolve, "
-            "a saturated bead, or one on a structure?")
+            "the expected error) and, unlike a single bead's, its shape is not one the "
+            f"family's PSFs take: {'it was' if one else 'they were'} left out (a pair of "
+            "beads too close to resolve, a saturated bead, or one on a structure?)")
 
 
 def spread_warning(band: tuple[float, float] | None, mean_spread: float,
