@@ -63,6 +63,19 @@ def _git(*args: str) -> str:
         return ""
 
 
+def tree_changed_beside_results(status: str | None = None) -> bool:
+    """Whether a tracked file differs from the commit, the runner's own outputs
+    (``bench/results/``, ``bench/RESULTS.md``) aside: a run that saved a result leaves
+    them changed, and they change no bench's code. ``status``: ``git status
+    --porcelain`` output (default: the repository's, tracked files only)."""
+    if status is None:
+        status = _git("status", "--porcelain", "--untracked-files=no")
+    own = ("bench/results/", "bench/RESULTS.md")
+    paths = [line[3:].split(" -> ")[-1].strip('"') for line in status.splitlines()
+             if line.strip()]
+    return any(not p.startswith(own) for p in paths)
+
+
 def machine() -> dict:
     """What the figures were measured on."""
     info = {"node": platform.node(), "system": platform.system(),
@@ -104,7 +117,7 @@ def run(name: str, args: list[str], label: str | None = None, table: int | None 
     command = " ".join(["python bench/run.py", name, *(["--as", label] if label else []),
                         *(["--table", str(table)] if table is not None else []), *args])
     commit = _git("rev-parse", "HEAD")  # what runs: the tree as it is when the bench starts
-    tree_changed = bool(_git("status", "--porcelain", "--untracked-files=no"))
+    tree_changed = tree_changed_beside_results()
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, script.name, *args], cwd=HERE,
                             stdout=subprocess.PIPE, text=True)

@@ -124,3 +124,16 @@ def test_a_run_may_name_the_table_shown():
     assert run._shown_table({"output": output, "table": 9}) == ["last", "3"]
     entries = {e["name"]: e for e in run.suite()}
     assert entries["accuracy"]["table"] == 1 and "--table" not in entries["accuracy"]["args"]
+
+
+def test_a_result_saved_before_leaves_the_tree_unchanged():
+    """The runner's own outputs (results, RESULTS.md) do not mark a run "with changes";
+    any other tracked file does, renamed ones by their new path."""
+    run = _runner()
+    assert not run.tree_changed_beside_results("")
+    assert not run.tree_changed_beside_results(
+        " M bench/results/identify.json\n M bench/RESULTS.md\n")
+    assert run.tree_changed_beside_results(
+        " M bench/results/identify.json\n M src/napari_psfspace/core/restore/identify.py\n")
+    assert run.tree_changed_beside_results("R  bench/results/a.json -> bench/bench_a.py\n")
+    assert run.tree_changed_beside_results(" M bench/run.py\n")
