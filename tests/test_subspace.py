@@ -208,6 +208,30 @@ def test_whitened_rank_finds_the_signal_of_beads_of_unequal_noise():
     assert white_rank(noisy, sd, window) == 1
 
 
+def test_the_gram_singular_values_are_the_svds_where_the_rule_reads_them():
+    """``singular_values`` (the smaller Gram matrix's eigenvalues) against numpy's SVD:
+    tall and wide matrices of a known spectrum with noise, to a relative 1e-9 of the
+    largest value down to the median (what the rule's threshold reads), and exactly the
+    SVD where the median is below ``GRAM_MEDIAN_RATIO`` of the largest."""
+    from napari_psfspace.core.family.sizes import GRAM_MEDIAN_RATIO, singular_values
+
+    rng = np.random.default_rng(3)
+    for n, s_cols in ((1500, 400), (60, 400)):
+        u = np.linalg.qr(rng.standard_normal((n, min(n, s_cols))))[0]
+        v = np.linalg.qr(rng.standard_normal((s_cols, min(n, s_cols))))[0]
+        spectrum = np.r_[np.geomspace(1e3, 10, 8), np.zeros(min(n, s_cols) - 8)]
+        x = (u * spectrum) @ v.T + 0.1 * rng.standard_normal((n, s_cols))
+        ref = np.linalg.svd(x, compute_uv=False)
+        got = singular_values(x)
+        assert got.shape == ref.shape
+        assert np.max(np.abs(got - ref)) <= 1e-9 * ref[0]
+    # noise-free and steep: the median far below the largest, the SVD itself
+    x = (u * np.geomspace(1, 1e-12, min(n, s_cols))) @ v.T
+    ref = np.linalg.svd(x, compute_uv=False)
+    assert np.median(ref) < GRAM_MEDIAN_RATIO * ref[0]
+    assert np.array_equal(singular_values(x), ref)
+
+
 def test_whitened_rank_survives_a_bead_without_measured_noise():
     from napari_psfspace.core.beads.window import bump_window
     from napari_psfspace.core.family.sizes import white_rank
