@@ -213,7 +213,7 @@ def test_the_gram_singular_values_are_the_svds_where_the_rule_reads_them():
     tall and wide matrices of a known spectrum with noise, to a relative 1e-9 of the
     largest value down to the median (what the rule's threshold reads), and exactly the
     SVD where the median is below ``GRAM_MEDIAN_RATIO`` of the largest."""
-    from napari_psfspace.core.family.sizes import GRAM_MEDIAN_RATIO, singular_values
+    from napari_psfspace.core.model.pca import GRAM_MEDIAN_RATIO, singular_values
 
     rng = np.random.default_rng(3)
     for n, s_cols in ((1500, 400), (60, 400)):

@@ -159,8 +159,8 @@ class CoordinateFit:
     centers: np.ndarray
 
 
-def _whitener(gram: np.ndarray) -> np.ndarray:
-    """``W`` with ``W^T W = Gram``: coefficients times ``W^T`` have the PSF's l2 norm."""
+def whitener(gram: np.ndarray) -> np.ndarray:
+    """``W`` (upper triangular) with ``W^T W = Gram``: coefficients times ``W^T`` have the PSF's l2 norm."""
     return np.linalg.cholesky(gram + 1e-12 * np.trace(gram) / len(gram) * np.eye(len(gram))).T
 
 
@@ -221,7 +221,7 @@ def whitened(gram: np.ndarray, c: np.ndarray, base: np.ndarray, a: np.ndarray
              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The beads' coefficients (P, I), the mean (P, I) and the directions (P, I, L) at
     them, whitened by the basis's Gram matrix (their l2 norm is the PSF's)."""
-    white = _whitener(gram)
+    white = whitener(gram)
     return c @ white.T, base @ white.T, np.einsum("ji,pil->pjl", white, a)
 
 
@@ -369,7 +369,7 @@ def relative_field_error(field: np.ndarray, truth: np.ndarray,
     if where is not None:
         f, t = f[where], t[where]
     if gram is not None:
-        white = _whitener(np.asarray(gram, np.float64))
+        white = whitener(np.asarray(gram, np.float64))
         f, t = f @ white.T, t @ white.T
     fn, tn = np.linalg.norm(f, axis=1), np.linalg.norm(t, axis=1)
     ok = (fn > 0) & (tn > 0)

@@ -41,6 +41,7 @@ from .coordinates import (
     solve_coordinates,
     spread_at,
     whitened,
+    whitener,
 )
 
 #: Beads a left-out image is identified from when ``L`` is chosen: the paper's "typically
@@ -263,7 +264,7 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
                 "by": f"all the family's directions ({why})", "table": [], "band": None}
     sizes = [(n, m) for n in range(most + 1) for m in range(min(n, MAX_PLANAR) + 1)]
     errors = np.zeros((len(sizes), len(usable) * N_DRAWS))
-    white = np.linalg.cholesky(gram + 1e-12 * np.trace(gram) / len(gram) * np.eye(len(gram)))
+    white = whitener(gram).T  # fields times it: the PSF's l2 norm
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     zero = np.zeros((len(gram), len(gram)))

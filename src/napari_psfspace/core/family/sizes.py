@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..common.threads import map_threads
-from ..model.pca import rank_by_threshold
+from ..model.pca import rank_by_threshold, singular_values
 
 
 def white_rank(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray, *,
@@ -53,27 +53,6 @@ def white_rank(psf: np.ndarray, noise_sd: np.ndarray, window: np.ndarray, *,
         sd[~good] = np.median(sd[good])
     x = psf[:, sel] / (sd[:, None] * window[sel])
     return rank_by_threshold(singular_values(x), x.shape)[0]
-
-
-#: Least ratio of the median singular value to the largest that :func:`singular_values`
-#: takes from the Gram matrix: there its relative error (about ``eps`` over the ratio
-#: squared) stays near 1e-6, far below any change of the rule's threshold that a bead's
-#: noise makes; below it, the full SVD.
-GRAM_MEDIAN_RATIO = 1e-5
-
-
-def singular_values(x: np.ndarray) -> np.ndarray:
-    """The singular values of ``x`` (N, S), descending: the square roots of the
-    eigenvalues of its smaller Gram matrix (a family's pooled patches make a tall matrix,
-    whose full SVD costs several times more), or the full SVD where the median value is
-    under :data:`GRAM_MEDIAN_RATIO` of the largest (the Gram matrix squares the
-    condition)."""
-    x = np.asarray(x, np.float64)
-    gram = x.T @ x if x.shape[0] >= x.shape[1] else x @ x.T
-    s = np.sqrt(np.clip(np.linalg.eigvalsh(gram)[::-1], 0.0, None))
-    if not len(s) or s[0] == 0 or np.median(s) >= GRAM_MEDIAN_RATIO * s[0]:
-        return s
-    return np.linalg.svd(x, compute_uv=False)
 
 
 #: Basis size the whitened rule is trusted up to; beyond it, only as far as held-out

@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..family.coordinates import Model, design, fit_coordinates, krige_miss
+from ..family.coordinates import Model, design, fit_coordinates, krige_miss, whitened
 
 #: The score above which a clicked bead is left out. On simulated images from three
 #: optics codes (``bench/bench_bead_check.py``), single beads judged in sets of five
@@ -172,10 +172,9 @@ def _downdated(model, c, sd, centers, at, n_directions, amplitude_range):
                            amplitude_range=amplitude_range, at_beads=at)
     n_l = len(full.z)
     g, base, a = full.amplitudes, at[0], at[1][:, :, :n_l]
-    white = np.linalg.cholesky(model.gram + 1e-12 * np.trace(model.gram) / n_i
-                               * np.eye(n_i)).T
-    aw = np.einsum("ji,pil->pjl", white, a) * (g / sd)[:, None, None]  # rows of each bead
-    yw = ((c - g[:, None] * base) @ white.T) / sd[:, None]
+    cw, bw, aw = whitened(model.gram, c, base, a)
+    aw = aw * (g / sd)[:, None, None]  # rows of each bead
+    yw = (cw - g[:, None] * bw) / sd[:, None]
     lhs = np.einsum("pil,pim->lm", aw, aw) + np.diag(
         1.0 / np.maximum(model.variances[:n_l], 1e-300))
     rhs = np.einsum("pil,pi->l", aw, yw)

@@ -70,8 +70,8 @@ def deblur_tile(data: np.ndarray, operator: ProductConvolution3D, y0: int, x0: i
 class TileTask:
     """One tile's deconvolution as dask calls it (a picklable object, so that a
     ``dask.distributed`` cluster can run it): the chunk's index is reliable in
-    ``map_overlap``, its ``'array-location'`` is not (dask issue 11349), so the window's
-    origin is the chunk's start less the halo."""
+    ``map_overlap``, its ``'array-location'`` is not (a dask bug, dask/dask#11349), so the
+    window's origin is the chunk's start less the halo."""
 
     def __init__(self, operator: ProductConvolution3D, starts_y: tuple[int, ...],
                  starts_x: tuple[int, ...], halo: int, kwargs: dict) -> None:
