@@ -160,7 +160,8 @@ class CoordinateFit:
 
 
 def whitener(gram: np.ndarray) -> np.ndarray:
-    """``W`` (upper triangular) with ``W^T W = Gram``: coefficients times ``W^T`` have the PSF's l2 norm."""
+    """``W`` (upper triangular) with ``W^T W = Gram``: coefficients times ``W^T`` have
+    the PSF's l2 norm."""
     return np.linalg.cholesky(gram + 1e-12 * np.trace(gram) / len(gram) * np.eye(len(gram))).T
 
 
