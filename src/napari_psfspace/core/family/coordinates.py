@@ -344,12 +344,16 @@ def spread_at(model: Model, fit: CoordinateFit, field: np.ndarray,
 def identify_field(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
                    n_directions: int | None = None,
                    amplitude_range: tuple[float, float] = (0.5, 2.0), krige: bool = True,
-                   spread: bool = True, at_beads: tuple | None = None, n_iter: int = 50
+                   spread: bool = True, at_beads: tuple | None = None, n_iter: int = 50,
+                   fit: CoordinateFit | None = None
                    ) -> tuple[np.ndarray, np.ndarray | None, CoordinateFit]:
     """The image's field at the nodes (G, I), its relative spread (G,; None without
-    ``spread``), and the fit (:func:`fit_coordinates`; ``krige``: with the miss)."""
-    fit = fit_coordinates(model, c, sd, centers, n_directions=n_directions,
-                          amplitude_range=amplitude_range, at_beads=at_beads, n_iter=n_iter)
+    ``spread``), and the fit (:func:`fit_coordinates`, unless given as ``fit``;
+    ``krige``: with the miss)."""
+    if fit is None:
+        fit = fit_coordinates(model, c, sd, centers, n_directions=n_directions,
+                              amplitude_range=amplitude_range, at_beads=at_beads,
+                              n_iter=n_iter)
     field = model.field(fit.z)
     if krige:
         add, miss_var = krige_miss(model, fit, model.nodes)

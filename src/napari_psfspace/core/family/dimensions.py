@@ -19,10 +19,13 @@ few dimensions (:mod:`.coordinates`):
 ``L`` and ``M`` are chosen as a user would judge them (:func:`choose_dimensions`): each
 image of the family is left out in turn, identified from :data:`N_CLICKS` of its beads
 by the model of the others, and compared with its own field; the sizes of least error
-over the images and draws are kept. The same left-out identifications calibrate the
-reported spread (:func:`spread_band`): the ratio of each one's actual error to the error
-its spread predicts, whose quantiles make a band. Both go to the family's metadata
-(``metadata["dimensions"]``); :func:`family_model` builds the model of a family.
+over the images and draws are kept. A curve (:mod:`.curve`: the fields as a quadratic
+in one condition varying as a plane over the field, three numbers an image) is judged
+on the same draws and replaces the lines where its error is lower. The same left-out
+identifications calibrate the reported spread (:func:`spread_band`): the ratio of each
+one's actual error to the error its spread predicts, whose quantiles make a band. Both
+go to the family's metadata (``metadata["dimensions"]``); :func:`family_model` builds
+the model of a family.
 """
 
 from __future__ import annotations
@@ -30,12 +33,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from .coordinates import (
     Model,
     design,
-    fit_coordinates,
     krige_miss,
     relative_field_error,
     solve_coordinates,
@@ -43,6 +44,8 @@ from .coordinates import (
     whitened,
     whitener,
 )
+from .curve import MIN_IMAGES, Curve, build_curve, curve_misses, identify_any, learn_thetas
+from .miss import miss_model
 
 #: Beads a left-out image is identified from when ``L`` is chosen: the paper's "typically
 #: 5", the few a user clicks.
@@ -51,8 +54,6 @@ N_CLICKS = 5
 N_DRAWS = 3
 #: Most directions ``L`` (a family of ``K`` images has at most ``K - 1``).
 MAX_DIRECTIONS = 12
-#: Nodes the miss's correlation is measured on (a subset spread over the grid).
-CORRELATION_NODES = 300
 #: Most of the directions whose coordinates also vary as planes over the field.
 MAX_PLANAR = 1
 #: The prior standard deviation of a coordinate's slope across the field (from one side
@@ -61,6 +62,8 @@ PLANAR_SCALE = 1.0
 #: Alternations of each fit of the choice (each compares ``L``'s on the same beads: the
 #: amplitudes' last digits change no choice).
 CHOICE_ITERATIONS = 10
+#: Alternations of a left-out image's curve, from the whole family's ``theta``.
+CURVE_LEFT_OUT_ITERATIONS = 5
 #: Quantiles of the ratio of actual to predicted error that bound the reported band.
 BAND_QUANTILES = (0.05, 0.95)
 
@@ -143,54 +146,6 @@ def misses(fields: np.ndarray, n: int, n_planar: int = 0, nodes: np.ndarray | No
     return out
 
 
-def miss_model(residuals: np.ndarray, nodes: np.ndarray
-               ) -> tuple[np.ndarray, float, np.ndarray]:
-    """The miss's covariance at a node (I, I), its correlation length (pixels) and its
-    relative standard deviation at each node (G,), from residual fields (K, G, I) at
-    ``nodes`` (G, 2).
-
-    The residuals are largest at the rim, where the family's fields are extrapolated
-    from their images' beads: the scale is the smooth fit (a quadratic of the position,
-    to the log of each node's mean squared residual) scaled to a mean square of 1. The
-    length is that of the Gaussian correlation ``exp(-d^2 / 2 ell^2)`` closest to the
-    measured one of the residuals divided by their scale, over pairs of nodes.
-    """
-    k, g, n_i = residuals.shape
-    cov = np.einsum("kgi,kgj->ij", residuals, residuals) / (k * g)
-    total = float(np.trace(cov))
-    if total <= 0 or g < 2:
-        return cov, 1.0, np.ones(g)
-    scale = _scale_map(np.einsum("kgi,kgi->g", residuals, residuals) / k, nodes)
-    step = max(1, g // CORRELATION_NODES)
-    sub = np.arange(0, g, step)
-    pts = nodes[sub]
-    dist = np.sqrt(((pts[:, None] - pts[None]) ** 2).sum(axis=-1))
-    std = residuals[:, sub] / scale[None, sub, None]
-    corr = np.einsum("kai,kbi->ab", std, std) / (k * total)
-    span = float(dist.max())
-    d2 = dist ** 2
-
-    def cost(log_ell):
-        return float(((corr - np.exp(-0.5 * d2 / np.exp(2 * log_ell))) ** 2).sum())
-
-    best = minimize_scalar(cost, bounds=(np.log(span / 200), np.log(span)),
-                           method="bounded", options={"xatol": 1e-3})
-    return cov, float(np.exp(best.x)), scale
-
-
-def _scale_map(power: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-    """A smooth relative standard deviation (G,) from each node's mean squared residual
-    (G,): ``exp`` of the least-squares quadratic of the position fitted to its log, its
-    mean square 1."""
-    span = np.maximum(nodes.max(axis=0) - nodes.min(axis=0), 1e-9)
-    u = 2 * (nodes - nodes.min(axis=0)) / span - 1  # -1 to 1
-    feats = np.column_stack([np.ones(len(u)), u, u ** 2, u[:, :1] * u[:, 1:]])
-    floor = 1e-12 * max(float(power.mean()), 1e-300)
-    coef = np.linalg.lstsq(feats, np.log(power + floor), rcond=None)[0]
-    var = np.exp(feats @ coef)
-    return np.sqrt(var / var.mean())
-
-
 def build_model(fields: np.ndarray, n: int, grid, shape, gram: np.ndarray, *,
                 n_planar: int = 0, miss: bool = True) -> Model:
     """The model of fields (K, G, I) with ``n`` directions, the first ``n_planar`` of them
@@ -245,12 +200,15 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     Returns
     -------
     dict
-        ``n_directions`` (``L``) and ``n_planar`` (``M``: the first ``M`` directions'
-        coordinates also vary as planes over the field, as a tilted slide makes the
-        focus do); ``by`` (how they were chosen); ``table`` (each ``L`` and ``M`` tried,
-        ``n`` and ``planar``, and the mean relative field error of the left-out
-        identifications, ``error``); ``band`` (:func:`spread_band`'s calibration, None
-        without left-out images).
+        ``kind`` (``"lines"`` or ``"curve"``, that of least error); ``n_directions``
+        (``L``) and ``n_planar`` (``M``: the first ``M`` directions' coordinates also
+        vary as planes over the field, as a tilted slide makes the focus do; 1 and 1
+        for a curve); ``by`` (how they were chosen); ``table`` (each ``L`` and ``M``
+        tried, ``n`` and ``planar``, and the mean relative field error of the left-out
+        identifications, ``error``; the curve's row also holds ``curve``, its degree);
+        ``curve`` (a curve's ``degree`` and its images' ``thetas``, K x 3; only where
+        chosen); ``band`` (:func:`spread_band`'s calibration, None without left-out
+        images).
     """
     k = len(fields)
     most = min(MAX_DIRECTIONS, k - 2)
@@ -295,36 +253,101 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     n, m = sizes[best]
     table = [{"n": a, "planar": c, "error": round(float(e), 6)}
              for (a, c), e in zip(sizes, mean, strict=True)]
-    band = spread_band(fields, beads, usable, n, m, grid, shape, gram, seed=seed)
-    return {"n_directions": n, "n_planar": m,
-            "by": f"leaving each of {len(usable)} images out, identified from {N_CLICKS} of "
-                  f"its beads ({N_DRAWS} draws)",
-            "table": table, "band": band}
+    curve = _curve_choice(fields, beads, usable, grid, shape, gram, seed=seed)
+    kind = "lines"
+    if curve is not None:
+        table.append({"n": 1, "planar": 1, "curve": curve["degree"],
+                      "error": round(float(curve["error"]), 6)})
+        if curve["error"] < mean[best]:
+            kind = "curve"
+
+    if kind == "curve":  # the miss of each model from the others' misses
+        gy, gx = grid
+        residuals = curve_misses(fields, np.asarray(curve["thetas"]), np.stack(
+            np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2), shape, gram,
+            degree=curve["degree"])
+
+    def model_of(j):
+        rest = np.arange(len(fields)) != j
+        if kind == "curve":
+            return build_curve(fields[rest], grid, shape, gram,
+                               thetas=np.asarray(curve["left_out"][j]),
+                               residuals=residuals[rest], degree=curve["degree"])
+        return build_model(fields[rest], n, grid, shape, gram, n_planar=m)
+
+    band = spread_band(fields, beads, usable, model_of, seed=seed,
+                       fits=curve["fits"] if kind == "curve" else None)
+    out = {"kind": kind, "n_directions": 1 if kind == "curve" else n,
+           "n_planar": 1 if kind == "curve" else m,
+           "by": f"leaving each of {len(usable)} images out, identified from {N_CLICKS} of "
+                 f"its beads ({N_DRAWS} draws)",
+           "table": table, "band": band}
+    if kind == "curve":
+        out["curve"] = {"degree": curve["degree"], "thetas": curve["thetas"]}
+    return out
 
 
-def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int], n: int,
-                n_planar: int, grid, shape, gram: np.ndarray, *, seed: int = 0) -> dict:
+def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
+                  ) -> dict | None:
+    """The curve's (:mod:`.curve`) left-out identifications as :func:`choose_dimensions`
+    makes the lines': each image left out, the curve learnt from the others (from the
+    whole family's ``theta``, :data:`CURVE_LEFT_OUT_ITERATIONS` alternations), the image
+    identified from the same draws of its beads. None below :data:`.curve.MIN_IMAGES`
+    images besides the one left out."""
+    k = len(fields)
+    if k - 1 < MIN_IMAGES:
+        return None
+    gy, gx = grid
+    nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+    _, thetas = learn_thetas(fields, nodes, shape, gram)
+    white = whitener(gram).T
+    errors, left_out, fits = [], {}, {}
+    for j in usable:
+        rest = np.arange(k) != j
+        _, left_out[j] = learn_thetas(fields[rest], nodes, shape, gram, thetas=thetas[rest],
+                                      iterations=CURVE_LEFT_OUT_ITERATIONS)
+        curve = build_curve(fields[rest], grid, shape, gram, thetas=left_out[j], miss=False)
+        b = beads[j]
+        for d, pick in enumerate(_draws(b, seed + j)):
+            model, (field, _, fits[j, d]) = identify_any(
+                curve, b.coefficients[pick], b.sd[pick], b.centers[pick], krige=False,
+                spread=False)
+            errors.append(relative_field_error(field @ white, fields[j] @ white))
+    return {"degree": int(curve.degree), "error": float(np.mean(errors)),
+            "thetas": thetas.tolist(), "left_out": left_out, "fits": fits}
+
+
+def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int],
+                model_of, *, seed: int = 0, fits: dict | None = None) -> dict:
     """The reported spread's calibration: for each left-out identification (as in
-    :func:`choose_dimensions`, with the miss), the ratio of its actual error (against
-    the image's own field) to the error its spread predicts (the rms over the field's
+    :func:`choose_dimensions`, with the miss; ``model_of(j)`` the model of the fields
+    but the ``j``-th, lines or a curve), the ratio of its actual error (against the
+    image's own field) to the error its spread predicts (the rms over the field's
     central nodes, :attr:`~.coordinates.Model.central`, every third, of the PSF's
-    relative posterior standard deviation); the quantiles
-    :data:`BAND_QUANTILES` of the ratios scale a prediction into a band."""
+    relative posterior standard deviation); the quantiles :data:`BAND_QUANTILES` of the
+    ratios scale a prediction into a band. ``fits``: a curve's fits of those draws, by
+    ``(j, draw)`` (:func:`_curve_choice`'s: the fit does not depend on the miss)."""
     ratios = []
     for j in usable:
-        model = build_model(np.delete(fields, j, axis=0), n, grid, shape, gram,
-                            n_planar=n_planar)
+        model = model_of(j)
         # every third node of the field's central part: the same rms, a third the cost
         inside = np.flatnonzero(model.central)[::3]
-        at = replace(model, mean=model.mean[inside], directions=model.directions[:, inside])
-        for pick in _draws(beads[j], seed + j):
+        for d, pick in enumerate(_draws(beads[j], seed + j)):
             b = beads[j]
-            fit = fit_coordinates(model, b.coefficients[pick], b.sd[pick], b.centers[pick])
-            add, miss_var = krige_miss(model, fit, model.nodes[inside])
+            if fits is not None and (j, d) in fits:
+                fit = fits[j, d]
+                lines = model.linearized(fit.z)
+            else:
+                lines, (_, _, fit) = identify_any(model, b.coefficients[pick], b.sd[pick],
+                                                  b.centers[pick], krige=False,
+                                                  spread=False)
+            at = replace(lines, mean=lines.mean[inside],
+                         directions=lines.directions[:, inside])
+            add, miss_var = krige_miss(lines, fit, lines.nodes[inside])
             field = at.field(fit.z) + add
             spread = spread_at(at, fit, field, miss_var)
             predicted = float(np.sqrt(np.mean(spread ** 2)))
-            actual = relative_field_error(field, fields[j][inside], gram)
+            actual = relative_field_error(field, fields[j][inside], lines.gram)
             if predicted > 0 and np.isfinite(actual):
                 ratios.append(actual / predicted)
     if not ratios:
@@ -334,19 +357,26 @@ def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int]
             "n": len(ratios), "quantiles": list(BAND_QUANTILES)}
 
 
-def family_model(family) -> Model:
-    """The few-dimensional model of a family (:class:`~.result.OperatorFamily`), its
-    ``L`` and ``M`` those its learning chose (``metadata["dimensions"]``; a family
-    without: all its directions, at most :data:`MAX_DIRECTIONS`, none planar). Built
-    once per family."""
+def family_model(family) -> Model | Curve:
+    """The few-dimensional model of a family (:class:`~.result.OperatorFamily`), of the
+    kind, ``L`` and ``M`` its learning chose (``metadata["dimensions"]``; a family
+    without: all its directions, at most :data:`MAX_DIRECTIONS`, none planar): lines
+    (:class:`~.coordinates.Model`) or a curve (:class:`~.curve.Curve`, rebuilt from its
+    images' ``theta``). Built once per family."""
     cache = family._cache
     if "model" not in cache:
         fields = family_fields(family.space, family.gammas)
         dims = family.metadata.get("dimensions") or {}
+        flat = family.basis.reshape(family.n_psf, -1)
+        curve = dims.get("curve") if dims.get("kind") == "curve" else None
+        if curve is not None:
+            cache["model"] = build_curve(fields, family.grid, family.shape, flat @ flat.T,
+                                         thetas=np.asarray(curve["thetas"], np.float64),
+                                         degree=int(curve["degree"]))
+            return cache["model"]
         n = dims.get("n_directions")
         if n is None:
             n = min(MAX_DIRECTIONS, family.n_images - 1)
-        flat = family.basis.reshape(family.n_psf, -1)
         cache["model"] = build_model(fields, int(n), family.grid, family.shape,
                                      flat @ flat.T, n_planar=int(dims.get("n_planar") or 0))
     return cache["model"]

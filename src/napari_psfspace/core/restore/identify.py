@@ -5,14 +5,17 @@ operators of one microscope under the conditions it was learnt on. Those operato
 with a few conditions (focus, a tilt of the slide), so an image's operator is identified
 in the family's own few dimensions (:mod:`~napari_psfspace.core.family.dimensions`,
 learnt with the family): its field is the family's mean plus ``L`` coordinates along the
-family's principal directions, the family's miss beyond them kriged from the beads'
-residuals. A handful of beads pins down ``L`` numbers, where ``J`` spatial maps of ``I``
-coefficients each would need many.
+family's principal directions, or, where the family's own images say it does better, a
+point of the family's curve (:mod:`~napari_psfspace.core.family.curve`: one condition
+at the centre and its slopes across the field), the family's miss beyond either kriged
+from the beads' residuals. A handful of beads pins down those few numbers, where ``J``
+spatial maps of ``I`` coefficients each would need many.
 
 - Each clicked bead, centred and free of background, gives its coefficients on the
   family's PSF basis; the coordinates and the beads' amplitudes are fitted by
   alternating exact least squares (:func:`~napari_psfspace.core.family.coordinates.
-  fit_coordinates`), the coordinates with the family's spread of them as their prior.
+  fit_coordinates`; on a curve, by Gauss-Newton, :meth:`~napari_psfspace.core.family.
+  curve.Curve.fit`), the coordinates with the family's spread of them as their prior.
 - Each bead is judged left out (:mod:`.bead_check`); one that disagrees with the others
   (an unresolved pair, a saturated bead, one on a structure) is left out, and said so.
 - The spread of the PSF over the field (the posterior standard deviation, relative to
@@ -37,7 +40,7 @@ from ..common.spacing import partial_border
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
 from ..family.choice import Choice, blend, choose_between, own_estimate
-from ..family.coordinates import identify_field
+from ..family.curve import Curve, identify_any
 from ..family.dimensions import family_fields, family_model
 from ..family.patches import image_patches
 from ..family.result import OperatorFamily, space_at
@@ -103,8 +106,8 @@ def _identify(family, c, centers, sd, *, prior: bool, amplitude_range, max_iter,
                                   grid_step=family.grid_step, cone=family.cone, at=at,
                                   constraint="cone")
         return op, found
-    found = identify_field(family_model(family), c, sd, centers,
-                           amplitude_range=amplitude_range, spread=at is None)
+    _, found = identify_any(family_model(family), c, sd, centers,
+                            amplitude_range=amplitude_range, spread=at is None)
     return field_operator(family, found[0], c, at=at), found
 
 
@@ -146,16 +149,15 @@ def _psfs(op: ProductConvolution, points: np.ndarray) -> np.ndarray:
     return np.array([op.psf_at(y, x) for y, x in np.asarray(points).reshape(-1, 2)])
 
 
-def _image_weights(family: OperatorFamily, z: np.ndarray) -> np.ndarray:
-    """The weights (K,) of the family's images whose fields mix into ``m + sum z_l d_l``
-    (the directions are combinations of the images' deviations from their mean)."""
-    model = family_model(family)
-    dev = (family_fields(family.space, family.gammas) - model.mean).reshape(
-        family.n_images, -1)
-    flat = model.directions[:len(z)].reshape(len(z), model.mean.size)
-    # d_l = sum_k u_kl dev_k: least squares through the images' deviations
-    u = np.linalg.lstsq(dev.T, flat.T, rcond=None)[0]  # (K, L)
-    return 1.0 / family.n_images + u @ np.asarray(z)
+def _image_weights(family: OperatorFamily, field: np.ndarray) -> np.ndarray:
+    """The weights (K,) of the family's images whose fields mix into ``field`` (G, I), the
+    model's field without the miss (least squares through the images' deviations from
+    their mean: exact for the lines, whose directions are combinations of them)."""
+    fields = family_fields(family.space, family.gammas)
+    mean = fields.mean(axis=0)
+    dev = (fields - mean).reshape(family.n_images, -1)
+    u = np.linalg.lstsq(dev.T, (np.asarray(field) - mean).reshape(-1), rcond=None)[0]
+    return 1.0 / family.n_images + u
 
 
 def _few_dimensions(family, found, c, centers, amplitude_range) -> dict:
@@ -169,12 +171,22 @@ def _few_dimensions(family, found, c, centers, amplitude_range) -> dict:
     predicted = float(np.sqrt(np.mean(spread[inside] ** 2)))
     band = error_band(family, predicted)
     where = nodes[inside][int(np.argmax(spread[inside]))]
-    n_planar = int((family.metadata.get("dimensions") or {}).get("n_planar") or 0)
-    n_const = len(fit.z) - 2 * n_planar
-    slopes = fit.z[n_const:].reshape(2, n_planar).T  # each planar coordinate's (row, col)
-    return {"gamma": gamma, "weights": _image_weights(family, fit.z[:n_const]),
-            "coordinates": fit.z[:n_const].tolist(), "n_directions": n_const,
+    if isinstance(model, Curve):
+        # the condition at the centre, and its change across the field along rows and
+        # along columns
+        theta = model.theta(fit.z)
+        coords, slopes, n_planar = theta[:1], theta[1:].reshape(1, 2), 1
+        bare = model.field(fit.z)
+    else:
+        n_planar = int((family.metadata.get("dimensions") or {}).get("n_planar") or 0)
+        n_const = len(fit.z) - 2 * n_planar
+        coords = fit.z[:n_const]
+        slopes = fit.z[n_const:].reshape(2, n_planar).T  # each planar coordinate's
+        bare = model.field(coords)
+    return {"gamma": gamma, "weights": _image_weights(family, bare),
+            "coordinates": coords.tolist(), "n_directions": len(coords),
             "slopes": slopes.tolist(), "n_planar": n_planar,
+            "kind": "curve" if isinstance(model, Curve) else "lines",
             "amplitudes": fit.amplitudes, "objective": [],
             "psf_spread": float(np.mean(spread)), "psf_spread_max": float(np.max(spread)),
             "psf_spread_where": where.tolist(), "error_predicted": predicted,
@@ -188,7 +200,7 @@ def _paper(family, found, c) -> dict:
         raise ValueError("the beads' PSFs lie outside the family's cone (every weight "
                          "is 0): is this image from the same microscope and PSF radius?")
     return {"gamma": gamma, "weights": lam, "coordinates": None, "n_directions": None,
-            "slopes": None, "n_planar": None,
+            "slopes": None, "n_planar": None, "kind": "cone",
             "amplitudes": g, "objective": history, "psf_spread": None,
             "psf_spread_max": None, "psf_spread_where": None, "error_predicted": None,
             "error_band": None, "more_beads_at": None}
@@ -241,9 +253,11 @@ def identify_operator(
         beads' (or, blended with the image's own estimate, between the two).
         ``metadata["identification"]`` holds ``gamma`` (I, J: the field on the family's
         spatial basis), ``weights`` (K,: the family's images mixed in, or the cone's),
-        ``coordinates`` (L,) and ``n_directions``, ``slopes`` (M, 2: how the first ``M``
-        coordinates change from one side of the field to the other along rows and
-        columns) and ``n_planar``, the beads' ``positions`` and
+        ``kind`` (``"lines"``, ``"curve"`` or ``"cone"``), ``coordinates`` (L,) and
+        ``n_directions``, ``slopes`` (M, 2: how the first ``M`` coordinates change from
+        one side of the field to the other along rows and columns; a curve's: its
+        condition at the centre, and its change across rows and columns, in the family's
+        units of it) and ``n_planar``, the beads' ``positions`` and
         ``amplitudes``, ``n_beads``, ``left_out`` (the clicked beads left out, with
         their ``score`` and ``shape``: :mod:`.bead_check`), every given bead's
         ``scores`` and ``shapes``, how well the operator fits the beads it
@@ -298,7 +312,10 @@ def identify_operator(
     shapes = shape_scores(patches.psf, c, family.basis, patches.noise / patches.flux,
                           bump_window(patches.size, patches.r, patches.r_ext))
     if prior:
-        check = check_beads(family_model(family), c, sd, patches.centers, shapes=shapes,
+        model = family_model(family)
+        if isinstance(model, Curve):  # judged on the curve's lines at the beads' fit
+            model, _ = model.fit(c, sd, patches.centers, amplitude_range=amplitude_range)
+        check = check_beads(model, c, sd, patches.centers, shapes=shapes,
                             amplitude_range=amplitude_range)
         left, scores = check.left_out, check.scores
         if left:

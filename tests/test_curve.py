@@ -1,0 +1,146 @@
+"""A family along one curve (core/family/curve): fields drawn from a known curve, learnt
+back, and an image's field identified from five of its beads."""
+
+import numpy as np
+import pytest
+
+from napari_psfspace.core.family.coordinates import bilinear, relative_field_error
+from napari_psfspace.core.family.curve import (
+    Curve,
+    build_curve,
+    identify_any,
+    plane_design,
+)
+from napari_psfspace.core.family.dimensions import Beads, build_model, choose_dimensions
+
+SHAPE = (256, 256)
+GRID = (np.linspace(0, 255, 9), np.linspace(0, 255, 9))
+N_I = 6
+
+
+def _nodes():
+    gy, gx = GRID
+    return np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
+
+
+def _coef(rng):
+    """``C_0``, ``C_1``, ``C_2`` (3, G, I): smooth in the position, ``C_0`` with a strong
+    first PSF coefficient (every PSF's norm well away from 0)."""
+    u = _nodes() / 255.0 - 0.5
+    feats = np.column_stack([np.ones(len(u)), u, u ** 2])  # (G, 5)
+    coef = np.einsum("gf,dfi->dgi", feats, rng.standard_normal((3, 5, N_I)))
+    coef[0, :, 0] += 6.0
+    coef[2] *= 0.5
+    return coef
+
+
+def _fields(coef, thetas):
+    t = np.atleast_2d(thetas) @ plane_design(_nodes(), SHAPE).T  # (K, G)
+    return sum(t[..., None] ** d * coef[d][None] for d in range(3))
+
+
+def _thetas(rng, k):
+    return np.column_stack([rng.uniform(-1, 1, k), rng.uniform(-0.6, 0.6, (k, 2))])
+
+
+def _beads(field, rng, n=5, sd=0.0, amplitude=None):
+    centers = rng.uniform(20, 235, (n, 2))
+    c = bilinear(GRID, centers) @ field
+    g = np.ones(n) if amplitude is None else amplitude
+    c = c * g[:, None] + sd * rng.standard_normal(c.shape)
+    return c, np.full(n, sd if sd else 1e-9), centers
+
+
+@pytest.fixture(scope="module")
+def known():
+    rng = np.random.default_rng(0)
+    coef = _coef(rng)
+    thetas = _thetas(rng, 10)
+    return coef, thetas, _fields(coef, thetas)
+
+
+def test_the_curve_learnt_from_noise_free_fields_holds_them(known):
+    """Fields on a quadratic curve: the learnt curve (its own gauge of ``theta``) fits
+    each of them, and the miss measured by leaving each out is that of a field the
+    others' curve holds: both nil but for the learning's convergence (its squared
+    residual falling by less than a millionth of itself; it reaches 1e-11)."""
+    coef, thetas, fields = known
+    curve = build_curve(fields, GRID, SHAPE, np.eye(N_I))
+    spread = np.sqrt(((fields - fields.mean(axis=0)) ** 2).sum() / (fields ** 2).sum())
+    for k, field in enumerate(fields):
+        fit = curve.field(curve.eta(curve.thetas[k]))
+        assert relative_field_error(fit, field) < 1e-6 * spread
+    assert np.trace(curve.frame.miss_cov) < 1e-12 * np.mean((fields - fields.mean(0)) ** 2)
+
+
+def test_the_linearised_model_is_the_curve_and_its_derivative(known):
+    coef, thetas, fields = known
+    curve = build_curve(fields, GRID, SHAPE, np.eye(N_I), miss=False)
+    eta = np.array([0.3, -0.5, 0.8])
+    lines = curve.linearized(eta)
+    np.testing.assert_allclose(lines.field(eta), curve.field(eta), rtol=1e-12, atol=1e-12)
+    h = 1e-5
+    for j in range(3):
+        step = np.zeros(3)
+        step[j] = h
+        numeric = (curve.field(eta + step) - curve.field(eta - step)) / (2 * h)
+        # a quadratic in eta: the central difference is exact up to round-off
+        np.testing.assert_allclose(lines.directions[j], numeric, rtol=1e-6, atol=1e-6)
+
+
+def test_five_noise_free_beads_give_an_unseen_field(known):
+    """A condition between those learnt: five noise-free beads of unequal amplitude give
+    its field everywhere and the amplitudes, up to the prior's pull (the beads' noise
+    over the prior's spread, squared: nil) and the Gauss-Newton's stop (a step below
+    1e-8 of the prior's spread; it reaches 6e-7)."""
+    coef, thetas, fields = known
+    curve = build_curve(fields, GRID, SHAPE, np.eye(N_I), miss=False)
+    rng = np.random.default_rng(1)
+    truth = _fields(coef, np.array([0.2, -0.3, 0.25]))[0]
+    g = np.array([0.8, 1.0, 1.3, 1.1, 0.9])
+    c, sd, centers = _beads(truth, rng, amplitude=g)
+    lines, (field, spread, fit) = identify_any(curve, c, sd, centers, krige=False)
+    assert relative_field_error(field, truth) < 1e-5
+    np.testing.assert_allclose(fit.amplitudes, g, rtol=1e-5)
+    assert spread.shape == (len(_nodes()),) and np.all(spread >= 0)
+
+
+def test_the_choice_takes_the_curve_for_a_curved_family_and_lines_for_a_flat_one():
+    """Twelve fields on a curve, beads of noise 0.01: the curve's three numbers identify
+    a left-out image better than any number of lines; fields on three lines keep the
+    lines (their curve's best fit misses them)."""
+    rng = np.random.default_rng(2)
+    coef = _coef(rng)
+    thetas = _thetas(rng, 12)
+    fields = _fields(coef, thetas)
+    beads = [_as_beads(f, rng) for f in fields]
+    out = choose_dimensions(fields, beads, GRID, SHAPE, np.eye(N_I))
+    assert out["kind"] == "curve" and out["n_directions"] == 1
+    assert len(out["curve"]["thetas"]) == 12
+    lines = min(r["error"] for r in out["table"] if "curve" not in r)
+    curved = [r["error"] for r in out["table"] if "curve" in r][0]
+    assert curved < 0.5 * lines
+
+    flat = build_model(fields[:4], 3, GRID, SHAPE, np.eye(N_I), miss=False)
+    z = rng.standard_normal((12, 3)) * 2.0
+    straight = np.array([flat.field(zk) for zk in z])
+    out = choose_dimensions(straight, [_as_beads(f, rng) for f in straight], GRID, SHAPE,
+                            np.eye(N_I))
+    assert out["kind"] == "lines" and "curve" not in out
+
+
+def _as_beads(field, rng):
+    c, sd, centers = _beads(field, rng, n=30, sd=0.01)
+    return Beads(centers, c, sd)
+
+
+def test_a_curve_is_a_model_identify_any_accepts():
+    rng = np.random.default_rng(3)
+    coef = _coef(rng)
+    fields = _fields(coef, _thetas(rng, 8))
+    curve = build_curve(fields, GRID, SHAPE, np.eye(N_I))
+    assert isinstance(curve, Curve) and curve.degree == 2
+    c, sd, centers = _beads(fields[3], rng, sd=0.01)
+    lines, (field, spread, fit) = identify_any(curve, c, sd, centers)
+    assert lines.n_directions == 3 and field.shape == fields[3].shape
+    assert np.all(np.isfinite(field)) and np.all(np.isfinite(spread))
