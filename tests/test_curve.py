@@ -144,3 +144,20 @@ def test_a_curve_is_a_model_identify_any_accepts():
     lines, (field, spread, fit) = identify_any(curve, c, sd, centers)
     assert lines.n_directions == 3 and field.shape == fields[3].shape
     assert np.all(np.isfinite(field)) and np.all(np.isfinite(spread))
+
+
+def test_each_bead_is_weighed_by_its_noise_and_the_family_miss(known):
+    """A bead's whitener is the inverse square root of its noise's variance plus the
+    family's miss there, spread over the coefficients and weighed by ``F``."""
+    from dataclasses import replace
+
+    coef, thetas, fields = known
+    curve = build_curve(fields, GRID, SHAPE, np.eye(N_I), miss=False)
+    cov = np.diag(np.arange(1.0, N_I + 1)) * 1e-4
+    curve = replace(curve, frame=replace(curve.frame, miss_cov=cov), miss_factor=3.0)
+    sd = np.array([0.01, 0.02])
+    inv = curve.bead_whiteners(sd, np.array([[100.0, 100.0], [30.0, 200.0]]))
+    expected = sd ** 2 + 3.0 * np.trace(cov) / N_I  # no miss scale: 1 everywhere
+    for p in range(2):
+        np.testing.assert_allclose(np.linalg.inv(inv[p].T @ inv[p]),
+                                   expected[p] * np.eye(N_I), rtol=1e-12)

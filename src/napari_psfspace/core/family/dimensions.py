@@ -62,7 +62,10 @@ PLANAR_SCALE = 1.0
 #: Alternations of each fit of the choice (each compares ``L``'s on the same beads: the
 #: amplitudes' last digits change no choice).
 CHOICE_ITERATIONS = 10
-#: Alternations of a left-out image's curve, from the whole family's ``theta``.
+#: The weights of the family's miss in a clicked bead's residual on a curve tried
+#: (:meth:`.curve.Curve.bead_whiteners`); the one of least left-out error is kept.
+MISS_FACTORS = (1.0, 3.0, 10.0, 30.0)
+#: Steps of a left-out image's curve, from the whole family's ``theta``.
 CURVE_LEFT_OUT_ITERATIONS = 5
 #: Quantiles of the ratio of actual to predicted error that bound the reported band.
 BAND_QUANTILES = (0.05, 0.95)
@@ -257,23 +260,15 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     kind = "lines"
     if curve is not None:
         table.append({"n": 1, "planar": 1, "curve": curve["degree"],
+                      "miss_factor": curve["miss_factor"],
                       "error": round(float(curve["error"]), 6)})
         if curve["error"] < mean[best]:
             kind = "curve"
 
-    if kind == "curve":  # the miss of each model from the others' misses
-        gy, gx = grid
-        residuals = curve_misses(fields, np.asarray(curve["thetas"]), np.stack(
-            np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2), shape, gram,
-            degree=curve["degree"])
-
     def model_of(j):
-        rest = np.arange(len(fields)) != j
         if kind == "curve":
-            return build_curve(fields[rest], grid, shape, gram,
-                               thetas=np.asarray(curve["left_out"][j]),
-                               residuals=residuals[rest], degree=curve["degree"])
-        return build_model(fields[rest], n, grid, shape, gram, n_planar=m)
+            return curve["left_out"][j]
+        return build_model(np.delete(fields, j, axis=0), n, grid, shape, gram, n_planar=m)
 
     band = spread_band(fields, beads, usable, model_of, seed=seed,
                        fits=curve["fits"] if kind == "curve" else None)
@@ -283,7 +278,8 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
                  f"its beads ({N_DRAWS} draws)",
            "table": table, "band": band}
     if kind == "curve":
-        out["curve"] = {"degree": curve["degree"], "thetas": curve["thetas"]}
+        out["curve"] = {"degree": curve["degree"], "thetas": curve["thetas"],
+                        "miss_factor": curve["miss_factor"]}
     return out
 
 
@@ -291,30 +287,44 @@ def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
                   ) -> dict | None:
     """The curve's (:mod:`.curve`) left-out identifications as :func:`choose_dimensions`
     makes the lines': each image left out, the curve learnt from the others (from the
-    whole family's ``theta``, :data:`CURVE_LEFT_OUT_ITERATIONS` alternations), the image
-    identified from the same draws of its beads. None below :data:`.curve.MIN_IMAGES`
-    images besides the one left out."""
+    whole family's ``theta``, :data:`CURVE_LEFT_OUT_ITERATIONS` steps; its miss that of
+    the others' residuals about the whole family's curve, each left out), the image
+    identified from the same draws of its beads (as an image is, weighing each bead by
+    its noise and the miss). None below :data:`.curve.MIN_IMAGES` images besides the one
+    left out."""
     k = len(fields)
     if k - 1 < MIN_IMAGES:
         return None
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     _, thetas = learn_thetas(fields, nodes, shape, gram)
+    residuals = curve_misses(fields, thetas, nodes, shape, gram)
     white = whitener(gram).T
-    errors, left_out, fits = [], {}, {}
+    errors, left_out, fits = {}, {}, {}
     for j in usable:
         rest = np.arange(k) != j
-        _, left_out[j] = learn_thetas(fields[rest], nodes, shape, gram, thetas=thetas[rest],
-                                      iterations=CURVE_LEFT_OUT_ITERATIONS)
-        curve = build_curve(fields[rest], grid, shape, gram, thetas=left_out[j], miss=False)
+        _, loo = learn_thetas(fields[rest], nodes, shape, gram, thetas=thetas[rest],
+                              iterations=CURVE_LEFT_OUT_ITERATIONS)
+        left_out[j] = build_curve(fields[rest], grid, shape, gram, thetas=loo,
+                                  residuals=residuals[rest])
         b = beads[j]
         for d, pick in enumerate(_draws(b, seed + j)):
-            model, (field, _, fits[j, d]) = identify_any(
-                curve, b.coefficients[pick], b.sd[pick], b.centers[pick], krige=False,
-                spread=False)
-            errors.append(relative_field_error(field @ white, fields[j] @ white))
-    return {"degree": int(curve.degree), "error": float(np.mean(errors)),
-            "thetas": thetas.tolist(), "left_out": left_out, "fits": fits}
+            start = None
+            for f, factor in enumerate(MISS_FACTORS):
+                # each weight's fit from the last one's: near it, one start does
+                curve = replace(left_out[j], miss_factor=factor)
+                model, (field, _, fits[f, j, d]) = identify_any(
+                    curve, b.coefficients[pick], b.sd[pick], b.centers[pick], krige=False,
+                    spread=False, start=start)
+                start = fits[f, j, d].z
+                errors.setdefault(f, []).append(
+                    relative_field_error(field @ white, fields[j] @ white))
+    best = min(errors, key=lambda f: np.mean(errors[f]))
+    factor = MISS_FACTORS[best]
+    return {"degree": int(left_out[usable[0]].degree), "error": float(np.mean(errors[best])),
+            "miss_factor": factor, "thetas": thetas.tolist(),
+            "left_out": {j: replace(c, miss_factor=factor) for j, c in left_out.items()},
+            "fits": {(j, d): fit for (f, j, d), fit in fits.items() if f == best}}
 
 
 def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int],
@@ -372,7 +382,8 @@ def family_model(family) -> Model | Curve:
         if curve is not None:
             cache["model"] = build_curve(fields, family.grid, family.shape, flat @ flat.T,
                                          thetas=np.asarray(curve["thetas"], np.float64),
-                                         degree=int(curve["degree"]))
+                                         degree=int(curve["degree"]),
+                                         miss_factor=float(curve.get("miss_factor", 1.0)))
             return cache["model"]
         n = dims.get("n_directions")
         if n is None:
