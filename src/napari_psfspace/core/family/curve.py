@@ -291,9 +291,8 @@ class Curve:
 
         Spread evenly, not as ``C_R``: the family's miss lies mostly along the
         directions its fields differ in, the very ones the three numbers are read from,
-        and weighing them down leaves those numbers to the rest (on the identification
-        benches the full ``C_R`` gave 1.47 times the image's own error where the even
-        spread gave 1.33 and ``F = 10`` 1.21). ``F`` is chosen with the curve by
+        and weighing them down leaves those numbers to the rest (the identification
+        benches measure it the worse). ``F`` is chosen with the curve by
         identifying the family's own images, each left out (:mod:`.dimensions`): a
         single bead strays from its image's field by more than that field strays from
         its family's curve (its centring, its background), and the choice measures by
