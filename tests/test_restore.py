@@ -432,6 +432,34 @@ def test_cli_deblur_with_a_subspace_and_clicked_beads(family, tmp_path):
     assert main(["deblur", str(image), "--subspace", str(model), "-o", str(out), "-q"]) == 2
 
 
+def test_a_saved_family_identifies_as_the_one_learnt(family, tmp_path):
+    """The family's model (its curve or its lines, ``metadata["dimensions"]``) is
+    rebuilt from the file: the same beads give the same operator, bit for bit but for
+    the model's rebuild (the same arithmetic on the same arrays)."""
+    from napari_psfspace.core.family.dimensions import family_model
+    from napari_psfspace.core.family.result import OperatorFamily
+
+    sub, r, new, truths = family
+    path = tmp_path / "family.npz"
+    sub.save(path)
+    back = OperatorFamily.load(path)
+    dims = sub.metadata["dimensions"]
+    assert back.metadata["dimensions"]["kind"] == dims["kind"]
+    model, again = family_model(sub), family_model(back)
+    assert type(model) is type(again)
+    if dims["kind"] == "curve":
+        np.testing.assert_array_equal(again.thetas, model.thetas)
+        assert again.miss_factor == model.miss_factor == dims["curve"]["miss_factor"]
+    inner = truths[1].positions[(truths[1].positions.min(axis=1) > 2 * r)
+                                & (truths[1].positions.max(axis=1) < 384 - 2 * r)][:5]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", IdentificationWarning)
+        a = identify_operator(new[1], sub, beads=inner)
+        b = identify_operator(new[1], back, beads=inner)
+    assert a.metadata["identification"]["kind"] == dims["kind"]
+    np.testing.assert_array_equal(b.coefficients, a.coefficients)
+
+
 def test_points_csv_forms(tmp_path):
     from napari_psfspace.io import read_points_csv
 

@@ -44,9 +44,9 @@ MIN_IMAGES = DEGREE + 3
 #: :data:`LEARN_TOL` of itself.
 LEARN_ITERATIONS = 50
 LEARN_TOL = 1e-6
-#: Gauss-Newton steps of one image's ``theta`` given the fields (each alternation, and
-#: a left-out image's fit).
-THETA_STEPS = 5
+#: Gauss-Newton steps of one field's ``theta`` given the ``C_d`` (:func:`theta_of`: a
+#: field left out, fitted by the others' curve).
+THETA_STEPS = 10
 #: The prior of an image's ``theta``: the family's spread of them, its standard
 #: deviation scaled by this (images beyond the conditions learnt are expected).
 PRIOR_SCALE = 2.0
@@ -408,7 +408,7 @@ def curve_misses(fields: np.ndarray, thetas: np.ndarray, nodes: np.ndarray, shap
         start = thetas[rest][int(np.argmin(
             [((fw[j] - np.einsum("gd,gdi->gi", _powers(planes @ th, degree), coef)) ** 2
               ).sum() for th in thetas[rest]]))]
-        th = theta_of(fw[j], coef, planes, start, steps=2 * THETA_STEPS)
+        th = theta_of(fw[j], coef, planes, start)
         out[j] = fw[j] - np.einsum("gd,gdi->gi", _powers(planes @ th, degree), coef)
     return out @ np.linalg.inv(white)
 
