@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..family.coordinates import Model, design, fit_coordinates, krige_miss, whitened
+from ..family.curve import Curve
 
 #: The score above which a clicked bead is left out. On simulated images from three
 #: optics codes (``bench/bench_bead_check.py``), single beads judged in sets of five
@@ -114,7 +115,8 @@ def _expected(model: Model, n_i: int, noise: float, a_p: np.ndarray, cov: np.nda
     return n_i * noise ** 2 + miss_var + float(np.trace(model.gram @ a_p @ cov @ a_p.T))
 
 
-def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
+def leave_one_out(model: Model | Curve, c: np.ndarray, sd: np.ndarray,
+                  centers: np.ndarray, *,
                   n_directions: int | None = None,
                   amplitude_range: tuple[float, float] = (0.5, 2.0)
                   ) -> tuple[np.ndarray, np.ndarray]:
@@ -131,6 +133,8 @@ def leave_one_out(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarr
     c = np.asarray(c, np.float64)
     sd = np.asarray(sd, np.float64)
     n_p, n_i = c.shape
+    if isinstance(model, Curve):  # judged on the curve's lines at these beads' fit
+        model, _ = model.fit(c, sd, centers, amplitude_range=amplitude_range)
     at = design(model, centers)
     if n_p > MAX_KRIGED_CHECK:
         return _downdated(model, c, sd, centers, at, n_directions, amplitude_range)
@@ -195,7 +199,7 @@ def _downdated(model, c, sd, centers, at, n_directions, amplitude_range):
     return scores, rest_scores
 
 
-def check_beads(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
+def check_beads(model: Model | Curve, c: np.ndarray, sd: np.ndarray, centers: np.ndarray, *,
                 shapes: np.ndarray | None = None, n_directions: int | None = None,
                 amplitude_range: tuple[float, float] = (0.5, 2.0),
                 outlier: float = OUTLIER, shape_outlier: float = SHAPE_OUTLIER
@@ -204,8 +208,9 @@ def check_beads(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndarray
 
     Parameters
     ----------
-    model : Model
-        The family's few-dimensional model.
+    model : Model or Curve
+        The family's few-dimensional model (a curve is judged on its lines at the fit
+        of the beads judged).
     c : ndarray of shape (P, I)
         The beads' coefficients on the family's PSF basis.
     sd : ndarray of shape (P,)

@@ -312,10 +312,7 @@ def identify_operator(
     shapes = shape_scores(patches.psf, c, family.basis, patches.noise / patches.flux,
                           bump_window(patches.size, patches.r, patches.r_ext))
     if prior:
-        model = family_model(family)
-        if isinstance(model, Curve):  # judged on the curve's lines at the beads' fit
-            model, _ = model.fit(c, sd, patches.centers, amplitude_range=amplitude_range)
-        check = check_beads(model, c, sd, patches.centers, shapes=shapes,
+        check = check_beads(family_model(family), c, sd, patches.centers, shapes=shapes,
                             amplitude_range=amplitude_range)
         left, scores = check.left_out, check.scores
         if left:
