@@ -71,8 +71,9 @@ def tree_changed_beside_results(status: str | None = None) -> bool:
     if status is None:
         status = _git("status", "--porcelain", "--untracked-files=no")
     own = ("bench/results/", "bench/RESULTS.md")
-    paths = [line[3:].split(" -> ")[-1].strip('"') for line in status.splitlines()
-             if line.strip()]
+    # "XY PATH" lines; the first one's leading blank may be stripped with the output's
+    paths = [line.split(maxsplit=1)[1].split(" -> ")[-1].strip('"')
+             for line in status.splitlines() if len(line.split(maxsplit=1)) == 2]
     return any(not p.startswith(own) for p in paths)
 
 

@@ -133,6 +133,10 @@ def test_a_result_saved_before_leaves_the_tree_unchanged():
     assert not run.tree_changed_beside_results("")
     assert not run.tree_changed_beside_results(
         " M bench/results/identify.json\n M bench/RESULTS.md\n")
+    # as the runner reads it: git's output stripped, the first line's blank with it
+    assert not run.tree_changed_beside_results(
+        "M bench/results/identify.json\n M bench/results/deblur.json")
+    assert run.tree_changed_beside_results("M src/napari_psfspace/__init__.py")
     assert run.tree_changed_beside_results(
         " M bench/results/identify.json\n M src/napari_psfspace/core/restore/identify.py\n")
     assert run.tree_changed_beside_results("R  bench/results/a.json -> bench/bench_a.py\n")
