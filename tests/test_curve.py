@@ -4,6 +4,7 @@ back, and an image's field identified from five of its beads."""
 import numpy as np
 import pytest
 
+from field_grid import GRID, N_I, SHAPE, nodes
 from napari_psfspace.core.family.coordinates import bilinear, relative_field_error
 from napari_psfspace.core.family.curve import (
     Curve,
@@ -13,20 +14,11 @@ from napari_psfspace.core.family.curve import (
 )
 from napari_psfspace.core.family.dimensions import Beads, build_model, choose_dimensions
 
-SHAPE = (256, 256)
-GRID = (np.linspace(0, 255, 9), np.linspace(0, 255, 9))
-N_I = 6
-
-
-def _nodes():
-    gy, gx = GRID
-    return np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-
 
 def _coef(rng):
     """``C_0``, ``C_1``, ``C_2`` (3, G, I): smooth in the position, ``C_0`` with a strong
     first PSF coefficient (every PSF's norm well away from 0)."""
-    u = _nodes() / 255.0 - 0.5
+    u = nodes() / 255.0 - 0.5
     feats = np.column_stack([np.ones(len(u)), u, u ** 2])  # (G, 5)
     coef = np.einsum("gf,dfi->dgi", feats, rng.standard_normal((3, 5, N_I)))
     coef[0, :, 0] += 6.0
@@ -35,7 +27,7 @@ def _coef(rng):
 
 
 def _fields(coef, thetas):
-    t = np.atleast_2d(thetas) @ plane_design(_nodes(), SHAPE).T  # (K, G)
+    t = np.atleast_2d(thetas) @ plane_design(nodes(), SHAPE).T  # (K, G)
     return sum(t[..., None] ** d * coef[d][None] for d in range(3))
 
 
@@ -102,7 +94,7 @@ def test_five_noise_free_beads_give_an_unseen_field(known):
     lines, (field, spread, fit) = identify_any(curve, c, sd, centers, krige=False)
     assert relative_field_error(field, truth) < 1e-5
     np.testing.assert_allclose(fit.amplitudes, g, rtol=1e-5)
-    assert spread.shape == (len(_nodes()),) and np.all(spread >= 0)
+    assert spread.shape == (len(nodes()),) and np.all(spread >= 0)
 
 
 def test_the_choice_takes_the_curve_for_a_curved_family_and_lines_for_a_flat_one():

@@ -5,6 +5,8 @@ import numpy as np
 import pytest
 from scipy.linalg import cho_factor, cho_solve
 
+from field_grid import GRID, N_I, SHAPE
+from field_grid import nodes as _nodes
 from napari_psfspace.core.family.coordinates import (
     CoordinateFit,
     Model,
@@ -20,15 +22,6 @@ from napari_psfspace.core.family.dimensions import (
     principal,
 )
 from napari_psfspace.core.restore.bead_check import OUTLIER, check_beads
-
-SHAPE = (256, 256)
-GRID = (np.linspace(0, 255, 9), np.linspace(0, 255, 9))
-N_I = 6
-
-
-def _nodes():
-    gy, gx = GRID
-    return np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
 def _smooth_fields(rng, n, scale=1.0):
