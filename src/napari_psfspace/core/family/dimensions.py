@@ -313,7 +313,7 @@ def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
             for f, factor in enumerate(MISS_FACTORS):
                 # each weight's fit from the last one's: near it, one start does
                 curve = replace(left_out[j], miss_factor=factor)
-                model, (field, _, fits[f, j, d]) = identify_any(
+                _, (field, _, fits[f, j, d]) = identify_any(
                     curve, b.coefficients[pick], b.sd[pick], b.centers[pick], krige=False,
                     spread=False, start=start)
                 start = fits[f, j, d].z
