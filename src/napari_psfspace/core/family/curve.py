@@ -55,7 +55,7 @@ N_STARTS = 3
 #: Gauss-Newton steps of the identification at most; it stops once ``eta`` (``theta``
 #: in units of its prior's spread) changes by less than :data:`FIT_TOL`.
 FIT_STEPS = 50
-FIT_TOL = 1e-8
+FIT_TOL = 1e-4
 
 
 def plane_design(nodes: np.ndarray, shape) -> np.ndarray:
@@ -230,40 +230,45 @@ class Curve:
         white = whitener(self.frame.gram)
         inv = self.bead_whiteners(sd, centers)  # (P, I, I)
         cw = c @ white.T
+        cv = np.einsum("pij,pj->pi", inv, cw)  # the beads' coefficients, bead-whitened
         lo, hi = amplitude_range
 
+        # bead whitener times basis whitener, the rows of one bead's whitened residual
+        inv_white = np.einsum("pij,jk->pik", inv, white)
+
         def state(eta, g=None):
-            """The whitened fit (P, I), the amplitudes (fitted when None) and the
-            objective."""
-            fw = at(eta)[1] @ white.T
+            """The bead-whitened fit (P, I) and its derivatives along ``eta``
+            (P, I, 3), the amplitudes (fitted when None) and the objective."""
+            (_, dirs), field = at(eta)
+            fw = np.einsum("pij,pj->pi", inv_white, field)
             if g is None:
                 mm = np.maximum((fw * fw).sum(axis=1), 1e-300)
-                g = np.clip((fw * cw).sum(axis=1) / mm, lo, hi)
-            res = np.einsum("pij,pj->pi", inv, cw - g[:, None] * fw)
-            return fw, g, float((res * res).sum() + np.dot(eta, eta))
+                g = np.clip((fw * cv).sum(axis=1) / mm, lo, hi)
+            res = cv - g[:, None] * fw
+            return (fw, np.einsum("pij,pjl->pil", inv_white, dirs)), g, float(
+                (res * res).sum() + np.dot(eta, eta))
 
         def solve(eta):
-            fw, g, cost = state(eta)
+            (fw, dw), g, cost = state(eta)
             for _ in range(FIT_STEPS):
-                dirs = np.einsum("ji,pil->pjl", white, at(eta)[0][1])  # (P, I, 3)
-                res = np.einsum("pij,pj->pi", inv, cw - g[:, None] * fw)
+                res = cv - g[:, None] * fw
                 jac = np.zeros((n_p, cw.shape[1], 3 + n_p))
-                jac[:, :, :3] = np.einsum("pij,pjl->pil", inv, dirs) * g[:, None, None]
-                jac[np.arange(n_p), :, 3 + np.arange(n_p)] = np.einsum("pij,pj->pi", inv, fw)
+                jac[:, :, :3] = dw * g[:, None, None]
+                jac[np.arange(n_p), :, 3 + np.arange(n_p)] = fw
                 # the beads' rows and the prior's (unit normal on eta), by least squares
                 jac = np.vstack([jac.reshape(-1, 3 + n_p), np.eye(3, 3 + n_p)])
                 step = np.linalg.lstsq(jac, np.r_[res.reshape(-1), -eta], rcond=None)[0]
                 for _ in range(20):
                     new_eta = eta + step[:3]
                     new_g = np.clip(g + step[3:], lo, hi)
-                    new_fw, _, new_cost = state(new_eta, new_g)
+                    new_w, _, new_cost = state(new_eta, new_g)
                     if new_cost <= cost:
                         break
                     step = step / 2
                 else:
                     break
                 done = float(np.max(np.abs(new_eta - eta))) < FIT_TOL
-                eta, g, fw, cost = new_eta, new_g, new_fw, new_cost
+                eta, g, (fw, dw), cost = new_eta, new_g, new_w, new_cost
                 if done:
                     break
             return cost, eta, g

@@ -452,6 +452,7 @@ def iter_estimate_family(
     # images blend in their own estimate does): it is learnt beside the judgement's tasks
     final = dask.delayed(_learn)(used, shape, dimensions=True, **options)
     sub = None
+    own_all: dict = {}  # the images' own estimates from all their beads, by index
     if holdout:
         # the error of each image's operator on beads of its own (about a fifth, spread
         # over the field) that the family never saw
@@ -471,14 +472,21 @@ def iter_estimate_family(
             # too few beads left to learn the family without the held-out ones: no
             # judgement; every image keeps the family (the paper's model)
             held, judged = {}, []
-        tasks = [dask.delayed(_learn)(train, shape, **options)] + [
+        # each judged image's own estimate from all its beads too, which the image blends
+        # in if the judgement says so: learnt beside the family's choice of dimensions
+        # (the longest task) rather than after it
+        tasks = [final, dask.delayed(_learn)(train, shape, **options)] + [
             dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
                                        denoise=denoise, n_image=used[i].n_beads)
-            for i in judged]
-        trained, *owns, sub = (yield from wait_with_progress(
-            lambda: _compute([*tasks, final], client),
+            for i in judged] + [
+            dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
+                                       denoise=denoise) for i in judged]
+        sub, trained, *owns = (yield from wait_with_progress(
+            lambda: _compute(tasks, client),
             Progress("held-out", 0.6, "learning with and without the held-out beads"))
             ) if held else (None, None)
+        own_all = dict(zip(judged, owns[len(judged):], strict=True))
+        owns = owns[:len(judged)]
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
                                         f"held-out beads of {len(held)} images")
         own_train = dict(zip(judged, owns, strict=True))
@@ -489,17 +497,18 @@ def iter_estimate_family(
         yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged; "
                                         f"{n_own} blend in their own estimate")
     blended = [i for i, c in enumerate(choices) if c.weight < 1.0]
+    missing = [i for i in blended if i not in own_all]
     tasks = [dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
-                                        denoise=denoise) for i in blended]
+                                        denoise=denoise) for i in missing]
     if sub is None:
         tasks.insert(0, final)
     done = yield from wait_with_progress(
         lambda: _compute(tasks, client) if tasks else [],
         Progress("subspace", 0.8, f"learning from the {len(used)} images"))
     if sub is None:
-        sub, *owns = done
-    else:
-        owns = done
+        sub, *done = done
+    own_all.update(zip(missing, done, strict=True))
+    owns = [own_all[i] for i in blended]
     weights = np.ones(len(used))
     for i, own in zip(blended, owns, strict=True):
         if own is not None:
