@@ -140,6 +140,36 @@ def test_reduce_cone_respects_max_generators():
                   - mean / np.linalg.norm(mean)).max() < 1e-12
 
 
+def _greedy_every_angle(b, max_generators, angle_tol):
+    """The greedy reduced hull recomputing every vector's angle at each step (the
+    paper's rule as written): the reference of the lazy one."""
+    unit = b / np.linalg.norm(b, axis=1, keepdims=True)
+    mean = unit.mean(axis=0)
+    gens = [mean / np.linalg.norm(mean)]
+    while len(gens) < max_generators:
+        g = np.array(gens)
+        proj = np.array([nnls(g.T, u)[0] @ g for u in unit])
+        ang = np.arccos(np.clip(np.linalg.norm(proj, axis=1), -1, 1))
+        if ang.max() <= angle_tol:
+            break
+        gens.append(unit[int(np.argmax(ang))])
+    return np.array(gens)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_reduce_cone_picks_the_generators_of_recomputing_every_angle(seed):
+    # the lazy greedy skips vectors whose last angle is below the largest found: it must
+    # pick the same generators, in the same order, as recomputing every angle
+    rng = np.random.default_rng(seed)
+    n_i = 4 + 3 * seed
+    b = np.abs(rng.normal(size=(120, n_i))) + rng.normal(scale=0.3, size=(120, n_i))
+    for cap, tol in ((20, np.deg2rad(0.5)), (60, np.deg2rad(5.0))):
+        lazy = reduce_cone(b, max_generators=cap, angle_tol=tol).generators
+        every = _greedy_every_angle(b, cap, tol)
+        assert lazy.shape == every.shape
+        assert np.abs(lazy - every).max() < 1e-12
+
+
 def test_cone_project_and_angle():
     g, rng = _generators(6)
     cone = Cone(g)

@@ -103,6 +103,10 @@ def nonnegative_weights(a, g, *, max_iter: int = 2000, tol: float = 1e-7) -> np.
     return lam
 
 
+#: Vectors whose angle :func:`reduce_cone` recomputes at once.
+LAZY_CHUNK = 8
+
+
 @dataclass
 class Cone:
     """A polyhedral cone given by a few generators (rows, unit norm)."""
@@ -196,14 +200,26 @@ def reduce_cone(
     unit = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-300)
     mean = unit.mean(axis=0)
     gens = [mean / max(np.linalg.norm(mean), 1e-300)]
-    # a vector within the tolerance stays within it as the cone grows: only the others'
-    # angles are recomputed at each step
-    open_ = np.arange(len(unit))
+    # A vector's angle to the cone never grows as the cone grows, so its last angle
+    # bounds its next one: each step recomputes the vectors in decreasing order of their
+    # bound, a few at a time, until the largest angle found is at least every remaining
+    # bound (lazy greedy). The farthest vector, and whether any lies beyond the
+    # tolerance, are then exactly those of recomputing them all.
+    bound = np.full(len(unit), np.inf)
     while len(gens) < max_generators:
-        ang = Cone(np.array(gens)).angle(unit[open_])
-        far = ang > angle_tol
-        if not far.any():
+        cone = Cone(np.array(gens))
+        order = np.argsort(-bound, kind="stable")
+        best, far, done = -np.inf, -1, 0
+        while done < len(order) and bound[order[done]] > max(best, angle_tol):
+            part = order[done:done + LAZY_CHUNK]
+            part = part[bound[part] > max(best, angle_tol)]
+            bound[part] = cone.angle(unit[part])
+            top = int(np.argmax(bound[part]))
+            if bound[part[top]] > best:
+                best, far = float(bound[part[top]]), int(part[top])
+            done += LAZY_CHUNK
+        if best <= angle_tol:
             break
-        gens.append(unit[open_[int(np.argmax(ang))]])
-        open_ = open_[far]
+        gens.append(unit[far])
+        bound[far] = 0.0
     return Cone(np.array(gens))
