@@ -35,6 +35,7 @@ both capped.
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, replace
 
@@ -100,6 +101,22 @@ def _compute(tasks: list, client) -> list:
     # the main one (Cancel, wait_with_progress), dask's threads scheduler would otherwise
     # make a pool of Python's default size (cores + 4), oversubscribing the cores
     return list(dask.compute(*tasks, scheduler="threads", num_workers=dask_workers()))
+
+
+def _compute_first(first, rest: list, client) -> list:
+    """``[first, *rest]`` computed, ``first`` (the longest task) started at once.
+
+    dask's local threads scheduler orders independent tasks its own way and may start the
+    longest last, after every short one: locally ``first`` therefore runs in a thread of
+    its own while the others share the remaining workers (one at least)."""
+    if client is not None or dask_workers() < 2 or not rest:
+        return _compute([first, *rest], client)
+    import dask
+
+    with ThreadPoolExecutor(1) as pool:
+        head = pool.submit(dask.compute, first, scheduler="sync")
+        tail = list(dask.compute(*rest, scheduler="threads", num_workers=dask_workers() - 1))
+        return [head.result()[0], *tail]
 
 
 def _image_map(centers: np.ndarray, coef: np.ndarray, nodes: np.ndarray,
@@ -465,32 +482,35 @@ def iter_estimate_family(
                 held[i] = f.patches.subset(mask)
                 f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
             train.append(f)
-        # the family without the held-out beads and each image's own estimate from the
-        # same beads, side by side (dask tasks: threads, or the cluster's workers)
         judged = [i for i in range(len(used)) if i in held]
         if sum(f.n_beads for f in train) < min_beads_for(int(n_psf)):
             # too few beads left to learn the family without the held-out ones: no
             # judgement; every image keeps the family (the paper's model)
             held, judged = {}, []
-        # each judged image's own estimate from all its beads too, which the image blends
-        # in if the judgement says so: learnt beside the family's choice of dimensions
-        # (the longest task) rather than after it
-        tasks = [final, dask.delayed(_learn)(train, shape, **options)] + [
-            dask.delayed(own_estimate)(train[i].patches, shape, grid_step=grid_step,
-                                       denoise=denoise, n_image=used[i].n_beads)
-            for i in judged] + [
+        # the family without the held-out beads, each image's own estimate from the same
+        # beads and the judgement between them on the held-out beads; and each judged
+        # image's own estimate from all its beads, which it blends in if the judgement
+        # says so: all beside the family's choice of dimensions (the longest task), as
+        # dask tasks (threads, or the cluster's workers)
+        trained = dask.delayed(_learn)(train, shape, **options)
+        own_train = {i: dask.delayed(own_estimate)(train[i].patches, shape,
+                                                   grid_step=grid_step, denoise=denoise,
+                                                   n_image=used[i].n_beads)
+                     for i in judged}
+        tasks = [dask.delayed(choose)(trained, i, own_train.get(i), held.get(i))
+                 for i in range(len(used))] + [
             dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
                                        denoise=denoise) for i in judged]
-        sub, trained, *owns = (yield from wait_with_progress(
-            lambda: _compute(tasks, client),
-            Progress("held-out", 0.6, "learning with and without the held-out beads"))
-            ) if held else (None, None)
-        own_all = dict(zip(judged, owns[len(judged):], strict=True))
-        owns = owns[:len(judged)]
+        if held:
+            sub, *done = yield from wait_with_progress(
+                lambda: _compute_first(final, tasks, client),
+                Progress("held-out", 0.6, "learning with and without the held-out beads"))
+            choices = done[:len(used)]
+            own_all = dict(zip(judged, done[len(used):], strict=True))
+        else:  # no judgement: every image keeps the family
+            choices = [choose(None, i, None, None) for i in range(len(used))]
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
                                         f"held-out beads of {len(held)} images")
-        own_train = dict(zip(judged, owns, strict=True))
-        choices = [choose(trained, i, own_train.get(i), held.get(i)) for i in range(len(used))]
         heldout = [c.kept.summary() if c.kept is not None else {"n_beads": 0}
                    for c in choices]
         n_own = sum(c.weight < 1.0 for c in choices)
