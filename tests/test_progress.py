@@ -62,7 +62,7 @@ def test_a_family_compute_in_its_own_thread_uses_no_more_threads_than_cores():
     import dask
     from dask.system import CPU_COUNT
 
-    from napari_psfspace.core.family.estimate import _compute
+    from napari_psfspace.core.common.threads import compute_tasks as _compute
 
     def who(_):
         time.sleep(0.02)  # long enough for every worker of the pool to take a task

@@ -46,6 +46,35 @@ def dask_workers() -> int:
     return int(dask.config.get("num_workers", None) or CPU_COUNT)
 
 
+def compute_tasks(tasks: list, client) -> list:
+    """dask ``tasks`` computed: on ``client`` (a dask.distributed Client), else on the
+    local threads scheduler with :func:`dask_workers` threads."""
+    import dask
+
+    if client is not None:
+        return list(client.gather(client.compute(tasks)))
+    # the workers named (dask's setting, else the cores): called from a thread other than
+    # the main one (Cancel, wait_with_progress), dask's threads scheduler would otherwise
+    # make a pool of Python's default size (cores + 4), oversubscribing the cores
+    return list(dask.compute(*tasks, scheduler="threads", num_workers=dask_workers()))
+
+
+def compute_first(first, rest: list, client) -> list:
+    """``[first, *rest]`` computed, ``first`` (the longest task) started at once.
+
+    dask's local threads scheduler orders independent tasks its own way and may start the
+    longest last, after every short one: locally ``first`` therefore runs in a thread of
+    its own while the others share the remaining workers (one at least)."""
+    if client is not None or dask_workers() < 2 or not rest:
+        return compute_tasks([first, *rest], client)
+    import dask
+
+    with ThreadPoolExecutor(1) as pool:
+        head = pool.submit(dask.compute, first, scheduler="sync")
+        tail = list(dask.compute(*rest, scheduler="threads", num_workers=dask_workers() - 1))
+        return [head.result()[0], *tail]
+
+
 def _blas_limit():
     """A context in which BLAS runs on :data:`BLAS_THREADS` threads (threadpoolctl; a
     no-op where it is missing or no limit is asked)."""

@@ -35,7 +35,6 @@ both capped.
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from collections.abc import Callable, Generator, Sequence
 from dataclasses import dataclass, replace
 
@@ -44,7 +43,7 @@ import numpy as np
 from ..beads.patches import R_EXT_FACTOR, Patches, patch_size
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress
-from ..common.threads import blas_threads, dask_workers
+from ..common.threads import blas_threads, compute_first, compute_tasks
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
@@ -90,33 +89,6 @@ def _items(images) -> list:
         raise ValueError("`images` must be a list of 2-D arrays or loaders, or a (K, H, W) "
                          f"stack; got {type(images).__name__}")
     return list(images)
-
-
-def _compute(tasks: list, client) -> list:
-    import dask
-
-    if client is not None:
-        return list(client.gather(client.compute(tasks)))
-    # the workers named (dask's setting, else the cores): called from a thread other than
-    # the main one (Cancel, wait_with_progress), dask's threads scheduler would otherwise
-    # make a pool of Python's default size (cores + 4), oversubscribing the cores
-    return list(dask.compute(*tasks, scheduler="threads", num_workers=dask_workers()))
-
-
-def _compute_first(first, rest: list, client) -> list:
-    """``[first, *rest]`` computed, ``first`` (the longest task) started at once.
-
-    dask's local threads scheduler orders independent tasks its own way and may start the
-    longest last, after every short one: locally ``first`` therefore runs in a thread of
-    its own while the others share the remaining workers (one at least)."""
-    if client is not None or dask_workers() < 2 or not rest:
-        return _compute([first, *rest], client)
-    import dask
-
-    with ThreadPoolExecutor(1) as pool:
-        head = pool.submit(dask.compute, first, scheduler="sync")
-        tail = list(dask.compute(*rest, scheduler="threads", num_workers=dask_workers() - 1))
-        return [head.result()[0], *tail]
 
 
 def _image_map(centers: np.ndarray, coef: np.ndarray, nodes: np.ndarray,
@@ -407,7 +379,7 @@ def iter_estimate_family(
     step = max(1, int(chunk))
     for start in range(0, len(tasks), step):
         found += yield from wait_with_progress(
-            lambda part=tasks[start:start + step]: _compute(part, client),
+            lambda part=tasks[start:start + step]: compute_tasks(part, client),
             Progress("patches", 0.6 * len(found) / len(tasks),
                      f"{len(found)} of {len(tasks)} images: beads being extracted"))
         yield Progress("patches", 0.6 * len(found) / len(tasks),
@@ -503,7 +475,7 @@ def iter_estimate_family(
                                        denoise=denoise) for i in judged]
         if held:
             sub, *done = yield from wait_with_progress(
-                lambda: _compute_first(final, tasks, client),
+                lambda: compute_first(final, tasks, client),
                 Progress("held-out", 0.6, "learning with and without the held-out beads"))
             choices = done[:len(used)]
             own_all = dict(zip(judged, done[len(used):], strict=True))
@@ -523,7 +495,7 @@ def iter_estimate_family(
     if sub is None:
         tasks.insert(0, final)
     done = yield from wait_with_progress(
-        lambda: _compute(tasks, client) if tasks else [],
+        lambda: compute_tasks(tasks, client) if tasks else [],
         Progress("subspace", 0.8, f"learning from the {len(used)} images"))
     if sub is None:
         sub, *done = done
