@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Generator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -409,6 +410,24 @@ def iter_estimate_family(
             f"`n_psf` = {n_psf} needs at least {min_beads_for(int(n_psf))} usable beads over "
             f"all images, got {n_total}: lower `n_psf` or use more beads")
 
+    # the error of each image's operator on beads of its own (about a fifth, spread over
+    # the field) that the family never saw; each judged image's own estimate from all its
+    # beads (blended in where the judgement says so) is started now, beside the size rule
+    held: dict[int, Patches] = {}
+    train: list[ImagePatches] = []
+    for i, f in enumerate(used):
+        mask = (split_holdout(f.patches.centers, shape, holdout)
+                if holdout and f.n_beads >= 5 else np.zeros(f.n_beads, bool))
+        if mask.any() and (~mask).any():
+            held[i] = f.patches.subset(mask)
+            f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
+        train.append(f)
+    early_judged = sorted(held)
+    early = ThreadPoolExecutor(1)
+    own_early = early.submit(compute_tasks, [
+        dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
+                                   denoise=denoise) for i in early_judged], client)
+    early.shutdown(wait=False)  # its thread ends with the task
     # I: the rank rule on the patches whitened by their noise, bounded by what the beads
     # support; beyond RULE_TRUSTED only as far as held-out beads confirm; J: the rule on the maps
     sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
@@ -421,12 +440,12 @@ def iter_estimate_family(
                     max(1, (sum(f.n_beads for f in used) - 2) // 2))
         sizes_meta["psf_size_by"] = "whitened rule"
         if n_psf > RULE_TRUSTED:  # beyond it, as far as the held-out beads confirm
-            held = confirmed_size([f.patches.psf for f in used],
-                                  [f.patches.centers for f in used],
-                                  radial_distance(first.size) < first.r_ext, n_psf,
-                                  min_beads=MIN_BEADS_TPS)
+            confirmed = confirmed_size([f.patches.psf for f in used],
+                                       [f.patches.centers for f in used],
+                                       radial_distance(first.size) < first.r_ext, n_psf,
+                                       min_beads=MIN_BEADS_TPS)
             sizes_meta["psf_size_rule"] = int(n_psf)
-            n_psf = max(RULE_TRUSTED, min(n_psf, held))
+            n_psf = max(RULE_TRUSTED, min(n_psf, confirmed))
             sizes_meta["psf_size_by"] = "whitened rule, beyond 12 as held-out beads confirm"
         options["n_psf"] = n_psf
         if n_space is not None and n_space > len(found) * n_psf:
@@ -443,42 +462,29 @@ def iter_estimate_family(
     sub = None
     own_all: dict = {}  # the images' own estimates from all their beads, by index
     if holdout:
-        # the error of each image's operator on beads of its own (about a fifth, spread
-        # over the field) that the family never saw
-        held: dict[int, Patches] = {}
-        train: list[ImagePatches] = []
-        for i, f in enumerate(used):
-            mask = (split_holdout(f.patches.centers, shape, holdout)
-                    if f.n_beads >= 5 else np.zeros(f.n_beads, bool))
-            if mask.any() and (~mask).any():
-                held[i] = f.patches.subset(mask)
-                f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
-            train.append(f)
-        judged = [i for i in range(len(used)) if i in held]
+        judged = list(early_judged)
         if sum(f.n_beads for f in train) < min_beads_for(int(n_psf)):
             # too few beads left to learn the family without the held-out ones: no
             # judgement; every image keeps the family (the paper's model)
             held, judged = {}, []
         # the family without the held-out beads, each image's own estimate from the same
-        # beads and the judgement between them on the held-out beads; and each judged
-        # image's own estimate from all its beads, which it blends in if the judgement
-        # says so: all beside the family's choice of dimensions (the longest task), as
-        # dask tasks (threads, or the cluster's workers)
+        # beads and the judgement between them on the held-out beads: all beside the
+        # family's choice of dimensions (the longest task), as dask tasks (threads, or
+        # the cluster's workers)
         trained = dask.delayed(_learn)(train, shape, **options)
         own_train = {i: dask.delayed(own_estimate)(train[i].patches, shape,
                                                    grid_step=grid_step, denoise=denoise,
                                                    n_image=used[i].n_beads)
                      for i in judged}
         tasks = [dask.delayed(choose)(trained, i, own_train.get(i), held.get(i))
-                 for i in range(len(used))] + [
-            dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
-                                       denoise=denoise) for i in judged]
+                 for i in range(len(used))]
         if held:
-            sub, *done = yield from wait_with_progress(
+            sub, *choices = yield from wait_with_progress(
                 lambda: compute_first(final, tasks, client),
                 Progress("held-out", 0.6, "learning with and without the held-out beads"))
-            choices = done[:len(used)]
-            own_all = dict(zip(judged, done[len(used):], strict=True))
+            own_all = dict(zip(early_judged, (yield from wait_with_progress(
+                own_early.result, Progress("held-out", 0.7, "own estimates from all beads"))),
+                strict=True))
         else:  # no judgement: every image keeps the family
             choices = [choose(None, i, None, None) for i in range(len(used))]
         yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
