@@ -153,23 +153,20 @@ def misses(fields: np.ndarray, n: int, n_planar: int = 0, nodes: np.ndarray | No
 
 
 def build_model(fields: np.ndarray, n: int, grid, shape, gram: np.ndarray, *,
-                n_planar: int = 0, miss: bool = True,
-                residuals: np.ndarray | None = None) -> Model:
+                n_planar: int = 0, miss: bool = True) -> Model:
     """The model of fields (K, G, I) with ``n`` directions, the first ``n_planar`` of them
     also varying as planes over the field (:func:`planar`), and the miss's covariance
-    (measured by leaving each field out, :func:`misses`; or modelled from the given
-    ``residuals``, (K', G, I); ``miss=False``: none)."""
+    (measured by leaving each field out; ``miss=False``: none)."""
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     mean, dirs, var = principal(fields, n)
     dirs, var = planar(mean, dirs, var, n_planar, nodes, shape)
     n_i = fields.shape[-1]
     cov, length, scale = np.zeros((n_i, n_i)), 1.0, None
-    if miss and residuals is None and len(fields) >= 3:
-        residuals = misses(fields, min(n, len(fields) - 2),
-                           min(n_planar, n, len(fields) - 2), nodes, shape)
-    if miss and residuals is not None:
-        cov, length, scale = miss_model(np.asarray(residuals, np.float64), nodes)
+    if miss and len(fields) >= 3:
+        cov, length, scale = miss_model(misses(fields, min(n, len(fields) - 2),
+                                               min(n_planar, n, len(fields) - 2), nodes,
+                                               shape), nodes)
     return Model((np.asarray(gy), np.asarray(gx)), tuple(shape), mean, dirs, var, cov,
                  length, np.asarray(gram, np.float64), scale)
 
@@ -271,17 +268,13 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         if curve["error"] < mean[best]:
             kind = "curve"
 
-    if kind == "lines":
-        # each left-out model's miss is that of the others' residuals about the whole
-        # family's model, each left out (as the curve's): K principal bases, not K^2
-        residuals = misses(fields, min(n, len(fields) - 2), min(m, n, len(fields) - 2),
-                           nodes, shape)
-
     def model_of(j):
         if kind == "curve":
             return curve["left_out"][j]
-        return build_model(np.delete(fields, j, axis=0), n, grid, shape, gram, n_planar=m,
-                           residuals=np.delete(residuals, j, axis=0))
+        # its miss measured without the image left out, as an image's family measures
+        # its own: the others' residuals about the whole family's lines would hold the
+        # left-out image's direction, a smaller miss and a wider band
+        return build_model(np.delete(fields, j, axis=0), n, grid, shape, gram, n_planar=m)
 
     band = spread_band(fields, beads, usable, model_of, seed=seed,
                        fits=curve["fits"] if kind == "curve" else None)
