@@ -65,8 +65,7 @@ CHOICE_ITERATIONS = 10
 #: The weights of the family's miss in a clicked bead's residual on a curve tried
 #: (:meth:`.curve.Curve.bead_whiteners`); the one of least left-out error is kept. A
 #: clicked bead strays from its image's field by several times the miss (its centring,
-#: its background), so the weights start at 10: on the identification benches' families
-#: lower ones never lowered the left-out error by more than a few parts in a thousand.
+#: its background), so the weights start at 10.
 MISS_FACTORS = (10.0, 30.0)
 #: Steps of a left-out image's curve, from the whole family's ``theta``.
 CURVE_LEFT_OUT_ITERATIONS = 5
