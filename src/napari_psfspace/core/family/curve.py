@@ -282,7 +282,7 @@ class Curve:
         model = self.linearized(eta)
         base, a = design(model, centers)
         fitted = base + a @ eta
-        rows = np.einsum("pij,jk,pkl->pil", inv, white, a) * g[:, None, None]
+        rows = np.einsum("pik,pkl->pil", inv_white, a) * g[:, None, None]
         rows = rows.reshape(-1, 3)
         cov = np.linalg.inv(rows.T @ rows + np.eye(3))  # given the amplitudes
         return model, CoordinateFit(eta, cov, g, fitted, c / g[:, None] - fitted, sd / g,
