@@ -11,8 +11,13 @@ from napari_psfspace.core.family.coordinates import (
     CoordinateFit,
     Model,
     fit_coordinates,
+    design,
     krige_miss,
     relative_field_error,
+    relative_field_errors,
+    solve_coordinates,
+    solve_nested,
+    whitened,
 )
 from napari_psfspace.core.family.dimensions import (
     Beads,
@@ -183,6 +188,42 @@ def test_relative_field_error_ignores_amplitude():
     assert relative_field_error(2.5 * f, f) < 1e-12
     other = f + 0.1 * _smooth_fields(rng, 1)[0]
     assert relative_field_error(other, f) > 1e-3
+
+
+def test_relative_field_errors_are_those_of_each_field():
+    """The batched errors against the per-field one, a field with a zero node included
+    (that node left out of its mean, as the single one leaves it out)."""
+    rng = np.random.default_rng(6)
+    truth = _smooth_fields(rng, 1)[0] + 3.0
+    fields = truth[None] + 0.2 * _smooth_fields(rng, 4)
+    fields[2, 7] = 0.0
+    got = relative_field_errors(fields, truth)
+    want = [relative_field_error(f, truth) for f in fields]
+    np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert len(set(np.round(got, 9))) == 4  # four different fields, four errors
+
+
+def test_the_nested_solve_is_each_model_solved_alone():
+    """Every size at once (:func:`solve_nested`, as the choice of dimensions solves them)
+    against :func:`solve_coordinates` on each model's own columns, noisy beads of a
+    known field: the same coordinates, zero outside each model's columns. A column left
+    in by mistake or solved with the others' amplitudes would move them by far more than
+    the alternations' 1e-10 stop."""
+    rng = np.random.default_rng(7)
+    model = _model(rng)
+    c, sd, centers = _beads(model, np.array([1.2, -0.5, 0.4]), rng, sd=0.05,
+                            amplitude=np.array([0.8, 1.0, 1.3, 1.1, 0.9]))
+    base, a = design(model, centers)
+    cw, bw, aw = whitened(model.gram, c, base, a)
+    masks = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [1, 1, 1], [1, 0, 1]], bool)
+    z = solve_nested(cw, bw, aw, sd, model.variances, masks, n_iter=200)
+    for row, mask in zip(z, masks, strict=True):
+        idx = np.flatnonzero(mask)
+        alone, _, _ = solve_coordinates(cw, bw, aw[:, :, idx], sd, model.variances[idx],
+                                        n_iter=200)
+        np.testing.assert_allclose(row[idx], alone, rtol=1e-8, atol=1e-10)
+        assert np.all(row[~mask] == 0.0)
+    assert np.abs(z[3] - z[2]).max() > 1e-3  # the sizes differ: not one fit copied
 
 
 def test_one_bad_bead_among_five_is_left_out_and_single_beads_are_kept():

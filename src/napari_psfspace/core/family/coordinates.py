@@ -262,6 +262,61 @@ def solve_coordinates(cw: np.ndarray, bw: np.ndarray, aw: np.ndarray, sd: np.nda
     return z, g, (np.linalg.inv(lhs) if n_l else np.zeros((0, 0)))
 
 
+def solve_nested(cw: np.ndarray, bw: np.ndarray, aw: np.ndarray, sd: np.ndarray,
+                 variances: np.ndarray, masks: np.ndarray, *,
+                 amplitude_range: tuple[float, float] = (0.5, 2.0), n_iter: int = 50
+                 ) -> np.ndarray:
+    """:func:`solve_coordinates` of several models that use subsets of the same
+    directions, all at once: the coordinates (S, L), zero outside each model's columns.
+
+    ``masks`` (S, L) bool: the directions of each model. A direction left out gets a unit
+    precision and no data, so its coordinate is exactly 0 and the others' normal
+    equations are those of the model without it; each model's alternations stop as
+    :func:`solve_coordinates`' do, its coordinates kept from then on."""
+    masks = np.asarray(masks, bool)
+    n_s, n_l = masks.shape
+    n_p = len(cw)
+    lo, hi = amplitude_range
+    prec = np.where(masks, 1.0 / np.maximum(np.asarray(variances, np.float64), 1e-300), 1.0)
+    eye = np.eye(n_l)
+    g = np.ones((n_s, n_p))
+    z = np.zeros((n_s, n_l))
+    active = np.ones(n_s, bool)
+    flat_a = aw.reshape(-1, n_l)  # (P I, L)
+    for _ in range(int(n_iter)):
+        s = np.flatnonzero(active)
+        q = np.repeat(g[s] / sd, aw.shape[1], axis=1)  # (S', P I): each row's g_p / sd_p
+        ap = q[:, :, None] * flat_a[None] * masks[s, None, :]
+        yp = ((cw[None] - g[s, :, None] * bw[None]) / sd[None, :, None]).reshape(len(s), -1)
+        lhs = np.einsum("sra,srb->sab", ap, ap) + prec[s, :, None] * eye
+        z_new = np.linalg.solve(lhs, np.einsum("sra,sr->sa", ap, yp)[..., None])[..., 0]
+        fit = bw[None] + np.einsum("pil,sl->spi", aw, z_new)
+        mm = (fit * fit).sum(axis=2)
+        g_new = np.where(mm > 0, (fit * cw[None]).sum(axis=2) / np.maximum(mm, 1e-300),
+                         1.0).clip(lo, hi)
+        change = np.maximum(np.abs(z_new - z[s]).max(axis=1, initial=0.0)
+                            / np.maximum(np.abs(z_new).max(axis=1, initial=0.0), 1e-300),
+                            (np.abs(g_new - g[s]) / g_new).max(axis=1))
+        z[s], g[s] = z_new, g_new
+        active[s[change <= 1e-10]] = False
+        if not active.any():
+            break
+    return z
+
+
+def relative_field_errors(fields: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """:func:`relative_field_error` of each of fields (S, G, I) against ``truth`` (G, I),
+    whitened coefficients: (S,)."""
+    f, t = np.asarray(fields, np.float64), np.asarray(truth, np.float64)
+    fn, tn = np.linalg.norm(f, axis=2), np.linalg.norm(t, axis=1)
+    ok = (fn > 0) & (tn > 0)[None]
+    d = (f / np.where(ok, fn, 1.0)[..., None]
+         - t[None] / np.where(tn > 0, tn, 1.0)[None, :, None])
+    sq = np.where(ok, (d * d).sum(axis=2), 0.0).sum(axis=1)
+    n = ok.sum(axis=1)
+    return np.where(n > 0, np.sqrt(sq / np.maximum(n, 1)), np.nan)
+
+
 def spread_subset(centers: np.ndarray, n: int) -> np.ndarray:
     """Indices of at most ``n`` of ``centers`` (P, 2) spread over the field: farthest
     points, from the one nearest their mean."""

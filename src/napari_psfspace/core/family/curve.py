@@ -323,10 +323,11 @@ def _gauged(thetas: np.ndarray) -> np.ndarray:
     return np.column_stack([(thetas[:, 0] - thetas[:, 0].mean()) / s, thetas[:, 1:] / s])
 
 
-def _cost_and_step(fw: np.ndarray, thetas: np.ndarray, planes: np.ndarray, degree: int,
+def _cost_and_step(fg: np.ndarray, thetas: np.ndarray, planes: np.ndarray, degree: int,
                    damping: float) -> tuple[float, np.ndarray]:
     """The squared residual of the curve given ``theta`` (its ``C_d`` of least squares)
-    and the damped Gauss-Newton step of every ``theta`` together (K, 3).
+    and the damped Gauss-Newton step of every ``theta`` together (K, 3), of the whitened
+    fields node-major ``fg`` (G, K, I), contiguous (each node's K x K algebra a matmul).
 
     The ``C_d`` are eliminated (variable projection, Kaufman's Jacobian): at node ``g``
     moving ``theta_k`` moves the fit by ``(1 - P_g) e_k s_kg u_g``, ``P_g`` the
@@ -334,25 +335,25 @@ def _cost_and_step(fw: np.ndarray, thetas: np.ndarray, planes: np.ndarray, degre
     fit's derivative in ``t`` and ``u_g = [1, u, v]``; the normal equations are summed
     node by node (3 K unknowns).
     """
-    k = len(fw)
-    t = planes @ thetas.T  # (G, K): node-major, each node's K x K algebra a matmul
+    k = fg.shape[1]
+    t = planes @ thetas.T  # (G, K)
     x = _powers(t, degree)  # (G, K, D + 1)
-    xt = np.swapaxes(x, 1, 2)
+    xt = np.ascontiguousarray(np.swapaxes(x, 1, 2))
     xtx = xt @ x
     xtx += 1e-12 * np.trace(xtx, axis1=1, axis2=2)[:, None, None] * np.eye(degree + 1)
-    fg = np.swapaxes(fw, 0, 1)  # (G, K, I)
-    coef = np.linalg.solve(xtx, xt @ fg)  # (G, D + 1, I)
+    # (X^T X)^-1 X^T once (D + 1 x D + 1 at each node): the C_d and the projection
+    pinv = np.linalg.inv(xtx) @ xt  # (G, D + 1, K)
+    coef = pinv @ fg  # (G, D + 1, I)
     res = fg - x @ coef
     slope = _slopes(t, degree) @ coef  # (G, K, I)
-    proj = x @ np.linalg.solve(xtx, xt)  # (G, K, K)
-    m = (np.eye(k)[None] - proj) * (slope @ np.swapaxes(slope, 1, 2))
+    m = (np.eye(k)[None] - x @ pinv) * (slope @ np.swapaxes(slope, 1, 2))
     pp = (planes[:, :, None] * planes[:, None, :]).reshape(len(planes), 9)
     jtj = (m.reshape(len(m), k * k).T @ pp).reshape(k, k, 3, 3)
     jtj = jtj.transpose(0, 2, 1, 3).reshape(3 * k, 3 * k)
-    jtr = ((slope * res).sum(axis=2).T @ planes).reshape(3 * k)
+    jtr = (np.einsum("gki,gki->gk", slope, res).T @ planes).reshape(3 * k)
     lhs = jtj + damping * np.diag(np.diag(jtj) + 1e-12 * np.trace(jtj) / (3 * k))
     step = np.linalg.lstsq(lhs, jtr, rcond=None)[0]
-    return float((res * res).sum()), step.reshape(k, 3)
+    return float(np.einsum("gki,gki->", res, res)), step.reshape(k, 3)
 
 
 def learn_thetas(fields: np.ndarray, nodes: np.ndarray, shape, gram: np.ndarray, *,
@@ -379,10 +380,11 @@ def learn_thetas(fields: np.ndarray, nodes: np.ndarray, shape, gram: np.ndarray,
         thetas = np.linalg.lstsq(x.T, dev.T, rcond=None)[0].T
     thetas = _gauged(np.array(thetas, np.float64))
     damping = 1e-3
-    cost, step = _cost_and_step(fw, thetas, planes, degree, damping)
+    fg = np.ascontiguousarray(np.swapaxes(fw, 0, 1))  # (G, K, I), node-major
+    cost, step = _cost_and_step(fg, thetas, planes, degree, damping)
     for _ in range(int(iterations)):
         trial = _gauged(thetas + step)
-        new_cost, new_step = _cost_and_step(fw, trial, planes, degree, damping)
+        new_cost, new_step = _cost_and_step(fg, trial, planes, degree, damping)
         if new_cost <= cost:
             done = cost - new_cost <= LEARN_TOL * new_cost
             thetas, cost, step = trial, new_cost, new_step
@@ -393,7 +395,7 @@ def learn_thetas(fields: np.ndarray, nodes: np.ndarray, shape, gram: np.ndarray,
             damping *= 10
             if damping > 1e6:
                 break
-            cost, step = _cost_and_step(fw, thetas, planes, degree, damping)
+            cost, step = _cost_and_step(fg, thetas, planes, degree, damping)
     coef = fields_given(fw, thetas @ planes.T, degree)
     unwhite = np.linalg.inv(white)
     return np.moveaxis(coef, 1, 0) @ unwhite, thetas

@@ -39,7 +39,8 @@ from .coordinates import (
     design,
     krige_miss,
     relative_field_error,
-    solve_coordinates,
+    relative_field_errors,
+    solve_nested,
     spread_at,
     whitened,
     whitener,
@@ -241,18 +242,17 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         mean_w = full.mean @ white
         dirs_w = full.directions @ white  # (L + 2 M, G, I), whitened
         b = beads[j]
+        masks = np.zeros((len(sizes), len(dirs)), bool)
+        for row, (n, m) in enumerate(sizes):
+            masks[row, _columns(min(n, n_c), min(m, m_c, n), n_c, m_c)] = True
         for d, pick in enumerate(_draws(b, seed + j)):
             base, a = design(full, b.centers[pick])
             cw, bw, aw = whitened(gram, b.coefficients[pick], base, a)
-            for row, (n, m) in enumerate(sizes):
-                idx = _columns(min(n, n_c), min(m, m_c, n), n_c, m_c)
-                z, _, _ = solve_coordinates(cw, bw, aw[:, :, idx], b.sd[pick],
-                                            full.variances[idx],
-                                            n_iter=CHOICE_ITERATIONS)
-                field = mean_w.copy()
-                for zk, k in zip(z, idx, strict=True):
-                    field += zk * dirs_w[k]
-                errors[row, col_j * N_DRAWS + d] = relative_field_error(field, truth)
+            # every size at once: each uses a subset of the same directions
+            z = solve_nested(cw, bw, aw, b.sd[pick], full.variances, masks,
+                             n_iter=CHOICE_ITERATIONS)
+            field = mean_w[None] + np.tensordot(z, dirs_w, axes=1)
+            errors[:, col_j * N_DRAWS + d] = relative_field_errors(field, truth)
     mean = errors.mean(axis=1)
     best = int(np.argmin(mean))
     n, m = sizes[best]

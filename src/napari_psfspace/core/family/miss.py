@@ -30,7 +30,8 @@ def miss_model(residuals: np.ndarray, nodes: np.ndarray
     measured one of the residuals divided by their scale, over pairs of nodes.
     """
     k, g, n_i = residuals.shape
-    cov = np.einsum("kgi,kgj->ij", residuals, residuals) / (k * g)
+    flat = residuals.reshape(-1, n_i)
+    cov = flat.T @ flat / (k * g)  # a matrix product: BLAS, not einsum's own loops
     total = float(np.trace(cov))
     if total <= 0 or g < 2:
         return cov, 1.0, np.ones(g)
@@ -39,8 +40,8 @@ def miss_model(residuals: np.ndarray, nodes: np.ndarray
     sub = np.arange(0, g, step)
     pts = nodes[sub]
     dist = np.sqrt(((pts[:, None] - pts[None]) ** 2).sum(axis=-1))
-    std = residuals[:, sub] / scale[None, sub, None]
-    corr = np.einsum("kai,kbi->ab", std, std) / (k * total)
+    std = (residuals[:, sub] / scale[None, sub, None]).transpose(1, 0, 2).reshape(len(sub), -1)
+    corr = std @ std.T / (k * total)
     span = float(dist.max())
     d2 = dist ** 2
 
