@@ -10,8 +10,8 @@ from field_grid import nodes as _nodes
 from napari_psfspace.core.family.coordinates import (
     CoordinateFit,
     Model,
-    fit_coordinates,
     design,
+    fit_coordinates,
     krige_miss,
     relative_field_error,
     relative_field_errors,
