@@ -21,7 +21,11 @@ image of the family is left out in turn, identified from :data:`N_CLICKS` of its
 by the model of the others, and compared with its own field; the sizes of least error
 over the images and draws are kept. A curve (:mod:`.curve`: the fields as a quadratic
 in one condition varying as a plane over the field, three numbers an image) is judged
-on the same draws and replaces the lines where its error is lower. The same left-out
+on the same draws and replaces the lines where its error is lower. A clicked bead's
+coefficients stray from its image's field by more than its background's noise says (its
+own shot noise, its centring, its background's fit): :func:`noise_factor` measures by how
+much on the family's own beads, and every bead's noise is scaled by it, in the choice and
+when an image is identified. The same left-out
 identifications calibrate the reported spread (:func:`spread_band`): the ratio of each
 one's actual error to the error its spread predicts, whose quantiles make a band. Both
 go to the family's metadata (``metadata["dimensions"]``); :func:`family_model` builds
@@ -36,6 +40,7 @@ import numpy as np
 
 from .coordinates import (
     Model,
+    bilinear,
     design,
     krige_miss,
     relative_field_error,
@@ -82,6 +87,42 @@ class Beads:
     centers: np.ndarray
     coefficients: np.ndarray
     sd: np.ndarray
+
+
+def noise_factor(fields: np.ndarray, beads: list[Beads | None], grid, gram: np.ndarray
+                 ) -> float:
+    """How many times its noise ``sd`` a bead's coefficients stray from its image's
+    field, measured on the family's own beads: 1.0 where none can be measured.
+
+    Each bead's whitened residual about its image's field at it (bilinear between the
+    nodes, the bead's amplitude fitted) over ``sd`` squared, ``q``; with noise ``f sd``
+    in each of the ``I`` whitened coefficients, ``q`` is ``f^2`` times a chi-square of
+    ``I - 1`` degrees of freedom (one taken by the amplitude), so ``f`` is the root of
+    the median ``q`` over that chi-square's median (a median: a doublet or a bead on a
+    structure among hundreds moves it little). The image's field is learnt from the
+    same beads and is itself a little off: the two effects are small beside the noise
+    of many beads an image and of opposite sign.
+    """
+    from scipy.stats import chi2
+
+    white = whitener(gram).T
+    n_i = len(gram)
+    qs = []
+    for field, b in zip(fields, beads, strict=True):
+        if b is None or not len(b.centers):
+            continue
+        f = bilinear(grid, b.centers) @ field  # (P, I)
+        c = np.asarray(b.coefficients, np.float64)
+        fw, cw = f @ white, c @ white
+        g = (cw * fw).sum(axis=1) / np.maximum((fw * fw).sum(axis=1), 1e-300)
+        res = cw - g[:, None] * fw
+        ok = np.isfinite(b.sd) & (b.sd > 0)
+        qs.append((res[ok] ** 2).sum(axis=1) / b.sd[ok] ** 2)
+    q = np.concatenate(qs) if qs else np.zeros(0)
+    if n_i < 2 or len(q) < N_CLICKS:
+        return 1.0
+    factor = float(np.sqrt(np.median(q) / chi2.median(n_i - 1)))
+    return factor if np.isfinite(factor) and factor > 0 else 1.0
 
 
 def family_fields(space: np.ndarray, gammas: np.ndarray) -> np.ndarray:

@@ -53,7 +53,7 @@ from ..model.pca import learn_basis, min_beads_for, orient, rank_by_threshold
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .choice import Choice, choose, own_estimate
-from .dimensions import Beads, choose_dimensions, family_fields
+from .dimensions import Beads, choose_dimensions, family_fields, noise_factor
 from .patches import ImagePatches, image_patches
 from .result import OperatorFamily, space_at
 from .shrink import Fields, shrunk_fields
@@ -314,7 +314,12 @@ def _dimensions(pooled: _Pooled, bead_coef: list[tuple], images: np.ndarray,
     owner, sd = pooled.owner[inl], pooled.sd[inl]
     beads = [Beads(centers, raw[owner == k], sd[owner == k]) if len(centers) else None
              for k, (centers, _) in enumerate(bead_coef)]
-    out = choose_dimensions(family_fields(space, gammas), beads, grid, shape, flat @ flat.T)
+    fields = family_fields(space, gammas)
+    # the beads' noise as measured on them, in the choice as when an image is identified
+    factor = noise_factor(fields, beads, grid, flat @ flat.T)
+    beads = [None if b is None else replace(b, sd=b.sd * factor) for b in beads]
+    out = choose_dimensions(fields, beads, grid, shape, flat @ flat.T)
+    out["noise_factor"] = round(factor, 4)
     # the family's own error from its beads' noise alone: the band's lower floor
     out["floor"] = (None if pooled.fields is None
                     else float(np.median(pooled.fields.relative_noise())))

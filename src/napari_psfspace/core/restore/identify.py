@@ -317,6 +317,10 @@ def identify_operator(
         left, scores = check.left_out, check.scores
         if left:
             patches, c, sd = patches.subset(check.keep), c[check.keep], sd[check.keep]
+        # a bead's noise as the family measured it on its own beads (its shot noise,
+        # centring and background beyond the background's noise; the check above keeps
+        # the yardstick it was calibrated with)
+        sd = sd * float((family.metadata.get("dimensions") or {}).get("noise_factor", 1.0))
     op, found = _identify(family, c, patches.centers, sd, prior=prior,
                           amplitude_range=amplitude_range, max_iter=max_iter)
     own = (_few_dimensions(family, found, c, patches.centers, amplitude_range) if prior
