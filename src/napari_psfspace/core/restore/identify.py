@@ -117,6 +117,14 @@ def _identify(family, c, centers, sd, *, prior: bool, amplitude_range, max_iter,
 #: it, or replaced, as the family's images are: :mod:`~napari_psfspace.core.family.
 #: choice`).
 MIN_BEADS_JUDGED = 15
+#: The family's weight the judgement leans to among those its held-out beads cannot tell
+#: apart (:func:`~napari_psfspace.core.family.choice.pick_weight`'s ``prior``): the
+#: identified operator itself. The own estimate from a few dozen clicked beads is far
+#: noisier than a family image's from all of its beads, so it is blended in only where
+#: the held-out beads show the blend better: leaning to the even blend, as a family's
+#: images do, a few held-out beads that preferred the family still brought in part of
+#: an own estimate far worse than it.
+JUDGED_PRIOR = 1.0
 
 
 def judge_against_own(patches, c: np.ndarray, family: OperatorFamily, *,
@@ -142,7 +150,7 @@ def judge_against_own(patches, c: np.ndarray, family: OperatorFamily, *,
                       amplitude_range=amplitude_range, max_iter=max_iter, at=held.centers)
     own = own_estimate(patches.subset(~mask), family.shape, grid_step=family.grid_step,
                        n_image=len(c))
-    return choose_between(_psfs(op, held.centers), own, held)
+    return choose_between(_psfs(op, held.centers), own, held, prior=JUDGED_PRIOR)
 
 
 def _psfs(op: ProductConvolution, points: np.ndarray) -> np.ndarray:
