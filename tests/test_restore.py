@@ -542,3 +542,21 @@ def test_clicked_beads_near_the_border_are_kept_with_a_masked_patch(family):
     err = np.linalg.norm(p.psf - truth, axis=(1, 2)) / norm
     noise = p.noise / p.flux * np.sqrt((win ** 2).sum()) / norm
     assert np.all(err < 3 * noise + 0.02), (err, noise)
+
+
+def test_the_judgement_leans_to_the_identified_operator_with_few_beads():
+    """The prior of the held-out judgement: an image with as many beads as the family's
+    images leans as they do (the even blend), one with none to the identified operator,
+    and the lean falls with the number of beads between."""
+    from types import SimpleNamespace
+
+    from napari_psfspace.core.family.choice import PRIOR_WEIGHT
+    from napari_psfspace.core.restore.identify import judged_prior
+
+    fam = SimpleNamespace(metadata={"beads_per_image": [140, 150, 160]})
+    assert judged_prior(fam, 150) == PRIOR_WEIGHT
+    assert judged_prior(fam, 400) == PRIOR_WEIGHT
+    assert judged_prior(fam, 0) == 1.0
+    leans = [judged_prior(fam, n) for n in (15, 30, 75, 120)]
+    assert all(a > b for a, b in zip(leans, leans[1:], strict=False))
+    assert leans[0] > 0.9 and abs(judged_prior(fam, 75) - 0.75) < 1e-12

@@ -39,7 +39,7 @@ from ..common.deprecate import renamed_keyword
 from ..common.spacing import partial_border
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_instance, check_int
-from ..family.choice import Choice, blend, choose_between, own_estimate
+from ..family.choice import PRIOR_WEIGHT, Choice, blend, choose_between, own_estimate
 from ..family.curve import Curve, identify_any
 from ..family.dimensions import family_fields, family_model
 from ..family.patches import image_patches
@@ -117,14 +117,25 @@ def _identify(family, c, centers, sd, *, prior: bool, amplitude_range, max_iter,
 #: it, or replaced, as the family's images are: :mod:`~napari_psfspace.core.family.
 #: choice`).
 MIN_BEADS_JUDGED = 15
-#: The family's weight the judgement leans to among those its held-out beads cannot tell
-#: apart (:func:`~napari_psfspace.core.family.choice.pick_weight`'s ``prior``): the
-#: identified operator itself. The own estimate from a few dozen clicked beads is far
-#: noisier than a family image's from all of its beads, so it is blended in only where
-#: the held-out beads show the blend better: leaning to the even blend, as a family's
-#: images do, a few held-out beads that preferred the family still brought in part of
-#: an own estimate far worse than it.
-JUDGED_PRIOR = 1.0
+
+
+def judged_prior(family: OperatorFamily, n_beads: int) -> float:
+    """The family's weight the judgement leans to among those its held-out beads cannot
+    tell apart (:func:`~napari_psfspace.core.family.choice.pick_weight`'s ``prior``),
+    for an image of ``n_beads`` usable beads.
+
+    An image with as many beads as the family's images have (their median) leans as they
+    do, to the even blend (:data:`~napari_psfspace.core.family.choice.PRIOR_WEIGHT`):
+    its own estimate is as good as theirs. With fewer, its own estimate is learnt from
+    fewer beads and leans to the identified operator in proportion, to it alone with
+    none: a few held-out beads that cannot tell a blend from the identified operator
+    then keep the latter, rather than bring in part of an own estimate from a few dozen
+    beads.
+    """
+    counts = family.metadata.get("beads_per_image") or []
+    typical = float(np.median(counts)) if len(counts) else float(n_beads)
+    share = min(1.0, float(n_beads) / max(typical, 1.0))
+    return 1.0 - (1.0 - PRIOR_WEIGHT) * share
 
 
 def judge_against_own(patches, c: np.ndarray, family: OperatorFamily, *,
@@ -150,7 +161,8 @@ def judge_against_own(patches, c: np.ndarray, family: OperatorFamily, *,
                       amplitude_range=amplitude_range, max_iter=max_iter, at=held.centers)
     own = own_estimate(patches.subset(~mask), family.shape, grid_step=family.grid_step,
                        n_image=len(c))
-    return choose_between(_psfs(op, held.centers), own, held, prior=JUDGED_PRIOR)
+    return choose_between(_psfs(op, held.centers), own, held,
+                          prior=judged_prior(family, len(c)))
 
 
 def _psfs(op: ProductConvolution, points: np.ndarray) -> np.ndarray:
