@@ -341,7 +341,7 @@ def _cost_and_step(fg: np.ndarray, thetas: np.ndarray, planes: np.ndarray, degre
     xt = np.ascontiguousarray(np.swapaxes(x, 1, 2))
     xtx = xt @ x
     xtx += 1e-12 * np.trace(xtx, axis1=1, axis2=2)[:, None, None] * np.eye(degree + 1)
-    # (X^T X)^-1 X^T once (D + 1 x D + 1 at each node): the C_d and the projection
+    # each node's pseudo-inverse of its powers, once: the C_d and the projection from it
     pinv = np.linalg.inv(xtx) @ xt  # (G, D + 1, K)
     coef = pinv @ fg  # (G, D + 1, I)
     res = fg - x @ coef

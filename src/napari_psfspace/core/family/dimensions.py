@@ -92,7 +92,7 @@ class Beads:
 def noise_factor(fields: np.ndarray, beads: list[Beads | None], grid, gram: np.ndarray
                  ) -> float:
     """How many times its noise ``sd`` a bead's coefficients stray from its image's
-    field, measured on the family's own beads: 1.0 where none can be measured.
+    field, measured on the family's own beads: one where none can be measured.
 
     Each bead's whitened residual about its image's field at it (bilinear between the
     nodes, the bead's amplitude fitted) over ``sd`` squared, ``q``; with noise ``f sd``
