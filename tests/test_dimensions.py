@@ -199,8 +199,14 @@ def test_relative_field_errors_are_those_of_each_field():
     fields = truth[None] + 0.2 * _smooth_fields(rng, 4)
     fields[2, 7] = 0.0
     got = relative_field_errors(fields, truth)
-    want = [relative_field_error(f, truth) for f in fields]
+    unit_t = truth / np.linalg.norm(truth, axis=1, keepdims=True)
+    want = []
+    for f in fields:  # the definition, node by node
+        sq = [np.sum((f[g] / np.linalg.norm(f[g]) - unit_t[g]) ** 2)
+              for g in range(len(f)) if np.linalg.norm(f[g]) > 0]
+        want.append(np.sqrt(np.mean(sq)))
     np.testing.assert_allclose(got, want, rtol=1e-12)
+    assert relative_field_error(fields[1], truth) == got[1]
     assert len(set(np.round(got, 9))) == 4  # four different fields, four errors
 
 

@@ -100,8 +100,9 @@ def noise_factor(fields: np.ndarray, beads: list[Beads | None], grid, gram: np.n
     ``I - 1`` degrees of freedom (one taken by the amplitude), so ``f`` is the root of
     the median ``q`` over that chi-square's median (a median: a doublet or a bead on a
     structure among hundreds moves it little). The image's field is learnt from the
-    same beads and is itself a little off: the two effects are small beside the noise
-    of many beads an image and of opposite sign.
+    same beads, which makes ``q`` a little small, and is itself off the truth, which
+    makes it large: beside faint beads' noise both are small, beside bright beads' the
+    second makes ``f`` somewhat too large (their kriged miss a little too smooth).
     """
     from scipy.stats import chi2
 
