@@ -12,7 +12,12 @@ from napari_psfspace.core.family.curve import (
     identify_any,
     plane_design,
 )
-from napari_psfspace.core.family.dimensions import Beads, build_model, choose_dimensions
+from napari_psfspace.core.family.dimensions import (
+    Beads,
+    build_model,
+    choose_dimensions,
+    clearly_lower,
+)
 
 
 def _coef(rng):
@@ -124,6 +129,55 @@ def test_the_choice_takes_the_curve_for_a_curved_family_and_lines_for_a_flat_one
 def _as_beads(field, rng):
     c, sd, centers = _beads(field, rng, n=30, sd=0.01)
     return Beads(centers, c, sd)
+
+
+def _degree_choice(fields, rng):
+    out = choose_dimensions(fields, [_as_beads(f, rng) for f in fields], GRID, SHAPE,
+                            np.eye(N_I))
+    row = [r for r in out["table"] if "curve" in r][0]
+    return out, row["degree_errors"]
+
+
+def test_a_cubic_replaces_the_quadratic_where_the_family_is_cubic():
+    """Twelve fields on a cubic curve (``t`` up to 1.6, the cubic term a third of the
+    quadratic's coefficients): the cubic identifies a left-out image from five beads
+    better than the quadratic, which cannot hold the fields, and is kept."""
+    rng = np.random.default_rng(5)
+    coef = _coef(rng)
+    coef = np.concatenate([coef, coef[2:] / 3.0 + 0.2 * coef[1:2]])
+    t = _thetas(rng, 12) @ plane_design(nodes(), SHAPE).T  # (K, G)
+    fields = sum(t[..., None] ** d * coef[d][None] for d in range(4))
+    out, errors = _degree_choice(fields, rng)
+    assert out["kind"] == "curve" and out["curve"]["degree"] == 3
+    assert errors["3"] < 0.5 * errors["2"]
+
+
+def test_the_quadratic_stays_where_a_cubic_only_fits_the_fields_noise():
+    """Twelve fields on a quadratic curve, each with its own noise of a hundredth of
+    their spread at every node: the cubic's fourth field follows that noise, so its
+    left-out error is no lower by more than its standard error, and the quadratic
+    stays."""
+    rng = np.random.default_rng(6)
+    fields = _fields(_coef(rng), _thetas(rng, 12))
+    spread = float(np.std(fields - fields.mean(axis=0)))
+    fields = fields + 0.01 * spread * rng.standard_normal(fields.shape)
+    out, errors = _degree_choice(fields, rng)
+    assert out["kind"] == "curve" and out["curve"]["degree"] == 2
+    assert set(errors) == {"2", "3"}
+
+
+def test_a_richer_model_is_kept_only_when_lower_beyond_the_draws_chance():
+    """Paired errors whose differences have mean 0.01: kept where their standard
+    deviation is 0.02 over 30 draws (standard error 0.0037), not where it is 0.1
+    (0.018); never for a mean difference of 0 or below."""
+    rng = np.random.default_rng(7)
+    base = 1.0 + rng.uniform(0, 0.1, 30)
+    noise = rng.standard_normal(30)
+    noise = (noise - noise.mean()) / noise.std(ddof=1)  # mean 0, sd 1 exactly
+    assert clearly_lower(base - 0.01 - 0.02 * noise, base)
+    assert not clearly_lower(base - 0.01 - 0.1 * noise, base)
+    assert not clearly_lower(base - 0.02 * noise, base)
+    assert not clearly_lower(base + 0.01, base)
 
 
 def test_a_curve_is_a_model_identify_any_accepts():

@@ -9,7 +9,8 @@ family's fields are modelled as
     F(x) = sum_d t(x)^d C_d(x) + R(x),    t(x) = theta_0 + theta_1 u(x) + theta_2 v(x),
 
 ``u``, ``v`` the scaled row and column (-0.5 to 0.5 across the image), ``C_d`` (``d``
-up to :data:`DEGREE`) fields learnt from the family, ``theta`` three numbers per image
+up to :data:`DEGREE`, or another of :data:`DEGREES` where chosen) fields learnt from
+the family, ``theta`` three numbers per image
 (its condition at the centre and its slopes across the field along rows and columns),
 ``R`` the family's miss as in :mod:`.coordinates`. Given every image's ``theta`` the
 ``C_d`` are exact least squares node by node, so learning moves the ``theta`` alone,
@@ -35,10 +36,14 @@ from .coordinates import CoordinateFit, Model, bilinear, design, identify_field,
 from .miss import miss_model
 
 #: Degree of the polynomial in the condition (2: the PSF's change near focus is
-#: quadratic in it).
+#: quadratic in it); the ``theta`` are learnt with it.
 DEGREE = 2
+#: Degrees a family's curve is judged with (:mod:`.dimensions`), on the ``theta`` learnt
+#: with :data:`DEGREE`: away from focus the PSF's change is not quadratic, and a cubic
+#: follows it where the family's images say so.
+DEGREES = (2, 3)
 #: Fewest images a curve is learnt from: ``DEGREE + 1`` fields at each node, and two more
-#: to judge them.
+#: to judge them (a higher degree of :data:`DEGREES` is judged only with as many more).
 MIN_IMAGES = DEGREE + 3
 #: Steps of the learning at most; it stops once the squared residual falls by less than
 #: :data:`LEARN_TOL` of itself.

@@ -50,7 +50,15 @@ from .coordinates import (
     whitened,
     whitener,
 )
-from .curve import MIN_IMAGES, Curve, build_curve, curve_misses, identify_any, learn_thetas
+from .curve import (
+    DEGREES,
+    MIN_IMAGES,
+    Curve,
+    build_curve,
+    curve_misses,
+    identify_any,
+    learn_thetas,
+)
 from .miss import miss_model
 
 #: Beads a left-out image is identified from when ``L`` is chosen: the paper's "typically
@@ -253,7 +261,8 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         vary as planes over the field, as a tilted slide makes the focus do; 1 and 1
         for a curve); ``by`` (how they were chosen); ``table`` (each ``L`` and ``M``
         tried, ``n`` and ``planar``, and the mean relative field error of the left-out
-        identifications, ``error``; the curve's row also holds ``curve``, its degree);
+        identifications, ``error``; the curve's row also holds ``curve``, its degree,
+        and ``degree_errors``, each degree's error);
         ``curve`` (a curve's ``degree`` and its images' ``thetas``, K x 3; only where
         chosen); ``band`` (:func:`spread_band`'s calibration, None without left-out
         images).
@@ -305,7 +314,8 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     if curve is not None:
         table.append({"n": 1, "planar": 1, "curve": curve["degree"],
                       "miss_factor": curve["miss_factor"],
-                      "error": round(float(curve["error"]), 6)})
+                      "error": round(float(curve["error"]), 6),
+                      "degree_errors": curve["errors"]})
         if curve["error"] < mean[best]:
             kind = "curve"
 
@@ -330,6 +340,17 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     return out
 
 
+def clearly_lower(errors: np.ndarray, than: np.ndarray) -> bool:
+    """Whether ``errors`` (N,) are lower than ``than`` (N,), paired (the same images and
+    draws), by more than the standard error of their mean difference: a richer model
+    replaces a simpler one only where the left-out images show it better beyond the
+    draws' chance."""
+    diff = np.asarray(than, np.float64) - np.asarray(errors, np.float64)
+    if len(diff) < 2:
+        return bool(diff.mean() > 0) if len(diff) else False
+    return bool(diff.mean() > diff.std(ddof=1) / np.sqrt(len(diff)))
+
+
 def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
                   ) -> dict | None:
     """The curve's (:mod:`.curve`) left-out identifications as :func:`choose_dimensions`
@@ -338,40 +359,60 @@ def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
     the others' residuals about the whole family's curve, each left out), the image
     identified from the same draws of its beads (as an image is, weighing each bead by
     its noise and the miss). None below :data:`.curve.MIN_IMAGES` images besides the one
-    left out."""
+    left out.
+
+    Each degree of :data:`.curve.DEGREES` is judged on the same draws (its ``theta``
+    learnt from the lowest degree's, its fits started from that degree's); a higher degree replaces a lower one only
+    where its mean error is lower by more than the standard error of their paired
+    differences: a cubic learnt from ten images can swing where few of them lie, and
+    is kept only where the family's own images show it better."""
     k = len(fields)
     if k - 1 < MIN_IMAGES:
         return None
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
-    _, thetas = learn_thetas(fields, nodes, shape, gram)
-    residuals = curve_misses(fields, thetas, nodes, shape, gram)
     white = whitener(gram).T
-    errors, left_out, fits = {}, {}, {}
-    for j in usable:
-        rest = np.arange(k) != j
-        _, loo = learn_thetas(fields[rest], nodes, shape, gram, thetas=thetas[rest],
-                              iterations=CURVE_LEFT_OUT_ITERATIONS)
-        left_out[j] = build_curve(fields[rest], grid, shape, gram, thetas=loo,
-                                  residuals=residuals[rest])
-        b = beads[j]
-        for d, pick in enumerate(_draws(b, seed + j)):
-            start = None
-            for f, factor in enumerate(MISS_FACTORS):
-                # each weight's fit from the last one's: near it, one start does
-                curve = replace(left_out[j], miss_factor=factor)
-                _, (field, _, fits[f, j, d]) = identify_any(
-                    curve, b.coefficients[pick], b.sd[pick], b.centers[pick], krige=False,
-                    spread=False, start=start)
-                start = fits[f, j, d].z
-                errors.setdefault(f, []).append(
-                    relative_field_error(field @ white, fields[j] @ white))
-    best = min(errors, key=lambda f: np.mean(errors[f]))
-    factor = MISS_FACTORS[best]
-    return {"degree": int(left_out[usable[0]].degree), "error": float(np.mean(errors[best])),
-            "miss_factor": factor, "thetas": thetas.tolist(),
-            "left_out": {j: replace(c, miss_factor=factor) for j, c in left_out.items()},
-            "fits": {(j, d): fit for (f, j, d), fit in fits.items() if f == best}}
+    degrees = [d for d in DEGREES if k - 1 >= d + 3]
+    thetas, errors, left_out, fits = {}, {}, {}, {}
+    for degree in degrees:
+        # a higher degree's theta from the lower one's
+        _, thetas[degree] = learn_thetas(fields, nodes, shape, gram, degree=degree,
+                                         thetas=thetas.get(degrees[0]))
+        residuals = curve_misses(fields, thetas[degree], nodes, shape, gram, degree=degree)
+        for j in usable:
+            rest = np.arange(k) != j
+            _, loo = learn_thetas(fields[rest], nodes, shape, gram, degree=degree,
+                                  thetas=thetas[degree][rest],
+                                  iterations=CURVE_LEFT_OUT_ITERATIONS)
+            left_out[degree, j] = build_curve(fields[rest], grid, shape, gram, thetas=loo,
+                                              residuals=residuals[rest], degree=degree)
+            b = beads[j]
+            for d, pick in enumerate(_draws(b, seed + j)):
+                start = None if degree == degrees[0] else fits[degrees[0], 0, j, d].z
+                for f, factor in enumerate(MISS_FACTORS):
+                    # each weight's fit from the last one's: near it, one start does
+                    curve = replace(left_out[degree, j], miss_factor=factor)
+                    _, (field, _, fits[degree, f, j, d]) = identify_any(
+                        curve, b.coefficients[pick], b.sd[pick], b.centers[pick],
+                        krige=False, spread=False, start=start)
+                    start = fits[degree, f, j, d].z
+                    errors.setdefault((degree, f), []).append(
+                        relative_field_error(field @ white, fields[j] @ white))
+    best = {d: min((key for key in errors if key[0] == d),
+                   key=lambda key: np.mean(errors[key])) for d in degrees}
+    chosen = best[degrees[0]]
+    for d in degrees[1:]:
+        if clearly_lower(errors[best[d]], errors[chosen]):
+            chosen = best[d]
+    degree, f_best = chosen
+    factor = MISS_FACTORS[f_best]
+    return {"degree": int(degree), "error": float(np.mean(errors[chosen])),
+            "errors": {str(d): round(float(np.mean(errors[best[d]])), 6) for d in degrees},
+            "miss_factor": factor, "thetas": thetas[degree].tolist(),
+            "left_out": {j: replace(left_out[degree, j], miss_factor=factor)
+                         for j in usable},
+            "fits": {(j, d): fit for (g, f, j, d), fit in fits.items()
+                     if (g, f) == chosen}}
 
 
 def spread_band(fields: np.ndarray, beads: list[Beads | None], usable: list[int],
