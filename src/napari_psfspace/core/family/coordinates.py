@@ -414,6 +414,8 @@ def identify_field(model: Model, c: np.ndarray, sd: np.ndarray, centers: np.ndar
     if krige:
         add, miss_var = krige_miss(model, fit, model.nodes)
         field = field + add
+    elif not spread:
+        return field, None, fit
     else:
         miss_var = model.miss_var(model.nodes)
     return field, spread_at(model, fit, field, miss_var) if spread else None, fit
