@@ -362,10 +362,11 @@ def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
     left out.
 
     Each degree of :data:`.curve.DEGREES` is judged on the same draws (its ``theta``
-    learnt from the lowest degree's, its fits started from that degree's); a higher degree replaces a lower one only
-    where its mean error is lower by more than the standard error of their paired
-    differences: a cubic learnt from ten images can swing where few of them lie, and
-    is kept only where the family's own images show it better."""
+    learnt from the lowest degree's, its fits started from that degree's); a higher
+    degree replaces a lower one only where its mean error is lower by more than the
+    standard error of their paired differences (:func:`clearly_lower`): a cubic learnt
+    from ten images can swing where few of them lie, and is kept only where the
+    family's own images show it better."""
     k = len(fields)
     if k - 1 < MIN_IMAGES:
         return None
