@@ -36,11 +36,11 @@ from .coordinates import CoordinateFit, Model, bilinear, design, identify_field,
 from .miss import miss_model
 
 #: Degree of the polynomial in the condition (2: the PSF's change near focus is
-#: quadratic in it); the ``theta`` are learnt with it.
+#: quadratic in it); a family's ``theta`` are first learnt with it.
 DEGREE = 2
-#: Degrees a family's curve is judged with (:mod:`.dimensions`), on the ``theta`` learnt
-#: with :data:`DEGREE`: away from focus the PSF's change is not quadratic, and a cubic
-#: follows it where the family's images say so.
+#: Degrees a family's curve is judged with (:mod:`.dimensions`), each one's ``theta``
+#: learnt from :data:`DEGREE`'s: away from focus the PSF's change is not quadratic, and
+#: a cubic follows it where the family's images say so.
 DEGREES = (2, 3)
 #: Fewest images a curve is learnt from: ``DEGREE + 1`` fields at each node, and two more
 #: to judge them (a higher degree of :data:`DEGREES` is judged only with as many more).
