@@ -38,6 +38,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..common.threads import map_threads
 from .coordinates import (
     Model,
     bilinear,
@@ -283,7 +284,8 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     zero = np.zeros((len(gram), len(gram)))
-    for col_j, j in enumerate(usable):
+    def lines_errors(j):
+        """Image ``j`` left out: every size's error (S, N_DRAWS) at each draw."""
         mean, dirs, var = principal(np.delete(fields, j, axis=0), most)
         n_c, m_c = len(dirs), min(MAX_PLANAR, len(dirs))  # fewer where the fields are
         dirs, var = planar(mean, dirs, var, m_c, nodes, shape)
@@ -296,6 +298,7 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         masks = np.zeros((len(sizes), len(dirs)), bool)
         for row, (n, m) in enumerate(sizes):
             masks[row, _columns(min(n, n_c), min(m, m_c, n), n_c, m_c)] = True
+        out = np.zeros((len(sizes), N_DRAWS))
         for d, pick in enumerate(_draws(b, seed + j)):
             base, a = design(full, b.centers[pick])
             cw, bw, aw = whitened(gram, b.coefficients[pick], base, a)
@@ -303,7 +306,11 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
             z = solve_nested(cw, bw, aw, b.sd[pick], full.variances, masks,
                              n_iter=CHOICE_ITERATIONS)
             field = mean_w[None] + np.tensordot(z, dirs_w, axes=1)
-            errors[:, col_j * N_DRAWS + d] = relative_field_errors(field, truth)
+            out[:, d] = relative_field_errors(field, truth)
+        return out
+
+    for col_j, out in enumerate(map(lines_errors, usable)):
+        errors[:, col_j * N_DRAWS:(col_j + 1) * N_DRAWS] = out
     mean = errors.mean(axis=1)
     best = int(np.argmin(mean))
     n, m = sizes[best]
@@ -380,25 +387,36 @@ def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
         _, thetas[degree] = learn_thetas(fields, nodes, shape, gram, degree=degree,
                                          thetas=thetas.get(degrees[0]))
         residuals = curve_misses(fields, thetas[degree], nodes, shape, gram, degree=degree)
-        for j in usable:
+
+        def one(j, degree=degree, residuals=residuals):
+            """Image ``j`` left out: the curve of the others, and its fits and errors
+            at each draw and miss factor."""
             rest = np.arange(k) != j
             _, loo = learn_thetas(fields[rest], nodes, shape, gram, degree=degree,
                                   thetas=thetas[degree][rest],
                                   iterations=CURVE_LEFT_OUT_ITERATIONS)
-            left_out[degree, j] = build_curve(fields[rest], grid, shape, gram, thetas=loo,
-                                              residuals=residuals[rest], degree=degree)
-            b = beads[j]
+            curve_j = build_curve(fields[rest], grid, shape, gram, thetas=loo,
+                                  residuals=residuals[rest], degree=degree)
+            b, out = beads[j], []
             for d, pick in enumerate(_draws(b, seed + j)):
                 start = None if degree == degrees[0] else fits[degrees[0], 0, j, d].z
                 for f, factor in enumerate(MISS_FACTORS):
                     # each weight's fit from the last one's: near it, one start does
-                    curve = replace(left_out[degree, j], miss_factor=factor)
-                    _, (field, _, fits[degree, f, j, d]) = identify_any(
-                        curve, b.coefficients[pick], b.sd[pick], b.centers[pick],
-                        krige=False, spread=False, start=start)
-                    start = fits[degree, f, j, d].z
-                    errors.setdefault((degree, f), []).append(
-                        relative_field_error(field @ white, fields[j] @ white))
+                    _, (field, _, fit) = identify_any(
+                        replace(curve_j, miss_factor=factor), b.coefficients[pick],
+                        b.sd[pick], b.centers[pick], krige=False, spread=False,
+                        start=start)
+                    start = fit.z
+                    out.append((d, f, fit, relative_field_error(field @ white,
+                                                                fields[j] @ white)))
+            return curve_j, out
+
+        # the left-out images are independent: on the pool of threads, in order
+        for j, (curve_j, out) in zip(usable, map_threads(one, usable), strict=True):
+            left_out[degree, j] = curve_j
+            for d, f, fit, error in out:
+                fits[degree, f, j, d] = fit
+                errors.setdefault((degree, f), []).append(error)
     best = {d: min((key for key in errors if key[0] == d),
                    key=lambda key: np.mean(errors[key])) for d in degrees}
     chosen = best[degrees[0]]
