@@ -284,8 +284,7 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     gy, gx = grid
     nodes = np.stack(np.meshgrid(gy, gx, indexing="ij"), axis=-1).reshape(-1, 2)
     zero = np.zeros((len(gram), len(gram)))
-    def lines_errors(j):
-        """Image ``j`` left out: every size's error (S, N_DRAWS) at each draw."""
+    for col_j, j in enumerate(usable):
         mean, dirs, var = principal(np.delete(fields, j, axis=0), most)
         n_c, m_c = len(dirs), min(MAX_PLANAR, len(dirs))  # fewer where the fields are
         dirs, var = planar(mean, dirs, var, m_c, nodes, shape)
@@ -298,7 +297,6 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         masks = np.zeros((len(sizes), len(dirs)), bool)
         for row, (n, m) in enumerate(sizes):
             masks[row, _columns(min(n, n_c), min(m, m_c, n), n_c, m_c)] = True
-        out = np.zeros((len(sizes), N_DRAWS))
         for d, pick in enumerate(_draws(b, seed + j)):
             base, a = design(full, b.centers[pick])
             cw, bw, aw = whitened(gram, b.coefficients[pick], base, a)
@@ -306,11 +304,7 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
             z = solve_nested(cw, bw, aw, b.sd[pick], full.variances, masks,
                              n_iter=CHOICE_ITERATIONS)
             field = mean_w[None] + np.tensordot(z, dirs_w, axes=1)
-            out[:, d] = relative_field_errors(field, truth)
-        return out
-
-    for col_j, out in enumerate(map(lines_errors, usable)):
-        errors[:, col_j * N_DRAWS:(col_j + 1) * N_DRAWS] = out
+            errors[:, col_j * N_DRAWS + d] = relative_field_errors(field, truth)
     mean = errors.mean(axis=1)
     best = int(np.argmin(mean))
     n, m = sizes[best]
