@@ -127,15 +127,18 @@ def judged_prior(family: OperatorFamily, n_beads: int) -> float:
     An image with as many beads as the family's images have (their median) leans as they
     do, to the even blend (:data:`~napari_psfspace.core.family.choice.PRIOR_WEIGHT`):
     its own estimate is as good as theirs. With fewer, its own estimate is learnt from
-    fewer beads and leans to the identified operator in proportion, to it alone with
-    none: a few held-out beads that cannot tell a blend from the identified operator
-    then keep the latter, rather than bring in part of an own estimate from a few dozen
-    beads.
+    fewer beads, and it leans to the identified operator by the square of its share of
+    the typical count, to it alone with none. The square, not the share: an own
+    estimate's field error grows faster than the inverse of its bead count as its beads
+    thin (the thin-plate fields interpolate across wider gaps, beside the noise), and a
+    few held-out beads that cannot tell a blend from the identified operator should
+    then keep the latter rather than bring in part of an own estimate from a few dozen
+    beads (``bench/bench_identify_curve.py``, 40 beads).
     """
     counts = family.metadata.get("beads_per_image") or []
     typical = float(np.median(counts)) if len(counts) else float(n_beads)
     share = min(1.0, float(n_beads) / max(typical, 1.0))
-    return 1.0 - (1.0 - PRIOR_WEIGHT) * share
+    return 1.0 - (1.0 - PRIOR_WEIGHT) * share ** 2
 
 
 def judge_against_own(patches, c: np.ndarray, family: OperatorFamily, *,
