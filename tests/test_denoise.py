@@ -43,6 +43,34 @@ def test_band_limit_removes_most_of_the_noise():
     assert 0.02 <= info["passband"] <= 0.3
 
 
+@pytest.mark.parametrize("p", [24, 25])
+def test_band_limit_on_half_the_plane_is_the_whole_plane_filter(p):
+    """The filter on ``rfft2``'s half plane (its power mirrored for the smoothing that
+    wraps) equals the Wiener filter written on numpy's whole-plane complex FFT, for
+    even and odd patches, to rounding."""
+    from scipy import ndimage as ndi
+
+    from napari_psfspace.core.model.denoise import NOISE_QUANTILE, patch_noise
+
+    psf, _ = _gaussians(40, p=p, seed=4)
+    win = bump_window(p, p // 2 - 2, p // 2)
+    rng = np.random.default_rng(5)
+    sd = 0.2 * psf.max() * (0.5 + rng.random(40))
+    noisy = psf * win + sd[:, None, None] * rng.standard_normal(psf.shape) * win
+    out, info = band_limit(noisy, sd, win)
+    noise = patch_noise(sd, win)
+    spectra = np.fft.fft2(noisy)
+    w = 1.0 / noise
+    power = np.einsum("k,kij->ij", w, np.abs(spectra) ** 2 - noise[:, None, None]) / w.sum()
+    s = np.maximum(ndi.uniform_filter(power, 3, mode="wrap"), 0.0)
+    n_typ = float(np.quantile(noise, NOISE_QUANTILE))
+    gain = s / (s + n_typ)
+    ref = np.fft.ifft2(spectra * gain[None])
+    assert np.abs(ref.imag).max() <= 1e-12 * np.abs(ref.real).max()  # the gain is symmetric
+    np.testing.assert_allclose(out, ref.real, rtol=0, atol=1e-12 * np.abs(ref.real).max())
+    assert info["passband"] == float(np.mean(gain > 0.5))
+
+
 def test_refit_basis_recovers_known_images_and_shrinks_noise():
     rng = np.random.default_rng(2)
     psf, win = _gaussians(2, p=25, seed=3)

@@ -324,3 +324,23 @@ def test_a_clear_minimum_is_kept_and_a_weak_one_keeps_the_own_estimate():
     res[0.25] = res[0.25] - 0.01 * (-1.0) ** np.arange(20)
     w, beaten = pick_weight(res)
     assert (w, beaten) == (0.25, True)
+
+
+def test_an_own_estimate_asked_only_at_held_out_beads_is_the_full_one_there(wide):
+    """The judgement's own estimate is assembled only around the held-out beads: its
+    PSFs there are the full estimate's, to the last digit (each node is kept in the cone
+    by itself, and the PSF at a bead is its four nodes'), and the field can differ
+    elsewhere (nodes far from them are not projected)."""
+    from napari_psfspace.core.family.choice import own_estimate
+    from napari_psfspace.core.family.patches import image_patches
+    from napari_psfspace.core.model.heldout import split_holdout
+
+    images, _, r, _ = wide
+    found = image_patches(images[0], float(r), index=0)
+    mask = split_holdout(found.patches.centers, found.shape, 0.2)
+    train, held = found.patches.subset(~mask), found.patches.subset(mask)
+    full = own_estimate(train, found.shape)
+    near = own_estimate(train, found.shape, at=held.centers)
+    assert full is not None and near is not None and mask.sum() >= 5
+    for y, x in held.centers:
+        np.testing.assert_array_equal(near.psf_at(y, x), full.psf_at(y, x))

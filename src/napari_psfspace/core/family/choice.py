@@ -87,8 +87,8 @@ def prior_weight(share: float, floor: float = 0.0) -> float:
 
 
 def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float = 32.0,
-                 denoise: bool = True, n_image: int | None = None
-                 ) -> ProductConvolution | None:
+                 denoise: bool = True, n_image: int | None = None,
+                 at: np.ndarray | None = None) -> ProductConvolution | None:
     """The image's own operator from its patches, as ``estimate_operator`` fits it (the
     few-beads models for an image of up to
     :data:`~napari_psfspace.core.model.fewbeads.FEW_BEADS` beads, the thin-plate field
@@ -96,7 +96,10 @@ def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float =
 
     ``n_image``: the image's usable beads when ``patches`` are its training beads only
     (``estimate_operator`` chooses the model by the image's count, then fits it to the
-    training beads to judge it on the others); default ``len(patches)``.
+    training beads to judge it on the others); default ``len(patches)``. ``at``: only
+    the PSFs at these positions (row, column; held-out beads) will be asked for, and
+    the thin-plate field is kept in the cone only around them (the projection is most
+    of the operator's assembly); the few-beads models ignore it.
     """
     mine = patches  # (image_patches left out the faint detections, as estimate does)
     if len(mine) < MIN_BEADS_OWN:
@@ -105,7 +108,7 @@ def own_estimate(patches: Patches, shape: tuple[int, int], *, grid_step: float =
         if (len(mine) if n_image is None else int(n_image)) <= FEW_BEADS:
             support = radial_distance(mine.size) < mine.r_ext
             return fit_few_beads(mine, shape, support=support, grid_step=grid_step).operator
-        return fit_patches(mine, shape, grid_step=grid_step, denoise=denoise)[1]
+        return fit_patches(mine, shape, grid_step=grid_step, denoise=denoise, at=at)[1]
     except (ValueError, np.linalg.LinAlgError):  # no own estimate: the family stays
         return None
 

@@ -477,9 +477,11 @@ def iter_estimate_family(
         # family's choice of dimensions (the longest task), as dask tasks (threads, or
         # the cluster's workers)
         trained = dask.delayed(_learn)(train, shape, **options)
+        # judged on their held-out beads only: the operators right there alone
         own_train = {i: dask.delayed(own_estimate)(train[i].patches, shape,
                                                    grid_step=grid_step, denoise=denoise,
-                                                   n_image=used[i].n_beads)
+                                                   n_image=used[i].n_beads,
+                                                   at=held[i].centers)
                      for i in judged}
         tasks = [dask.delayed(choose)(trained, i, own_train.get(i), held.get(i))
                  for i in range(len(used))]

@@ -56,12 +56,28 @@ def patch_noise(noise_sd: np.ndarray, window: np.ndarray) -> np.ndarray:
     return np.asarray(noise_sd, dtype=np.float64) ** 2 * float((window**2).sum())
 
 
-def signal_power(spectra: np.ndarray, noise: np.ndarray) -> np.ndarray:
-    """Mean signal power of the patches, shape (P, P): noise-weighted mean of
-    ``|F p_m|^2 - N_m``, smoothed over 3 x 3 frequencies and clipped at 0."""
+def _whole_plane(half: np.ndarray, width: int) -> np.ndarray:
+    """A power spectrum (P, width) of real patches from its half plane (P, width // 2 +
+    1, ``rfft2``'s): ``|F(-k)| = |F(k)|``."""
+    rows, m = half.shape
+    out = np.empty((rows, width))
+    out[:, :m] = half
+    cols = np.arange(m, width)
+    out[:, cols] = half[(-np.arange(rows)) % rows][:, width - cols]
+    return out
+
+
+def signal_power(power: np.ndarray, noise: np.ndarray, width: int | None = None
+                 ) -> np.ndarray:
+    """Mean signal power of the patches, shape (P, P), from their power spectra
+    ``|F p_m|^2`` (K, P, P; or, with the patches' ``width``, their half plane of
+    ``rfft2``, (K, P, width // 2 + 1)): noise-weighted mean of ``|F p_m|^2 - N_m``,
+    smoothed over 3 x 3 frequencies and clipped at 0."""
     w = 1.0 / np.maximum(noise, 1e-300)
-    power = np.einsum("k,kij->ij", w, np.abs(spectra) ** 2 - noise[:, None, None]) / w.sum()
-    return np.maximum(ndi.uniform_filter(power, 3, mode="wrap"), 0.0)
+    mean = np.einsum("k,kij->ij", w, power - noise[:, None, None]) / w.sum()
+    if width is not None:
+        mean = _whole_plane(mean, int(width))
+    return np.maximum(ndi.uniform_filter(mean, 3, mode="wrap"), 0.0)
 
 
 def band_limit(psf: np.ndarray, noise_sd: np.ndarray,
@@ -85,11 +101,13 @@ def band_limit(psf: np.ndarray, noise_sd: np.ndarray,
     """
     psf = np.asarray(psf, dtype=np.float64)
     noise = patch_noise(noise_sd, window)
-    spectra = np.fft.fft2(psf)
-    s = signal_power(spectra, noise)
+    # the patches are real: half the plane's spectra (rfft2), half the transforms' cost;
+    # the power on the whole plane (for the smoothing, which wraps) from its symmetry
+    spectra = np.fft.rfft2(psf)  # (K, P, P // 2 + 1)
+    s = signal_power(spectra.real ** 2 + spectra.imag ** 2, noise, psf.shape[-1])
     n_typ = float(np.quantile(noise, NOISE_QUANTILE))
     gain = s / (s + n_typ) if n_typ > 0 else np.ones_like(s)
-    out = np.real(np.fft.ifft2(spectra * gain[None]))
+    out = np.fft.irfft2(spectra * gain[None, :, :spectra.shape[-1]], s=psf.shape[-2:])
     return out, {"passband": float(np.mean(gain > 0.5)), "noise_power": n_typ}
 
 

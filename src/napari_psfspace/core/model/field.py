@@ -44,6 +44,7 @@ def fit_field(
     basis_filter: Callable[[np.ndarray], np.ndarray] | None = None,
     refit: Callable[[np.ndarray], np.ndarray] | None = None,
     constraint: str | None = None,
+    at: np.ndarray | None = None,
 ) -> tuple[ProductConvolution, Cone, ThinPlateSpline]:
     """Interpolate the PSF coefficients over the field and build the operator.
 
@@ -73,6 +74,9 @@ def fit_field(
         As :func:`assemble_operator`'s. Default: chosen by the beads held out one at a
         time (:func:`choose_constraint`), between "where-needed" and the paper's "cone";
         the choice and both held-out errors go to ``metadata["field_constraint"]``.
+    at : ndarray of shape (n, 2), optional
+        As :func:`assemble_operator`'s: the operator is right only at these positions
+        (row, column), for judging the field on a few held-out beads.
 
     Returns
     -------
@@ -91,7 +95,7 @@ def fit_field(
         metadata = {**(metadata or {}), "field_constraint": {"chosen": constraint, **scores}}
     op, cone = assemble_operator(images, beta, spline, shape, grid_step=grid_step,
                                  metadata=metadata, basis_filter=basis_filter,
-                                 constraint=constraint)
+                                 constraint=constraint, at=at)
     return op, cone, spline
 
 

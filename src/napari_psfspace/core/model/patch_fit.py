@@ -33,6 +33,7 @@ def fit_patches(
     denoise: bool = True,
     basis_filter: Callable[[np.ndarray], Callable | None] | None = None,
     record: dict | None = None,
+    at: np.ndarray | None = None,
 ) -> tuple[PsfBasis, ProductConvolution, Cone, ThinPlateSpline]:
     """PSF basis, field and operator of one image's usable bead patches.
 
@@ -50,6 +51,9 @@ def fit_patches(
         (e.g. removing the beads' size).
     record : dict, optional
         Filled with the denoising's record (passband, basis noise).
+    at : ndarray of shape (n, 2), optional
+        Only the PSFs at these positions (row, column) will be asked for
+        (:func:`~napari_psfspace.core.model.field.assemble_operator`'s ``at``).
 
     Returns
     -------
@@ -79,5 +83,5 @@ def fit_patches(
             return h
     filt = None if basis_filter is None else basis_filter(patches.psf[basis.inliers])
     op, cone, spline = fit_field(basis, patches, shape, smoothing=smoothing,
-                                 grid_step=grid_step, basis_filter=filt, refit=refit)
+                                 grid_step=grid_step, basis_filter=filt, refit=refit, at=at)
     return basis, op, cone, spline

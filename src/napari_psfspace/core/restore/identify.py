@@ -163,7 +163,7 @@ def judge_against_own(patches, c: np.ndarray, family: OperatorFamily, *,
     op, _ = _identify(family, c[~mask], patches.centers[~mask], sd[~mask], prior=prior,
                       amplitude_range=amplitude_range, max_iter=max_iter, at=held.centers)
     own = own_estimate(patches.subset(~mask), family.shape, grid_step=family.grid_step,
-                       n_image=len(c))
+                       n_image=len(c), at=held.centers)
     return choose_between(_psfs(op, held.centers), own, held,
                           prior=judged_prior(family, len(c)))
 
