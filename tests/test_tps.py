@@ -211,3 +211,28 @@ def test_refit_equals_a_fresh_fit(max_nodes):
         first.refit(z[:10])
     with pytest.raises(ValueError, match="NaN"):
         first.refit(np.full(90, np.nan))
+
+
+@pytest.mark.parametrize("block", [None, 5])
+def test_the_chosen_smoothing_is_the_least_loo_score_of_the_grid(block, monkeypatch):
+    """The selection scores the grid of smoothing values a block at a time: each column's
+    chosen value has the least weighted leave-one-out score of the 97 values (every
+    value's score the closed-form LOO of a fit at that smoothing), and its score is that
+    fit's. The same with blocks of 5 values as with the whole grid in one product."""
+    import napari_psfspace.core.model.tps as tps
+
+    pts, y, rng = _data(7)
+    vals = np.column_stack([y, _f(pts[:, ::-1]) + NOISE * rng.standard_normal(M)])
+    w = rng.uniform(0.5, 2.0, M)
+    if block is not None:
+        monkeypatch.setattr(tps, "SELECT_BLOCK", M * vals.shape[1] * block)
+    sp = ThinPlateSpline(pts, vals, weights=w, max_dof=None)
+    lam = sp._factors[6]
+    grid = max(float(lam.max()), 1e-12) * np.logspace(-9, 3, 97)
+    for j in range(vals.shape[1]):
+        scores = np.array([_weighted_loo_score(
+            ThinPlateSpline(pts, vals[:, j], weights=w, smoothing=e), w) for e in grid])
+        best = int(np.argmin(scores))
+        assert sp.smoothing[j] == grid[best]
+        # the same arithmetic up to the order of its sums: rounding, relative
+        assert abs(sp.score[j] - scores[best]) <= 1e-9 * scores[best]

@@ -64,6 +64,10 @@ def _cell_means(vals: np.ndarray, w: np.ndarray, cell: np.ndarray,
 #: standard errors of the paired per-sample difference (:class:`ThinPlateSpline`).
 RICHER_Z = 2.0
 
+#: Values (samples x columns x smoothing values) the smoothing's selection holds at once:
+#: bounds the memory of scoring a block of the grid in one matrix product.
+SELECT_BLOCK = 1 << 20
+
 
 class ThinPlateSpline:
     """Smoothing thin-plate spline in 2-D, vector-valued, weighted, GCV-tuned.
@@ -283,20 +287,31 @@ class ThinPlateSpline:
         basis = q2 @ vec  # (M, M-3)
         u2 = basis**2
         scores = np.empty((len(grid), n_col))
-        dof = np.array([m - float(np.sum(eta / (lam + eta))) for eta in grid])
+        dof = m - np.sum(grid[:, None] / (lam[None, :] + grid[:, None]), axis=1)
 
         def loo_at(eta):
             resid = eta * dinv[:, None] * (basis @ (proj / (lam + eta)[:, None]))
             one_minus_lev = eta * dinv * (u2 @ (1.0 / (lam + eta)))  # diag(I - S)
             return resid, resid / np.maximum(one_minus_lev, 1e-12)[:, None]
 
-        for g, eta in enumerate(grid):
-            resid, loo = loo_at(eta)
+        # every smoothing value of the grid at once, a block of them per matrix product
+        # (one product of the basis with many columns, not one per value)
+        step = max(1, int(SELECT_BLOCK // max(m * n_col, 1)))
+        for start in range(0, len(grid), step):
+            etas = grid[start:start + step]  # (B,)
+            inv = 1.0 / (lam[None, :] + etas[:, None])  # (B, M-3)
+            scaled = (proj[:, None, :] * inv.T[:, :, None]).reshape(len(lam), -1)
+            resid = (etas[:, None, None] * dinv[None, :, None]
+                     * np.moveaxis((basis @ scaled).reshape(m, len(etas), n_col), 1, 0))
             if criterion == "loo":
-                scores[g] = (w[:, None] * loo**2).sum(axis=0) / m
+                lev = etas[:, None] * dinv[None, :] * (inv @ u2.T)  # (B, M): diag(I - S)
+                loo = resid / np.maximum(lev, 1e-12)[:, :, None]
+                scores[start:start + step] = (w[None, :, None] * loo**2).sum(axis=1) / m
             else:
-                denom = (float(np.sum(eta / (lam + eta))) / m) ** 2
-                scores[g] = (w[:, None] * resid**2).sum(axis=0) / m / denom
+                denom = (np.sum(etas[:, None] / (lam[None, :] + etas[:, None]), axis=1)
+                         / m) ** 2
+                scores[start:start + step] = ((w[None, :, None] * resid**2).sum(axis=1) / m
+                                              / denom[:, None])
         best = np.argmin(scores, axis=0)
         self.richer = np.zeros(n_col, bool)
         self.loo_gain = np.zeros(n_col)
