@@ -287,7 +287,10 @@ class ThinPlateSpline:
         basis = q2 @ vec  # (M, M-3)
         u2 = basis**2
         scores = np.empty((len(grid), n_col))
-        dof = m - np.sum(grid[:, None] / (lam[None, :] + grid[:, None]), axis=1)
+        # sum_k eta / (Lambda_k + eta) per value: m minus the effective degrees of freedom
+        # (the GCV score's denominator too)
+        shrink = np.sum(grid[:, None] / (lam[None, :] + grid[:, None]), axis=1)
+        dof = m - shrink
 
         def loo_at(eta):
             resid = eta * dinv[:, None] * (basis @ (proj / (lam + eta)[:, None]))
@@ -308,8 +311,7 @@ class ThinPlateSpline:
                 loo = resid / np.maximum(lev, 1e-12)[:, :, None]
                 scores[start:start + step] = (w[None, :, None] * loo**2).sum(axis=1) / m
             else:
-                denom = (np.sum(etas[:, None] / (lam[None, :] + etas[:, None]), axis=1)
-                         / m) ** 2
+                denom = (shrink[start:start + step] / m) ** 2
                 scores[start:start + step] = ((w[None, :, None] * resid**2).sum(axis=1) / m
                                               / denom[:, None])
         best = np.argmin(scores, axis=0)
