@@ -257,7 +257,8 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     Returns
     -------
     dict
-        ``kind`` (``"lines"`` or ``"curve"``, that of least error); ``n_directions``
+        ``kind`` (``"curve"`` unless the lines' left-out errors at their ``L`` and ``M``
+        are :func:`clearly_lower` than the curve's, then ``"lines"``); ``n_directions``
         (``L``) and ``n_planar`` (``M``: the first ``M`` directions' coordinates also
         vary as planes over the field, as a tilted slide makes the focus do; 1 and 1
         for a curve); ``by`` (how they were chosen); ``table`` (each ``L`` and ``M``
@@ -311,14 +312,12 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
     table = [{"n": a, "planar": c, "error": round(float(e), 6)}
              for (a, c), e in zip(sizes, mean, strict=True)]
     curve = _curve_choice(fields, beads, usable, grid, shape, gram, seed=seed)
-    kind = "lines"
+    kind = "lines" if curve is None else choose_kind(errors[best], curve["draw_errors"])
     if curve is not None:
         table.append({"n": 1, "planar": 1, "curve": curve["degree"],
                       "miss_factor": curve["miss_factor"],
                       "error": round(float(curve["error"]), 6),
                       "degree_errors": curve["errors"]})
-        if curve["error"] < mean[best]:
-            kind = "curve"
 
     def model_of(j):
         if kind == "curve":
@@ -339,6 +338,15 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         out["curve"] = {"degree": curve["degree"], "thetas": curve["thetas"],
                         "miss_factor": curve["miss_factor"]}
     return out
+
+
+def choose_kind(lines: np.ndarray, curve: np.ndarray) -> str:
+    """``"lines"`` or ``"curve"`` from their left-out errors (N,), paired (the same
+    images and draws; the lines' at the ``L`` and ``M`` of least mean error). The lines'
+    ``L`` and ``M`` are the least of many sizes on these same draws, a minimum biased
+    low by the draws' chance, so the lines replace the curve only where
+    :func:`clearly_lower`."""
+    return "lines" if clearly_lower(lines, curve) else "curve"
 
 
 def clearly_lower(errors: np.ndarray, than: np.ndarray) -> bool:
@@ -420,6 +428,7 @@ def _curve_choice(fields, beads, usable, grid, shape, gram, *, seed: int = 0
     degree, f_best = chosen
     factor = MISS_FACTORS[f_best]
     return {"degree": int(degree), "error": float(np.mean(errors[chosen])),
+            "draw_errors": np.asarray(errors[chosen]),
             "errors": {str(d): round(float(np.mean(errors[best[d]])), 6) for d in degrees},
             "miss_factor": factor, "thetas": thetas[degree].tolist(),
             "left_out": {j: replace(left_out[degree, j], miss_factor=factor)
