@@ -179,8 +179,8 @@ class Curve:
         t = planes @ self.theta(eta)
         field = np.einsum("pd,dpi->pi", _powers(t, self.degree), coef)
         tangent = np.einsum("pd,dpi->pi", _slopes(t, self.degree), coef)
-        d_theta = tangent[None] * planes.T[:, :, None]  # (3, P, I)
-        return field, np.einsum("jp...,jk->kp...", d_theta, self.prior_factor)
+        # d t / d eta_k at each point: [1, u, v] times the prior factor's column k
+        return field, (planes @ self.prior_factor).T[:, :, None] * tangent[None]
 
     def linearized(self, eta: np.ndarray) -> Model:
         """The linear model about ``eta`` (its coordinates the whitened ``eta``, unit
@@ -190,22 +190,20 @@ class Curve:
         mean = field - np.tensordot(np.asarray(eta, np.float64), dirs, axes=1)
         return replace(self.frame, mean=mean, directions=dirs, variances=np.ones(3))
 
-    def _at_beads(self, centers: np.ndarray):
-        """A function of ``eta``: :func:`~.coordinates.design` of :meth:`linearized` at
-        ``centers`` (the mean (P, I) and the directions (P, I, 3)), and the curve's
-        field there (P, I): the field at the nodes around them, bilinear between (as
-        the operator interpolates its PSFs)."""
+    def _at_beads(self, centers: np.ndarray, white: np.ndarray):
+        """A function of ``eta``: the curve's field at ``centers`` (P, I) and its
+        derivatives along ``eta`` (P, I, 3), both times the basis's whitener ``white``
+        (I, I) (the field at the nodes around the beads, bilinear between, as the
+        operator interpolates its PSFs)."""
         w = bilinear(self.frame.grid, centers)
         used = np.flatnonzero(np.any(w != 0, axis=0))
         w = w[:, used]
-        coef = self.coef[:, used]
+        coef = self.coef[:, used] @ white.T  # the field is linear in the C_d
         planes = plane_design(self.nodes[used], self.frame.shape)
 
         def at(eta):
             field, dirs = self._at(coef, planes, eta)
-            field, dirs = w @ field, np.einsum("pn,jni->pij", w, dirs)
-            mean = field - dirs @ np.asarray(eta, np.float64)
-            return (mean, dirs), field
+            return w @ field, np.einsum("pn,jni->pij", w, dirs)
 
         return at
 
@@ -231,26 +229,26 @@ class Curve:
         sd = np.where(good, sd, np.median(sd[good]) if good.any() else 1.0)
         centers = np.asarray(centers, np.float64).reshape(-1, 2)
         n_p = len(c)
-        at = self._at_beads(centers)
         white = whitener(self.frame.gram)
-        inv = self.bead_whiteners(sd, centers)  # (P, I, I)
+        at = self._at_beads(centers, white)
+        scale = self.bead_scales(sd, centers)  # (P,): each bead's whitener, a multiple of I
         cw = c @ white.T
-        cv = np.einsum("pij,pj->pi", inv, cw)  # the beads' coefficients, bead-whitened
+        cv = cw * scale[:, None]  # the beads' coefficients, bead-whitened
         lo, hi = amplitude_range
 
         # bead whitener times basis whitener, the rows of one bead's whitened residual
-        inv_white = np.einsum("pij,jk->pik", inv, white)
+        inv_white = white[None] * scale[:, None, None]
 
         def state(eta, g=None):
             """The bead-whitened fit (P, I) and its derivatives along ``eta``
             (P, I, 3), the amplitudes (fitted when None) and the objective."""
-            (_, dirs), field = at(eta)
-            fw = np.einsum("pij,pj->pi", inv_white, field)
+            field, dirs = at(eta)
+            fw = field * scale[:, None]
             if g is None:
                 mm = np.maximum((fw * fw).sum(axis=1), 1e-300)
                 g = np.clip((fw * cv).sum(axis=1) / mm, lo, hi)
             res = cv - g[:, None] * fw
-            return (fw, np.einsum("pij,pjl->pil", inv_white, dirs)), g, float(
+            return (fw, dirs * scale[:, None, None]), g, float(
                 (res * res).sum() + np.dot(eta, eta))
 
         def solve(eta):
@@ -308,12 +306,18 @@ class Curve:
         its family's curve (its centring, its background), and the choice measures by
         how much. The miss's correlation between beads is left out: a few clicked beads
         lie farther apart than its length."""
+        scale = self.bead_scales(sd, centers)
+        return np.eye(len(self.frame.gram))[None] * scale[:, None, None]
+
+    def bead_scales(self, sd: np.ndarray, centers: np.ndarray) -> np.ndarray:
+        """Each bead's whitener of :meth:`bead_whiteners` as the multiple of the identity
+        it is (P,): one over the standard deviation of its residual."""
         white = whitener(self.frame.gram)
         n_i = len(white)
         per = float(np.trace(white @ self.frame.miss_cov @ white.T)) / n_i
         var = np.asarray(sd, np.float64) ** 2 + self.miss_factor * per * self.frame.scale_at(
             centers) ** 2
-        return np.eye(n_i)[None] / np.sqrt(var)[:, None, None]
+        return 1.0 / np.sqrt(var)
 
     def field(self, eta: np.ndarray) -> np.ndarray:
         """The curve's field at the nodes (G, I) at ``eta``."""
