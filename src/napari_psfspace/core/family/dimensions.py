@@ -21,7 +21,9 @@ image of the family is left out in turn, identified from :data:`N_CLICKS` of its
 by the model of the others, and compared with its own field; the sizes of least error
 over the images and draws are kept. A curve (:mod:`.curve`: the fields as a quadratic
 in one condition varying as a plane over the field, three numbers an image) is judged
-on the same draws and replaces the lines where its error is lower. A clicked bead's
+on the same draws and is kept unless the lines' errors are clearly lower
+(:func:`choose_kind`: the lines' sizes are the least of many on those draws, a minimum
+the draws' chance biases low). A clicked bead's
 coefficients stray from its image's field by more than its background's noise says (its
 own shot noise, its centring, its background's fit): :func:`noise_factor` measures by how
 much on the family's own beads, and every bead's noise is scaled by it, in the choice and
