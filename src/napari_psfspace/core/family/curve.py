@@ -304,8 +304,9 @@ class Curve:
         identifying the family's own images, each left out (:mod:`.dimensions`): a
         single bead strays from its image's field by more than that field strays from
         its family's curve (its centring, its background), and the choice measures by
-        how much. The miss's correlation between beads is left out: a few clicked beads
-        lie farther apart than its length."""
+        how much. The miss's correlation between beads is left out, although clicked
+        beads often lie within its length: weighed in, it identifies the learning
+        curve's images (``bench/bench_identify_curve.py``) the worse."""
         scale = self.bead_scales(sd, centers)
         return np.eye(len(self.frame.gram))[None] * scale[:, None, None]
 
