@@ -45,6 +45,10 @@ from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.optics import RENDER_RADIUS_FACTOR
 from napari_psfspace.core.simulation.render import render_beads
 
+#: Numbers of clicked beads (0: all) and random draws per image and number, by default.
+BEADS = (3, 5, 10, 20, 40, 0)
+DRAWS = 2
+
 
 def clean_image(truth, shape) -> np.ndarray:
     """The image's beads rendered without noise (the same positions, one flux each) on a
@@ -136,9 +140,10 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--generator", choices=("ours", "pyotf", "psfmodels"), default="ours")
     ap.add_argument("--seeds", type=int, nargs="+", default=list(range(10)))
-    ap.add_argument("--beads", type=int, nargs="+", default=[3, 5, 10, 20, 40, 0],
+    ap.add_argument("--beads", type=int, nargs="+", default=list(BEADS),
                     help="clicked beads (0: all)")
-    ap.add_argument("--draws", type=int, default=2, help="random sets per image and count")
+    ap.add_argument("--draws", type=int, default=DRAWS,
+                    help="random sets per image and count")
     ap.add_argument("--spread", choices=("default", "wide"), default="default")
     ap.add_argument("--cache", default=None, help="a folder keeping the rendered scenes")
     args = ap.parse_args()

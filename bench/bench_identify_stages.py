@@ -40,6 +40,8 @@ import warnings
 import numpy as np
 from scipy.optimize import least_squares
 
+from bench_identify_curve import BEADS as CURVE_BEADS
+from bench_identify_curve import DRAWS as CURVE_DRAWS
 from bench_identify_curve import clean_image, error, identify, picks_of
 from benchlib import table
 from identify_scenes import SPREADS, Cached, _truth_of, conditions, inner, make_scene
@@ -56,9 +58,6 @@ from napari_psfspace.core.simulation.metrics import grid_errors
 from napari_psfspace.core.simulation.optics import RENDER_RADIUS_FACTOR
 from napari_psfspace.core.simulation.render import render_beads
 
-#: The learning curve's defaults, so that a case is the same draw as there.
-CURVE_BEADS = (3, 5, 10, 20, 40, 0)
-CURVE_DRAWS = 2
 #: The cases by default: each generator's worst 5-bead draw inside the range in the
 #: learning curve, and a typical one of the same scene.
 CASES = {"ours": [(8, 2, 1), (8, 0, 0)], "pyotf": [(9, 1, 1), (9, 0, 0)],
