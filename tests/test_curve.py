@@ -223,31 +223,3 @@ def test_each_bead_is_weighed_by_its_noise_and_the_family_miss(known):
     for p in range(2):
         np.testing.assert_allclose(np.linalg.inv(inv[p].T @ inv[p]),
                                    expected[p] * np.eye(N_I), rtol=1e-12)
-
-
-def test_the_prior_is_widened_only_inside_the_family_conditions(known, monkeypatch):
-    """Noise-free beads of a condition inside the family's: the estimate of the wider
-    prior (its model's prior variances ``WIDE_PRIOR`` squared), the field found. Of a
-    condition far beyond (focus four times the family's farthest): the estimate of the
-    prior itself, the same as the fit made with no widening at all."""
-    from napari_psfspace.core.family import curve as curve_module
-
-    coef, thetas, fields = known
-    curve = build_curve(fields, GRID, SHAPE, np.eye(N_I), miss=False)
-    rng = np.random.default_rng(2)
-    within = np.array([0.2, -0.3, 0.25])
-    assert np.all((within > thetas.min(0)) & (within < thetas.max(0)))
-    truth = _fields(coef, within)[0]
-    c, sd, centers = _beads(truth, rng)
-    lines, (field, _, fit) = identify_any(curve, c, sd, centers, krige=False, spread=False)
-    np.testing.assert_allclose(lines.variances, curve_module.WIDE_PRIOR ** 2)
-    assert curve.inside(fit.z)
-    assert relative_field_error(field, truth) < 1e-5
-
-    beyond = np.array([4.0 * np.abs(thetas[:, 0]).max(), 0.0, 0.0])
-    c, sd, centers = _beads(_fields(coef, beyond)[0], rng)
-    lines, (_, _, fit) = identify_any(curve, c, sd, centers, krige=False, spread=False)
-    np.testing.assert_allclose(lines.variances, 1.0)
-    monkeypatch.setattr(curve_module, "WIDE_PRIOR", 1.0)
-    _, (_, _, plain) = identify_any(curve, c, sd, centers, krige=False, spread=False)
-    np.testing.assert_allclose(fit.z, plain.z, rtol=1e-12, atol=1e-12)

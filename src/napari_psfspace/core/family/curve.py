@@ -55,14 +55,6 @@ THETA_STEPS = 10
 #: The prior of an image's ``theta``: the family's spread of them, its standard
 #: deviation scaled by this (images beyond the conditions learnt are expected).
 PRIOR_SCALE = 2.0
-#: The identification's first prior: the prior's standard deviation times this. Its
-#: estimate is kept where its ``theta`` lies within the family's own (the box of their
-#: ``theta``, coordinate by coordinate): inside the conditions the family showed, a
-#: prior as narrow as their spread pulls an image's three numbers towards the family's
-#: mean, which the beads do not say. Beyond that box the prior's pull is what keeps a
-#: few beads in one part of the field from swinging the slopes, and the fit is made
-#: again with the prior itself.
-WIDE_PRIOR = 2.5
 #: Starts of the identification: the family's images' ``theta`` of least objective.
 N_STARTS = 3
 #: Gauss-Newton steps of the identification at most; it stops once ``eta`` (``theta``
@@ -190,20 +182,13 @@ class Curve:
         # d t / d eta_k at each point: [1, u, v] times the prior factor's column k
         return field, (planes @ self.prior_factor).T[:, :, None] * tangent[None]
 
-    def linearized(self, eta: np.ndarray, *, prior_var: float = 1.0) -> Model:
-        """The linear model about ``eta`` (its coordinates the whitened ``eta``, prior
-        variances ``prior_var``): ``field(eta)`` is the curve's field there."""
+    def linearized(self, eta: np.ndarray) -> Model:
+        """The linear model about ``eta`` (its coordinates the whitened ``eta``, unit
+        prior variances): ``field(eta)`` is the curve's field there."""
         planes = plane_design(self.nodes, self.frame.shape)
         field, dirs = self._at(self.coef, planes, eta)
         mean = field - np.tensordot(np.asarray(eta, np.float64), dirs, axes=1)
-        return replace(self.frame, mean=mean, directions=dirs,
-                       variances=np.full(3, float(prior_var)))
-
-    def inside(self, eta: np.ndarray) -> bool:
-        """Whether ``theta(eta)`` lies within the family's images' ``theta``, coordinate
-        by coordinate."""
-        th = self.theta(eta)
-        return bool(np.all((th >= self.thetas.min(axis=0)) & (th <= self.thetas.max(axis=0))))
+        return replace(self.frame, mean=mean, directions=dirs, variances=np.ones(3))
 
     def _at_beads(self, centers: np.ndarray, white: np.ndarray):
         """A function of ``eta``: the curve's field at ``centers`` (P, I) and its
@@ -236,18 +221,8 @@ class Curve:
         amplitudes kept in ``amplitude_range``; a step that raises the posterior
         objective is halved), from the :data:`N_STARTS` family images' ``theta`` that
         explain the beads best (or from ``start`` alone, an ``eta``); the estimate of
-        least objective is kept. The prior is first widened by :data:`WIDE_PRIOR`, and
-        that estimate kept where it lies :meth:`inside` the family's conditions (the
-        returned model's prior variances then the wider one's); elsewhere the fit is
-        made again with the prior as it is.
+        least objective is kept.
         """
-        found = self._fit(c, sd, centers, amplitude_range, start, WIDE_PRIOR)
-        if self.inside(found[1].z):
-            return found
-        return self._fit(c, sd, centers, amplitude_range, start, 1.0)
-
-    def _fit(self, c, sd, centers, amplitude_range, start, widen):
-        """:meth:`fit` with the prior's standard deviation times ``widen``."""
         c = np.asarray(c, np.float64)
         sd = np.asarray(sd, np.float64).reshape(-1)
         good = np.isfinite(sd) & (sd > 0)
@@ -274,7 +249,7 @@ class Curve:
                 g = np.clip((fw * cv).sum(axis=1) / mm, lo, hi)
             res = cv - g[:, None] * fw
             return (fw, dirs * scale[:, None, None]), g, float(
-                (res * res).sum() + np.dot(eta, eta) / widen ** 2)
+                (res * res).sum() + np.dot(eta, eta))
 
         def solve(eta):
             (fw, dw), g, cost = state(eta)
@@ -283,11 +258,9 @@ class Curve:
                 jac = np.zeros((n_p, cw.shape[1], 3 + n_p))
                 jac[:, :, :3] = dw * g[:, None, None]
                 jac[np.arange(n_p), :, 3 + np.arange(n_p)] = fw
-                # the beads' rows and the prior's (normal on eta, standard deviation
-                # ``widen``), by least squares
-                jac = np.vstack([jac.reshape(-1, 3 + n_p), np.eye(3, 3 + n_p) / widen])
-                step = np.linalg.lstsq(jac, np.r_[res.reshape(-1), -eta / widen],
-                                       rcond=None)[0]
+                # the beads' rows and the prior's (unit normal on eta), by least squares
+                jac = np.vstack([jac.reshape(-1, 3 + n_p), np.eye(3, 3 + n_p)])
+                step = np.linalg.lstsq(jac, np.r_[res.reshape(-1), -eta], rcond=None)[0]
                 for _ in range(20):
                     new_eta = eta + step[:3]
                     new_g = np.clip(g + step[3:], lo, hi)
@@ -309,12 +282,12 @@ class Curve:
         best = min((solve(starts[int(i)]) for i in np.argsort(costs)[:N_STARTS]),
                    key=lambda found: found[0])
         _, eta, g = best
-        model = self.linearized(eta, prior_var=widen ** 2)
+        model = self.linearized(eta)
         base, a = design(model, centers)
         fitted = base + a @ eta
         rows = np.einsum("pik,pkl->pil", inv_white, a) * g[:, None, None]
         rows = rows.reshape(-1, 3)
-        cov = np.linalg.inv(rows.T @ rows + np.eye(3) / widen ** 2)  # given the amplitudes
+        cov = np.linalg.inv(rows.T @ rows + np.eye(3))  # given the amplitudes
         return model, CoordinateFit(eta, cov, g, fitted, c / g[:, None] - fitted, sd / g,
                                     centers)
 
