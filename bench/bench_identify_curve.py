@@ -3,10 +3,11 @@
 
     python bench/bench_identify_curve.py [--generator ours|pyotf|psfmodels]
         [--seeds 0 1 ...] [--beads 3 5 10 20 40 0] [--draws 2] [--cache DIR]
-        [--spread default|wide]
+        [--spread default|wide] [--images 10]
 
-Per seed (``identify_scenes``): a family learnt from 10 images of 1024 x 1024 with 150
-beads each under hidden conditions (focus, and a defocus tilt in y and in x), and 5 new
+Per seed (``identify_scenes``): a family learnt from 10 (``--images``) images of 1024 x
+1024 with 150 beads each under hidden conditions (focus, and a defocus tilt in y and in
+x), and 5 new
 images: 3 inside the range of conditions learnt, 2 beyond it. Each new image is
 identified from ``P`` of its beads (0: all of them), drawn at random (``--draws`` sets)
 and spread over the field (farthest points), all at least ``r`` from the border; each
@@ -81,7 +82,8 @@ def picks_of(truth, shape, r, p, draws, rng):
 
 
 def run_seed(seed, args, rows):
-    sc = make_scene(seed, generator=args.generator, spread=args.spread, cache=args.cache)
+    sc = make_scene(seed, generator=args.generator, spread=args.spread, k=args.images,
+                    cache=args.cache)
     r = sc.psf_radius
     fam = estimate_family(sc.train, psf_radius=r)
     dims = fam.metadata.get("dimensions", {})
@@ -145,6 +147,8 @@ def main():
     ap.add_argument("--draws", type=int, default=DRAWS,
                     help="random sets per image and count")
     ap.add_argument("--spread", choices=("default", "wide"), default="default")
+    ap.add_argument("--images", type=int, default=10,
+                    help="training images each family is learnt from")
     ap.add_argument("--cache", default=None, help="a folder keeping the rendered scenes")
     args = ap.parse_args()
     rows: list[dict] = []
@@ -152,7 +156,8 @@ def main():
         run_seed(seed, args, rows)
     summ = summary(rows, args.beads)
     print(f"\nIdentified operator's PSF-field error / the image's own estimate's "
-          f"({args.generator}, {len(args.seeds)} seeds, spread {args.spread}): mean over "
+          f"({args.generator}, {len(args.seeds)} seeds, families of {args.images} images, "
+          f"spread {args.spread}): mean over "
           "images and draws; worst; the band's coverage; beads left out; seconds")
     print(table(summ, [("range", "s"), ("P", "s"), ("picks", "s"), ("n", "d"),
                        ("default_mean", ".2f"), ("default_worst", ".2f"), ("cone_mean", ".2f"),

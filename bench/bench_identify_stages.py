@@ -2,7 +2,7 @@
 learning curve (issue 63).
 
     python bench/bench_identify_stages.py [--generator ours|pyotf|psfmodels]
-        [--case SEED IMAGE DRAW ...] [--beads 5] [--cache DIR] [--no-ideal]
+        [--case SEED IMAGE DRAW ...] [--beads 5] [--images 10] [--cache DIR] [--no-ideal]
 
 Each case is one of ``bench_identify_curve``'s draws, drawn the same way (its seeds, its
 default ``--beads`` and ``--draws``): ``P`` random beads of test image ``IMAGE`` of
@@ -172,6 +172,8 @@ def main():
                     metavar=("SEED", "IMAGE", "DRAW"))
     ap.add_argument("--beads", type=int, default=5)
     ap.add_argument("--spread", default="default", choices=sorted(SPREADS))
+    ap.add_argument("--images", type=int, default=10,
+                    help="training images each family is learnt from")
     ap.add_argument("--cache", default=None)
     ap.add_argument("--no-ideal", dest="ideal", action="store_false")
     args = ap.parse_args()
@@ -183,7 +185,7 @@ def main():
     warnings.simplefilter("ignore")
     for seed, image, draw in cases:
         scene = make_scene(seed, generator=args.generator, spread=args.spread,
-                           cache=args.cache)
+                           k=args.images, cache=args.cache)
         if seed not in fams:
             fams[seed] = estimate_family(scene.train, psf_radius=scene.psf_radius)
         row = run_case(scene, fams[seed], seed, image, draw, args)
@@ -196,7 +198,8 @@ def main():
         fmt += [("ideal", ".2f"), ("z_true", "s"), ("z_ideal", "s"), ("ideal_s", ".0f")]
         for row in rows:
             row["z_true"], row["z_ideal"] = str(row["z_true"]), str(row["z_ideal"])
-    print(f"Where the error enters ({args.generator}, {args.beads} beads; each figure the "
+    print(f"Where the error enters ({args.generator}, {args.beads} beads, families of "
+          f"{args.images} images; each figure the "
           "PSF error over the field over the image's own estimate's):")
     print(table(rows, fmt))
 
