@@ -7,9 +7,8 @@
 
 Per seed (``identify_scenes``): a family learnt from 10 (``--images``) images of 1024 x
 1024 with 150 beads each under hidden conditions (focus, and a defocus tilt in y and in
-x), and 5 new
-images: 3 inside the range of conditions learnt, 2 beyond it. Each new image is
-identified from ``P`` of its beads (0: all of them), drawn at random (``--draws`` sets)
+x), and 5 new images: 3 inside the range of conditions learnt, 2 beyond it. Each new
+image is identified from ``P`` of its beads (0: all of them), drawn at random (``--draws`` sets)
 and spread over the field (farthest points), all at least ``r`` from the border; each
 identified operator's PSF error over the field (aligned, 4 x 4 grid) is divided by that of
 the image's own estimate from all its beads (``estimate_operator``). Columns:
