@@ -229,3 +229,36 @@ def test_leading_directions_against_numpy_svd(shape):
     assert got.shape == (5, m)
     assert np.rad2deg(subspace_angles(ref.T, got.T)).max() < 1e-6
     np.testing.assert_allclose(np.abs(np.sum(ref * got, axis=1)), 1.0, atol=1e-9)
+
+
+def test_the_grouped_test_keeps_the_beads_of_a_field_steep_at_its_rim():
+    """Three images whose elongation rises steeply towards the rim (a quartic in the
+    distance from the centre, each image with its own strength), with faint and bright
+    beads (per-bead noise over a factor of 4): every bead is a good bead, and the
+    grouped test keeps them all, where the leave-one-out residuals' 3-sigma test rejects
+    beads at the rim. A doublet and a noise patch put into one image are still
+    rejected."""
+    rng = np.random.default_rng(7)
+    n = 150
+    pos = rng.uniform(0, 500, (3 * n, 2))
+    u, v = (pos / 250.0 - 1.0).T
+    owner = np.repeat(np.arange(3), n)
+    strength = np.array([0.5, 1.0, 1.5])[owner]
+    a = np.column_stack([np.ones(3 * n), 0.1 + strength * u**4, 0.1 + 0.5 * strength * v**4])
+    x = np.einsum("ki,ipq->kpq", a, SHAPES)
+    x /= x.sum(axis=(1, 2), keepdims=True)
+    noise = NOISE * rng.uniform(0.5, 2.0, 3 * n)
+    x += noise[:, None, None] * rng.standard_normal(x.shape)
+    grouped = learn_basis(x, 3, positions=pos, groups=owner)
+    assert grouped.inliers.all()
+    rim = np.maximum(np.abs(u), np.abs(v)) > 0.8
+    # the leave-one-out residuals of each image against its mean and sd, at 3 sigma
+    # (the test of one image's beads): what the grouped test no longer does
+    loo = np.zeros(3 * n, bool)
+    for g in range(3):
+        sel = owner == g
+        loo[sel] = ~learn_basis(x[sel], 3, positions=pos[sel], z_threshold=3.0).inliers
+    assert loo[rim].sum() > 0
+    bad = _with_outliers(x, rng)  # patches 0 and 1, both of the first image
+    grouped = learn_basis(bad, 3, positions=pos, groups=owner)
+    assert not grouped.inliers[0] and not grouped.inliers[1] and grouped.inliers[2:].all()

@@ -4,8 +4,9 @@ Steps, on top of the single-image pipeline:
 
 1. every image's bead patches (:func:`~.patches.image_patches`), one dask task per
    image, read one at a time;
-2-4. one PCA of the patches of all images with z-score outlier rejection (each bead
-   against its own image's neighbours: the thin-plate fit of that image's beads) and a
+2-4. one PCA of the patches of all images with outlier rejection (each bead against its
+   own image's neighbours: the thin-plate fit of that image's beads, a gate for gross
+   misfits on a robust scale) and a
    second PCA (:func:`~napari_psfspace.core.model.pca.learn_basis`); with ``denoise`` (the
    default) the PSF basis ``h_i`` is then learnt from each bead's value of its image's
    field of the first :data:`FIELD_COMPONENTS` ``x I`` components, with the family as the

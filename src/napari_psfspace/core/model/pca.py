@@ -3,8 +3,10 @@
 The patches (sum 1, then l2-normalised so that every bead weighs the same) are
 decomposed by an SVD. Without centring, the first component carries the mean PSF,
 so every PSF is ``sum_i beta_i h_i`` with no separate mean term, as the
-product-convolution model needs. A z-score test at 3 sigma on the coefficients
-removes unlikely patches (doublets, debris), then the PCA is recomputed.
+product-convolution model needs. A z-score test at 3 sigma on the coefficients (or on
+their residuals about the field) removes unlikely patches (doublets, debris), then the
+PCA is recomputed; a family's images are each tested on a robust scale
+(:data:`GROUP_Z`).
 
 The basis size follows Gavish & Donoho's optimal hard threshold for an unknown noise
 level: keep the singular values above ``omega(beta) * sigma_med``, where
@@ -34,7 +36,8 @@ class PsfBasis:
     inliers : ndarray of shape (K,), bool
         Patches kept after the z-score test.
     zscores : ndarray of shape (K,)
-        Largest absolute z-score of each patch's coefficients (first PCA).
+        Largest absolute z-score of each patch's coefficients, or of their residuals
+        about the field (first PCA); with ``groups``, in robust standard deviations.
     singular_values : ndarray
         Singular values of the inlier matrix (second PCA), decreasing.
     rank_threshold : float
@@ -152,6 +155,17 @@ def orient(vt: np.ndarray) -> np.ndarray:
 #: held-out check, and on noisy pooled patches it keeps noise components.
 RULE_CAP = 12
 
+#: Threshold of the grouped test (``groups``), in robust standard deviations of each
+#: image's standardized residuals: a gross-misfit gate. Good beads' residuals about a
+#: field are heavy-tailed (faint beads, the steep field at the rim), and the family's
+#: fields already weigh moderate misfits down; at this threshold the gate keeps the rim's
+#: beads and still rejects doublets and noise patches put into a family's images
+#: (``bench/bench_family_outliers.py``, three generators).
+GROUP_Z = 10.0
+
+#: Fewest beads of an image for the grouped test: its robust scale needs a few.
+GROUP_MIN_BEADS = 6
+
 
 def learn_basis(
     psfs: np.ndarray,
@@ -159,7 +173,7 @@ def learn_basis(
     *,
     support: np.ndarray | None = None,
     positions: np.ndarray | None = None,
-    z_threshold: float = 3.0,
+    z_threshold: float | None = None,
     svd: str = "auto",
     max_psf: int | None = None,
     weights: np.ndarray | None = None,
@@ -191,9 +205,10 @@ def learn_basis(
         than to the coefficients themselves: with field-dependent aberrations the
         paper's global test rejects the legitimately extreme beads at the field edges
         and leaves the corners to extrapolation.
-    z_threshold : float
+    z_threshold : float, optional
         Patches with a coefficient (or residual) more than ``z_threshold`` standard
-        deviations from the mean are rejected (paper: 3).
+        deviations from the mean are rejected. Default 3 (the paper's); with ``groups``,
+        :data:`GROUP_Z` robust standard deviations (see ``groups``).
     svd : {"auto", "full", "randomized", "gram"}
         SVD method. "auto" uses the full SVD unless both dimensions exceed 2000
         and ``n_psf`` is given; "gram" the eigendecomposition of the Gram matrix (the
@@ -218,7 +233,13 @@ def learn_basis(
         beads of a family's images under other conditions are not its neighbours: tested
         against the pooled patches, the beads of a condition at the edge of those
         learnt are all outliers, and the family loses that condition where it differs
-        most (a corner of a tilted field). Needs an integer ``n_psf`` or "rule".
+        most (a corner of a tilted field). Each residual is the in-sample one over
+        ``sqrt(1 - S_mm)`` (the spline's standardized residual: its leverage, large
+        where the field is extrapolated at the rim, does not inflate it as the
+        leave-one-out residual's ``1 / (1 - S_mm)`` does), scaled by ``1.4826`` times
+        the image's median absolute deviation; images of fewer than
+        :data:`GROUP_MIN_BEADS` beads are not tested. Needs an integer ``n_psf`` or
+        "rule".
 
     Returns
     -------
@@ -300,10 +321,14 @@ def learn_basis(
         zmax = np.zeros(k)
         for g in np.unique(groups):
             sel = groups == g
-            zmax[sel] = _zmax(_loo_residuals(pos[sel], coef[sel]))
+            if np.count_nonzero(sel) >= GROUP_MIN_BEADS:
+                zmax[sel] = _robust_zmax(ThinPlateSpline(pos[sel], coef[sel])
+                                         .standardized_residuals)
+        threshold = GROUP_Z if z_threshold is None else z_threshold
     else:
         zmax = _zmax(coef if pos is None else ThinPlateSpline(pos, coef).loo_residuals)
-    inliers = zmax <= z_threshold
+        threshold = 3.0 if z_threshold is None else z_threshold
+    inliers = zmax <= threshold
     if np.count_nonzero(inliers) < min_beads_for(n_psf or 1):
         inliers[:] = True  # too few left: keep everything rather than fail
     # Second PCA on the inliers.
@@ -332,12 +357,17 @@ def learn_basis(
     return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors, more)
 
 
-def _loo_residuals(positions: np.ndarray, coef: np.ndarray) -> np.ndarray:
-    """Leave-one-out residuals of a thin-plate fit of ``coef`` (n, m) over ``positions``
-    (n, 2); below 4 beads (too few for a thin-plate fit) the deviations from their mean."""
-    if len(positions) < 4:
-        return coef - coef.mean(axis=0)
-    return ThinPlateSpline(positions, coef).loo_residuals
+def _robust_zmax(values: np.ndarray) -> np.ndarray:
+    """Each row's largest absolute deviation from the column's median, in units of
+    ``1.4826`` times the column's median absolute deviation (columns without spread:
+    none)."""
+    values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    dev = np.abs(values - np.median(values, axis=0))
+    scale = 1.4826 * np.median(dev, axis=0)
+    ok = scale > 1e-12 * max(float(dev.max()), 1e-300)
+    if not ok.any():
+        return np.zeros(len(values))
+    return (dev[:, ok] / scale[ok]).max(axis=1)
 
 
 def _zmax(values: np.ndarray) -> np.ndarray:
