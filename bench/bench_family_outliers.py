@@ -143,11 +143,17 @@ def main():
     for gen in args.generators:
         found = []
         for seed in args.seeds:
-            sc = make_scene(seed, generator=gen, cache=args.cache)
+            try:
+                sc = make_scene(seed, generator=gen, cache=args.cache)
+            except ValueError as exc:  # a scene whose beads do not fit its field
+                print(f"{gen} seed {seed}: skipped ({exc})", flush=True)
+                continue
+            shape = sc.train[0].shape
             found += learn(sc.train, sc.psf_radius)
             print(f"{gen} seed {seed}: {sum(len(f['kind']) for f in found)} patches",
                   flush=True)
-        rows += rows_of(f"{gen} {len(args.seeds)} seeds", found, sc.train[0].shape)
+        if found:
+            rows += rows_of(f"{gen} {len(found)} seeds", found, shape)
     data = Path(args.data)
     for name, (rel, a, b, r) in MEASURED.items():
         path = data / rel
