@@ -34,7 +34,7 @@ import napari_psfspace.core.family.estimate as family_estimate
 from benchlib import table
 from identify_scenes import make_scene
 from napari_psfspace.core.family import estimate_family
-from napari_psfspace.core.model.pca import GROUP_Z, _zmax
+from napari_psfspace.core.model.pca import GROUP_Z
 from napari_psfspace.core.model.tps import ThinPlateSpline
 from napari_psfspace.io import read_image
 
@@ -87,7 +87,10 @@ def _loo_scores(x, n_psf, w, support, pos, groups) -> np.ndarray:
     for g in np.unique(groups):
         sel = groups == g
         if np.count_nonzero(sel) >= 4:
-            out[sel] = _zmax(ThinPlateSpline(pos[sel], coef[sel]).loo_residuals)
+            r = ThinPlateSpline(pos[sel], coef[sel]).loo_residuals
+            sd = r.std(axis=0)
+            sd[sd == 0] = 1.0
+            out[sel] = (np.abs(r - r.mean(axis=0)) / sd).max(axis=1)
     return out
 
 
