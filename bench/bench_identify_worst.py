@@ -2,7 +2,7 @@
 bead the identification names does (issue 63's worst draws).
 
     python bench/bench_identify_worst.py [--generator ours|pyotf|psfmodels]
-        [--seeds 0 1 ...] [--cache DIR] [--posterior 24]
+        [--seeds 0 1 ...] [--cache DIR] [--posterior 24] [--images 10]
 
 The scenes, the random 5-bead draws and the own estimates of ``bench_identify_curve``
 (the same seeds give the same draws): inside the range of conditions learnt, each draw's
@@ -94,7 +94,7 @@ def nearest(points: np.ndarray, at) -> np.ndarray:
 
 
 def run_seed(seed, args, rows, fams):
-    sc = make_scene(seed, generator=args.generator, k=10, cache=args.cache)
+    sc = make_scene(seed, generator=args.generator, k=args.images, cache=args.cache)
     r = sc.psf_radius
     fam = estimate_family(sc.train, psf_radius=r)
     fams[seed] = (sc, fam)
@@ -166,6 +166,8 @@ def main():
     ap.add_argument("--cache", default=None, help="a folder keeping the rendered scenes")
     ap.add_argument("--posterior", type=int, default=24,
                     help="points drawn from the posterior of each worst draw")
+    ap.add_argument("--images", type=int, default=10,
+                    help="training images each family is learnt from")
     args = ap.parse_args()
     warnings.simplefilter("ignore")
     rows: list[dict] = []
@@ -179,7 +181,8 @@ def main():
              "sixth_mean": s.mean(), "sixth_worst": s.max(), "sixth_above_2": int((s > 2).sum()),
              "warned_worst": float(np.max(d[w])) if w.any() else None,
              "quiet_worst": float(np.max(d[~w])) if (~w).any() else None}]
-    print(f"\nInside the range, 5 random beads ({args.generator}, {len(args.seeds)} seeds): "
+    print(f"\nInside the range, 5 random beads ({args.generator}, {len(args.seeds)} seeds, "
+          f"families of {args.images} images): "
           "the identified operator's PSF-field error / the image's own estimate's; with "
           "one more bead where the identification names (sixth); the worst among the draws "
           "it warned on and among those it did not")
