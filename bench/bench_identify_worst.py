@@ -17,12 +17,13 @@ slopes) from the image's own point, the one identified from all of its beads wit
 noise:
 
 - ``obj_found``, ``obj_own``: the identification's objective (the five beads' whitened
-  residuals squared, plus the prior's ``|eta|^2``), from the five beads without noise,
-  at the identified point and at the image's own; ``res_found``, ``res_own``: its
-  beads' part alone. A difference under 1 is within one standard deviation of the
-  posterior: the beads cannot tell the two points apart. A residual lower at the
-  identified point means the curve fits those five noise-free beads better there than at
-  the image's own point: no fit to them prefers the right one.
+  residuals squared, plus the prior's ``|eta|^2``) of the five beads without noise, at
+  the point identified from them (the oracle's) and at the image's own; ``res_found``,
+  ``res_own``: its beads' part alone; ``gap``: ``obj_own - obj_found``. A gap under 1
+  is within one standard deviation of the posterior: the beads cannot tell the two
+  points apart. A residual lower at the identified point means the curve fits those five
+  noise-free beads better there than at the image's own point: no fit to them prefers
+  the right one.
 - ``at_own``: the error at the image's own point, the miss kriged from the five beads;
 - ``post_10``, ``post_50``, ``post_90``: the error's quantiles over points drawn from the
   identification's posterior (Laplace, ``--posterior`` draws): the range the five beads
@@ -153,7 +154,8 @@ def identifiability(q, fams, n_draws):
         with recorded_fits(start=eta + factor @ rs.standard_normal(3), steps=0):
             post.append(error(identify(image, fam, q["beads"])[0], truth) / own)
     return {**out, "kind": "curve", "oracle": error(oracle, truth) / own,
-            "obj_found": obj_found, "obj_own": obj_own, "res_found": res_found,
+            "obj_found": obj_found, "obj_own": obj_own, "gap": obj_own - obj_found,
+            "res_found": res_found,
             "res_own": res_own, "at_own": error(at_own, truth) / own,
             **dict(zip(("post_10", "post_50", "post_90"),
                        np.quantile(post, [0.1, 0.5, 0.9]), strict=True))}
@@ -197,7 +199,8 @@ def main():
           "standard deviation); the error there; over the posterior's points")
     print(table(found, [("seed", "d"), ("image", "d"), ("draw", "d"), ("kind", "s"),
                         ("default", ".2f"), ("oracle", ".2f"), ("sixth", ".2f"),
-                        ("obj_found", ".2f"), ("obj_own", ".2f"), ("res_found", ".2f"),
+                        ("obj_found", ".2f"), ("obj_own", ".2f"), ("gap", ".2f"),
+                        ("res_found", ".2f"),
                         ("res_own", ".2f"), ("at_own", ".2f"), ("post_10", ".2f"),
                         ("post_50", ".2f"), ("post_90", ".2f")]))
 
