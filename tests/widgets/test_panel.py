@@ -162,6 +162,32 @@ def _click_and_wait(qtbot, widget, button, timeout=120_000):
     wait_task(qtbot, widget.task, timeout=timeout)
 
 
+def test_results_are_never_offered_as_images_to_work_on(laptop, qtbot):
+    """After Beads and Review on one 2-D image, the viewer holds the bead gallery and
+    colour bars as image layers: no step offers them as its input, and Family (which
+    needs two images of one shape, or a stack) is not offered."""
+    v, dock, panel, cwd = laptop
+    steps = panel.steps
+    image = v.layers["beads image"]
+    steps["Beads"].image.value = image
+    _click_and_wait(qtbot, steps["Beads"], steps["Beads"].detect)
+    steps["Review"].image.value = image
+    _click_and_wait(qtbot, steps["Review"], steps["Review"].extract)
+    images = [layer for layer in v.layers if layer.__class__.__name__ == "Image"]
+    assert len(images) >= 2  # the gallery at least, beside the data
+    assert "Family" not in panel.offered_steps()
+    for title in ("Beads", "Review", "Model", "Diagnose", "Deblur"):
+        offered = [layer.name for layer in steps[title].image.choices]
+        assert offered == ["beads image"], (title, offered)
+    # a second image of another shape is no family either; one of the same shape is
+    v.add_image(np.asarray(image.data)[:-8], name="cropped")
+    assert "Family" not in panel.offered_steps()
+    v.add_image(np.asarray(image.data) * 1.1, name="second")
+    assert "Family" in panel.offered_steps()
+    assert [layer.name for layer in steps["Family"].layers.choices] == [
+        "beads image", "cropped", "second"]
+
+
 def test_every_step_twice_the_same_layers_and_cancel(laptop, qtbot,
                                                                        monkeypatch):
     """The walk a user takes, each step run twice: the same layer names after each

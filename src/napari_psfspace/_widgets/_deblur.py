@@ -24,7 +24,7 @@ from magicgui.widgets import (
     PushButton,
     SpinBox,
 )
-from napari.layers import Image, Points
+from napari.layers import Points
 from napari.utils.notifications import show_error
 
 from ..core.common.device import array_module
@@ -47,7 +47,7 @@ from ._layers import (
     map_layers,
     show_layers,
 )
-from ._worker import CoreTask, device_choice, layer_choices, result_text
+from ._worker import CoreTask, device_choice, image_choices, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -157,7 +157,7 @@ class DeblurWidget(Container):
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
-        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.image = ComboBox(label="image", choices=image_choices(viewer))
         self.source = ComboBox(label="operator", choices=list(SOURCES))
         self.path = FileEdit(mode="r", filter="*.npz", label="file")
         self.in_viewer = ComboBox(label="in the viewer", choices=self._models, visible=False)

@@ -14,7 +14,6 @@ from magicgui.widgets import (
     PushButton,
     Table,
 )
-from napari.layers import Image
 from napari.utils.notifications import show_info
 
 from ..core.diagnosis.loop import iter_diagnose
@@ -42,7 +41,7 @@ from ._worker import (
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
-    layer_choices,
+    image_choices,
     result_text,
 )
 
@@ -125,7 +124,7 @@ class DiagnoseWidget(FollowsBeads, Container):
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
-        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.image = ComboBox(label="image", choices=image_choices(viewer))
         self.points = ComboBox(label="beads", choices=bead_layer_choices(viewer, allow_none=True))
         self.points.tooltip = ("Its slice and PSF radius are used. Diagnose detects and "
                                "centres the beads itself.")

@@ -25,7 +25,6 @@ from magicgui.widgets import (
     Select,
     SpinBox,
 )
-from napari.layers import Image
 from napari.utils.notifications import show_error, show_info
 
 from ..core.common.progress import Progress
@@ -39,7 +38,7 @@ from ._layers import (
     focus_on_step,
     show_layers,
 )
-from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of, result_text
+from ._worker import CoreTask, RadiusEdit, image_choices, pixel_size_of, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -100,12 +99,10 @@ class LearnFamilyWidget(Container):
 
     # ---------------------------------------------------------------- choices
     def _stacks(self, _widget=None) -> list:
-        return [c for c in layer_choices(self._viewer, Image)()
-                if np.ndim(c[1].data) == 3 and not c[1].rgb]
+        return image_choices(self._viewer, 3)()
 
     def _planes(self, _widget=None) -> list:
-        return [c for c in layer_choices(self._viewer, Image)()
-                if np.ndim(c[1].data) == 2 and not c[1].rgb]
+        return image_choices(self._viewer, 2)()
 
     def _on_layers(self, *_) -> None:
         self.reset_choices()

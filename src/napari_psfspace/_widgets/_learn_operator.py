@@ -15,7 +15,6 @@ from magicgui.widgets import (
     PushButton,
     SpinBox,
 )
-from napari.layers import Image
 from napari.utils.notifications import show_info
 
 from ..core.common.measures import field_fwhm, fwhm_line
@@ -41,7 +40,7 @@ from ._worker import (
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
-    layer_choices,
+    image_choices,
     result_text,
 )
 
@@ -83,7 +82,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
-        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.image = ComboBox(label="image", choices=image_choices(viewer))
         self.points = ComboBox(label="beads", choices=bead_layer_choices(viewer, allow_none=True))
         self.radius = RadiusEdit()
         self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,

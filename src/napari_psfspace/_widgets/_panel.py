@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
-from napari.layers import Image, Points
+from napari.layers import Points
 from qtpy.QtCore import Qt
 from qtpy.QtWidgets import (
     QLabel,
@@ -29,7 +29,15 @@ from qtpy.QtWidgets import (
 
 from ._deblur import DeblurWidget
 from ._diagnose import DiagnoseWidget
-from ._layers import BEADS, OPERATOR_KEY, SUBSPACE_KEY, group_layers, remove_step
+from ._layers import (
+    BEADS,
+    OPERATOR_KEY,
+    SUBSPACE_KEY,
+    group_layers,
+    input_images,
+    is_input_image,
+    remove_step,
+)
 from ._learn_family import LearnFamilyWidget
 from ._learn_operator import LearnOperatorWidget
 from ._pick_beads import PickBeadsWidget
@@ -64,11 +72,11 @@ def _has(viewer, test) -> bool:
 
 
 def _is_image(layer) -> bool:
-    return isinstance(layer, Image) and not getattr(layer, "rgb", False)
+    return is_input_image(layer)
 
 
 def _is_stack(layer) -> bool:
-    return _is_image(layer) and layer.ndim == 3
+    return is_input_image(layer, 3)
 
 
 def _is_beads(layer) -> bool:
@@ -81,10 +89,12 @@ def _is_model(layer) -> bool:
 
 
 def _several_images(viewer) -> bool:
-    """A stack of two planes or more, or two 2-D images or more: a family's input."""
-    if any(_is_stack(layer) and layer.data.shape[0] >= 2 for layer in viewer.layers):
+    """A stack of two planes or more, or two 2-D images or more of one shape: a family's
+    input (results, such as a bead gallery or a map, are not images to learn from)."""
+    if any(layer.data.shape[0] >= 2 for layer in input_images(viewer, 3)):
         return True
-    return sum(_is_image(layer) and layer.ndim == 2 for layer in viewer.layers) >= 2
+    shapes = [tuple(layer.data.shape) for layer in input_images(viewer, 2)]
+    return any(shapes.count(shape) >= 2 for shape in set(shapes))
 
 
 #: What lets each step run (a test on the viewer).

@@ -7,7 +7,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
-from napari.layers import Image
 
 from ..core.beads.steps import iter_detect_beads, iter_suggest_psf_radius
 from ._layers import (
@@ -22,7 +21,7 @@ from ._layers import (
     image_plane,
     show_layers,
 )
-from ._worker import CoreTask, RadiusEdit, layer_choices, pixel_size_of
+from ._worker import CoreTask, RadiusEdit, image_choices, pixel_size_of
 
 if TYPE_CHECKING:
     import napari
@@ -67,7 +66,7 @@ class PickBeadsWidget(Container):
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
-        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.image = ComboBox(label="image", choices=image_choices(viewer))
         self.radius = RadiusEdit()
         self.suggest = PushButton(text="Suggest radius")
         self.suggest.tooltip = ("Measure the enclosed energy of bright spots across the "

@@ -6,7 +6,6 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 from magicgui.widgets import ComboBox, Container, PushButton, SpinBox
-from napari.layers import Image
 
 from ..core.beads.detect import REJECTED
 from ..core.model.review import VIEWS, PatchReview, iter_patch_review
@@ -29,7 +28,7 @@ from ._worker import (
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
-    layer_choices,
+    image_choices,
     result_text,
 )
 
@@ -49,7 +48,7 @@ class ReviewPatchesWidget(FollowsBeads, Container):
 
     def __init__(self, viewer: napari.viewer.Viewer) -> None:
         self._viewer = viewer
-        self.image = ComboBox(label="image", choices=layer_choices(viewer, Image))
+        self.image = ComboBox(label="image", choices=image_choices(viewer))
         self.points = ComboBox(label="beads", choices=bead_layer_choices(viewer))
         self.radius = RadiusEdit()
         self.extract = PushButton(text="Extract patches")

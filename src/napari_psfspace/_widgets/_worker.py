@@ -29,6 +29,7 @@ from napari.utils.notifications import show_error
 
 from ..core.common.device import DEVICES, gpu_status
 from ..core.common.progress import responsive
+from ._layers import input_images
 
 
 @dataclass(frozen=True)
@@ -175,11 +176,13 @@ class CoreTask(Container):
 
 
 # ------------------------------------------------------------------ shared widget parts
-def layer_choices(viewer, kind: type) -> Callable[[Any], list]:
-    """A ``choices`` callable for a ComboBox listing the viewer's layers of one kind."""
+def image_choices(viewer, ndim: int | None = None) -> Callable[[Any], list]:
+    """A ``choices`` callable for a ComboBox listing the viewer's images a step may work
+    on (of ``ndim`` dimensions, when given): no result of the plugin's (a gallery, a map,
+    a mosaic, a colour bar) is offered as an input."""
 
     def choices(_widget=None) -> list:
-        return [(layer.name, layer) for layer in viewer.layers if isinstance(layer, kind)]
+        return [(layer.name, layer) for layer in input_images(viewer, ndim)]
 
     return choices
 

@@ -16,6 +16,8 @@ from .bookkeeping import (
     find_layer,
     focus_on_step,
     group_layers,
+    input_images,
+    is_input_image,
     remove_step,
     show_layers,
     step_layers,
@@ -62,5 +64,6 @@ __all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "advic
            "ensure_bead_features", "find_layer", "fix_ids", "focus_on_step", "for_a_new_fit",
            "free_slot", "gallery_cell", "gallery_index", "gallery_layers", "group_layers",
            "heldout_layers", "hot_pixels_from_layer", "hot_pixels_layer", "image_plane",
-           "map_layers", "operator_layers", "psf_layers", "remove_step", "set_statuses",
+           "input_images", "is_input_image", "map_layers", "operator_layers", "psf_layers",
+           "remove_step", "set_statuses",
            "show_layers", "step_layers", "family_layers", "titles_layer", "user_beads"]

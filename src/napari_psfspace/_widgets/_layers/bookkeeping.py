@@ -8,7 +8,7 @@ import contextlib
 import numpy as np
 
 from .frame import LayerTuple
-from .names import MADE_AS, STEP_KEY
+from .names import MADE_AS, OPERATOR_KEY, STEP_KEY, SUBSPACE_KEY
 
 
 def _kind(layer) -> str:
@@ -27,6 +27,28 @@ def find_layer(viewer, name: str, kind: str | None = None):
         return viewer.layers[name]
     return None
 
+
+
+#: Metadata keys that mark a layer as a result, not an image to work on: the plugin's
+#: layers (:data:`MADE_AS`), a model's read back (its operator or family), a map's
+#: description, a colour bar.
+RESULT_KEYS = (MADE_AS, OPERATOR_KEY, SUBSPACE_KEY, "about", "colorbar_of")
+
+
+def is_input_image(layer, ndim: int | None = None) -> bool:
+    """Whether ``layer`` is an image a step may work on: a greyscale image layer (of
+    ``ndim`` dimensions, when given) that is no result (:data:`RESULT_KEYS`): not a
+    gallery, a map, a mosaic or a colour bar."""
+    if _kind(layer) != "image" or getattr(layer, "rgb", False):
+        return False
+    if ndim is not None and layer.ndim != ndim:
+        return False
+    return not any(key in (layer.metadata or {}) for key in RESULT_KEYS)
+
+
+def input_images(viewer, ndim: int | None = None) -> list:
+    """The viewer's images a step may work on (:func:`is_input_image`)."""
+    return [layer for layer in viewer.layers if is_input_image(layer, ndim)]
 
 
 def step_layers(viewer, step: str) -> list:
