@@ -6,7 +6,9 @@ import time
 import pytest
 
 from napari_psfspace.core.common.progress import (
+    Halted,
     Progress,
+    check_halt,
     responsive,
     run_with_progress,
     wait_with_progress,
@@ -144,3 +146,59 @@ def test_responsive_raises_the_core_error():
 
     with pytest.raises(ValueError, match="`psf_radius`: bad"):
         run_with_progress(responsive(core(), every=0.01))
+
+
+def _checking(started, stopped, pieces, n=100_000):
+    """A long part with no record, checking for a halt between its pieces (1 ms each:
+    about 100 s in all); ``stopped`` is set however it ends."""
+    try:
+        for k in range(n):
+            started.set()
+            pieces.append(k)
+            check_halt()
+            time.sleep(0.001)
+    finally:
+        stopped.set()
+    return "ran to its end"
+
+
+@pytest.mark.parametrize("where", ["in the generator", "in a step's thread"])
+def test_a_cancelled_computation_stops_at_its_next_check_not_at_its_next_record(where):
+    """After Cancel the work itself stops, not only the panel's wait: a long part that
+    checks (``check_halt``) between its pieces ends within a piece, in the generator's
+    own thread and in the thread of a step it waits on (``wait_with_progress``)."""
+    started, stopped, pieces = threading.Event(), threading.Event(), []
+
+    def core():
+        yield RECORD
+        if where == "in the generator":
+            _checking(started, stopped, pieces)
+        else:
+            yield from wait_with_progress(lambda: _checking(started, stopped, pieces), RECORD,
+                                          every=0.01)
+        yield Progress("never", 1.0)
+
+    gen = responsive(core(), every=0.01)
+    for _ in range(3000):  # the panel asks for records (each within 0.01 s) ...
+        next(gen)
+        if started.is_set():  # ... until the long part is under way
+            break
+    assert started.is_set()
+    gen.close()  # Cancel
+    # it stops at its next check: long before the 100 000 pieces (about 100 s) are done
+    assert stopped.wait(30)
+    assert len(pieces) < 100_000
+
+
+def test_check_halt_does_nothing_outside_a_cancelled_computation():
+    """Run by a script (no panel), or before a Cancel, the checks never stop the work."""
+    started, stopped, pieces = threading.Event(), threading.Event(), []
+    assert _checking(started, stopped, pieces, n=50) == "ran to its end"
+    assert len(pieces) == 50
+
+    def core():
+        yield RECORD
+        return _checking(started, stopped, pieces, n=50)
+
+    assert run_with_progress(responsive(core(), every=0.01)) == "ran to its end"
+    assert issubclass(Halted, BaseException) and not issubclass(Halted, Exception)

@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..common.progress import check_halt
+
 
 def gather_windows(image: np.ndarray, centers: np.ndarray, half: int) -> np.ndarray:
     """Square windows of ``image`` around integer-rounded centres.
@@ -68,6 +70,7 @@ def refine_centers(
         start; beads whose window has no signal above the local background keep their
         start exactly.
     """
+    check_halt()
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
     if len(centers) == 0:
         return centers.copy()

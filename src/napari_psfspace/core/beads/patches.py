@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..common.progress import check_halt
 from ..common.validate import as_image, check_psf_radius
 from .background import fit_background
 from .centering import gather_windows
@@ -94,6 +95,7 @@ def resample_patches(image: np.ndarray, centers: np.ndarray, size: int) -> np.nd
     -------
     ndarray of shape (K, size, size), float64
     """
+    check_halt()
     half = size // 2
     margin = 3  # spline support around the patch
     wins = gather_windows(image, centers, half + margin).astype(np.float64)
@@ -162,6 +164,7 @@ def extract_patches(
         lies in the image) has its background fitted on the pixels in the image, and
         ``raw`` equal to it beyond the edge (no light there).
     """
+    check_halt()
     img = as_image(image)
     r = check_psf_radius(psf_radius, img.shape)
     if r_ext_factor <= 1:

@@ -14,6 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
+from ..common.progress import check_halt
+
 #: Largest gain :func:`remove_sphere` applies at any frequency (``1 / T`` is capped there).
 MAX_GAIN = 10.0
 #: First zero of ``sin q - q cos q`` (``tan q = q``): the sphere's transfer vanishes at
@@ -30,6 +32,7 @@ def sphere_transfer(k, diameter) -> np.ndarray:
     ``k = 0`` (unit total intensity). Any length unit, the same for both:
     ``d`` in µm with ``|k|`` in cycles/µm, or pixels with cycles/pixel.
     """
+    check_halt()
     q = np.pi * np.asarray(diameter, float) * np.asarray(k, float)
     small = np.abs(q) < 0.1  # series: avoids the cancellation of sin q - q cos q
     safe = np.where(small, 1.0, q)

@@ -38,6 +38,43 @@ class Progress:
 ProgressCallback = Callable[[Progress], None]
 
 
+class Halted(BaseException):
+    """Raised by :func:`check_halt` in a computation whose consumer has stopped (a panel's
+    Cancel): the computation's thread stops at its next check instead of working on to its
+    next record. A ``BaseException``, as ``GeneratorExit`` is, so that no ``except
+    Exception`` of the computation takes it for a failure of its own."""
+
+
+#: The halt event of the computation each thread works for (:func:`responsive` sets it
+#: in its driver thread; :func:`wait_with_progress` hands it to the thread of its step).
+_LOCAL = threading.local()
+
+
+def check_halt() -> None:
+    """Raise :class:`Halted` when the computation this thread works for was cancelled;
+    else nothing (one attribute read and an event test: cheap in any loop).
+
+    Long parts of a computation that yield no record call it between their pieces, so
+    that after a Cancel the work stops within one piece, not at the next record."""
+    halt = getattr(_LOCAL, "halt", None)
+    if halt is not None and halt.is_set():
+        raise Halted
+
+
+def _halting(fn: Callable[[], Any], halt: threading.Event | None) -> Callable[[], Any]:
+    """``fn`` run with ``halt`` as its thread's halt event (:func:`check_halt`)."""
+
+    def run():
+        before = getattr(_LOCAL, "halt", None)
+        _LOCAL.halt = halt
+        try:
+            return fn()
+        finally:
+            _LOCAL.halt = before
+
+    return run
+
+
 def within(gen: Generator[Progress, None, Any], start: float, span: float
            ) -> Generator[Progress, None, Any]:
     """The records of a nested computation, its fractions placed within ``start ..
@@ -94,7 +131,7 @@ def wait_with_progress(fn: Callable[[], Any], record: Progress, *,
     every : float
         Seconds between two records.
     """
-    future = _steps().submit(fn)
+    future = _steps().submit(_halting(fn, getattr(_LOCAL, "halt", None)))
     while True:
         done, _ = wait([future], timeout=float(every))
         if done:
@@ -109,8 +146,9 @@ def responsive(gen: Generator[Progress, None, Any], *, every: float = 0.2
 
     A consumer that stops between two records (a panel's Cancel) is then answered within
     ``every`` seconds in every phase, however long ``gen``'s own steps are. The step
-    ``gen`` is in runs on to its next record in its thread; then ``gen`` is closed, and
-    nothing after that step runs. Returns ``gen``'s value (or raises its exception).
+    ``gen`` is in runs on in its thread to its next record or to its next
+    :func:`check_halt`, whichever comes first; then ``gen`` is closed, and nothing after
+    that runs. Returns ``gen``'s value (or raises its exception).
 
     Parameters
     ----------
@@ -121,6 +159,7 @@ def responsive(gen: Generator[Progress, None, Any], *, every: float = 0.2
     """
     last = Progress("start", 0.0, "starting...")
     done = object()
+    halt = threading.Event()
 
     def step():
         try:
@@ -137,7 +176,7 @@ def responsive(gen: Generator[Progress, None, Any], *, every: float = 0.2
     future = None
     try:
         while True:
-            future = _drivers().submit(step)
+            future = _drivers().submit(_halting(step, halt))
             while True:
                 finished, _ = wait([future], timeout=float(every))
                 if finished:
@@ -149,6 +188,7 @@ def responsive(gen: Generator[Progress, None, Any], *, every: float = 0.2
             last = got
             yield got
     except GeneratorExit:  # the consumer stopped: gen is closed after its step
+        halt.set()  # which stops at its next check_halt()
         if future is not None:
             future.add_done_callback(close)
         raise
@@ -215,5 +255,5 @@ def _steps() -> _StepThreads:
     return _pool("steps", STEP_THREADS)
 
 
-__all__ = ["Progress", "ProgressCallback", "responsive", "run_with_progress",
-           "wait_with_progress", "within"]
+__all__ = ["Halted", "Progress", "ProgressCallback", "check_halt", "responsive",
+           "run_with_progress", "wait_with_progress", "within"]

@@ -13,6 +13,7 @@ from scipy import stats
 
 from ..beads.background import monomials
 from ..beads.spikes import find_spikes, pixel_noise_sd
+from ..common.progress import check_halt
 from .noise import NoiseModel
 from .statistics import LINE_CLIP, excess_z, trim_factor
 
@@ -43,6 +44,7 @@ def bead_free_mask(shape, positions, psf_radius: float) -> np.ndarray:
 
 def smooth_background(img: np.ndarray, free: np.ndarray, sigma: float) -> np.ndarray:
     """Normalised (masked) Gaussian smoothing of the bead-free pixels."""
+    check_halt()
     num = ndi.gaussian_filter(np.where(free, img, 0.0), sigma, mode="nearest")
     den = ndi.gaussian_filter(free.astype(np.float64), sigma, mode="nearest")
     return num / np.maximum(den, 1e-6)
@@ -88,6 +90,7 @@ def line_pattern(resid: np.ndarray, level: np.ndarray, free: np.ndarray, noise: 
     """Excess variance of the clipped means of bead-free, detrended pixels along rows
     (axis=1) or columns (axis=0), line to line, as a z against the noise (with the
     noise model's relative error ``scale_error``, see :func:`noise_scale_error`)."""
+    check_halt()
     d = line_levels(resid, level, free, noise, axis)
     ok = d["ok"]
     if ok.sum() < 10:
@@ -138,6 +141,7 @@ def window_structure(resid: np.ndarray, level: np.ndarray, free: np.ndarray,
     dict
         ``z``, ``windows`` (number used), ``median_chi2_dof``.
     """
+    check_halt()
     design = monomials(size, 2)
     n_par = design.shape[1]
     h, w = resid.shape

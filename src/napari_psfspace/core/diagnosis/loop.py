@@ -51,7 +51,7 @@ from ..beads.detect import (
 )
 from ..beads.saturation import saturation_record
 from ..beads.spikes import spike_mask
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress, check_halt, run_with_progress
 from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
 from ..common.validate import as_image, check_positive, check_psf_radius
@@ -325,6 +325,7 @@ def iter_diagnose(
                                               fit_kwargs={**c.fit_kwargs,
                                                           "pixel_mask": c.pixel_mask}),
                                 stage, fraction)
+        check_halt()
         an = analyse(cf.residuals, c.image, c.noise, psf_radius=r,
                      all_positions=c.beads.positions)
         for name in ("secondary_peaks", "elongated_beads"):
@@ -373,7 +374,9 @@ def iter_diagnose(
         ev, eff = chosen
         tried.add(eff.name)
         try:
+            check_halt()
             params = eff.fit(ctx, an)
+            check_halt()
             new_ctx = eff.apply(ctx, params)
             new_cf, new_an = yield from evaluate(new_ctx, "effect",
                                                  min(0.9, 0.2 + 0.1 * k))

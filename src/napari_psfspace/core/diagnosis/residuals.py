@@ -26,6 +26,7 @@ from scipy import fft as sfft
 
 from ..beads.centering import gather_windows
 from ..beads.window import radial_distance
+from ..common.progress import check_halt
 from .noise import NoiseModel
 
 
@@ -230,6 +231,7 @@ def fit_beads(
     -------
     BeadResiduals
     """
+    check_halt()
     img = np.asarray(image, dtype=np.float64)
     pos = np.asarray(positions, dtype=np.float64).reshape(-1, 2)
     p = operator.psf_size

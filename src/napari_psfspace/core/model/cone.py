@@ -17,6 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import nnls
 
+from ..common.progress import check_halt
+
 
 def project_onto_cone(
     points: np.ndarray,
@@ -48,6 +50,7 @@ def project_onto_cone(
     ndarray of shape (N, I)
         The projections.
     """
+    check_halt()
     a = np.asarray(points, dtype=np.float64)
     g = np.asarray(generators, dtype=np.float64)
     if a.ndim != 2 or g.ndim != 2 or a.shape[1] != g.shape[1]:

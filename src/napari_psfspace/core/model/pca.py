@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..common.progress import check_halt
 from .tps import ThinPlateSpline
 
 
@@ -250,6 +251,7 @@ def learn_basis(
     ValueError
         Too few patches for the requested basis size.
     """
+    check_halt()
     psfs = np.asarray(psfs, dtype=np.float64)
     if psfs.ndim not in (3, 4) or psfs.shape[-1] != psfs.shape[-2]:
         raise ValueError(f"`psfs` must have shape (K, P, P) or (K, Z, P, P), got "

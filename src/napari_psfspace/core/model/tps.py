@@ -22,6 +22,8 @@ import copy
 import numpy as np
 from scipy import linalg
 
+from ..common.progress import check_halt
+
 
 def _tps_kernel(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Thin-plate kernel ``r^2 log r`` between two point sets, shape (len(a), len(b))."""
@@ -213,6 +215,7 @@ class ThinPlateSpline:
 
     def _fit(self, vals, smoothing, criterion) -> None:
         """Coefficients, residuals and leverages of ``vals`` (M, K) on the factors."""
+        check_halt()
         q1, q2, rmat, kmat, dinv, w, lam, vec = self._factors
         m = len(q2)
         proj = vec.T @ (q2.T @ vals)  # (M-3, K)

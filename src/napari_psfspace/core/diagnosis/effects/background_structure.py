@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 from ...beads.centering import gather_windows, refine_centers
 from ...beads.detect import BORDER, FAINT, KEPT, NEIGHBOUR, OUTLIER, STRUCTURE, Beads, flag_unusable
 from ...beads.window import radial_distance
+from ...common.progress import check_halt
 from ...common.spacing import bead_border, centring_sigma
 from ..noise import NoiseModel
 from ..residuals import fourier_shift
@@ -169,6 +170,7 @@ def structure_map(image: np.ndarray, bead_positions, psf_radius: float, *,
     -------
     ndarray of shape (M, N), float64
     """
+    check_halt()
     img = np.asarray(image, dtype=np.float64)
     r = float(psf_radius)
     pos = np.asarray(bead_positions, dtype=np.float64).reshape(-1, 2)
