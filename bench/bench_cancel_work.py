@@ -109,7 +109,7 @@ def measure(which: str, ats: list[float]) -> list[dict]:
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--at", type=float, nargs="+", default=[2, 5, 8, 12, 20],
+    ap.add_argument("--at", type=float, nargs="+", default=[2, 5, 8, 12, 20, 30, 45, 60],
                     help="seconds after the start at which Cancel is pressed")
     ap.add_argument("--image", choices=("sp8", "stars", "both"), default="both")
     ap.add_argument("--baseline", default=None,

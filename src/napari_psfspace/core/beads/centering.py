@@ -87,6 +87,7 @@ def refine_centers(
     offset = centers - base  # start where the caller said, so a bead without signal stays
     inv2s2 = 0.5 / sigma**2
     for _ in range(max_iter):
+        check_halt()
         gy = np.exp(-((grid[None, :] - offset[:, :1]) ** 2) * inv2s2)  # (K, n)
         gx = np.exp(-((grid[None, :] - offset[:, 1:]) ** 2) * inv2s2)  # (K, n)
         wgt = win * gy[:, :, None] * gx[:, None, :]

@@ -16,6 +16,7 @@ from scipy import ndimage as ndi
 
 from ..common import spacing
 from ..common.errors import NoBeadsError
+from ..common.progress import check_halt
 from ..common.validate import as_image, check_positive, check_psf_radius
 from .log import local_peaks, log_response
 from .overlap import NEIGHBOUR_SHARE, patch_shares
@@ -419,6 +420,7 @@ def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r:
     peaks, strength
         The merged maxima (rounded positions), strongest first.
     """
+    check_halt()
     from scipy.spatial import cKDTree
 
     if len(peaks) < 2:

@@ -9,6 +9,7 @@ from functools import lru_cache
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..common.progress import check_halt
 from ..common.threads import filter_by_rows
 from ..common.validate import as_image
 
@@ -46,6 +47,7 @@ def log_response(image, sigma: float, *, pixel_sd_floor: float = 0.0) -> np.ndar
         median is 0: a bead of detection strength 10 stands ten noise standard
         deviations above the filtered background.
     """
+    check_halt()
     img = as_image(image, dtype=np.float32)
     # the kernel reaches int(4 sigma + 0.5) pixels (scipy's truncate=4): blocks of rows
     # filtered in parallel with that halo give the same result
@@ -80,6 +82,7 @@ def local_peaks(response: np.ndarray, min_distance: int, threshold: float) -> np
         ``(row, column)``, by decreasing response; peaks closer than ``d`` (Chebyshev) to
         a stronger one are dropped (plateaus).
     """
+    check_halt()
     resp = np.asarray(response)
     h, w = resp.shape
     ys, xs = np.nonzero(resp > threshold)

@@ -103,6 +103,7 @@ def resample_patches(image: np.ndarray, centers: np.ndarray, size: int) -> np.nd
     g = np.arange(size, dtype=np.float64) + margin
     out = np.empty((len(centers), size, size))
     for k in range(len(centers)):
+        check_halt()
         yy = (g + frac[k, 0])[:, None] * np.ones((1, size))
         xx = np.ones((size, 1)) * (g + frac[k, 1])[None, :]
         out[k] = ndi.map_coordinates(wins[k], [yy, xx], order=3, mode="nearest")
@@ -177,6 +178,7 @@ def extract_patches(
         off = np.arange(size, dtype=np.float64) - size // 2
         grid = np.stack(np.meshgrid(off, off, indexing="ij"), -1).reshape(-1, 2)
         for k, c in enumerate(centers):
+            check_halt()
             raw[k] -= neighbours.around(c, c + grid).reshape(size, size)
     seen = observed_mask(centers, size, img.shape)
     partial = not seen.all()

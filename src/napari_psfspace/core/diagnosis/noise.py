@@ -20,6 +20,7 @@ from scipy import ndimage as ndi
 
 from ..beads.spikes import QUANTISATION_VARIANCE, is_integer_valued
 from ..common.errors import PsfSpaceError
+from ..common.progress import check_halt
 from ..common.validate import as_image
 
 
@@ -107,6 +108,7 @@ def _structure_mask(img: np.ndarray, sigma: float, k: float,
     """Pixels near structure: |LoG| above ``k`` robust sd at scale ``sigma`` or at the
     larger ``scales`` (multiples of it: the faint, wide wings of a bright bead curve
     too gently to show at the smaller one), dilated by 3 scales."""
+    check_halt()
     out = np.zeros(img.shape, bool)
     for f in scales:
         s = sigma * f
@@ -162,6 +164,7 @@ def _noise_laplacian(img: np.ndarray, integer: bool) -> np.ndarray:
     can take the same value in every bin: a slope of 0). The dither's variance
     is removed again in :func:`_robust_variance`.
     """
+    check_halt()
     if integer:
         dither = np.random.default_rng(0).uniform(-0.5, 0.5, img.shape)
         img = img + dither
@@ -187,6 +190,7 @@ def _robust_variance(e: np.ndarray, integer: bool) -> float:
 
 def _photon_transfer_points(img, use, local, lap, n_bins, integer):
     """Binned (mean, robust variance, n) of the structure-free pixels."""
+    check_halt()
     mu, e = local[use], lap[use]
     edges = np.unique(np.quantile(mu, np.linspace(0, 1, n_bins + 1)))
     which = np.clip(np.searchsorted(edges, mu, side="right") - 1, 0, len(edges) - 2)

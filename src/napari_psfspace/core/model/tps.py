@@ -304,6 +304,7 @@ class ThinPlateSpline:
         # (one product of the basis with many columns, not one per value)
         step = max(1, int(SELECT_BLOCK // max(m * n_col, 1)))
         for start in range(0, len(grid), step):
+            check_halt()
             etas = grid[start:start + step]  # (B,)
             inv = 1.0 / (lam[None, :] + etas[:, None])  # (B, M-3)
             scaled = (proj[:, None, :] * inv.T[:, :, None]).reshape(len(lam), -1)
