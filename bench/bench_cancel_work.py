@@ -1,7 +1,7 @@
 """How long a step keeps working after Cancel: the process's CPU, measured from the
 moment the panel's Cancel is pressed until the process is idle again.
 
-    python bench/bench_cancel_work.py [--at 2 5 8 12 20] [--image sp8|stars|both]
+    python bench/bench_cancel_work.py [--at 2 5 8 12 20 30 45 60] [--image sp8|stars|both]
         [--baseline SRC]
 
 Diagnose (the panel's step that runs longest between two of its records) runs as the
