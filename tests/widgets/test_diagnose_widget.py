@@ -45,7 +45,14 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     d = w.diagnosis
     assert d is not None
     table = w.table.to_dataframe()
-    assert list(table.columns)[:3] == ["effect", "stage", "evidence"]
+    # the dock's words and columns (the report holds every column)
+    assert list(table.columns) == ["effect", "held-out error", "misfit / noise", "decision"]
+    native = w.table.native
+    w.native.show()
+    native.resize(360, 300)  # the dock's width, less its margins
+    qtbot.wait(50)
+    assert native.horizontalHeader().length() <= native.viewport().width()  # no sideways
+    assert "chi2" not in w.result.value and "misfit / noise" in w.result.value
     assert len(table) == len(d.steps)
     effects = table["effect"].tolist()
     assert effects[0] == "baseline"

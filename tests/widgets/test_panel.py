@@ -77,6 +77,31 @@ def test_the_panel_gets_the_proxy_and_fits_a_laptop_screen_with_the_canvas(lapto
         _assert_tabs_whole(panel)
 
 
+def test_every_page_fits_the_dock_with_a_long_stack_name_open(laptop, qtbot):
+    """A stack named as the SP8 file is ("sp8_series045_beads_zyx_uint8") widens no page:
+    every step's page, the 3D page's included, fits the dock's width, and the dock is
+    not widened past it."""
+    from qtpy.QtWidgets import QScrollArea
+
+    from napari_psfspace._widgets._panel import PANEL_WIDTH
+
+    v, dock, panel, _ = laptop
+    v.add_image(np.zeros((4, 64, 64), np.float32), name="sp8_series045_beads_zyx_uint8",
+                scale=(0.3, 0.1, 0.1))
+    _settle(qtbot)
+    panel._fit_width()
+    assert panel.minimumWidth() <= PANEL_WIDTH
+    for i in range(panel.tabs.count()):
+        if not panel.tabs.isTabVisible(i):
+            continue
+        panel.tabs.setCurrentIndex(i)
+        _settle(qtbot)
+        scroll = panel.tabs.currentWidget().findChild(QScrollArea)
+        assert scroll.widget().minimumSizeHint().width() <= scroll.viewport().width(), (
+            panel.tabs.tabText(i))
+        assert dock.width() <= PANEL_WIDTH + 20, dock.width()  # the dock's frame at most
+
+
 def _assert_tabs_whole(panel) -> None:
     """Every shown tab's label whole and inside the bar (no scroll buttons hiding one)."""
     bar = panel.tabs.tabBar()
@@ -258,7 +283,35 @@ def test_every_step_twice_the_same_layers_and_cancel(laptop, qtbot,
         assert widget.task.status.value.startswith("cancelled"), title
         assert [layer.name for layer in v.layers] == names, title
     assert _files(cwd) == set()
+    _check_words(v, panel)  # before the groups' buttons remove every result
     _check_groups(v, panel, list(buttons))
+
+
+#: Symbols of the paper and the statistics that a microscopist is not shown: they go to
+#: tooltips and the docs.
+JARGON = r"\bh_i\b|\bh_\d|alpha_i|\ba_j\b|\ba_\d|chi2|\bdof\b|Biggs|Gamma"
+
+
+def _check_words(v, panel):
+    """No layer name and no text the panel shows (labels, buttons, choices, table
+    headers and cells) uses the paper's symbols or "chi2/dof"."""
+    import re
+
+    from qtpy.QtWidgets import QAbstractButton, QComboBox, QLabel, QLineEdit, QTableWidget
+
+    texts = [layer.name for layer in v.layers]
+    for w in panel.findChildren(QLabel) + panel.findChildren(QAbstractButton):
+        texts.append(w.text())
+    texts += [w.text() for w in panel.findChildren(QLineEdit)]
+    for w in panel.findChildren(QComboBox):
+        texts += [w.itemText(i) for i in range(w.count())]
+    for t in panel.findChildren(QTableWidget):
+        texts += [t.horizontalHeaderItem(j).text() for j in range(t.columnCount())
+                  if t.horizontalHeaderItem(j) is not None]
+        texts += [t.item(i, j).text() for i in range(t.rowCount())
+                  for j in range(t.columnCount()) if t.item(i, j) is not None]
+    found = sorted({t for t in texts if re.search(JARGON, t)})
+    assert not found, found
 
 
 def _check_groups(v, panel, titles):

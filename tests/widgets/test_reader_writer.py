@@ -93,4 +93,4 @@ def test_viewer_opens_model_with_plugin(make_napari_viewer, model):
     v.open(str(path), plugin="napari-psfspace")
     names = [layer.name for layer in v.layers]
     assert any(n.startswith("PSF grid") for n in names)
-    assert any(n.startswith("coefficient maps") for n in names)
+    assert any(n.startswith("weight maps") for n in names)

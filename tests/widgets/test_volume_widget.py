@@ -127,8 +127,11 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         if phase == "iteration":
             qtbot.waitUntil(lambda r=records: any(x.stage == "iteration" for x in r),
                             timeout=30_000)
+            # one time estimate on the page: the progress line's, measured as it runs
+            assert not w.deblur_result.value.startswith("estimate"), w.deblur_result.value
         w.deblur_task.request_cancel()
         wait_task(qtbot, w.deblur_task, timeout=2_000)
+        assert w.deblur_result.value == "", phase  # no estimate of a run cancelled
         stages = {x.stage for x in records}
         assert ("iteration" in stages) == (phase == "iteration"), (phase, stages)
         assert w.deblur_task.status.value.startswith("cancelled"), phase
@@ -161,3 +164,16 @@ def test_the_psf_grid_lies_on_the_stacks_planes():
     # a stack deeper than the kernel: zeros beyond it
     got = on_stack_planes(volume, 5, 12)
     assert got[5, 0, 0] == 3.0 and not got[:2].any() and not got[9:].any()
+
+
+def test_the_estimate_before_the_iterations_gives_way_to_the_measured_one():
+    """The 3D page shows one time estimate: the one made before the iterations until they
+    run, then none beside the progress line's (measured as they run)."""
+    from napari_psfspace._widgets._volume import estimate_line
+    from napari_psfspace.core.common.progress import Progress
+
+    assert estimate_line(Progress("estimate", 0.0, "about 3.7 min")) == (
+        "estimate: about 3.7 min")
+    assert estimate_line(Progress("iteration", 0.1, "iteration 2 of 25, 3.1 min left "
+                                                    "at most")) == ""
+    assert estimate_line(Progress("setup", 0.0, "the acceleration's volumes")) is None

@@ -54,6 +54,31 @@ MAP_AFTER = "excess error, final model (fraction of energy)"
 MEAN_BEFORE = "mean residual, plain model (noise sd)"
 MEAN_AFTER = "mean residual, final model (noise sd)"
 TITLES = "titles: diagnosis"
+#: The steps table's columns in the dock, each the report's column it shows and its
+#: header here: the report (``write report to``) holds every column.
+DOCK_COLUMNS = {"effect": "effect", "held-out error": "held-out error",
+                "chi2/dof": "misfit / noise", "decision": "decision"}
+
+
+def dock_table(rows: list[list[str]]) -> dict:
+    """A magicgui Table's value: the steps' rows (:func:`steps_table`, in the order of
+    ``STEP_COLUMNS``) cut to :data:`DOCK_COLUMNS`."""
+    at = [STEP_COLUMNS.index(c) for c in DOCK_COLUMNS]
+    return {"data": [[row[i] for i in at] for row in rows], "index": list(range(len(rows))),
+            "columns": list(DOCK_COLUMNS.values())}
+
+
+def fit_to_width(table) -> None:
+    """The table's columns share the dock's width and their texts wrap: no sideways
+    scroll."""
+    from qtpy.QtCore import Qt
+    from qtpy.QtWidgets import QHeaderView
+
+    native = table.native
+    native.setWordWrap(True)
+    native.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    native.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
+    native.resizeRowsToContents()
 
 
 def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
@@ -146,9 +171,11 @@ class DiagnoseWidget(FollowsBeads, Container):
         self.diagnose = PushButton(text="Diagnose")
         self.task = CoreTask(self.diagnose)
         self.result = result_text()
-        self.table = Table(value={"data": [], "index": [], "columns": list(STEP_COLUMNS)},
-                           label="steps")
+        self.table = Table(value=dock_table([]), label="steps")
         self.table.read_only = True
+        self.table.tooltip = ("Each effect tried, the held-out error and the misfit over "
+                              "the noise before -> after it; the report holds the tests "
+                              "and their p-values.")
         self.table.visible = False
         self.remove_motion = CheckBox(value=False, text="remove motion blur")
         self.remove_motion.tooltip = (
@@ -201,9 +228,8 @@ class DiagnoseWidget(FollowsBeads, Container):
         def on_result(diag) -> None:
             self.diagnosis = diag
             rows = steps_table(diag)
-            self.table.value = {"data": rows, "index": list(range(len(rows))),
-                                "columns": list(STEP_COLUMNS)}
-            self.table.native.resizeColumnsToContents()
+            self.table.value = dock_table(rows)
+            fit_to_width(self.table)
             self.table.visible = True
             self.result.value = "\n".join([summary_text(diag),
                                            *model_lines(diag.operator.metadata,

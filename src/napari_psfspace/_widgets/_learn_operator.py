@@ -87,8 +87,10 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.radius = RadiusEdit()
         self.threshold = FloatSpinBox(value=8.0, min=0.5, max=1000.0, step=0.5,
                                       label="threshold", visible=False)
-        self.n_psf_mode = ComboBox(label="basis size I", choices=list(N_PSF_MODES))
-        self.n_psf = SpinBox(value=4, min=1, max=50, label="I", visible=False)
+        self.n_psf_mode = ComboBox(label="PSF basis size", choices=list(N_PSF_MODES))
+        self.n_psf_mode.tooltip = ("How many PSFs the basis holds (I in the paper): chosen "
+                                   "from the data, or fixed.")
+        self.n_psf = SpinBox(value=4, min=1, max=50, label="PSFs", visible=False)
         self.auto_smoothing = CheckBox(value=True, text="automatic smoothing")
         self.smoothing = FloatSpinBox(value=1e-3, min=0.0, max=1e6, step=1e-3,
                                       label="smoothing", visible=False)

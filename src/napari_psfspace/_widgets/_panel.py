@@ -16,8 +16,9 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from napari.layers import Points
-from qtpy.QtCore import Qt
+from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import (
+    QComboBox,
     QLabel,
     QPushButton,
     QScrollArea,
@@ -109,6 +110,28 @@ NEEDS = {
 }
 
 
+#: Characters a choice box shows before it elides: a long layer name ("sp8_series045_
+#: beads_zyx_uint8") widens neither the box nor the dock; the list shows it whole.
+CHOICE_CHARACTERS = 14
+
+
+def narrow(step) -> None:
+    """Keep a step's page within the dock: its choice boxes sized to
+    :data:`CHOICE_CHARACTERS`, not to their longest item, and its lines of text (magicgui
+    ``Label`` widgets) wrapped."""
+    from magicgui.widgets import Container, Label
+
+    for box in step.native.findChildren(QComboBox):
+        box.setSizeAdjustPolicy(
+            QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
+        box.setMinimumContentsLength(CHOICE_CHARACTERS)
+    for widget in step:
+        if isinstance(widget, Label):
+            widget.native.setWordWrap(True)
+        elif isinstance(widget, Container):
+            narrow(widget)
+
+
 class PsfSpacePanel(QWidget):
     """The workflow in one dock: a tab per step, enabled once its input exists.
 
@@ -139,6 +162,7 @@ class PsfSpacePanel(QWidget):
         for title, cls, need in STEPS:
             widget = cls(viewer)
             self.steps[title] = widget
+            narrow(widget)
             note = QLabel(f"{title} needs {need}.")
             note.setWordWrap(True)
             note.setStyleSheet("QLabel { padding: 6px; color: #ffcc66; }")
@@ -169,6 +193,10 @@ class PsfSpacePanel(QWidget):
         self.setMaximumWidth(PANEL_WIDTH + 80)
         self._fit_width()
         self.setMinimumHeight(0)
+        self._refit = QTimer(self)  # the panel's own: gone with it, never fired after
+        self._refit.setSingleShot(True)
+        self._refit.setInterval(0)
+        self._refit.timeout.connect(self._fit_width)
         # one radius for every step: the one set in Beads
         self.steps["Beads"].radius.value_edit.changed.connect(self._share_radius)
         viewer.layers.events.inserted.connect(self.update_steps)
@@ -176,6 +204,7 @@ class PsfSpacePanel(QWidget):
         viewer.layers.events.changed.connect(self.update_steps)
         self.update_steps()
         self.tabs.setCurrentIndex(0)  # the method's first step
+        self.tabs.currentChanged.connect(self._fit_width)
 
     def sizeHint(self):  # noqa: N802 (Qt's name)
         hint = super().sizeHint()
@@ -188,7 +217,7 @@ class PsfSpacePanel(QWidget):
         hint.setHeight(min(hint.height(), 200))
         return hint
 
-    def _fit_width(self) -> None:
+    def _fit_width(self, *_) -> None:
         """Never narrower than the widest step's content (its choices change it: a long
         layer name): dragging the dock narrower would cut its controls, the scroll
         areas scroll vertically only."""
@@ -228,6 +257,8 @@ class PsfSpacePanel(QWidget):
                 self.tabs.setTabVisible(i, ok)
             self.clear_buttons[title].setEnabled(bool(group_layers(self._viewer, title)))
         self._fit_width()
+        # again once the steps' own handlers of the same event have changed their texts
+        self._refit.start()
         if not self.tabs.isTabVisible(self.tabs.currentIndex()):
             self.tabs.setCurrentIndex(0)
 

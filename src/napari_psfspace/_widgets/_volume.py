@@ -172,6 +172,19 @@ def deblurred_layers(viewer, res, layer, scale, translate) -> list:
                      "background": res.background}}, "", frame)
 
 
+def estimate_line(rec) -> str | None:
+    """The deblur's line under the 3D page for a progress record: the time estimate made
+    before the iterations ("estimate: about 3.7 min"), cleared once they run (the
+    progress line then says how long is left, measured), else None (unchanged): one
+    estimate on the page at a time."""
+    stage = getattr(rec, "stage", "")
+    if stage == "estimate":
+        return f"estimate: {rec.message}"
+    if stage == "iteration":
+        return ""
+    return None
+
+
 class Volume3DWidget(Container):
     """Learn a space-varying 3D PSF from a bead z-stack; deblur a z-stack with it."""
 
@@ -187,17 +200,18 @@ class Volume3DWidget(Container):
         self.z_radius.tooltip = ("Depth kept on each side of the bead plane: µm for a "
                                  "calibrated stack, else planes (0: all).")
         self._z_step: float | None = None
-        self.n_psf = SpinBox(label="basis size I", min=0, max=50, value=0)
-        self.n_psf.tooltip = "Number of 3D kernels (0: chosen from the data)."
+        self.n_psf = SpinBox(label="PSF basis size", min=0, max=50, value=0)
+        self.n_psf.tooltip = "Number of 3D kernels, I in the paper (0: chosen from the data)."
         self.learn = PushButton(text="Learn 3D PSF")
         self.learn_task = CoreTask(self.learn)
         self.learn_result = result_text(6)
         self.model_file = FileEdit(mode="r", filter="*.npz", label="or model file")
         self.iterations = SpinBox(label="iterations at most", min=1, max=10000,
                                   value=PANEL_ITERATIONS)
-        self.accelerate = CheckBox(value=True, text="accelerate (Biggs-Andrews)")
+        self.accelerate = CheckBox(value=True, text="accelerate")
         self.accelerate.tooltip = ("Each step starts from an extrapolation of the last "
-                                   "two: the same fixed point in fewer iterations.")
+                                   "two (Biggs-Andrews): the same fixed point in fewer "
+                                   "iterations.")
         self.stop = CheckBox(value=True, text="stop when the fit stops improving")
         self.stop.tooltip = (f"Ends when an iteration improves the fit to the data "
                              f"(Poisson deviance) by less than {STOP_FIT:g} of itself, "
@@ -360,8 +374,12 @@ class Volume3DWidget(Container):
         started = time.perf_counter()
 
         def on_progress(rec) -> None:
-            if getattr(rec, "stage", "") == "estimate":  # kept while it runs
-                self.deblur_result.value = f"estimate: {rec.message}"
+            line = estimate_line(rec)
+            if line is not None:
+                self.deblur_result.value = line
+
+        def on_cancel() -> None:
+            self.deblur_result.value = ""  # no estimate of a run that is not running
 
         def on_result(res) -> None:
             show_layers(self._viewer, deblurred_layers(self._viewer, res, layer, scale,
@@ -378,7 +396,7 @@ class Volume3DWidget(Container):
                 f"{res.device.upper()}, {res.n_kernels:.1f} kernels a block; "
                 f"{seconds:.0f} s{estimate}")
 
-        self.deblur_task.run(gen, on_result, on_progress=on_progress)
+        self.deblur_task.run(gen, on_result, on_progress=on_progress, on_cancel=on_cancel)
 
 
 __all__ = ["Volume3DWidget"]

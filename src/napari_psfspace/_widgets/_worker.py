@@ -256,7 +256,11 @@ class RadiusEdit(Container):
         # as 0.91 um and came back as 14.0 px only by luck, 11 px as 10.92
         self.value_edit.native.setDecimals(4)
         self.hint = Label(value="")
-        super().__init__(widgets=[self.value_edit, self.hint], labels=True)
+        self.hint.native.setWordWrap(True)  # a long hint wraps instead of widening the dock
+        # the label sits in the step's own label column (one column for the whole page,
+        # not a second one inside this row, which widened the dock)
+        super().__init__(widgets=[self.value_edit, self.hint], labels=False,
+                         label=f"{label} (px)")
         self.value_edit.changed.connect(self._update_hint)
 
     @property
@@ -276,11 +280,11 @@ class RadiusEdit(Container):
         r = self.pixels if radius_px is None else float(radius_px)
         self._pixel_size = pixel_size
         if pixel_size:
-            self.value_edit.label = f"{self._base_label} (µm)"
+            self.value_edit.label = self.label = f"{self._base_label} (µm)"
             self.value_edit.step = round(float(pixel_size), 4)
             self.value_edit.value = round(r * pixel_size, 4)
         else:
-            self.value_edit.label = f"{self._base_label} (px)"
+            self.value_edit.label = self.label = f"{self._base_label} (px)"
             self.value_edit.step = 0.5
             self.value_edit.value = round(r, 2)
         self._update_hint()

@@ -85,11 +85,11 @@ def summary_text(diagnosis) -> str:
     kind = d.context.noise.kind
     assumed = ("" if kind in ("camera", "photon transfer") else
                f"\nnoise model assumed ({kind}: photon transfer was not possible): the floor "
-               "and chi2/dof are only indicative")
+               "and misfit / noise are only indicative")
     plain = "" if d.heldout is None else f"plain model: {d.heldout.line()}\n"
     return (f"{v.headline}\n{hot}{plain}added: {added}\n"
             f"held-out error {_num(d.error_before)} -> {_num(d.error_after)} on "
-            f"{d.n_beads} beads (noise floor {_num(d.noise_floor)}); chi2/dof "
+            f"{d.n_beads} beads (noise floor {_num(d.noise_floor)}); misfit / noise "
             f"{_num(d.chi2_before, '.3g')} -> {_num(d.chi2_after, '.3g')}{assumed}")
 
 def floor_caveat(noise, ratio: float) -> str:
@@ -331,8 +331,9 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "## Terms", "",
               f"- *{metric.NAME}*: {metric.DEFINITION} ({metric.UNIT}).",
               f"- *noise floor*: {metric.FLOOR_DEFINITION}.",
-              "- *chi2/dof*: chi-square per degree of freedom under the noise model (1 for a "
-              "model that explains everything but the noise).",
+              "- *chi2/dof* (*misfit / noise* in the summary and the panel): chi-square per "
+              "degree of freedom under the noise model (1 for a model that explains "
+              "everything but the noise).",
               "- *evidence*: strongest z / threshold of the tests that point at the effect "
               "(above 1 is significant).",
               "- *excess chi2*: chi-square per degree of freedom minus 1, per bead.",

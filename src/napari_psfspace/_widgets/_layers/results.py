@@ -61,8 +61,8 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
     psf_um = _length(op.psf_size, frame)
     titles = titles_layer(MODEL_TITLES, [
         (y0, x0, f"PSF grid {grid} x {grid}\ntiles {psf_um}"),
-        (by, bx, f"basis h_0..h_{basis.shape[0] - 1}"),
-        (my, mx, f"maps alpha_i\nfield {_length(frame.shape[1], frame, 0)}"),
+        (by, bx, f"PSF basis: {basis.shape[0]} PSFs"),
+        (my, mx, f"weight maps\nfield {_length(frame.shape[1], frame, 0)}"),
     ], frame)
     return [
         *map_layers(m_tiles, {
@@ -159,9 +159,9 @@ def family_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray,
     short = [lab.rsplit("[", 1)[-1].rstrip("]") if lab.endswith("]") else lab
              for lab in labels]
     titles = titles_layer(FAMILY_TITLES, [
-        (sy, sx, f"a_0..a_{space.shape[0] - 1}"),  # short: the slots are narrow
+        (sy, sx, f"{space.shape[0]} spatial maps"),  # short: the slots are narrow
         (y0, x0, f"PSF grid {len(ys)} x {len(xs)}"),
-        (by, bx, f"h_0..h_{basis.shape[0] - 1}"),
+        (by, bx, f"PSF basis: {basis.shape[0]}"),
         (cy, cx, "conditions"),
     ], frame)
     return [

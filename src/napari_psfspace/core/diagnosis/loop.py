@@ -350,7 +350,7 @@ def iter_diagnose(
                   params={"n_beads": base["n_beads"]})]
     held = HeldoutError(base["error_before"], base["noise_floor"], base["chi2_before"],
                         base["n_beads"], noise_source)
-    yield Progress("baseline", 0.2, f"{held.line()}; chi2/dof {held.chi2_dof:.3g}")
+    yield Progress("baseline", 0.2, f"{held.line()}; misfit / noise {held.chi2_dof:.3g}")
     if _baseline_only:
         return held
     if hot.any():  # the masking at detection, as a step: the image as recorded before
