@@ -46,13 +46,22 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     assert d is not None
     table = w.table.to_dataframe()
     # the dock's words and columns (the report holds every column)
-    assert list(table.columns) == ["effect", "held-out error", "misfit / noise", "decision"]
+    assert [c.replace("\n", " ") for c in table.columns] == [
+        "effect", "held-out error", "misfit / noise", "decision"]
     native = w.table.native
     w.native.show()
     native.resize(360, 300)  # the dock's width, less its margins
     qtbot.wait(50)
     assert native.horizontalHeader().length() <= native.viewport().width()  # no sideways
     assert "chi2" not in w.result.value and "misfit / noise" in w.result.value
+    # each cell shows the report's text as written (the baseline's error is "0.05515",
+    # not a float rewritten as "5.515e-02"), the effects in words
+    from napari_psfspace.report import steps_table
+
+    report = steps_table(d)
+    for i, row in enumerate(report):
+        assert native.item(i, 1).text() == row[5] and native.item(i, 2).text() == row[6]
+        assert native.item(i, 0).text() == row[0].replace("_", " ")
     assert len(table) == len(d.steps)
     effects = table["effect"].tolist()
     assert effects[0] == "baseline"

@@ -56,15 +56,18 @@ MEAN_AFTER = "mean residual, final model (noise sd)"
 TITLES = "titles: diagnosis"
 #: The steps table's columns in the dock, each the report's column it shows and its
 #: header here: the report (``write report to``) holds every column.
-DOCK_COLUMNS = {"effect": "effect", "held-out error": "held-out error",
-                "chi2/dof": "misfit / noise", "decision": "decision"}
+DOCK_COLUMNS = {"effect": "effect", "held-out error": "held-out\nerror",
+                "chi2/dof": "misfit /\nnoise", "decision": "decision"}
 
 
 def dock_table(rows: list[list[str]]) -> dict:
     """A magicgui Table's value: the steps' rows (:func:`steps_table`, in the order of
     ``STEP_COLUMNS``) cut to :data:`DOCK_COLUMNS`."""
     at = [STEP_COLUMNS.index(c) for c in DOCK_COLUMNS]
-    return {"data": [[row[i] for i in at] for row in rows], "index": list(range(len(rows))),
+    # effects in words ("hot pixels", not "hot_pixels"): a cell wraps at spaces only
+    data = [[row[i].replace("_", " ") if k == 0 else row[i] for k, i in enumerate(at)]
+            for row in rows]
+    return {"data": data, "index": list(range(len(rows))),
             "columns": list(DOCK_COLUMNS.values())}
 
 
@@ -72,12 +75,22 @@ def fit_to_width(table) -> None:
     """The table's columns share the dock's width and their texts wrap: no sideways
     scroll."""
     from qtpy.QtCore import Qt
-    from qtpy.QtWidgets import QHeaderView
+    from qtpy.QtWidgets import QHeaderView, QStyledItemDelegate
 
     native = table.native
+    # Qt's own delegate: each cell's text as written ("0.05515", which magicgui's
+    # delegate rewrote as "5.515e-02")
+    if type(native.itemDelegate()) is not QStyledItemDelegate:
+        native.setItemDelegate(QStyledItemDelegate(native))
     native.setWordWrap(True)
+    native.setTextElideMode(Qt.TextElideMode.ElideNone)
     native.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-    native.horizontalHeader().setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
+    header = native.horizontalHeader()
+    header.setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
+    native.verticalHeader().setVisible(False)
+    if not getattr(native, "_rows_follow", False):  # rows as tall as their wrapped text
+        header.sectionResized.connect(lambda *_: native.resizeRowsToContents())
+        native._rows_follow = True
     native.resizeRowsToContents()
 
 

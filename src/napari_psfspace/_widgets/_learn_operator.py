@@ -109,7 +109,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.result = result_text()
         self.psf_y = FloatSpinBox(label="PSF at y", min=0.0, max=1e4, step=0.1)
         self.psf_x = FloatSpinBox(label="PSF at x", min=0.0, max=1e4, step=0.1)
-        self.psf_unit = Label(value="position in pixels, as the radius")
+        self.psf_unit = Label(value="position in pixels")
+        self.psf_unit.tooltip = "The same unit as the PSF radius."
         self.show_psf = PushButton(text="Show PSF at this position", enabled=False)
         super().__init__(widgets=[
             self.image, self.points, self.radius, self.threshold, self.n_psf_mode,
@@ -137,8 +138,9 @@ class LearnOperatorWidget(FollowsBeads, Container):
         # the position in the radius's unit: um when the image has a pixel size
         px = self.radius.pixel_size
         self._psf_unit = px or 1.0
-        self.psf_unit.value = (f"position in µm ({px:g} µm/px), as the radius" if px
-                               else "position in pixels, as the radius")
+        self.psf_unit.value = "position in µm" if px else "position in pixels"
+        self.psf_unit.tooltip = (f"The same unit as the PSF radius ({px:g} µm a pixel)."
+                                 if px else "The same unit as the PSF radius.")
         self.psf_y.max = round((h - 1) * self._psf_unit, 2)
         self.psf_x.max = round((w - 1) * self._psf_unit, 2)
         self.psf_y.value = round((h - 1) / 2 * self._psf_unit, 2)

@@ -126,7 +126,7 @@ def narrow(step) -> None:
             QComboBox.SizeAdjustPolicy.AdjustToMinimumContentsLengthWithIcon)
         box.setMinimumContentsLength(CHOICE_CHARACTERS)
     for widget in step:
-        if isinstance(widget, Label):
+        if isinstance(widget, Label) and widget.name != "hint":
             widget.native.setWordWrap(True)
         elif isinstance(widget, Container):
             narrow(widget)

@@ -255,8 +255,7 @@ class RadiusEdit(Container):
         # micrometres to 4 decimals (0.1 nm): with Qt's default 2, 14 px of 65 nm showed
         # as 0.91 um and came back as 14.0 px only by luck, 11 px as 10.92
         self.value_edit.native.setDecimals(4)
-        self.hint = Label(value="")
-        self.hint.native.setWordWrap(True)  # a long hint wraps instead of widening the dock
+        self.hint = Label(value="", name="hint")
         # the label sits in the step's own label column (one column for the whole page,
         # not a second one inside this row, which widened the dock)
         super().__init__(widgets=[self.value_edit, self.hint], labels=False,
@@ -290,8 +289,10 @@ class RadiusEdit(Container):
         self._update_hint()
 
     def _update_hint(self, *_: Any) -> None:
-        self.hint.value = (f"= {self.pixels:.1f} px at {self._pixel_size:g} µm/px"
-                           if self._pixel_size else "")
+        # short, so that the page stays within the dock; the pixel size in the tooltip
+        self.hint.value = f"= {self.pixels:.1f} px" if self._pixel_size else ""
+        self.hint.tooltip = (f"{self._pixel_size:g} µm a pixel (the image's pixel size)"
+                             if self._pixel_size else "")
 
 
 def pixel_size_of(layer) -> float | None:
