@@ -4,7 +4,15 @@ import numpy as np
 import pytest
 
 from conftest import wait_task
-from napari_psfspace._widgets._deblur import SMOOTH, SOURCES, SPARSE, DeblurWidget
+from napari_psfspace._widgets._deblur import (
+    MOST_POINTS,
+    POINT_SIZE,
+    SMOOTH,
+    SOURCES,
+    SPARSE,
+    SPARSE_POINTS,
+    DeblurWidget,
+)
 from napari_psfspace._widgets._layers import MORE_BEADS, SUBSPACE_KEY
 from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.simulation.stacks import simulate_stack
@@ -48,6 +56,20 @@ def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
     for y, x in truth.positions[:5]:
         yy, xx = int(round(y)), int(round(x))
         assert sparse.data[yy - 2:yy + 3, xx - 2:xx + 3].sum() > 0
+    # visible at the home view: the sparse image's contrast reaches its typical point
+    # (its top under the brightest, above the median of its nonzero pixels), and each
+    # nonzero pixel is also a point over it, at least a quarter of 1.2 % of the field wide
+    nz = sparse.data[sparse.data > 0]
+    lo, hi = sparse.contrast_limits
+    assert np.median(nz) < hi <= nz.max()
+    pts = v.layers[f"{SPARSE_POINTS} (image units)"]
+    assert len(pts.data) == min(len(nz), MOST_POINTS)
+    field = max(image.shape) * 0.065
+    assert np.min(pts.size) >= 0.25 * POINT_SIZE * field * (1 - 1e-9)
+    np.testing.assert_allclose(pts.data_to_world(pts.data[np.argmax(pts.features["amplitude"])]),
+                               np.asarray(np.unravel_index(np.argmax(sparse.data),
+                                                           sparse.data.shape)) * 0.065
+                               + np.asarray(sparse.translate), atol=1e-9)
     # where one more bead would help most: a cross on the input, in its world units
     info = w.operator.metadata["identification"]
     cross = v.layers[MORE_BEADS]

@@ -174,8 +174,8 @@ def deblurred_layers(viewer, res, layer, scale, translate) -> list:
 
 def estimate_line(rec) -> str | None:
     """The deblur's line under the 3D page for a progress record: the time estimate made
-    before the iterations ("estimate: about 3.7 min"), cleared once they run (the
-    progress line then says how long is left, measured), else None (unchanged): one
+    before the iterations ("estimate: " and the record's message), cleared once they run
+    (the progress line then says how long is left, measured), else None (unchanged): one
     estimate on the page at a time."""
     stage = getattr(rec, "stage", "")
     if stage == "estimate":
