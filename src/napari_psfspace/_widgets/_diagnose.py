@@ -78,8 +78,8 @@ def fit_to_width(table) -> None:
     from qtpy.QtWidgets import QHeaderView, QStyledItemDelegate
 
     native = table.native
-    # Qt's own delegate: each cell's text as written ("0.05515", which magicgui's
-    # delegate rewrote as "5.515e-02")
+    # Qt's own delegate: each cell's text as written (magicgui's delegate shows a cell
+    # that reads as a number in its own float format, e-notation for small errors)
     if type(native.itemDelegate()) is not QStyledItemDelegate:
         native.setItemDelegate(QStyledItemDelegate(native))
     native.setWordWrap(True)

@@ -256,8 +256,8 @@ class RadiusEdit(Container):
         # as 0.91 um and came back as 14.0 px only by luck, 11 px as 10.92
         self.value_edit.native.setDecimals(4)
         self.hint = Label(value="", name="hint")
-        # the label sits in the step's own label column (one column for the whole page,
-        # not a second one inside this row, which widened the dock)
+        # the label sits in the step's own label column: one column for the whole page,
+        # not a second one inside this row, which would widen the page past the dock
         super().__init__(widgets=[self.value_edit, self.hint], labels=False,
                          label=f"{label} (px)")
         self.value_edit.changed.connect(self._update_hint)
