@@ -154,3 +154,24 @@ def test_cancel_adds_nothing(make_napari_viewer, qtbot, stack, tmp_path):
     wait_task(qtbot, w.task)
     assert len(v.layers) == n and not path.exists() and w.subspace is None
     assert "cancelled" in w.task.status.value and w.learn.enabled
+
+
+def test_a_stacks_conditions_are_named_by_their_focus_in_micrometres(make_napari_viewer):
+    """The conditions of a family learnt from a stack are named by each slice's focus
+    (µm) where the stack carries it (the focus series), by its z position (µm) where the
+    stack is calibrated, and by the slice's index only where it is neither."""
+    v = make_napari_viewer()
+    data = np.zeros((4, 32, 32), np.float32)
+    v.add_image(data, name="series", scale=(0.2, 0.1, 0.1),
+                metadata={"z_um": [-0.6, -0.2, 0.2, 0.6]})
+    v.add_image(data, name="calibrated", scale=(0.25, 0.1, 0.1), translate=(1.0, 0, 0))
+    v.add_image(data, name="plain")
+    w = LearnFamilyWidget(v)
+    expected = {"series": ["-0.60 µm", "-0.20 µm", "+0.20 µm", "+0.60 µm"],
+                "calibrated": ["z 1.00 µm", "z 1.25 µm", "z 1.50 µm", "z 1.75 µm"],
+                "plain": ["0", "1", "2", "3"]}
+    for name, want in expected.items():
+        w.stack.value = v.layers[name]
+        w.first.value, w.last.value = 0, 3
+        _, _, labels, _ = w._inputs()
+        assert labels == [f"{name}[{x}]" for x in want], name

@@ -59,6 +59,21 @@ def _learn_and_show(loaders, *, grid: int, **kwargs):
     return sub, ys, xs, psfs, sub.condition_coordinates(2)
 
 
+
+def slice_label(layer, z: int) -> str:
+    """What names slice ``z`` of a stack layer among the family's conditions: its focus
+    in µm where the stack carries one per slice (``metadata["z_um"]``, as the focus
+    series does), else its z position in µm where the stack is calibrated (a z scale
+    other than 1), else its index."""
+    focus = (layer.metadata or {}).get("z_um")
+    if focus is not None and len(focus) == np.shape(layer.data)[0]:
+        return f"{float(focus[z]):+.2f} µm"
+    dz = float(layer.scale[0])
+    if dz != 1.0:
+        return f"z {float(layer.translate[0]) + z * dz:.2f} µm"
+    return str(z)
+
+
 class LearnFamilyWidget(Container):
     """Learn ``h_i``, ``a_j`` and one ``Gamma_k`` per image; show and save the family."""
 
@@ -149,7 +164,8 @@ class LearnFamilyWidget(Container):
                           tuple(np.asarray(layer.translate)[-2:]))
             z0, dz = float(layer.translate[0]), float(layer.scale[0])
             return ([functools.partial(_plane, data, z) for z in range(a, b + 1)], frame,
-                    [f"{layer.name}[{z}]" for z in range(a, b + 1)], (z0 + a * dz, dz))
+                    [f"{layer.name}[{slice_label(layer, z)}]" for z in range(a, b + 1)],
+                    (z0 + a * dz, dz))
         if src == SOURCES[1]:
             chosen = list(self.layers.value)
             if len(chosen) < 2:
