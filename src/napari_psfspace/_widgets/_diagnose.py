@@ -72,26 +72,22 @@ def dock_table(rows: list[list[str]]) -> dict:
 
 
 def fit_to_width(table) -> None:
-    """The table's columns share the dock's width and their texts wrap: no sideways
-    scroll."""
+    """Set ``table`` (a magicgui Table) to share the dock's width between its columns and
+    wrap their texts, its rows as tall as their text: no sideways scroll."""
     from qtpy.QtCore import Qt
     from qtpy.QtWidgets import QHeaderView, QStyledItemDelegate
 
     native = table.native
     # Qt's own delegate: each cell's text as written (magicgui's delegate shows a cell
     # that reads as a number in its own float format, e-notation for small errors)
-    if type(native.itemDelegate()) is not QStyledItemDelegate:
-        native.setItemDelegate(QStyledItemDelegate(native))
+    native.setItemDelegate(QStyledItemDelegate(native))
     native.setWordWrap(True)
     native.setTextElideMode(Qt.TextElideMode.ElideNone)
     native.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    native.verticalHeader().setVisible(False)
     header = native.horizontalHeader()
     header.setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
-    native.verticalHeader().setVisible(False)
-    if not getattr(native, "_rows_follow", False):  # rows as tall as their wrapped text
-        header.sectionResized.connect(lambda *_: native.resizeRowsToContents())
-        native._rows_follow = True
-    native.resizeRowsToContents()
+    header.sectionResized.connect(lambda *_: native.resizeRowsToContents())
 
 
 def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
@@ -186,6 +182,7 @@ class DiagnoseWidget(FollowsBeads, Container):
         self.result = result_text()
         self.table = Table(value=dock_table([]), label="steps")
         self.table.read_only = True
+        fit_to_width(self.table)
         self.table.tooltip = ("Each effect tried, the held-out error and the misfit over "
                               "the noise before -> after it; the report holds the tests "
                               "and their p-values.")
@@ -242,7 +239,7 @@ class DiagnoseWidget(FollowsBeads, Container):
             self.diagnosis = diag
             rows = steps_table(diag)
             self.table.value = dock_table(rows)
-            fit_to_width(self.table)
+            self.table.native.resizeRowsToContents()
             self.table.visible = True
             self.result.value = "\n".join([summary_text(diag),
                                            *model_lines(diag.operator.metadata,

@@ -59,7 +59,6 @@ def _learn_and_show(loaders, *, grid: int, **kwargs):
     return sub, ys, xs, psfs, sub.condition_coordinates(2)
 
 
-
 def slice_label(layer, z: int) -> str:
     """What names slice ``z`` of a stack layer among the family's conditions: its focus
     in µm where the stack carries one per slice (``metadata["z_um"]``, as the focus

@@ -70,7 +70,6 @@ def refine_centers(
         start; beads whose window has no signal above the local background keep their
         start exactly.
     """
-    check_halt()
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
     if len(centers) == 0:
         return centers.copy()

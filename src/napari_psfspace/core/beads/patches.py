@@ -95,7 +95,6 @@ def resample_patches(image: np.ndarray, centers: np.ndarray, size: int) -> np.nd
     -------
     ndarray of shape (K, size, size), float64
     """
-    check_halt()
     half = size // 2
     margin = 3  # spline support around the patch
     wins = gather_windows(image, centers, half + margin).astype(np.float64)
