@@ -65,9 +65,6 @@ def main(out: Path = OUT) -> Path:
         learn.learn.clicked()
         wait(learn.task)
     learn.show_psf.clicked()
-    from napari_psfspace._widgets._layers import MAPS
-
-    viewer.layers[MAPS].visible = False
     viewer.dims.set_point(0, 1)
     viewer.reset_view()
     QApplication.instance().processEvents()

@@ -58,7 +58,7 @@ def read_model(path) -> list[tuple]:
     p = _single_path(path)
     op = load_operator(p)
     px = op.metadata.get("pixel_size_um")
-    frame = Frame(op.shape, (px, px) if px else (1.0, 1.0))
+    frame = Frame(op.shape, (px, px) if px else (1.0, 1.0), units="µm" if px else None)
     name = os.path.splitext(os.path.basename(p))[0]
     out = []
     for data, kwargs, kind in operator_layers(op, frame):
@@ -95,4 +95,5 @@ def read_tiff(path) -> list[tuple]:
     kwargs = {"name": os.path.splitext(os.path.basename(p))[0], "metadata": meta}
     if px:
         kwargs["scale"] = ((info.z_spacing or px, px, px) if data.ndim == 3 else (px, px))
+        kwargs["units"] = ("µm",) * data.ndim  # napari's scale bar reads them
     return [(data, kwargs, "image")]

@@ -25,9 +25,10 @@ def simulated_beads(seed: int = 0):
     px = truth.optics.pixel_size
     meta = {"psf_radius": truth.psf_radius, "pixel_size_um": px, "simulated": True}
     return [
-        (image, {"name": "simulated beads", "scale": (px, px),
+        (image, {"name": "simulated beads", "scale": (px, px), "units": ("µm", "µm"),
                  "metadata": meta}, "image"),
-        (truth.positions, {"name": "true bead centres", "scale": (px, px), "size": 6,
+        (truth.positions, {"name": "true bead centres", "scale": (px, px),
+                           "units": ("µm", "µm"), "size": 6,
                            "face_color": "transparent", "border_color": "yellow",
                            "visible": False}, "points"),
     ]
@@ -52,4 +53,4 @@ def simulated_focus_series(seed: int = 0):
     meta = {"psf_radius": int(series.psf_radius.max()), "pixel_size_um": px,
             "z_um": series.z_um.tolist(), "simulated": True}
     return [(stack, {"name": "simulated focus series", "scale": (dz, px, px),
-                     "metadata": meta}, "image")]
+                     "units": ("µm",) * 3, "metadata": meta}, "image")]

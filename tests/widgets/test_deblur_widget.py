@@ -7,6 +7,7 @@ from conftest import wait_task
 from napari_psfspace._widgets._deblur import (
     MOST_POINTS,
     POINT_SIZE,
+    SMALLEST_POINT,
     SMOOTH,
     SOURCES,
     SPARSE,
@@ -58,14 +59,20 @@ def test_blind_deblur_from_clicked_beads(make_napari_viewer, qtbot, family):
         assert sparse.data[yy - 2:yy + 3, xx - 2:xx + 3].sum() > 0
     # visible at the home view: the sparse image's contrast reaches its typical point
     # (its top under the brightest, above the median of its nonzero pixels), and each
-    # nonzero pixel is also a point over it, at least a quarter of 1.2 % of the field wide
+    # nonzero pixel is also a point over it, at least SMALLEST_POINT of POINT_SIZE of the
+    # field wide
     nz = sparse.data[sparse.data > 0]
     lo, hi = sparse.contrast_limits
     assert np.median(nz) < hi <= nz.max()
     pts = v.layers[f"{SPARSE_POINTS} (image units)"]
     assert len(pts.data) == min(len(nz), MOST_POINTS)
     field = max(image.shape) * 0.065
-    assert np.min(pts.size) >= 0.25 * POINT_SIZE * field * (1 - 1e-9)
+    assert np.min(pts.size) >= SMALLEST_POINT * POINT_SIZE * field * (1 - 1e-9)
+    # the input and the smooth part side by side at one contrast, from the input's
+    # values: its bright beads do not set the top (the 99.9th percentile is under them)
+    shown = v.layers[w.image.value.name]
+    assert np.allclose(smooth.contrast_limits, shown.contrast_limits)
+    assert shown.contrast_limits[1] < float(np.max(shown.data))
     np.testing.assert_allclose(pts.data_to_world(pts.data[np.argmax(pts.features["amplitude"])]),
                                np.asarray(np.unravel_index(np.argmax(sparse.data),
                                                            sparse.data.shape)) * 0.065

@@ -65,6 +65,12 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     assert len(table) == len(d.steps)
     effects = table["effect"].tolist()
     assert effects[0] == "baseline"
+    # the residual tests significant on either model, each row its strength over its
+    # threshold on the plain and the final model
+    tests = w.tests.value["data"]
+    plain = [t.name.replace("_", " ") for t in d.analysis_before.significant()]
+    assert [r[0] for r in tests][:len(plain)] == plain
+    assert all(float(r[1]) > 1 for r in tests[:len(plain)])
     # every step tried is a row, with its decision
     for row, step in zip(table.itertuples(), d.steps, strict=True):
         if step.effect:
@@ -78,12 +84,14 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     for name in (MAP_BEFORE, MAP_AFTER, MEAN_BEFORE, MEAN_AFTER):
         assert name in hot_viewer.layers, name
     m = hot_viewer.layers[MAP_BEFORE]
-    # the map covers the image's field (in world units), above it
-    extent = np.asarray(m.data.shape) * np.asarray(m.scale)
-    assert np.allclose(extent, np.asarray(image.data.shape) * np.asarray(image.scale),
-                       rtol=0.05)
-    assert m.translate[0] < 0
-    assert hot_viewer.layers[MAP_AFTER].translate[1] > image.data.shape[1] * image.scale[1]
+    # the maps cover the image's field (in world units), where it lies: napari's grid
+    # shows them beside it
+    for layer in (m, hot_viewer.layers[MAP_AFTER]):
+        extent = np.asarray(layer.data.shape) * np.asarray(layer.scale)
+        assert np.allclose(extent, np.asarray(image.data.shape) * np.asarray(image.scale),
+                           rtol=0.05)
+        corner = np.asarray(layer.translate) - np.asarray(layer.scale) / 2
+        assert np.allclose(corner, -np.asarray(image.scale) / 2, atol=0.05 * extent.max())
     assert np.isfinite(m.data).any()
     assert hot_viewer.layers[MEAN_BEFORE].data.shape == d.crossfit_before.residuals.data.shape[1:]
 

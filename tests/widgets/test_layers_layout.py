@@ -1,5 +1,5 @@
 """The layer package's pieces without a viewer: a new fit starts from the user's beads,
-and the colour bars and result slots keep off each other and off the data."""
+results lie on the image's field, and maps are marked for napari's overlays."""
 
 from __future__ import annotations
 
@@ -24,27 +24,60 @@ def _box(data, kwargs):
     return lo, lo + scale * np.asarray(np.shape(data)[-2:])
 
 
-def test_a_colour_bar_lies_right_of_its_map_within_the_column_gap():
-    from napari_psfspace._widgets._layers import Frame, beside, map_layers
-    from napari_psfspace._widgets._layers.figure import BAR, BAR_TEXT
+def test_a_result_lies_centred_on_the_field_at_its_scale():
+    """A map on the image's pixels covers the field exactly; a mosaic fills the field
+    along its tighter side, centred; a result larger than the field is shrunk to it."""
+    from napari_psfspace._widgets._layers import Frame, on_field
 
     frame = Frame((300, 400), (0.1, 0.1), (5.0, -3.0))
-    data = np.linspace(0, 1, 300 * 400, dtype=np.float32).reshape(300, 400)
-    kwargs = {"name": "thing (µm)", "scale": frame.scale, "translate": frame.translate,
-              "colormap": "viridis", "contrast_limits": (0.0, 2.5)}
-    (m, mk, _), (bar, bk, _), (pts, pk, kind) = map_layers(data, kwargs, "µm", frame)
-    assert bk["name"] == BAR + "thing (µm)" and pk["name"] == BAR_TEXT + "thing (µm)"
-    (m_lo, m_hi), (b_lo, b_hi) = _box(m, mk), _box(bar, bk)
-    assert np.allclose([b_lo[0], b_hi[0]], [m_lo[0], m_hi[0]])  # as tall as the map
-    next_slot = beside(frame, 1.0)[1] - frame.scale[1] / 2
-    assert m_hi[1] < b_lo[1] and pts[:, 1].max() < next_slot  # between map and next slot
-    assert bar[0, 0] == 2.5 and bar[-1, 0] == 0.0  # top: the upper limit
-    assert list(pk["features"]["tick"]) == ["2.5 µm", "1.25 µm", "0 µm"]
+    field = (np.array([5.0, -3.0]) - 0.05, np.array([5.0, -3.0]) - 0.05 + [30.0, 40.0])
+    same = np.zeros((300, 400))
+    lo, hi = _box(same, on_field(frame, same.shape))
+    assert np.allclose(lo, field[0]) and np.allclose(hi, field[1])
+    mosaic = np.zeros((50, 50))
+    kw = on_field(frame, mosaic.shape, fill=1.0)
+    lo, hi = _box(mosaic, kw)
+    assert np.allclose(hi - lo, [30.0, 30.0])  # as tall as the field, square pixels
+    assert np.allclose((lo + hi) / 2, (field[0] + field[1]) / 2)  # centred
+    small = on_field(frame, mosaic.shape)  # at the image's scale: not magnified
+    assert np.allclose(small["scale"], frame.scale)
+    big = np.zeros((600, 200))
+    lo, hi = _box(big, on_field(frame, big.shape))
+    assert np.all(lo >= field[0] - 1e-9) and np.all(hi <= field[1] + 1e-9)
 
 
-def test_a_deblurred_slice_lies_on_its_slice_left_of_the_stack():
+def test_a_map_is_dressed_by_napari_not_drawn_beside():
+    """A map's tuple is one image layer in the image's units, marked for napari's name
+    and colour-bar overlays; dress turns them on, and leaves other layers alone."""
+    from types import SimpleNamespace
+
+    from napari_psfspace._widgets._layers import OVERLAYS_KEY, Frame, dress, map_tuple
+    from napari_psfspace._widgets._layers.figure import BAR_CORNER, NAME_CORNER
+
+    frame = Frame((30, 40), (0.1, 0.1), units="µm")
+    out = map_tuple(np.zeros((30, 40), np.float32),
+                    {"name": "thing (µm)", "scale": (0.1, 0.1), "translate": (0, 0),
+                     "colormap": "viridis", "contrast_limits": (0.0, 2.5)}, "µm", frame)
+    data, kwargs, kind = out
+    assert kind == "image" and kwargs["units"] == ("µm", "µm")
+    assert kwargs["metadata"][OVERLAYS_KEY] == {"unit": "µm"}
+
+    def overlay():
+        return SimpleNamespace(visible=False, position=None, size=None, font_size=None)
+
+    layer = SimpleNamespace(metadata=kwargs["metadata"], colorbar=overlay(),
+                            name_overlay=overlay())
+    dress(layer)
+    assert layer.colorbar.visible and layer.colorbar.position == BAR_CORNER
+    assert layer.name_overlay.visible and layer.name_overlay.position == NAME_CORNER
+    other = SimpleNamespace(metadata={}, colorbar=overlay(), name_overlay=overlay())
+    dress(other)
+    assert not other.colorbar.visible and not other.name_overlay.visible
+
+
+def test_a_deblurred_slice_lies_on_its_slice_on_the_field():
     """A 2-D deblur of a stack's slice: one-plane layers on that slice (shown with it
-    only), named for it, left of the stack, each with its colour bar."""
+    only), named for it, on the stack's field."""
     from types import SimpleNamespace
 
     from napari_psfspace._widgets._deblur import SMOOTH, SPARSE, result_layers
@@ -63,8 +96,8 @@ def test_a_deblurred_slice_lies_on_its_slice_left_of_the_stack():
         z = 1.0 + 4 * 0.3  # the slice's world z
         if kind == "image":
             assert data.shape[0] == 1 and kw["translate"][0] == z and kw["scale"][0] == 0.3
-            right = kw["translate"][-1] + data.shape[-1] * kw["scale"][-1]
-            assert right < 0.0, kw["name"]  # left of the stack (which starts at x 0)
+            assert np.allclose(kw["translate"][1:], (0.0, 0.0)), kw["name"]  # on the field
+            assert np.allclose(kw["scale"][1:], (0.1, 0.1)), kw["name"]
         else:
             assert np.all(data[:, 0] == z)
     # the sparse part's single point is not lost in the contrast: its limits end at it

@@ -7,7 +7,6 @@ import pytest
 from conftest import wait_task
 from napari_psfspace._widgets._layers import (
     SUB_BASIS,
-    SUB_CONDITIONS,
     SUB_GRID,
     SUB_SPACE,
     SUBSPACE_KEY,
@@ -45,7 +44,7 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     # the same family as the API on the same slices (same radius, held-out split)
     ref = estimate_family(list(data[1:6]), psf_radius=w.radius.pixels)
     assert np.allclose(sub.gammas, ref.gammas, atol=1e-8)
-    # shown: a PSF grid per image (slider), h_i, a_j, one point per condition
+    # shown: a PSF grid per image (slider), the basis, the spatial maps
     grid = v.layers[SUB_GRID]
     assert grid.data.shape[0] == 5 and grid.metadata[SUBSPACE_KEY] is sub
     # the z slider shows each slice with its own PSF grid (the family starts at slice 1)
@@ -55,16 +54,18 @@ def test_stack_slices_learn_show_and_save(make_napari_viewer, qtbot, stack, tmp_
     p = sub.basis.shape[-1]
     first = sub.basis[0] / np.abs(sub.basis[0]).max()
     assert np.allclose(v.layers[SUB_BASIS].data[:p, :p], first, atol=1e-6)
-    # each in its own slot: no two of the family's results on each other
-    shown = [v.layers[n] for n in (SUB_SPACE, SUB_GRID, SUB_BASIS, SUB_CONDITIONS)]
-    for i, a in enumerate(shown):
-        for b in shown[i + 1:]:
-            (a0, a1), (b0, b1) = (np.asarray(x.extent.world)[:, -2:] for x in (a, b))
-            assert not (np.all(a0 < b1) and np.all(b0 < a1)), (a.name, b.name)
-    pts = v.layers[SUB_CONDITIONS]
-    assert pts.data.shape == (5, 2) and list(pts.features["image"]) == list(range(5))
-    assert list(pts.features["label"]) == sub.metadata["labels"]
-    assert np.allclose(pts.metadata["coordinates"], sub.condition_coordinates(2))
+    # each on the stack's field (napari's grid puts them side by side)
+    field = np.asarray(v.layers["z-stack"].extent.world)[:, -2:]
+    for name in (SUB_SPACE, SUB_GRID, SUB_BASIS):
+        box = np.asarray(v.layers[name].extent.world)[:, -2:]
+        assert np.all(box[0] >= field[0] - 1) and np.all(box[1] <= field[1] + 1), name
+    # the conditions: a table in the dock, a row an image, its place in the family
+    table = w.conditions.value
+    assert not w.conditions.native.isHidden() and len(table["data"]) == 5
+    labels = [lab.rsplit("[", 1)[-1].rstrip("]") for lab in sub.metadata["labels"]]
+    assert [row[0] for row in table["data"]] == labels
+    coords = sub.condition_coordinates(2)
+    assert [float(row[1]) for row in table["data"]] == pytest.approx(coords[:, 0], abs=0.006)
     # each grid tile is that image's operator (first tile: row 0, column 0)
     ys, xs, psfs = sub.psf_grids(6, images=[3])
     assert np.allclose(psfs[0, 0, 0], sub.psf_at(3, ys[0], xs[0]))

@@ -9,10 +9,11 @@ from napari_psfspace._widgets._layers import (
     BASIS,
     BEADS,
     HELDOUT_LAYER,
-    MAPS,
     PSF_AT,
     PSF_GRID,
+    WEIGHT,
 )
+from napari_psfspace._widgets._layers.results import SHOWN_WEIGHTS
 from napari_psfspace._widgets._learn_operator import LearnOperatorWidget
 from napari_psfspace._widgets._pick_beads import PickBeadsWidget
 from napari_psfspace._widgets._review_patches import ReviewPatchesWidget
@@ -41,22 +42,28 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
     w.learn.clicked()
     wait_task(qtbot, w.task)
 
-    for name in (PSF_GRID, BASIS, MAPS, HELDOUT_LAYER):
+    for name in (PSF_GRID, BASIS, WEIGHT.format(1), HELDOUT_LAYER):
         assert name in viewer.layers, name
     op = load_operator(path)
     image = viewer.layers["beads image"]
     assert op.shape == image.data.shape
     assert np.isclose(op.metadata["pixel_size_um"], image.scale[-1])
-    # the basis and the maps as 2-D mosaics beside the image: no axis shared with it
-    basis, maps = viewer.layers[BASIS], viewer.layers[MAPS]
-    assert basis.data.ndim == 2 and maps.data.ndim == 2 and viewer.dims.ndim == 2
+    # the basis a 2-D mosaic, a weight map a layer, each on the image's field: no axis
+    # shared with the image
+    basis = viewer.layers[BASIS]
+    maps = [viewer.layers[WEIGHT.format(i + 1)] for i in range(op.n_psf)]
+    assert basis.data.ndim == 2 and viewer.dims.ndim == 2
+    assert all(m.data.ndim == 2 for m in maps)
+    assert [m.visible for m in maps] == [i < SHOWN_WEIGHTS for i in range(op.n_psf)]
     cols = int(np.ceil(np.sqrt(op.n_psf)))
     p = op.psf_size
     assert basis.data.shape[1] == cols * (p + 2) - 2
     first = op.basis[0] / np.abs(op.basis[0]).max()
     assert np.allclose(basis.data[:p, :p], first, atol=1e-6)
-    for a, b in ((basis, maps), (maps, viewer.layers[PSF_GRID]), (basis, image)):
-        assert not _overlap(a, b), (a.name, b.name)
+    field = np.asarray(image.extent.world)
+    for layer in (basis, viewer.layers[PSF_GRID], *maps):
+        box = np.asarray(layer.extent.world)
+        assert np.all(box[0] >= field[0] - 1e-6) and np.all(box[1] <= field[1] + 1e-6)
     # the rejected bead was not used; the Points layer got the final statuses
     used = np.asarray(op.metadata["bead_positions"])
     row = np.flatnonzero(pts.features["id"] == rejected_id)[0]
@@ -64,6 +71,11 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
     assert np.min(np.hypot(*(used - pts.data[row]).T)) > 1.0
     assert op.metadata["n_beads_used"] <= int((pts.features["status"] == "kept").sum())
     assert "held-out error" in w.result.value and str(path) in w.result.value
+    # the basis size: each size tried with its held-out error, the chosen one marked
+    sizes = w.sizes.value["data"]
+    errors = op.metadata["heldout_error_by_n_psf"]
+    assert [int(r[0]) for r in sizes] == list(range(1, len(errors) + 1))
+    assert [r[0] for r in sizes if r[2] == "chosen"] == [str(op.n_psf)]
     # motion blur is looked for on every model (a still sample: nothing found)
     assert op.metadata["motion"]["detected"] is False and not w.remove_motion.value
 
@@ -169,9 +181,3 @@ def test_stack_uses_the_detection_slice_and_radius(make_napari_viewer, qtbot, be
     op = load_operator(tmp_path / "m.npz")
     assert op.metadata["n_beads_used"] >= 15
     assert op.metadata["psf_radius"] == pytest.approx(truth.psf_radius)
-
-
-def _overlap(a, b) -> bool:
-    """Whether two layers' world extents overlap."""
-    (a0, a1), (b0, b1) = (np.asarray(layer.extent.world)[:, -2:] for layer in (a, b))
-    return bool(np.all(a0 < b1) and np.all(b0 < a1))

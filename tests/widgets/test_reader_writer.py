@@ -5,8 +5,7 @@ import pytest
 
 from napari_psfspace import estimate_operator, load_operator
 from napari_psfspace._reader import get_model_reader, get_tiff_reader
-from napari_psfspace._widgets._layers import BASIS, MAPS, OPERATOR_KEY, PSF_GRID
-from napari_psfspace._widgets._layers.figure import BAR, BAR_TEXT
+from napari_psfspace._widgets._layers import BASIS, OPERATOR_KEY, PSF_GRID, WEIGHT
 from napari_psfspace._writer import write_model, write_psf_tiff
 from napari_psfspace.io import read_image, write_tiff
 
@@ -29,15 +28,14 @@ def test_model_reader_gives_grid_basis_and_scaled_maps(model):
     reader = get_model_reader(str(path))
     assert reader is not None
     layers = {kw["name"].split(" [")[0]: (d, kw, t) for d, kw, t in reader(str(path))}
-    shown = {PSF_GRID, BASIS, MAPS}
-    assert set(layers) == shown | {BAR + n for n in shown} | {BAR_TEXT + n for n in shown} | {
-        "titles: model"}
-    maps, kw, kind = layers[MAPS]
-    # a 2-D mosaic of the I maps, fitting the image's size in its units (um)
-    assert kind == "image" and maps.ndim == 2
-    height, width = (n * kw["scale"][0] for n in maps.shape)
-    assert max(height / (op.shape[0] * 0.065), width / (op.shape[1] * 0.065)) == (
-        pytest.approx(1.0))
+    weights = {WEIGHT.format(i + 1) for i in range(op.n_psf)}
+    assert set(layers) == {PSF_GRID, BASIS} | weights
+    maps, kw, kind = layers[WEIGHT.format(1)]
+    # one weight map a layer, covering the image's field in its units (um)
+    assert kind == "image" and maps.ndim == 2 and kw["units"] == ("µm", "µm")
+    height, width = (n * s for n, s in zip(maps.shape, kw["scale"], strict=True))
+    assert height == pytest.approx(op.shape[0] * 0.065)
+    assert width == pytest.approx(op.shape[1] * 0.065)
     assert isinstance(layers[PSF_GRID][1]["metadata"][OPERATOR_KEY], type(op))
 
 
@@ -93,4 +91,4 @@ def test_viewer_opens_model_with_plugin(make_napari_viewer, model):
     v.open(str(path), plugin="napari-psfspace")
     names = [layer.name for layer in v.layers]
     assert any(n.startswith("PSF grid") for n in names)
-    assert any(n.startswith("weight maps") for n in names)
+    assert any(n.startswith("PSF weight 1") for n in names)

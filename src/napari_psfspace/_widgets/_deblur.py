@@ -34,34 +34,36 @@ from ..core.restore.identify import IdentificationWarning
 from ._layers import (
     MADE_AS,
     OPERATOR_KEY,
+    OVERLAYS_KEY,
     PSF_GRID,
     SUB_GRID,
     SUBSPACE_KEY,
     Frame,
     LayerTuple,
     advice_layers,
-    beside,
-    focus_on_step,
-    free_slot,
+    field_units,
     image_plane,
-    map_layers,
+    map_tuple,
+    on_field,
     show_layers,
 )
+from ._view import show_step
 from ._worker import CoreTask, device_choice, image_choices, result_text
 
 if TYPE_CHECKING:
     import napari
 
 #: Names of the result layers, before the slice and the unit.
-SPARSE = "deblurred: sparse part"
-SMOOTH = "deblurred: smooth part"
-SPARSE_POINTS = "deblurred: sparse points"
+SPARSE = "sparse part"
+SMOOTH = "smooth part"
+SPARSE_POINTS = "sparse points"
 #: The sparse part's points shown at most (the brightest), and their size: the largest a
 #: fraction of the field's side, the others by the square root of their amplitude, none
-#: under a quarter of it; a single pixel of a 1024 px field is otherwise lost at the
-#: viewer's home view.
+#: under :data:`SMALLEST_POINT` of it. A single pixel of a 1024 px field is otherwise
+#: lost in a cell of the side-by-side view, a few hundred screen pixels wide.
 MOST_POINTS = 5000
-POINT_SIZE = 0.012
+POINT_SIZE = 0.025
+SMALLEST_POINT = 0.4
 SOURCES = ("file (family or model)", "from the viewer")
 
 
@@ -104,29 +106,46 @@ def _limits(values: np.ndarray) -> tuple[float, float]:
     return lo, max(top, lo + 1e-12)
 
 
-def result_layers(viewer, res, frame: Frame, layer) -> list[LayerTuple]:
-    """The sparse part left of the input (the first free slot leftwards, column -1 unless
-    another step's results lie there) and the smooth part below it,
-    each with its colour bar, in the image's units. From a stack's slice the parts are
-    one-plane stacks on that slice (shown with it, not over every slice), named for it."""
+def display_limits(plane: np.ndarray) -> tuple[float, float]:
+    """Contrast limits of an image from its values: the 0.5th to the 99.9th percentile
+    of its finite pixels (a bead image's few bright pixels would set the full range, and
+    its background would read black)."""
+    values = np.asarray(plane, np.float64)
+    values = values[np.isfinite(values)]
+    if not values.size:
+        return 0.0, 1.0
+    lo, hi = (float(v) for v in np.percentile(values, [0.5, 99.9]))
+    return lo, max(hi, lo + 1e-12)
+
+
+def result_layers(viewer, res, frame: Frame, layer, *,
+                  limits: tuple[float, float] | None = None) -> list[LayerTuple]:
+    """The sparse part, its points and the smooth part, on the image's field, in the
+    image's units: the smooth part at ``limits`` (the input's contrast, the same side by
+    side; by default the input layer's own), the sparse part from its values
+    (:func:`_limits`). From a stack's slice the parts are one-plane stacks on that slice
+    (shown with it, not over every slice), named for it."""
     where = "" if frame.index is None else f", slice {frame.index}"
     meta = {"pixel_size_um": frame.pixel_size, "deblur": res.parameters,
             "source": layer.name, "slice": frame.index}
+    place = on_field(frame, np.shape(res.sparse))
+    shown = limits if limits is not None else getattr(layer, "contrast_limits", None)
     out: list[LayerTuple] = []
-    _, x = free_slot(viewer, frame, "Deblur")
-    for row, (part, name, cmap) in enumerate(((res.sparse, SPARSE, "magma"),
-                                              (res.smooth, SMOOTH, "gray"))):
-        y = beside(frame, 0.0, float(row))[0]
-        kwargs = {"name": f"{name}{where} (image units)", "scale": frame.scale,
-                  "translate": (y, x), "colormap": cmap, "contrast_limits": _limits(part),
-                  "metadata": meta}
-        out.extend(map_layers(np.asarray(part, np.float32), kwargs, "", frame))
+    for part, name, cmap in ((res.sparse, SPARSE, "magma"), (res.smooth, SMOOTH, "gray")):
+        part = np.asarray(part, np.float32)
+        limits = (tuple(float(v) for v in shown) if name == SMOOTH and shown is not None
+                  else _limits(part))
+        kwargs = {"name": f"{name}{where} (image units)", **place, "colormap": cmap,
+                  "contrast_limits": limits, "metadata": meta}
+        out.append(map_tuple(part, kwargs, "", frame))
     out.append(sparse_points(res.sparse, frame, out[0][1], f"{SPARSE_POINTS}{where} "
                              "(image units)", meta))
     if frame.index is not None:  # on the slice it came from
         dz, tz = float(layer.scale[0]), float(layer.translate[0])
         z = tz + frame.index * dz
         for i, (data, kwargs, kind) in enumerate(out):
+            if "units" in kwargs:  # one more axis: z, in the stack's unit
+                kwargs = kwargs | {"units": (kwargs["units"][0],) * 3}
             if kind == "image" and np.ndim(data) == 2:
                 out[i] = (data[None], kwargs | {"scale": (dz, *kwargs["scale"]),
                                                 "translate": (z, *kwargs["translate"])},
@@ -161,13 +180,14 @@ def sparse_points(sparse: np.ndarray, frame: Frame, image_kwargs: dict, name: st
     pos = origin + np.column_stack([rows, cols]) * scale
     top = float(image_kwargs["contrast_limits"][1]) or 1.0
     side = POINT_SIZE * max(frame.height, frame.width)
-    size = side * np.clip(np.sqrt(amp / top), 0.25, 1.0)
+    size = side * np.clip(np.sqrt(amp / top), SMALLEST_POINT, 1.0)
     colour = ({"face_color": "amplitude", "face_colormap": "magma",
                "face_contrast_limits": (0.0, top)} if len(amp) else {})
     return (pos, {"name": name, "size": size, "features": {"amplitude": amp}, **colour,
-                  "border_width": 0,
-                  "metadata": {**meta, "about": "the sparse part's nonzero pixels, "
-                               "sized and coloured by their amplitude (image units)"}},
+                  "border_width": 0, "border_color": "transparent", **field_units(frame),
+                  "metadata": {**meta, OVERLAYS_KEY: {"unit": ""},
+                               "about": "the sparse part's nonzero pixels, sized and "
+                                        "coloured by their amplitude (image units)"}},
             "points")
 
 
@@ -308,13 +328,20 @@ class DeblurWidget(Container):
         def on_result(got) -> None:
             res, op, note = got
             self.last, self.operator = res, op
-            tuples = result_layers(self._viewer, res, frame, layer)
+            # the input and the smooth part at one contrast, from the input's values
+            limits = display_limits(plane)
+            layer.contrast_limits = limits
+            tuples = result_layers(self._viewer, res, frame, layer, limits=limits)
             info = (op.metadata or {}).get("identification")
             if info:  # on the input: where one more bead would help, beads left out
                 tuples += advice_layers(info, frame, (float(layer.scale[0]),
                                                       float(layer.translate[0])))
-            show_layers(self._viewer, tuples, step="Deblur", replace=True)
-            focus_on_step(self._viewer, "Deblur", layer)
+            shown = show_layers(self._viewer, tuples, step="Deblur", replace=True)
+            for made in shown:  # nothing selected: napari draws selected points boxed
+                if hasattr(made, "selected_data"):
+                    made.selected_data = set()
+            self._viewer.layers.selection.active = shown[1]  # the smooth part
+            show_step(self, "Deblur", layer)
             p = res.parameters
             self.result.value = (
                 f"{note}; {res.iterations} iterations "

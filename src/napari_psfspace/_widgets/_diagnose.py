@@ -29,18 +29,18 @@ from ._layers import (
     OPERATOR_KEY,
     Frame,
     LayerTuple,
-    beside,
-    focus_on_step,
-    map_layers,
+    map_tuple,
+    on_field,
     show_layers,
-    titles_layer,
     user_beads,
 )
+from ._view import show_step
 from ._worker import (
     CoreTask,
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
+    fit_to_width,
     image_choices,
     result_text,
 )
@@ -49,11 +49,10 @@ if TYPE_CHECKING:
     import napari
 
 #: Names of the layers this widget creates.
-MAP_BEFORE = "excess error, plain model (fraction of energy)"
-MAP_AFTER = "excess error, final model (fraction of energy)"
-MEAN_BEFORE = "mean residual, plain model (noise sd)"
-MEAN_AFTER = "mean residual, final model (noise sd)"
-TITLES = "titles: diagnosis"
+MAP_BEFORE = "excess error, plain model (%)"
+MAP_AFTER = "excess error, final model (%)"
+MEAN_BEFORE = "mean residual, plain (noise sd)"
+MEAN_AFTER = "mean residual, final (noise sd)"
 #: The steps table's columns in the dock, each the report's column it shows and its
 #: header here: the report (``write report to``) holds every column.
 DOCK_COLUMNS = {"effect": "effect", "held-out error": "held-out\nerror",
@@ -71,30 +70,33 @@ def dock_table(rows: list[list[str]]) -> dict:
             "columns": list(DOCK_COLUMNS.values())}
 
 
-def fit_to_width(table) -> None:
-    """Set ``table`` (a magicgui Table) to share the dock's width between its columns and
-    wrap their texts, its rows as tall as their text: no sideways scroll."""
-    from qtpy.QtCore import Qt
-    from qtpy.QtWidgets import QHeaderView, QStyledItemDelegate
+def tests_table_empty() -> dict:
+    """The tests table before a diagnosis: its columns only."""
+    return {"data": [], "columns": ["residual test", "plain\nmodel", "final\nmodel"]}
 
-    native = table.native
-    # Qt's own delegate: each cell's text as written (magicgui's delegate shows a cell
-    # that reads as a number in its own float format, e-notation for small errors)
-    native.setItemDelegate(QStyledItemDelegate(native))
-    native.setWordWrap(True)
-    native.setTextElideMode(Qt.TextElideMode.ElideNone)
-    native.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
-    native.verticalHeader().setVisible(False)
-    header = native.horizontalHeader()
-    header.setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
-    header.sectionResized.connect(lambda *_: native.resizeRowsToContents())
+
+def tests_table(diagnosis) -> dict:
+    """A magicgui Table's value: each residual test significant on the plain or the
+    final model, its strength over its threshold on each (above 1: significant), the
+    strongest on the plain model first."""
+    before, after = diagnosis.analysis_before, diagnosis.analysis_after
+    names = [t.name for t in before.significant()]
+    names += [t.name for t in after.significant() if t.name not in names]
+    rows = []
+    for name in names:
+        cells = []
+        for analysis in (before, after):
+            test = analysis.tests.get(name)
+            cells.append("-" if test is None else f"{test.evidence:.2f}")
+        rows.append([name.replace("_", " "), *cells])
+    return {"data": rows, "index": list(range(len(rows))),
+            "columns": ["residual test", "plain\nmodel", "final\nmodel"]}
 
 
 def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
-    """Layer-data tuples of the residual maps and mean residual patches, before / after.
-
-    Laid out above the image: the two maps (each covering the field, one colour scale),
-    then the two mean patches (one grey scale) stacked on the right.
+    """Layer-data tuples of the residual maps and the mean residual patches, before and
+    after, each on the image's field: the two maps on one colour scale, the two patches
+    (magnified) on one grey scale.
 
     Parameters
     ----------
@@ -108,42 +110,28 @@ def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
     """
     fig = figure_arrays(diagnosis)
     cell = fig["cell_size"]
-    scale = (cell * frame.scale[0], cell * frame.scale[1])
-    about_map = ("held-out excess error of each bead, in fraction of its energy (its "
-                 "relative residual energy minus its noise floor), painted as a disk at its "
-                 "place; NaN: no bead")
+    about_map = ("held-out excess error of each bead, in % of its energy (its relative "
+                 "residual energy minus its noise floor), painted as a disk at its place; "
+                 "NaN: no bead")
     out: list[LayerTuple] = []
-    for col, (name, key) in enumerate(((MAP_BEFORE, "map_before"), (MAP_AFTER, "map_after"))):
+    for name, key in ((MAP_BEFORE, "map_before"), (MAP_AFTER, "map_after")):
         meta = {"about": about_map, "cell_size_px": cell}
         if key == "map_after":  # the model the diagnosis refined: Deblur offers it
             meta[OPERATOR_KEY] = diagnosis.operator
             meta["model_label"] = "Diagnose's final model"
-        out.extend(map_layers(fig[key].astype("float32"),
-                              {"name": name, "scale": scale,
-                               "translate": beside(frame, col, -1.0), "colormap": "viridis",
-                               "contrast_limits": (0.0, fig["map_limit"]), "metadata": meta},
-                              "", frame))
+        m = (100.0 * fig[key]).astype("float32")  # in % of each bead's energy
+        out.append(map_tuple(m, {"name": name, **on_field(frame, m.shape, fill=1.0),
+                                 "colormap": "viridis",
+                                 "contrast_limits": (0.0, 100.0 * fig["map_limit"]),
+                                 "metadata": meta}, "%", frame))
     lim = fig["mean_limit"]
-    size = 0.45 * frame.height
-    y0, x0 = beside(frame, 2.0, -1.0)
-    for row, (name, key) in enumerate(((MEAN_BEFORE, "mean_before"),
-                                       (MEAN_AFTER, "mean_after"))):
-        patch = fig[key]
-        s = size / patch.shape[-1]
-        out.extend(map_layers(patch.astype("float32"),
-                              {"name": name, "scale": (s, s),
-                               "translate": (y0 + row * 0.55 * frame.height, x0),
-                               "colormap": "gray", "contrast_limits": (-lim, lim),
-                               "metadata": {"about": "mean normalised residual patch over "
-                                                     "the beads (noise sd)"}},
-                              "sd", frame))
-    titles = []
-    for col, which in enumerate(("plain", "final")):
-        y, x = beside(frame, col, -1.0)
-        titles.append((y, x, f"excess error\n{which} model"))
-    for row, which in enumerate(("plain", "final")):
-        titles.append((y0 + row * 0.55 * frame.height, x0, f"mean residual\n{which} model"))
-    out.append(titles_layer(TITLES, titles, frame))
+    for name, key in ((MEAN_BEFORE, "mean_before"), (MEAN_AFTER, "mean_after")):
+        patch = fig[key].astype("float32")
+        out.append(map_tuple(patch, {
+            "name": name, **on_field(frame, patch.shape, fill=1.0), "colormap": "gray",
+            "contrast_limits": (-lim, lim),
+            "metadata": {"about": "mean normalised residual patch over the beads (noise "
+                                  "sd), magnified"}}, "sd", frame))
     return out
 
 
@@ -187,6 +175,13 @@ class DiagnoseWidget(FollowsBeads, Container):
                               "the noise before -> after it; the report holds the tests "
                               "and their p-values.")
         self.table.visible = False
+        self.tests = Table(value=tests_table_empty(), label="tests")
+        self.tests.read_only = True
+        fit_to_width(self.tests)
+        self.tests.tooltip = ("The residual tests that find structure beyond the noise, "
+                              "each as its strength over its threshold (above 1: "
+                              "significant) on the plain and the final model.")
+        self.tests.visible = False
         self.remove_motion = CheckBox(value=False, text="remove motion blur")
         self.remove_motion.tooltip = (
             "Motion blur (a smear common to all beads) is always looked for and reported; "
@@ -195,7 +190,7 @@ class DiagnoseWidget(FollowsBeads, Container):
             self.image, self.points, self.radius, self.threshold, self.camera, self.gain,
             self.offset, self.read_noise, self.remove_motion, self.report_dir,
             self.diagnose, self.task,
-            self.result, self.table])
+            self.result, self.table, self.tests])
         self.diagnosis = None
         self.camera.changed.connect(self._on_camera)
         self.diagnose.changed.connect(self.run)
@@ -241,12 +236,15 @@ class DiagnoseWidget(FollowsBeads, Container):
             self.table.value = dock_table(rows)
             self.table.native.resizeRowsToContents()
             self.table.visible = True
+            self.tests.value = tests_table(diag)
+            self.tests.native.resizeRowsToContents()
+            self.tests.visible = bool(self.tests.value["data"])
             self.result.value = "\n".join([summary_text(diag),
                                            *model_lines(diag.operator.metadata,
                                                         markdown=False)])
             show_layers(self._viewer, diagnosis_layers(diag, frame), step="Diagnose",
                         replace=True)
-            focus_on_step(self._viewer, "Diagnose", img)
+            show_step(self, "Diagnose", img)
             if folder is not None:
                 path = write_report(diag, folder, image_name=name,
                                     pixel_size=frame.pixel_size,

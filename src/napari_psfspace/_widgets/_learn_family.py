@@ -4,8 +4,8 @@ The images come from a z-stack layer (a range of its slices: each slice a condit
 from several 2-D image layers, or from a folder of TIFFs (read one at a time inside the
 tasks). The work is :func:`~napari_psfspace.core.family.iter_estimate_family` in a
 worker thread (dask's threaded scheduler inside it); the widget shows the PSF grid of
-each image's operator under a slider, the PSF basis ``h_i``, the spatial basis ``a_j``
-and the conditions as points.
+each image's operator under a slider, the PSF basis and the spatial maps as layers, and
+the conditions as a table in the dock.
 """
 
 from __future__ import annotations
@@ -24,21 +24,22 @@ from magicgui.widgets import (
     PushButton,
     Select,
     SpinBox,
+    Table,
 )
 from napari.utils.notifications import show_error, show_info
 
 from ..core.common.progress import Progress
 from ..core.family import OperatorFamily, iter_estimate_family
-from ._layers import (
-    SUB_GRID,
-    Frame,
-    below_others,
-    family_layers,
-    find_layer,
-    focus_on_step,
-    show_layers,
+from ._layers import SUB_GRID, Frame, axis_unit, family_layers, find_layer, show_layers
+from ._view import show_step
+from ._worker import (
+    CoreTask,
+    RadiusEdit,
+    fit_to_width,
+    image_choices,
+    pixel_size_of,
+    result_text,
 )
-from ._worker import CoreTask, RadiusEdit, image_choices, pixel_size_of, result_text
 
 if TYPE_CHECKING:
     import napari
@@ -57,6 +58,29 @@ def _learn_and_show(loaders, *, grid: int, **kwargs):
     yield Progress("display", 1.0, f"PSF grids of {sub.n_images} images")
     ys, xs, psfs = sub.psf_grids(grid)
     return sub, ys, xs, psfs, sub.condition_coordinates(2)
+
+
+#: The conditions table's columns: each image's label (its focus where known), its
+#: place among the conditions (the first two coordinates of its operator in the
+#: family), and its held-out residual.
+CONDITION_COLUMNS = ("condition", "place 1", "place 2", "held-out\nresidual")
+
+
+def conditions_table(sub: OperatorFamily, coords: np.ndarray) -> dict:
+    """A magicgui Table's value: one row a condition (image) the family learnt from."""
+    images = [int(i) for i in sub.metadata.get("images", range(sub.n_images))]
+    labels = sub.metadata.get("labels") or [str(i) for i in images]
+    held = sub.metadata.get("heldout") or []
+    c = np.asarray(coords, float).reshape(len(images), -1)
+    rows = []
+    for k, label in enumerate(labels):
+        # a stack slice's label ("stack[+0.40 µm]") in the table: what is in brackets
+        short = label.rsplit("[", 1)[-1].rstrip("]") if label.endswith("]") else label
+        h = held[k] if len(held) == len(images) else {}
+        res = f"{h['residual_mean']:.3f}" if h.get("n_beads") else "-"
+        rows.append([short, f"{c[k, 0]:+.2f}",
+                     f"{c[k, 1]:+.2f}" if c.shape[1] > 1 else "-", res])
+    return {"data": rows, "index": list(range(len(rows))), "columns": list(CONDITION_COLUMNS)}
 
 
 def slice_label(layer, z: int) -> str:
@@ -98,10 +122,16 @@ class LearnFamilyWidget(Container):
         self.learn = PushButton(text="Learn family")
         self.task = CoreTask(self.learn)
         self.result = result_text()
+        self.conditions = Table(value={"data": [], "columns": list(CONDITION_COLUMNS)},
+                                label="conditions", visible=False)
+        self.conditions.tooltip = (
+            "Each image the family learnt from, placed by the first two coordinates of "
+            "its operator in the family: close places, close blurs.")
+        fit_to_width(self.conditions)
         super().__init__(widgets=[
             self.source, self.stack, self.first, self.last, self.layers, self.folder,
             self.radius, self.n_psf, self.n_space, self.holdout, self.save_path,
-            self.learn, self.task, self.result])
+            self.learn, self.task, self.result, self.conditions])
         self.subspace: OperatorFamily | None = None
         self.source.changed.connect(self._on_source)
         self.stack.changed.connect(self._on_stack)
@@ -160,7 +190,7 @@ class LearnFamilyWidget(Container):
                                  f"slices), got first {a}, last {b}")
             data = layer.data
             frame = Frame(tuple(np.shape(data)[-2:]), tuple(np.asarray(layer.scale)[-2:]),
-                          tuple(np.asarray(layer.translate)[-2:]))
+                          tuple(np.asarray(layer.translate)[-2:]), units=axis_unit(layer))
             z0, dz = float(layer.translate[0]), float(layer.scale[0])
             return ([functools.partial(_plane, data, z) for z in range(a, b + 1)], frame,
                     [f"{layer.name}[{slice_label(layer, z)}]" for z in range(a, b + 1)],
@@ -172,7 +202,7 @@ class LearnFamilyWidget(Container):
                                  f"got {len(chosen)}")
             first = chosen[0]
             frame = Frame(tuple(np.shape(first.data)), tuple(np.asarray(first.scale)),
-                          tuple(np.asarray(first.translate)))
+                          tuple(np.asarray(first.translate)), units=axis_unit(first))
             return ([functools.partial(_plane, c.data, None) for c in chosen], frame,
                     [c.name for c in chosen], (0.0, 1.0))
         from ..io import stack_loaders
@@ -183,6 +213,15 @@ class LearnFamilyWidget(Container):
         loaders, labels = stack_loaders([folder])
         shape = np.shape(loaders[0]()) if loaders else (1, 1)
         return loaders, Frame(tuple(shape[-2:])), labels, (0.0, 1.0)
+
+    def _input_layer(self):
+        """The layer the family was learnt from, shown beside its results (None for a
+        folder)."""
+        if self.source.value == SOURCES[0]:
+            return self.stack.value
+        if self.source.value == SOURCES[1]:
+            return next(iter(self.layers.value), None)
+        return None
 
     # ---------------------------------------------------------------- run
     def run(self, *_) -> None:
@@ -206,12 +245,14 @@ class LearnFamilyWidget(Container):
             sub, ys, xs, psfs, coords = got
             sub.metadata["labels"] = [labels[i] for i in sub.metadata.get("images", [])]
             self.subspace = sub
-            place = below_others(self._viewer, frame, 2.0, "Family")
-            show_layers(self._viewer, family_layers(sub, ys, xs, psfs, coords, place,
+            show_layers(self._viewer, family_layers(sub, ys, xs, psfs, frame,
                                                       stack_axis=axis),
                         step="Family", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)
-            focus_on_step(self._viewer, "Family")
+            self.conditions.value = conditions_table(sub, coords)
+            self.conditions.native.resizeRowsToContents()
+            self.conditions.visible = True
+            show_step(self, "Family", self._input_layer())
             self.result.value = self._describe(sub)
             if path is not None:
                 sub.save(path)

@@ -14,6 +14,7 @@ from magicgui.widgets import (
     Label,
     PushButton,
     SpinBox,
+    Table,
 )
 from napari.utils.notifications import show_info
 
@@ -27,7 +28,6 @@ from ._layers import (
     PSF_GRID,
     beads_layer,
     find_layer,
-    focus_on_step,
     heldout_layers,
     operator_layers,
     psf_layers,
@@ -35,11 +35,13 @@ from ._layers import (
     show_layers,
     user_beads,
 )
+from ._view import show_step
 from ._worker import (
     CoreTask,
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
+    fit_to_width,
     image_choices,
     result_text,
 )
@@ -70,6 +72,21 @@ def _learn(plane, frame, source: str, **kwargs):
     est.operator = ProductConvolution(op.basis, op.coefficients, shape=op.shape,
                                       grid=op.grid, metadata=meta)
     return est
+
+
+#: Screen pixels the basis-size table takes at most in the dock.
+SIZES_HEIGHT = 220
+
+
+def sizes_table(meta: dict) -> dict:
+    """A magicgui Table's value: the held-out error of each PSF basis size tried
+    (``meta["heldout_error_by_n_psf"]``, sizes 1..), the chosen one marked."""
+    errors = meta.get("heldout_error_by_n_psf") or []
+    chosen = meta.get("n_psf")
+    rows = [[str(k), f"{e:.4g}", "chosen" if k == chosen else ""]
+            for k, e in enumerate(errors, start=1)]
+    return {"data": rows, "index": list(range(len(rows))),
+            "columns": ["PSFs", "held-out\nerror", ""]}
 
 
 class LearnOperatorWidget(FollowsBeads, Container):
@@ -107,6 +124,14 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.learn = PushButton(text="Learn operator")
         self.task = CoreTask(self.learn)
         self.result = result_text()
+        self.sizes = Table(value=sizes_table({}), label="basis size")
+        self.sizes.read_only = True
+        fit_to_width(self.sizes)
+        self.sizes.native.setMaximumHeight(SIZES_HEIGHT)  # scrolls past a dozen sizes
+        self.sizes.tooltip = ("The held-out error of each PSF basis size tried (the "
+                              "relative residual energy of beads kept out of the fit): "
+                              "the size is chosen where it stops falling.")
+        self.sizes.visible = False
         self.psf_y = FloatSpinBox(label="PSF at y", min=0.0, max=1e4, step=0.1)
         self.psf_x = FloatSpinBox(label="PSF at x", min=0.0, max=1e4, step=0.1)
         self.psf_unit = Label(value="position in pixels")
@@ -116,7 +141,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
             self.image, self.points, self.radius, self.threshold, self.n_psf_mode,
             self.n_psf, self.auto_smoothing, self.smoothing, self.remove_motion,
             self.save_path, self.learn,
-            self.task, self.result, self.psf_unit, self.psf_y, self.psf_x, self.show_psf])
+            self.task, self.result, self.sizes, self.psf_unit, self.psf_y, self.psf_x,
+            self.show_psf])
         self.operator: ProductConvolution | None = None
         self._frame = None
         self.n_psf_mode.changed.connect(
@@ -177,7 +203,11 @@ class LearnOperatorWidget(FollowsBeads, Container):
                 tuples.extend(heldout_layers(est.heldout, frame))
             show_layers(self._viewer, tuples, step="Model", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
-            focus_on_step(self._viewer, "Model", img)
+            show_step(self, "Model", img)
+            table = sizes_table(est.operator.metadata)
+            self.sizes.value = table
+            self.sizes.native.resizeRowsToContents()
+            self.sizes.visible = bool(table["data"])
             self.show_psf.enabled = True
             self.result.value = self._describe(est, self.radius.pixel_size)
             if path is not None:
@@ -216,3 +246,4 @@ class LearnOperatorWidget(FollowsBeads, Container):
             show_error(str(exc))
             return
         show_layers(self._viewer, psf_layers(psf, y, x, self._frame), step="Model")
+        show_step(self, "Model", self.image.value)

@@ -18,6 +18,7 @@ from typing import TYPE_CHECKING
 from napari.layers import Points
 from qtpy.QtCore import Qt, QTimer
 from qtpy.QtWidgets import (
+    QCheckBox,
     QComboBox,
     QLabel,
     QPushButton,
@@ -43,6 +44,7 @@ from ._learn_family import LearnFamilyWidget
 from ._learn_operator import LearnOperatorWidget
 from ._pick_beads import PickBeadsWidget
 from ._review_patches import ReviewPatchesWidget
+from ._view import SideBySide
 from ._volume import Volume3DWidget
 
 if TYPE_CHECKING:
@@ -159,8 +161,17 @@ class PsfSpacePanel(QWidget):
         self.clear_buttons: dict = {}
         self.needs: dict = {}  # the line in each page that says what the step needs
         self.pages: dict = {}
+        self.view = SideBySide(viewer)
+        self.side_by_side = QCheckBox("side by side")
+        self.side_by_side.setChecked(self.view.on)
+        self.side_by_side.setToolTip(
+            "Show a step's result maps beside its input, each in a cell of napari's grid "
+            "with its name, colour bar and the scale bar. Unticked (or on Beads and "
+            "Review), your own grid setting and layers are as you left them.")
+        self.side_by_side.toggled.connect(self.view.set_on)
         for title, cls, need in STEPS:
             widget = cls(viewer)
+            widget.side_view = self.view  # each step shows its results through it
             self.steps[title] = widget
             narrow(widget)
             note = QLabel(f"{title} needs {need}.")
@@ -177,8 +188,8 @@ class PsfSpacePanel(QWidget):
             box.addWidget(note)
             box.addWidget(scroll)
             clear = QPushButton(f"Remove the {title} step's layers")
-            clear.setToolTip("Remove every layer this step made (results, titles, "
-                             "colour bars); the data and the other steps' layers stay.")
+            clear.setToolTip("Remove every layer this step made; the data and the other "
+                             "steps' layers stay.")
             clear.clicked.connect(lambda _=False, t=title: self.clear_step(t))
             box.addWidget(clear)
             self.clear_buttons[title] = clear
@@ -189,6 +200,7 @@ class PsfSpacePanel(QWidget):
             f"min-width: 0px; }}")
         layout = QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
+        layout.addWidget(self.side_by_side)
         layout.addWidget(self.tabs)
         self.setMaximumWidth(PANEL_WIDTH + 80)
         self._fit_width()
@@ -205,6 +217,7 @@ class PsfSpacePanel(QWidget):
         self.update_steps()
         self.tabs.setCurrentIndex(0)  # the method's first step
         self.tabs.currentChanged.connect(self._fit_width)
+        self.tabs.currentChanged.connect(self._on_tab)
 
     def sizeHint(self):  # noqa: N802 (Qt's name)
         hint = super().sizeHint()
@@ -232,9 +245,17 @@ class PsfSpacePanel(QWidget):
             if edit is not None and edit is not source:
                 edit.set_calibration(edit.pixel_size, source.pixels)
 
+    def _on_tab(self, index: int) -> None:
+        """The view follows the page: the step's results side by side, or the user's
+        own view back."""
+        self.view.show_tab(self.tabs.tabText(index))
+
     def clear_step(self, title: str) -> int:
-        """Remove the layers the step ``title`` made (one group); how many went."""
-        return remove_step(self._viewer, title)
+        """Remove the layers the step ``title`` made (one group); how many went. The
+        view then shows what is left (the user's own view, once no map is)."""
+        gone = remove_step(self._viewer, title)
+        self.view.show_tab(self.tabs.tabText(self.tabs.currentIndex()))
+        return gone
 
     def ready_steps(self) -> list[str]:
         """The titles of the steps that can run now."""

@@ -15,6 +15,7 @@ from ._layers import (
     STATUS_MEANING,
     beads_from_points,
     ensure_bead_features,
+    field_units,
     find_layer,
     focus_on_step,
     gallery_cell,
@@ -37,7 +38,7 @@ if TYPE_CHECKING:
 
 
 class ReviewPatchesWidget(FollowsBeads, Container):
-    """A gallery of bead patches (a 2-D mosaic below the image) with their flags.
+    """A gallery of bead patches (a 2-D mosaic right of the image) with their flags.
 
     The *patch* field, or a click on a patch of the gallery, picks the bead on display
     (outlined in the gallery, selected in the beads layer, described in the widget).
@@ -109,7 +110,7 @@ class ReviewPatchesWidget(FollowsBeads, Container):
             self.patch.max = len(review) - 1
             focus_on_step(self._viewer, "Review", self.image.value)
             self.patch.enabled = self.accept.enabled = self.reject.enabled = True
-            self.task.status.value = (f"{len(review)} patches below the image; click one, "
+            self.task.status.value = (f"{len(review)} patches right of the image; click one, "
                                       f"or set 'patch'.")
             self._go_to()
 
@@ -153,7 +154,7 @@ class ReviewPatchesWidget(FollowsBeads, Container):
         show_layers(self._viewer, [(rect[None], {
             "name": CURRENT, "shape_type": "rectangle", "edge_color": "#ffe135",
             "face_color": "transparent", "edge_width": 2.0 * float(
-                gallery.scale[-1]),
+                gallery.scale[-1]), **field_units(self._frame),
             "metadata": {"about": "the patch on display in Review"}}, "shapes")],
                     step="Review")
 

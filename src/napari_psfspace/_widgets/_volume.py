@@ -47,16 +47,8 @@ from ..core.volume.deconvolve3d import (
 )
 from ..core.volume.measures import measure_maps
 from ..core.volume.views import psf_grid_3d
-from ._layers import (
-    Frame,
-    below_others,
-    beside,
-    focus_on_step,
-    free_slot,
-    map_layers,
-    show_layers,
-    titles_layer,
-)
+from ._layers import Frame, axis_unit, map_tuple, on_field, show_layers
+from ._view import show_step
 from ._worker import CoreTask, RadiusEdit, device_choice, result_text
 
 if TYPE_CHECKING:
@@ -64,10 +56,9 @@ if TYPE_CHECKING:
 
 STEP = "3D"
 PSF_GRID_3D = "3D PSF grid"
-PSF_SECTIONS = "3D PSF grid: sections (z down, x across)"
-PSF_SECTIONS_Y = "3D PSF grid: sections (z down, y across)"
+PSF_SECTIONS = "x-z sections"
+PSF_SECTIONS_Y = "y-z sections"
 DEBLURRED_3D = "deblurred 3D"
-TITLES_3D = "titles: 3D"
 #: The panel's cap on Deblur 3D's iterations: with the acceleration, the stopping rule
 #: ends before it on the measured stacks, and the time estimate (for the cap) stays near
 #: the time taken (bench/bench_deblur3d_panel.py).
@@ -82,9 +73,6 @@ MAPS = (("focal_plane", "focal shift", "coolwarm"),
         ("fwhm_lateral", "lateral FWHM", "viridis"),
         ("fwhm_axial", "axial FWHM", "viridis"),
         ("astigmatic_split", "astigmatic split", "PiYG"))
-#: Titles short enough for a slot at the zoom that shows the figure (the layer names
-#: and colour bars say the rest).
-SHORT = {"astigmatic split": "astig. split"}
 
 
 def map_in_units(key: str, values: np.ndarray, plane: int, voxel) -> tuple[np.ndarray, str]:
@@ -154,22 +142,19 @@ def _learn(stack, voxel, **kwargs):
     return est, grid, maps, (values, units)
 
 
-def deblurred_layers(viewer, res, layer, scale, translate) -> list:
-    """The deblurred stack left of the input (the first free slot leftwards: column -1
-    unless another step's results are there; the same planes, so the z slider shows
-    both side by side), in the input's colormap, with its colour bar."""
+def deblurred_layers(res, layer, scale, translate) -> list:
+    """The deblurred stack where the input lies (the same planes and field: side by
+    side, the z slider and the camera act on both), in the input's colormap."""
     _, h, w = np.shape(res.volume)
-    frame = Frame((h, w), tuple(scale[1:]), tuple(translate[1:]))
-    y0, x0 = free_slot(viewer, frame, STEP)
+    frame = Frame((h, w), tuple(scale[1:]), tuple(translate[1:]), units=axis_unit(layer))
     vol = np.asarray(res.volume, np.float32)
     top = float(np.percentile(vol, 99.99)) if vol.size else 1.0
     cmap = getattr(getattr(layer, "colormap", None), "name", None) or "gray"
-    return map_layers(vol, {
-        "name": f"{DEBLURRED_3D} (image units)", "scale": scale,
-        "translate": (translate[0], y0, x0), "colormap": cmap,
-        "contrast_limits": (0.0, max(top, 1e-12)),
+    return [map_tuple(vol, {
+        "name": f"{DEBLURRED_3D} (image units)", "scale": scale, "translate": translate,
+        "colormap": cmap, "contrast_limits": (0.0, max(top, 1e-12)),
         "metadata": {"source": layer.name, "iterations": res.iterations,
-                     "background": res.background}}, "", frame)
+                     "background": res.background}}, "", frame)]
 
 
 def estimate_line(rec) -> str | None:
@@ -298,52 +283,41 @@ class Volume3DWidget(Container):
         dz, dy, dx = scale
         tz, ty, tx = translate
         _, h, w = op.shape
-        frame = Frame((h, w), (dy, dx), (ty, tx))
-        # below the other steps' results when they lie in the slots (a 2-D model learnt
-        # from an image at the same place); beside the stack otherwise
-        moved = below_others(self._viewer, frame, 0.0, STEP, results_only=True)
-        beside_stack = moved.translate == frame.translate
-        frame = moved
+        frame = Frame((h, w), (dy, dx), (ty, tx), units=axis_unit(self.image.value))
         voxel = None if np.allclose(scale, 1.0) else scale
         rel = "relative"
-        tiles = volume.shape[1]
-        s = min(frame.height, frame.width) / tiles  # the grid as tall as the field
-        gy, gx = beside(frame, 1.0)
-        tuples = map_layers(on_stack_planes(volume, op.plane, n_planes), {
-            "name": f"{PSF_GRID_3D} ({rel})", "scale": (dz, s, s), "translate": (tz, gy, gx),
+        grid = on_field(frame, volume.shape[1:], fill=1.0)
+        tuples = [map_tuple(on_stack_planes(volume, op.plane, n_planes), {
+            "name": f"{PSF_GRID_3D} ({rel})", "scale": (dz, *grid["scale"]),
+            "translate": (tz, *grid["translate"]),
             "colormap": "magma", "contrast_limits": (0.0, 1.0),
             "metadata": {OPERATOR_3D_KEY: op,
                          "about": "3D PSF at 5 x 5 field positions on the stack's planes, "
-                                  "each scaled to its maximum, gamma 0.5"}}, "", frame)
-        titles = [(gy, gx, "3D PSF grid")]
-        # the sections beside the grid, in their true aspect (z step over lateral step),
-        # shrunk together to fit one slot
-        for col, (name, sec, title) in enumerate((
-                (PSF_SECTIONS, sections[0], "x-z sections"),
-                (PSF_SECTIONS_Y, sections[1], "y-z sections"))):
+                                  "each scaled to its maximum, gamma 0.5"}}, "", frame)]
+        # the sections in their true aspect (z step over lateral step), magnified
+        # together to fill the field
+        s = grid["scale"][0]
+        for name, sec in ((PSF_SECTIONS, sections[0]), (PSF_SECTIONS_Y, sections[1])):
             aspect = dz / dy
-            shrink = min(1.0, frame.height / (sec.shape[0] * s * aspect),
-                         frame.width / (sec.shape[1] * s))
-            y0, x0 = beside(frame, 2.0 + col)
-            tuples += map_layers(sec, {
-                "name": f"{name} ({rel})", "scale": (s * aspect * shrink, s * shrink),
-                "translate": (y0, x0), "colormap": "magma", "contrast_limits": (0.0, 1.0),
-                "metadata": {"about": "sections of the grid's PSFs, true aspect ratio"}},
-                "", frame)
-            titles.append((y0, x0, title))
-        # the maps in a row below, one slot each
-        for col, (key, label, cmap) in enumerate(MAPS):
+            fit = min(frame.height / (sec.shape[0] * s * aspect),
+                      frame.width / (sec.shape[1] * s))
+            sy, sx = s * aspect * fit, s * fit
+            y0 = ty - dy / 2 + (frame.height - sec.shape[0] * sy) / 2
+            x0 = tx - dx / 2 + (frame.width - sec.shape[1] * sx) / 2
+            tuples.append(map_tuple(sec, {
+                "name": f"{name} ({rel})", "scale": (sy, sx),
+                "translate": (y0 + sy / 2, x0 + sx / 2), "colormap": "magma",
+                "contrast_limits": (0.0, 1.0),
+                "metadata": {"about": f"{name} of the 3D PSF grid (z down), true aspect "
+                                      "ratio"}},
+                "", frame))
+        for key, label, cmap in MAPS:
             m, unit = map_in_units(key, maps[key], op.plane, voxel)
-            y0, x0 = beside(frame, float(col), 1.0)
-            fit = min(frame.height / m.shape[0], frame.width / m.shape[1])
-            tuples += map_layers(np.nan_to_num(m, nan=0.0), {
-                "name": f"{label} ({unit})", "scale": (fit, fit), "translate": (y0, x0),
-                "colormap": cmap, "contrast_limits": map_limits(key, m)}, unit, frame)
-            titles.append((y0, x0, SHORT.get(label, label)))  # the unit: its bar
-        tuples.append(titles_layer(TITLES_3D, titles, frame))
+            tuples.append(map_tuple(np.nan_to_num(m, nan=0.0), {
+                "name": f"{label} ({unit})", **on_field(frame, m.shape, fill=1.0),
+                "colormap": cmap, "contrast_limits": map_limits(key, m)}, unit, frame))
         show_layers(self._viewer, tuples, step=STEP, replace=True)
-        # the figure with the stack when it lies beside it; else the figure alone
-        focus_on_step(self._viewer, STEP, self.image.value if beside_stack else None)
+        show_step(self, STEP, self.image.value)
 
     def model(self):
         """The model to deblur with: the file when one is chosen, else the learnt one."""
@@ -382,10 +356,9 @@ class Volume3DWidget(Container):
             self.deblur_result.value = ""  # no estimate of a run that is not running
 
         def on_result(res) -> None:
-            show_layers(self._viewer, deblurred_layers(self._viewer, res, layer, scale,
-                                                          translate),
+            show_layers(self._viewer, deblurred_layers(res, layer, scale, translate),
                         step=DEBLUR_STEP, replace=True)
-            focus_on_step(self._viewer, DEBLUR_STEP, layer)
+            show_step(self, STEP, layer)
             seconds = time.perf_counter() - started
             why = ("the result stopped changing" if res.stopped
                    else "the most iterations asked for")

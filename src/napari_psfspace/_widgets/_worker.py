@@ -367,3 +367,22 @@ class FollowsBeads:
         r = None if pts is None else (pts.metadata or {}).get("psf_radius_px")
         if r is not None and abs(self.radius.pixels - float(r)) > 1e-9:
             self.radius.set_calibration(self.radius.pixel_size, float(r))
+
+
+def fit_to_width(table) -> None:
+    """Set ``table`` (a magicgui Table) to share the dock's width between its columns and
+    wrap their texts, its rows as tall as their text: no sideways scroll."""
+    from qtpy.QtCore import Qt
+    from qtpy.QtWidgets import QHeaderView, QStyledItemDelegate
+
+    native = table.native
+    # Qt's own delegate: each cell's text as written (magicgui's delegate shows a cell
+    # that reads as a number in its own float format, e-notation for small errors)
+    native.setItemDelegate(QStyledItemDelegate(native))
+    native.setWordWrap(True)
+    native.setTextElideMode(Qt.TextElideMode.ElideNone)
+    native.setHorizontalScrollBarPolicy(Qt.ScrollBarPolicy.ScrollBarAlwaysOff)
+    native.verticalHeader().setVisible(False)
+    header = native.horizontalHeader()
+    header.setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
+    header.sectionResized.connect(lambda *_: native.resizeRowsToContents())

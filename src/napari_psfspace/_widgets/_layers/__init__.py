@@ -5,9 +5,9 @@ package imports neither napari nor Qt (the model reader uses it too). Layers are
 duck-typed (``layer.data``, ``layer.scale``, ``layer.features``). One concept a module:
 
 - :mod:`.names`: the layers' names, metadata keys and the beads' statuses;
-- :mod:`.frame`: where an image lies in world coordinates, the result slots around it;
+- :mod:`.frame`: where an image lies in world coordinates, and its results on its field;
 - :mod:`.points`: detected beads as a Points layer and back;
-- :mod:`.figure`: titles and colour bars that make the slots read as one figure;
+- :mod:`.figure`: napari's name and colour-bar overlays of each result map;
 - :mod:`.results`: the result layers of each step;
 - :mod:`.bookkeeping`: the layers found again, grouped by step, replaced and removed.
 """
@@ -22,15 +22,15 @@ from .bookkeeping import (
     show_layers,
     step_layers,
 )
-from .figure import colorbar_layers, map_layers, titles_layer
+from .figure import OVERLAYS_KEY, dress, map_tuple
 from .frame import (
     Frame,
     LayerTuple,
+    axis_unit,
     bead_plane,
-    below_others,
-    beside,
-    free_slot,
+    field_units,
     image_plane,
+    on_field,
 )
 from .names import *  # noqa: F403 (the names are the module's whole content)
 from .names import __all__ as _names
@@ -58,12 +58,11 @@ from .results import (
     psf_layers,
 )
 
-__all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "advice_layers",
-           "bead_plane", "beads_from_points", "beads_layer", "below_others", "beside",
-           "colorbar_layers",
-           "ensure_bead_features", "find_layer", "fix_ids", "focus_on_step", "for_a_new_fit",
-           "free_slot", "gallery_cell", "gallery_index", "gallery_layers", "group_layers",
-           "heldout_layers", "hot_pixels_from_layer", "hot_pixels_layer", "image_plane",
-           "input_images", "is_input_image", "map_layers", "operator_layers", "psf_layers",
-           "remove_step", "set_statuses",
-           "show_layers", "step_layers", "family_layers", "titles_layer", "user_beads"]
+__all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "OVERLAYS_KEY",
+           "advice_layers", "axis_unit", "bead_plane", "beads_from_points", "beads_layer", "dress",
+           "ensure_bead_features", "family_layers", "field_units", "find_layer", "fix_ids",
+           "focus_on_step", "for_a_new_fit", "gallery_cell", "gallery_index",
+           "gallery_layers", "group_layers", "heldout_layers", "hot_pixels_from_layer",
+           "hot_pixels_layer", "image_plane", "input_images", "is_input_image",
+           "map_tuple", "on_field", "operator_layers", "psf_layers", "remove_step",
+           "set_statuses", "show_layers", "step_layers", "user_beads"]

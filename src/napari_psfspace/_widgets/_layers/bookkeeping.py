@@ -7,6 +7,7 @@ import contextlib
 
 import numpy as np
 
+from .figure import OVERLAYS_KEY, dress
 from .frame import LayerTuple
 from .names import MADE_AS, OPERATOR_KEY, STEP_KEY, SUBSPACE_KEY
 
@@ -31,14 +32,14 @@ def find_layer(viewer, name: str, kind: str | None = None):
 
 #: Metadata keys that mark a layer as a result, not an image to work on: the plugin's
 #: layers (:data:`MADE_AS`), a model's read back (its operator or family), a map's
-#: description, a colour bar.
-RESULT_KEYS = (MADE_AS, OPERATOR_KEY, SUBSPACE_KEY, "about", "colorbar_of")
+#: description, a map shown with its colour bar.
+RESULT_KEYS = (MADE_AS, OPERATOR_KEY, SUBSPACE_KEY, "about", OVERLAYS_KEY)
 
 
 def is_input_image(layer, ndim: int | None = None) -> bool:
     """Whether ``layer`` is an image a step may work on: a greyscale image layer (of
     ``ndim`` dimensions, when given) that is no result (:data:`RESULT_KEYS`): not a
-    gallery, a map, a mosaic or a colour bar."""
+    gallery, a map or a mosaic."""
     if _kind(layer) != "image" or getattr(layer, "rgb", False):
         return False
     if ndim is not None and layer.ndim != ndim:
@@ -74,8 +75,7 @@ def remove_layers(viewer, layers) -> None:
 
 
 def remove_step(viewer, step: str) -> int:
-    """Remove the layers of one step's group and sub-groups, titles and colour bars
-    included; how many went."""
+    """Remove the layers of one step's group and sub-groups; how many went."""
     gone = group_layers(viewer, step)
     remove_layers(viewer, gone)
     return len(gone)
@@ -107,6 +107,7 @@ def show_layers(viewer, tuples: list[LayerTuple], *, step: str | None = None,
                 _update(layer, data, {k: v for k, v in kwargs.items() if k != "name"})
         if layer is None:
             layer = getattr(viewer, f"add_{kind}")(data, **kwargs)
+        dress(layer)
         out.append(layer)
     if step is not None and replace:
         remove_layers(viewer, [layer for layer in step_layers(viewer, step)
@@ -121,7 +122,7 @@ def _update(layer, data, kwargs: dict) -> None:
         layer.features = kwargs["features"]
     else:
         layer.data = data
-    for key in ("scale", "translate", "metadata", "contrast_limits"):
+    for key in ("scale", "translate", "units", "metadata", "contrast_limits"):
         if key in kwargs:
             setattr(layer, key, kwargs[key])
     if "contrast_limits" not in kwargs and hasattr(layer, "reset_contrast_limits"):
@@ -131,11 +132,9 @@ def _update(layer, data, kwargs: dict) -> None:
 
 
 def focus_on_step(viewer, step: str, *inputs, margin: float = 0.15) -> None:
-    """Fit the view to one step's figure: its group's layers (sub-groups included) and
-    its input layers, in the plane shown. Only the camera moves; at the zoom that shows
-    every step's figure at once the titles and labels (drawn at a fixed screen size)
-    would crowd. ``margin``: fraction of the canvas left around (room for the texts
-    beyond the layers' extents)."""
+    """Fit the view to one step's results: its group's layers (sub-groups included) and
+    its input layers, in the plane shown. Only the camera moves. ``margin``: fraction
+    of the canvas left around."""
     names = {layer.name for layer in inputs if layer is not None}
     layers = [layer for layer in viewer.layers if layer.name in names]
     layers += group_layers(viewer, step.split("/")[0])

@@ -1,16 +1,8 @@
-"""The coordinate frame: where an image lies in world coordinates, and the layout of the
-result slots around it.
+"""The coordinate frame: where an image lies in world coordinates, and where its results
+lie.
 
-Layout of the result layers in world coordinates (the image's units), so that nothing
-hides anything else and nothing shares the data's axes::
-
-    row -1 [ diagnosis maps           ] [                   ] [ mean residuals ]
-    row 0  [ image                    ] [ PSF grid          ] [ PSF basis h_i ]
-    row 1  [ patch gallery (Review)   ] [ coefficient maps  ] [ PSF at (y, x) ]
-    row 2  [ family's spatial basis   ] [ family's PSF grid ] [ family's h_i  ] [ conditions ]
-
-The gap between slots leaves room for a title above each slot and a colour bar with its
-labels to the right of it (:mod:`.figure`).
+Every result lies on the image's field (:func:`on_field`): napari's grid puts each
+beside the image, in its own cell, with its name and colour bar (:mod:`.figure`).
 """
 
 from __future__ import annotations
@@ -19,8 +11,6 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from .names import STEP_KEY
 
 LayerTuple = tuple[Any, dict, str]
 
@@ -39,12 +29,16 @@ class Frame:
         World position of pixel (0, 0).
     index : int or None
         Slice of a 3-D stack the plane was taken from (None for a 2-D image).
+    units : str or None
+        The unit of the image's axes as napari holds it (``layer.units``), or None for
+        pixels: its results get the same, so that napari's scale bar reads it.
     """
 
     shape: tuple[int, int]
     scale: tuple[float, float] = (1.0, 1.0)
     translate: tuple[float, float] = (0.0, 0.0)
     index: int | None = None  # slice of a stack the plane was taken from
+    units: str | None = None
 
     @property
     def height(self) -> float:
@@ -100,7 +94,7 @@ def image_plane(layer, world_point=None, *, index: int | None = None
         raise ValueError(f"Layer {layer.name!r} has {data.ndim} dimensions: choose a 2-D "
                          "bead image or a 3-D stack (Z, Y, X).")
     frame = Frame(tuple(data.shape), tuple(scale[-2:].tolist()), tuple(translate[-2:].tolist()),
-                  z)
+                  z, axis_unit(layer))
     return np.array(data, copy=True), frame
 
 
@@ -116,61 +110,51 @@ def bead_plane(image_layer, points_layer, world_point=None) -> tuple[np.ndarray,
     return image_plane(image_layer, world_point, index=index)
 
 # ------------------------------------------------------------------ results
-#: Gap between two rows of slots, as a fraction of the image's larger side: room for a
-#: title of two lines above each slot at the zoom that shows the whole layout.
-ROW_GAP = 0.18
-#: Gap between two columns of slots: room for a colour bar and its labels right of a
-#: map at that zoom.
-COLUMN_GAP = 0.25
+def on_field(frame: Frame, shape, *, fill: float | None = None) -> dict:
+    """``scale`` and ``translate`` that put an array of ``shape`` (rows, columns) on the
+    image's field, centred: every result lies where the image lies, so napari's grid
+    shows each beside the image at the same place of the field, and the camera's zoom
+    and pan act on all of them at once.
+
+    Parameters
+    ----------
+    frame : Frame
+    shape : (int, int)
+        Rows and columns of the result.
+    fill : float, optional
+        None: at the image's pixel scale (a map on the image's own pixels, shrunk only
+        where it is larger than the field). Else the fraction of the field the result
+        fills (a mosaic of small patches, magnified to be read).
+
+    Returns
+    -------
+    dict
+        ``{"scale": (sy, sx), "translate": (ty, tx)}`` for the layer's kwargs.
+    """
+    shape = np.asarray(shape, float)[-2:]
+    size = np.array([frame.height, frame.width])
+    pixel = np.asarray(frame.scale, float)
+    if fill is None:
+        factor = min(1.0, float(np.min(size / (shape * pixel))))
+    else:
+        factor = float(fill) * float(np.min(size / (shape * pixel)))
+    scale = pixel * factor
+    corner = np.asarray(frame.translate, float) - pixel / 2  # the field's top-left corner
+    top_left = corner + (size - shape * scale) / 2
+    return {"scale": tuple(scale.tolist()), "translate": tuple((top_left + scale / 2).tolist())}
 
 
-def slot_gap(frame: Frame, fraction: float = ROW_GAP) -> float:
-    """World distance between two slots of the layout (rows; columns with COLUMN_GAP)."""
-    return fraction * max(frame.height, frame.width)
+def axis_unit(layer) -> str | None:
+    """The unit of a layer's last axis as napari holds it (``layer.units``), or None
+    for pixels (napari's default) or a layer without units."""
+    units = getattr(layer, "units", None)
+    if not units:
+        return None
+    unit = str(units[-1])
+    return None if unit in ("pixel", "px", "") else unit
 
 
-def beside(frame: Frame, column: float, row: float = 0.0) -> tuple[float, float]:
-    """World position of the top-left corner of the slot (``row``, ``column``); the
-    image is slot (0, 0)."""
-    return (frame.translate[0] + row * (frame.height + slot_gap(frame)),
-            frame.translate[1] + column * (frame.width + slot_gap(frame, COLUMN_GAP)))
-
-
-def below_others(viewer, frame: Frame, row: float, step: str, *,
-                 results_only: bool = False) -> Frame:
-    """``frame`` moved down so that its result row ``row`` starts below every layer of
-    the viewer outside ``step``'s group (and sub-groups): results laid out from another
-    image's frame (a family learnt from a stack beside a model learnt from one image)
-    never land on the other results. With ``results_only``, only the other steps'
-    results count, not the data: the frame moves only when they are in the way."""
-    bottom = -np.inf
-    for layer in viewer.layers:
-        group = (layer.metadata or {}).get(STEP_KEY)
-        if str(group).split("/")[0] == step or (results_only and group is None):
-            continue
-        bottom = max(bottom, float(np.asarray(layer.extent.world)[1][-2]))
-    top = beside(frame, 0.0, row)[0]
-    shift = max(0.0, bottom + slot_gap(frame) - top) if np.isfinite(bottom) else 0.0
-    return Frame(frame.shape, frame.scale, (frame.translate[0] + shift, frame.translate[1]),
-                 frame.index)
-
-
-
-def free_slot(viewer, frame: Frame, step: str, *, row: float = 0.0,
-              start: float = -1.0, step_by: float = -1.0, tries: int = 8
-              ) -> tuple[float, float]:
-    """The top-left corner of the first slot, from column ``start`` on by ``step_by``,
-    that no other step's result covers (the data do not count: a result goes beside
-    them). Beyond ``tries`` columns, the last one tried."""
-    others = [np.asarray(layer.extent.world)[:, -2:] for layer in viewer.layers
-              if (layer.metadata or {}).get(STEP_KEY) is not None
-              and str(layer.metadata[STEP_KEY]).split("/")[0] != step]
-    column = start
-    for _ in range(tries):
-        y0, x0 = beside(frame, column, row)
-        lo = np.array([y0, x0])
-        hi = lo + [frame.height, frame.width + slot_gap(frame, COLUMN_GAP)]
-        if not any(np.all(np.minimum(hi, b[1]) > np.maximum(lo, b[0])) for b in others):
-            return y0, x0
-        column += step_by
-    return y0, x0
+def field_units(frame: Frame, ndim: int = 2) -> dict:
+    """``{"units": ...}`` for a result's kwargs: the image's unit on every axis (napari
+    draws a scale bar in one unit only when every layer shown has it), else nothing."""
+    return {"units": (frame.units,) * ndim} if frame.units else {}

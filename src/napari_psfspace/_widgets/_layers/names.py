@@ -46,15 +46,13 @@ GALLERY = "bead patches (relative)"
 CURRENT = "patch on display"
 PSF_GRID = "PSF grid (relative)"
 BASIS = "PSF basis (relative)"
-MAPS = "weight maps (relative)"
-HELDOUT_LAYER = "held-out residual per bead (fraction of energy)"
+#: One weight map a basis PSF: ``WEIGHT.format(i)``, i = 1..
+WEIGHT = "PSF weight {} (relative)"
+HELDOUT_LAYER = "held-out residual (energy fraction)"
 PSF_AT = "PSF at position (fraction per px)"
 SUB_GRID = "family PSF grid (relative)"
 SUB_BASIS = "family PSF basis (relative)"
 SUB_SPACE = "family spatial maps (relative)"
-SUB_CONDITIONS = "family conditions"
-MODEL_TITLES = "titles: model"
-FAMILY_TITLES = "titles: family"
 #: Key of the subspace layer metadata that holds the OperatorFamily.
 SUBSPACE_KEY = "psfspace_subspace"
 HOT_PIXELS = "hot pixels"
@@ -73,9 +71,7 @@ MADE_AS = "psfspace_layer"
 #: together on a re-run and removed together (:func:`remove_step`).
 STEP_KEY = "psfspace_step"
 
-__all__ = ["ALL_STATUSES", "BASIS", "BEADS", "CURRENT", "FAMILY_TITLES",
-           "GALLERY", "HELDOUT_LAYER", "HOT_PIXELS", "LEFT_OUT", "MADE_AS", "MAPS",
-           "MODEL_TITLES", "MORE_BEADS",
-           "OPERATOR_KEY", "PSF_AT", "PSF_GRID", "STATUS_COLORS", "STATUS_MEANING",
-           "STEP_KEY", "SUBSPACE_KEY", "SUB_BASIS", "SUB_CONDITIONS", "SUB_GRID",
-           "SUB_SPACE"]
+__all__ = ["ALL_STATUSES", "BASIS", "BEADS", "CURRENT", "GALLERY", "HELDOUT_LAYER",
+           "HOT_PIXELS", "LEFT_OUT", "MADE_AS", "MORE_BEADS", "OPERATOR_KEY", "PSF_AT",
+           "PSF_GRID", "STATUS_COLORS", "STATUS_MEANING", "STEP_KEY", "SUBSPACE_KEY",
+           "SUB_BASIS", "SUB_GRID", "SUB_SPACE", "WEIGHT"]

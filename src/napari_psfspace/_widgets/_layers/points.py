@@ -7,7 +7,7 @@ import numpy as np
 
 from ...core.beads.detect import HELDOUT, KEPT, OUTLIER, Beads
 from .bookkeeping import find_layer
-from .frame import Frame, LayerTuple
+from .frame import Frame, LayerTuple, field_units
 from .names import ALL_STATUSES, BEADS, HOT_PIXELS, LEFT_OUT, MORE_BEADS, STATUS_COLORS
 
 
@@ -30,6 +30,7 @@ def beads_layer(beads: Beads, frame: Frame, psf_radius: float, *,
         "feature_defaults": {"id": -1, "amplitude": np.nan, "status": KEPT},
         "scale": frame.scale,
         "translate": frame.translate,
+        **field_units(frame),
         "size": 2.0 * float(psf_radius),
         "symbol": "ring",
         "face_color": "status",
@@ -43,8 +44,8 @@ def beads_layer(beads: Beads, frame: Frame, psf_radius: float, *,
 def hot_pixels_layer(pixels: np.ndarray, frame: Frame) -> LayerTuple:
     """Points layer-data tuple of the pixels masked as hot pixels / cosmic rays (red x)."""
     kwargs = {"name": HOT_PIXELS, "scale": frame.scale, "translate": frame.translate,
-              "size": 3.0, "symbol": "x", "face_color": "#ff2020", "border_width": 0,
-              "opacity": 0.9}
+              **field_units(frame), "size": 3.0, "symbol": "x", "face_color": "#ff2020",
+              "border_width": 0, "opacity": 0.9}
     return np.asarray(pixels, dtype=float).reshape(-1, 2), kwargs, "points"
 
 
@@ -66,12 +67,13 @@ def advice_layers(identification: dict, frame: Frame,
         if not len(pts):
             continue
         kwargs = {"name": name, "scale": frame.scale, "translate": frame.translate,
-                  "size": size, "symbol": symbol, "face_color": colour, "border_width": 0,
-                  "opacity": 0.9}
+                  **field_units(frame), "size": size, "symbol": symbol,
+                  "face_color": colour, "border_width": 0, "opacity": 0.9}
         if frame.index is not None and slice_at is not None:
             pts = np.column_stack([np.full(len(pts), float(frame.index)), pts])
             kwargs |= {"scale": (slice_at[0], *frame.scale),
-                       "translate": (slice_at[1], *frame.translate)}
+                       "translate": (slice_at[1], *frame.translate),
+                       **field_units(frame, 3)}
         out.append((pts, kwargs, "points"))
     return out
 
