@@ -8,8 +8,9 @@ Opens napari at 1280 x 800, docks the "PSF space" panel through the Plugins menu
 stack (3D) and the simulated focus series (Family); the SP8 sets are read from
 ``../shared/data`` and left out where it is absent. After each step it takes the window
 at the view the panel sets (``fit``), at twice its zoom (``zoom2``), at half of it and
-after napari's Home button (``half``, ``home``: only counted), and prints what napari's settings say overlaps in
-each (``_view.collisions``): a table, and ``view_<set>_<step>_<view>.png`` in ``--out``.
+after napari's Home button (``half``, ``home``: only counted), and prints what napari's
+settings say overlaps in each (``_view.collisions``): a table, and
+``view_<set>_<step>_<view>.png`` in ``--out``.
 """
 
 from __future__ import annotations

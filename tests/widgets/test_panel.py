@@ -347,17 +347,26 @@ def test_every_step_twice_the_same_layers_and_cancel(laptop, qtbot,
 
 #: Symbols of the paper and the statistics that a microscopist is not shown: they go to
 #: tooltips and the docs.
-JARGON = r"\bh_i\b|\bh_\d|alpha_i|\ba_j\b|\ba_\d|chi2|\bdof\b|Biggs|Gamma"
+JARGON = r"\bh_i\b|\bh_\d|alpha_i|\ba_j\b|\ba_\d|chi2|\bdof\b|Biggs|Gamma|\b[IJ] = |^[IJ] \("
 
 
 def _check_words(v, panel):
     """No layer name and no text the panel shows (labels, buttons, choices, table
-    headers and cells) uses the paper's symbols or "chi2/dof"."""
+    headers and cells, result texts) uses the paper's symbols or "chi2/dof"."""
     import re
 
-    from qtpy.QtWidgets import QAbstractButton, QComboBox, QLabel, QLineEdit, QTableWidget
+    from qtpy.QtWidgets import (
+        QAbstractButton,
+        QComboBox,
+        QLabel,
+        QLineEdit,
+        QTableWidget,
+        QTextEdit,
+    )
 
     texts = [layer.name for layer in v.layers]
+    texts += [line for w in panel.findChildren(QTextEdit)
+              for line in w.toPlainText().splitlines()]
     for w in panel.findChildren(QLabel) + panel.findChildren(QAbstractButton):
         texts.append(w.text())
     texts += [w.text() for w in panel.findChildren(QLineEdit)]

@@ -110,8 +110,11 @@ class LearnFamilyWidget(Container):
         self.layers = Select(label="image layers", choices=self._planes, visible=False)
         self.folder = FileEdit(mode="d", label="folder", visible=False)
         self.radius = RadiusEdit()
-        self.n_psf = SpinBox(label="I (0: auto)", min=0, max=50, value=0)
-        self.n_space = SpinBox(label="J (0: auto)", min=0, max=64, value=0)
+        self.n_psf = SpinBox(label="PSFs (0: auto)", min=0, max=50, value=0)
+        self.n_psf.tooltip = "PSFs in the family's basis (I in the paper); 0: from the data."
+        self.n_space = SpinBox(label="spatial maps (0: auto)", min=0, max=64, value=0)
+        self.n_space.tooltip = ("Spatial maps the family shares over the field (J in the "
+                                "paper); 0: from the data.")
         self.holdout = CheckBox(value=True, text="judge each image on held-out beads")
         self.holdout.tooltip = ("A fifth of each image's beads, spread over the field, are "
                                 "kept out of a first fit and judged against it (takes "
@@ -265,7 +268,7 @@ class LearnFamilyWidget(Container):
     def _describe(sub: OperatorFamily) -> str:
         meta = sub.metadata
         beads = meta.get("beads_per_image", [])
-        text = (f"I = {sub.n_psf} PSFs, J = {sub.n_space} spatial maps, from "
+        text = (f"{sub.n_psf} PSFs in the basis, {sub.n_space} spatial maps, from "
                 f"{sub.n_images} images ({sum(beads)} beads, {min(beads, default=0)}-"
                 f"{max(beads, default=0)} per image)")
         skipped = meta.get("skipped") or {}

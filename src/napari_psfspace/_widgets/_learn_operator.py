@@ -220,7 +220,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
     @staticmethod
     def _describe(est, pixel_size: float | None = None) -> str:
         meta = est.operator.metadata
-        text = (f"basis of I = {meta['n_psf']} PSFs from {meta['n_beads_used']} beads\n"
+        text = (f"basis of {meta['n_psf']} PSFs from {meta['n_beads_used']} beads\n"
                 f"{est.beads.summary()}")
         h = meta.get("heldout_error")
         if isinstance(h, dict):

@@ -262,7 +262,8 @@ class Volume3DWidget(Container):
                        stack.shape[0])
             meta = op.metadata
             self.learn_result.value = (
-                f"I = {op.n_psf} 3D kernels of {'x'.join(map(str, op.kernel_shape))} from "
+                f"{op.n_psf} 3D PSFs in the basis, of {'x'.join(map(str, op.kernel_shape))} "
+                f"voxels, from "
                 f"{meta.get('n_beads_used', '?')} beads; bead plane {op.plane}\n"
                 f"field model: {meta.get('field_model', 'space-varying')}"
                 + (f" ({meta['field_model_reason']})" if meta.get("field_model_reason")
