@@ -2,7 +2,8 @@
 
 Opens napari (a real window: canvas screenshots of hidden viewers come out black),
 loads the sample data and clicks through the three dock widgets as a user would:
-detect beads, review the patches and reject one, learn the operator and save it.
+detect beads, review the patches and reject one, learn the operator and save it; the
+model's maps are shown side by side with the image, as the panel shows them.
 Without a display run it under a virtual X server::
 
     xvfb-run -a python docs/make_screenshot.py
@@ -24,6 +25,7 @@ from napari_psfspace._widgets import (
     PickBeadsWidget,
     ReviewPatchesWidget,
 )
+from napari_psfspace._widgets._view import SideBySide
 
 OUT = Path(__file__).resolve().parent / "images" / "plugin.png"
 
@@ -46,6 +48,7 @@ def main(out: Path = OUT) -> Path:
 
     pick, review, learn = (PickBeadsWidget(viewer), ReviewPatchesWidget(viewer),
                            LearnOperatorWidget(viewer))
+    learn.side_view = SideBySide(viewer)  # the model's maps beside the image, as the panel
     viewer.window.add_dock_widget(pick, name="1. Pick beads", area="right")
     viewer.window.add_dock_widget(review, name="2. Review patches", area="right",
                                   tabify=True)
@@ -65,8 +68,6 @@ def main(out: Path = OUT) -> Path:
         learn.learn.clicked()
         wait(learn.task)
     learn.show_psf.clicked()
-    viewer.dims.set_point(0, 1)
-    viewer.reset_view()
     QApplication.instance().processEvents()
     out.parent.mkdir(parents=True, exist_ok=True)
     viewer.screenshot(str(out), canvas_only=False)
