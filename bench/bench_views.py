@@ -1,6 +1,6 @@
 """Screenshots of the side-by-side view, as a user sees it, and what overlaps in them.
 
-    xvfb-run -a -s "-screen 0 1280x800x24" python docs/make_views.py [--out docs/images]
+    xvfb-run -a -s "-screen 0 1280x800x24" python bench/run.py views [--out docs/images]
 
 Opens napari at 1280 x 800, docks the "PSF space" panel through the Plugins menu's door
 (``add_plugin_dock_widget``) and runs the steps on four data sets: the simulated sample
@@ -16,6 +16,7 @@ settings say overlaps in each (``_view.collisions``): a table, and
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -23,6 +24,7 @@ import napari
 import numpy as np
 from qtpy.QtWidgets import QApplication
 
+from benchlib import table
 from napari_psfspace._reader import read_tiff
 from napari_psfspace._sample_data import simulated_beads, simulated_focus_series
 from napari_psfspace._widgets._view import collisions
@@ -90,7 +92,7 @@ def shoot(viewer, panel, name: str, step: str, out: Path, rows: list) -> None:
                      "cells": int(np.prod(viewer.canvas.grid.actual_shape(
                          list(viewer.layers)))),
                      "overlaps": len(found), "first": (found[0] if found else "")[:60]})
-        print(rows[-1], flush=True)
+        print(rows[-1], file=sys.stderr, flush=True)
     panel.view.fit()
     settle()
 
@@ -153,8 +155,6 @@ def main() -> None:
         viewer.close()
     else:
         print(f"{SP8} is absent: the SP8 sets are left out")
-
-    from benchlib import table
 
     print(table(rows, [("set", "s"), ("step", "s"), ("view", "s"), ("cells", "d"),
                        ("overlaps", "d"), ("first", "s")]))
