@@ -257,11 +257,13 @@ def test_side_by_side_reads_at_the_panels_view_and_at_naparis_home(laptop, qtbot
         cell_w = (v.canvas.size[1] - (cols - 1) * grid.spacing) / cols
         width = np.ptp(np.asarray(image.extent.world)[:, -1]) * v.scene.camera.zoom
         assert width >= 0.5 * (cell_w - MARGIN_LEFT - MARGIN_RIGHT)
-    # Beads is clicked on the image: the user's view back, then the results again
+    # Beads is clicked on the image: the user's grid back, the image and its beads, no
+    # map over them; then the results again
     panel.tabs.setCurrentIndex(0)
     _settle(qtbot)
     assert not grid.enabled and grid.spacing == 0.1 and not bar.visible
     assert all(layer.visible for layer in beads) and not image.name_overlay.visible
+    assert image.visible and not any(m.visible for m in maps)
     panel.tabs.setCurrentIndex(2)
     _settle(qtbot)
     assert grid.enabled
@@ -269,6 +271,9 @@ def test_side_by_side_reads_at_the_panels_view_and_at_naparis_home(laptop, qtbot
     _settle(qtbot)
     assert not grid.enabled and grid.spacing == 0.1 and not bar.visible
     assert all(layer.visible for layer in v.layers if layer.name not in hidden)
+    # outside the grid the maps lie on each other: only the selected one is named
+    named = [m.name for m in maps if m.name_overlay.visible]
+    assert named == [v.layers.selection.active.name]
 
 
 def test_every_step_twice_the_same_layers_and_cancel(laptop, qtbot,

@@ -94,7 +94,8 @@ def identification_note(info: dict) -> str:
                     "over the field (90 % range)")
             + (f". WARNING: {info['warning']}" if info.get("warning") else "")
             + ("" if info.get("more_beads_at") is None
-               else ". The yellow cross: where one more bead would help most"))
+               else ". The yellow cross (layer \"one more bead here\"): where one more "
+                    "bead would help most"))
 
 
 def _limits(values: np.ndarray) -> tuple[float, float]:

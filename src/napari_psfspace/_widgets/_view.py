@@ -115,6 +115,10 @@ class SideBySide:
         self._hidden: set[str] = set()  # names of the layers the view hid
         self._named: set[str] = set()  # inputs whose name the view shows
         self._fitting = False
+        # outside the grid, maps lie on each other: only the selected one is named and
+        # barred, or their names and bars would pile up over the data
+        viewer.layers.selection.events.active.connect(self.dress_maps)
+        grid_of(viewer).events.enabled.connect(self.dress_maps)
 
     # ------------------------------------------------------------ entry points
     def show(self, step: str, *inputs) -> None:
@@ -123,17 +127,16 @@ class SideBySide:
         self.show_tab(step)
 
     def show_tab(self, step: str) -> None:
-        """The panel's page changed to ``step``: side by side when the view is on and
-        the step has maps to show, else the user's own view back."""
+        """The panel's page changed to ``step``. With the view on: the step's maps side
+        by side with its input where it has maps (Model, Diagnose, Family, Deblur, 3D),
+        else (Beads, Review) the user's grid and the image with the step's own layers,
+        no other step's map over it. With the view off: the user's own view."""
         self.step = step
-        if self.on and step in SIDE_BY_SIDE_STEPS and self.maps(step):
-            self._apply(step)
-        else:
+        if not self.on:
             self.leave()
-            inputs = [self.viewer.layers[n] for n in self._inputs.get(step, [])
-                      if n in self.viewer.layers]
-            if step in self._inputs:
-                focus_on_step(self.viewer, step, *inputs)
+            self._focus(step)
+            return
+        self._apply(step, grid=step in SIDE_BY_SIDE_STEPS and bool(self.maps(step)))
 
     def set_on(self, on: bool) -> None:
         """The panel's "side by side" box."""
@@ -143,7 +146,7 @@ class SideBySide:
 
     # ------------------------------------------------------------ the view
     def maps(self, step: str) -> list:
-        """The step's layers shown in cells: those with a name and colour bar."""
+        """The step's layers shown in cells: those napari names (and bars)."""
         return [layer for layer in group_layers(self.viewer, step)
                 if OVERLAYS_KEY in (layer.metadata or {})]
 
@@ -152,20 +155,51 @@ class SideBySide:
         names = [n for n in self._inputs.get(step, []) if n in self.viewer.layers]
         return [self.viewer.layers[n] for n in names] + self.maps(step)
 
-    def _apply(self, step: str) -> None:
-        grid = grid_of(self.viewer)
+    def dress_maps(self, *_) -> None:
+        """Each map's name and colour bar: on in napari's grid (a cell each), else only
+        on the selected layer (maps on each other would pile their texts up)."""
+        gridded = bool(grid_of(self.viewer).enabled)
+        active = self.viewer.layers.selection.active
+        chosen = None if active is None else active.name
+        for layer in self.viewer.layers:
+            meta = layer.metadata or {}
+            if OVERLAYS_KEY not in meta:
+                continue
+            on = gridded or layer.name == chosen
+            bar = getattr(layer, "colorbar", None) or getattr(layer, "face_colorbar", None)
+            if bar is not None and meta[OVERLAYS_KEY].get("unit") is not None:
+                bar.visible = on
+            if getattr(layer, "name_overlay", None) is not None:
+                layer.name_overlay.visible = on
+
+    def _focus(self, step: str) -> None:
+        inputs = [self.viewer.layers[n] for n in self._inputs.get(step, [])
+                  if n in self.viewer.layers]
+        if step in self._inputs:
+            focus_on_step(self.viewer, step, *inputs)
+
+    def _apply(self, step: str, *, grid: bool) -> None:
+        """Show ``step``: in napari's grid (``grid``), its inputs and maps and nothing
+        else; else every layer but the other steps' maps (which would cover the image)."""
+        g = grid_of(self.viewer)
         bar = scale_bar_of(self.viewer)
         if self._grid is None:
-            self._grid = {"enabled": grid.enabled, "stride": grid.stride,
-                          "shape": tuple(grid.shape), "spacing": grid.spacing}
+            self._grid = {"enabled": g.enabled, "stride": g.stride,
+                          "shape": tuple(g.shape), "spacing": g.spacing}
             self._bar = {"visible": bool(bar.visible), "position": bar.position}
-        cells = self.cells(step)
-        shown = {layer.name for layer in cells}
-        for layer in cells[:len(cells) - len(self.maps(step))]:  # the inputs: named too
-            overlay = getattr(layer, "name_overlay", None)
-            if overlay is not None and not overlay.visible:
-                overlay.font_size, overlay.visible = NAME_FONT, True
-                self._named.add(layer.name)
+            # napari's Home button (reset_view) comes back to this view, not to one
+            # whose data run under the names and colour bars
+            self.viewer.events.reset_view.connect(self._on_home)
+        if grid:
+            cells = self.cells(step)
+            shown = {layer.name for layer in cells}
+            inputs = cells[:len(cells) - len(self.maps(step))]
+        else:
+            ours = {layer.name for layer in self.maps(step)}
+            shown = {layer.name for layer in self.viewer.layers
+                     if OVERLAYS_KEY not in (layer.metadata or {}) or layer.name in ours}
+            inputs = []
+        self._name_inputs(inputs)
         for layer in self.viewer.layers:
             if layer.name in shown:
                 if layer.name in self._hidden:
@@ -174,14 +208,39 @@ class SideBySide:
             elif layer.visible:
                 layer.visible = False
                 self._hidden.add(layer.name)
-        grid.stride, grid.shape, grid.spacing = 1, (-1, -1), SPACING
-        grid.enabled = True
-        bar.position = SCALE_BAR_CORNER
-        bar.visible = True
-        # napari's Home button (reset_view) comes back to this view, not to one whose
-        # data run under the names and colour bars
-        self.viewer.events.reset_view.connect(self._on_home)
-        self.fit()
+        if grid:
+            g.stride, g.shape, g.spacing = 1, (-1, -1), SPACING
+            g.enabled = True
+            bar.position = SCALE_BAR_CORNER
+            bar.visible = True
+            self.dress_maps()
+            self.fit()
+        else:
+            self._give_back_grid()
+            self.dress_maps()
+            self._focus(step)
+
+    def _name_inputs(self, inputs) -> None:
+        """napari's name overlay on the inputs (and off on those named before)."""
+        keep = {layer.name for layer in inputs}
+        for name in self._named - keep:
+            if name in self.viewer.layers:
+                self.viewer.layers[name].name_overlay.visible = False
+        self._named &= keep
+        for layer in inputs:
+            overlay = getattr(layer, "name_overlay", None)
+            if overlay is not None and not overlay.visible:
+                overlay.font_size, overlay.visible = NAME_FONT, True
+                self._named.add(layer.name)
+
+    def _give_back_grid(self) -> None:
+        """The user's grid and scale-bar settings, as they were."""
+        grid = grid_of(self.viewer)
+        for key, value in (self._grid or {}).items():
+            setattr(grid, key, value)
+        bar = scale_bar_of(self.viewer)
+        for key, value in (self._bar or {}).items():
+            setattr(bar, key, value)
 
     def _on_home(self, *_) -> None:
         if not self._fitting:
@@ -218,19 +277,13 @@ class SideBySide:
         if self._grid is None:
             return
         self.viewer.events.reset_view.disconnect(self._on_home)
-        grid = grid_of(self.viewer)
-        for key, value in self._grid.items():
-            setattr(grid, key, value)
-        bar = scale_bar_of(self.viewer)
-        for key, value in (self._bar or {}).items():
-            setattr(bar, key, value)
+        self._give_back_grid()
         for name in self._hidden:
             if name in self.viewer.layers:
                 self.viewer.layers[name].visible = True
-        for name in self._named:
-            if name in self.viewer.layers:
-                self.viewer.layers[name].name_overlay.visible = False
-        self._grid, self._bar, self._hidden, self._named = None, None, set(), set()
+        self._name_inputs([])
+        self._grid, self._bar, self._hidden = None, None, set()
+        self.dress_maps()
 
 
 def show_step(widget, step: str, *inputs) -> None:

@@ -14,7 +14,8 @@ import numpy as np
 
 from .frame import Frame, LayerTuple, field_units
 
-#: Metadata key of a layer shown with its name and colour bar: ``{"unit": ...}``.
+#: Metadata key of a layer shown with its name and colour bar: ``{"unit": ...}``; a
+#: unit of None: its name only (marks of one colour, no scale to read).
 OVERLAYS_KEY = "psfspace_overlays"
 #: Corners of the name and of the colour bar in each grid cell (napari's positions).
 NAME_CORNER = "top_left"
@@ -49,10 +50,11 @@ def dress(layer) -> None:
     """Turn on napari's name and colour-bar overlays of a layer made by
     :func:`map_tuple` (or a Points layer whose metadata holds :data:`OVERLAYS_KEY`);
     other layers are left as they are. Read duck-typed: napari 0.7 and later."""
-    if OVERLAYS_KEY not in (getattr(layer, "metadata", None) or {}):
+    meta = getattr(layer, "metadata", None) or {}
+    if OVERLAYS_KEY not in meta:
         return
     bar = getattr(layer, "colorbar", None) or getattr(layer, "face_colorbar", None)
-    if bar is not None:
+    if bar is not None and meta[OVERLAYS_KEY].get("unit") is not None:
         bar.position = BAR_CORNER
         bar.size = BAR_SIZE
         bar.font_size = BAR_FONT

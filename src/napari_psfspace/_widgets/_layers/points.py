@@ -7,6 +7,7 @@ import numpy as np
 
 from ...core.beads.detect import HELDOUT, KEPT, OUTLIER, Beads
 from .bookkeeping import find_layer
+from .figure import OVERLAYS_KEY
 from .frame import Frame, LayerTuple, field_units
 from .names import ALL_STATUSES, BEADS, HOT_PIXELS, LEFT_OUT, MORE_BEADS, STATUS_COLORS
 
@@ -68,7 +69,9 @@ def advice_layers(identification: dict, frame: Frame,
             continue
         kwargs = {"name": name, "scale": frame.scale, "translate": frame.translate,
                   **field_units(frame), "size": size, "symbol": symbol,
-                  "face_color": colour, "border_width": 0, "opacity": 0.9}
+                  "face_color": colour, "border_width": 0, "opacity": 0.9,
+                  # a cell of its own beside the image, named
+                  "metadata": {OVERLAYS_KEY: {"unit": None}}}
         if frame.index is not None and slice_at is not None:
             pts = np.column_stack([np.full(len(pts), float(frame.index)), pts])
             kwargs |= {"scale": (slice_at[0], *frame.scale),
