@@ -20,20 +20,10 @@ from pathlib import Path
 import napari
 from qtpy.QtWidgets import QApplication
 
-from benchlib import table
+from benchlib import table, wait_for
 from napari_psfspace._sample_data import simulated_beads, simulated_focus_series
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "images"
-
-
-def wait(task, timeout: float = 300.0) -> None:
-    """Process Qt events until the step's job is done."""
-    app = QApplication.instance()
-    t0 = time.perf_counter()
-    while task.running and time.perf_counter() - t0 < timeout:
-        app.processEvents()
-        time.sleep(0.01)
-    app.processEvents()
 
 
 def _open_focus_series(viewer):
@@ -89,7 +79,7 @@ def main() -> None:
         task = getattr(widget, "task", None) or widget.learn_task
         t0 = time.perf_counter()
         click(widget)
-        wait(task)
+        wait_for(task, 300.0)
         app.processEvents()
         seconds = time.perf_counter() - t0
         total += seconds

@@ -24,7 +24,7 @@ import napari
 import numpy as np
 from qtpy.QtWidgets import QApplication
 
-from benchlib import table
+from benchlib import table, wait_for
 from napari_psfspace._reader import read_tiff
 from napari_psfspace._sample_data import simulated_beads, simulated_focus_series
 from napari_psfspace._widgets._view import collisions
@@ -34,18 +34,6 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "images"
 SP8 = ROOT.parent / "shared" / "data" / "sp8_confocal_beads" / "sp8_series045_beads_zyx_uint8.tif"
 SP8_SLICE = 32
-
-
-def wait(task, timeout: float = 600.0) -> None:
-    """Process Qt events until the step's job is done."""
-    app = QApplication.instance()
-    t0 = time.perf_counter()
-    while task.running and time.perf_counter() - t0 < timeout:
-        app.processEvents()
-        time.sleep(0.01)
-    for _ in range(10):  # the view's last draw
-        app.processEvents()
-        time.sleep(0.02)
 
 
 def settle() -> None:
@@ -68,7 +56,7 @@ def run_step(panel, title: str, prepare=None) -> float:
               "3D": "learn"}[title]
     t0 = time.perf_counter()
     getattr(widget, button).clicked()
-    wait(task)
+    wait_for(task)
     return time.perf_counter() - t0
 
 

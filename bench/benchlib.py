@@ -1,6 +1,7 @@
-"""Shared helpers of the benchmark scripts: their tables, and the optics code of their
-scenes. The benches import the installed package (``make install``); only :func:`use_checkout`,
-asked for by the benches that time two checkouts, changes ``sys.path``."""
+"""Shared helpers of the benchmark scripts: their tables, the optics code of their
+scenes, and the wait of the panel walks. The benches import the installed package
+(``make install``); only :func:`use_checkout`, asked for by the benches that time two
+checkouts, changes ``sys.path``."""
 
 from __future__ import annotations
 
@@ -59,3 +60,20 @@ def add_generator_argument(parser) -> None:
     parser.add_argument("--generator", choices=("ours", "pyotf", "psfmodels"), default="ours",
                         help="the optics code of the PSFs: the project's simulator, or "
                              "pyotf (bench/independent.py; pip install -e '.[bench]')")
+
+
+def wait_for(task, timeout: float = 600.0) -> None:
+    """Process Qt events until a panel step's job is done (``task.running`` false), or
+    ``timeout`` seconds; then a few more for its last draw."""
+    import time
+
+    from qtpy.QtWidgets import QApplication
+
+    app = QApplication.instance()
+    t0 = time.perf_counter()
+    while task.running and time.perf_counter() - t0 < timeout:
+        app.processEvents()
+        time.sleep(0.01)
+    for _ in range(10):
+        app.processEvents()
+        time.sleep(0.02)

@@ -12,7 +12,6 @@ from magicgui.widgets import (
     FileEdit,
     FloatSpinBox,
     PushButton,
-    Table,
 )
 from napari.utils.notifications import show_info
 
@@ -40,9 +39,10 @@ from ._worker import (
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
-    fit_to_width,
     image_choices,
     result_text,
+    show_rows,
+    table_widget,
 )
 
 if TYPE_CHECKING:
@@ -70,9 +70,8 @@ def dock_table(rows: list[list[str]]) -> dict:
             "columns": list(DOCK_COLUMNS.values())}
 
 
-def tests_table_empty() -> dict:
-    """The tests table before a diagnosis: its columns only."""
-    return {"data": [], "columns": ["residual test", "plain\nmodel", "final\nmodel"]}
+#: The residual tests table's columns.
+TEST_COLUMNS = ("residual test", "plain\nmodel", "final\nmodel")
 
 
 def tests_table(diagnosis) -> dict:
@@ -90,7 +89,7 @@ def tests_table(diagnosis) -> dict:
             cells.append("-" if test is None else f"{test.evidence:.2f}")
         rows.append([name.replace("_", " "), *cells])
     return {"data": rows, "index": list(range(len(rows))),
-            "columns": ["residual test", "plain\nmodel", "final\nmodel"]}
+            "columns": list(TEST_COLUMNS)}
 
 
 def diagnosis_layers(diagnosis, frame: Frame) -> list[LayerTuple]:
@@ -168,20 +167,15 @@ class DiagnoseWidget(FollowsBeads, Container):
         self.diagnose = PushButton(text="Diagnose")
         self.task = CoreTask(self.diagnose)
         self.result = result_text()
-        self.table = Table(value=dock_table([]), label="steps")
-        self.table.read_only = True
-        fit_to_width(self.table)
-        self.table.tooltip = ("Each effect tried, the held-out error and the misfit over "
-                              "the noise before -> after it; the report holds the tests "
-                              "and their p-values.")
-        self.table.visible = False
-        self.tests = Table(value=tests_table_empty(), label="tests")
-        self.tests.read_only = True
-        fit_to_width(self.tests)
-        self.tests.tooltip = ("The residual tests that find structure beyond the noise, "
-                              "each as its strength over its threshold (above 1: "
-                              "significant) on the plain and the final model.")
-        self.tests.visible = False
+        self.table = table_widget(
+            list(DOCK_COLUMNS.values()), "steps",
+            "Each effect tried, the held-out error and the misfit over the noise before "
+            "-> after it; the report holds the tests and their p-values.")
+        self.tests = table_widget(
+            list(TEST_COLUMNS), "tests",
+            "The residual tests that find structure beyond the noise, each as its "
+            "strength over its threshold (above 1: significant) on the plain and the "
+            "final model.")
         self.remove_motion = CheckBox(value=False, text="remove motion blur")
         self.remove_motion.tooltip = (
             "Motion blur (a smear common to all beads) is always looked for and reported; "
@@ -233,12 +227,8 @@ class DiagnoseWidget(FollowsBeads, Container):
         def on_result(diag) -> None:
             self.diagnosis = diag
             rows = steps_table(diag)
-            self.table.value = dock_table(rows)
-            self.table.native.resizeRowsToContents()
-            self.table.visible = True
-            self.tests.value = tests_table(diag)
-            self.tests.native.resizeRowsToContents()
-            self.tests.visible = bool(self.tests.value["data"])
+            show_rows(self.table, dock_table(rows))
+            show_rows(self.tests, tests_table(diag))
             self.result.value = "\n".join([summary_text(diag),
                                            *model_lines(diag.operator.metadata,
                                                         markdown=False)])

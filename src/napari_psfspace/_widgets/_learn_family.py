@@ -24,7 +24,6 @@ from magicgui.widgets import (
     PushButton,
     Select,
     SpinBox,
-    Table,
 )
 from napari.utils.notifications import show_error, show_info
 
@@ -35,10 +34,11 @@ from ._view import show_step
 from ._worker import (
     CoreTask,
     RadiusEdit,
-    fit_to_width,
     image_choices,
     pixel_size_of,
     result_text,
+    show_rows,
+    table_widget,
 )
 
 if TYPE_CHECKING:
@@ -125,12 +125,10 @@ class LearnFamilyWidget(Container):
         self.learn = PushButton(text="Learn family")
         self.task = CoreTask(self.learn)
         self.result = result_text()
-        self.conditions = Table(value={"data": [], "columns": list(CONDITION_COLUMNS)},
-                                label="conditions", visible=False)
-        self.conditions.tooltip = (
-            "Each image the family learnt from, placed by the first two coordinates of "
-            "its operator in the family: close places, close blurs.")
-        fit_to_width(self.conditions)
+        self.conditions = table_widget(
+            CONDITION_COLUMNS, "conditions",
+            "Each image the family learnt from, placed by the first two coordinates of its "
+            "operator in the family: close places, close blurs.")
         super().__init__(widgets=[
             self.source, self.stack, self.first, self.last, self.layers, self.folder,
             self.radius, self.n_psf, self.n_space, self.holdout, self.save_path,
@@ -252,9 +250,7 @@ class LearnFamilyWidget(Container):
                                                       stack_axis=axis),
                         step="Family", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, SUB_GRID)
-            self.conditions.value = conditions_table(sub, coords)
-            self.conditions.native.resizeRowsToContents()
-            self.conditions.visible = True
+            show_rows(self.conditions, conditions_table(sub, coords))
             show_step(self, "Family", self._input_layer())
             self.result.value = self._describe(sub)
             if path is not None:

@@ -14,7 +14,6 @@ from magicgui.widgets import (
     Label,
     PushButton,
     SpinBox,
-    Table,
 )
 from napari.utils.notifications import show_info
 
@@ -41,9 +40,10 @@ from ._worker import (
     FollowsBeads,
     RadiusEdit,
     bead_layer_choices,
-    fit_to_width,
     image_choices,
     result_text,
+    show_rows,
+    table_widget,
 )
 
 if TYPE_CHECKING:
@@ -74,8 +74,9 @@ def _learn(plane, frame, source: str, **kwargs):
     return est
 
 
-#: Screen pixels the basis-size table takes at most in the dock.
+#: Screen pixels the basis-size table takes at most in the dock, and its columns.
 SIZES_HEIGHT = 220
+SIZE_COLUMNS = ("PSFs", "held-out\nerror", "")
 
 
 def sizes_table(meta: dict) -> dict:
@@ -85,8 +86,7 @@ def sizes_table(meta: dict) -> dict:
     chosen = meta.get("n_psf")
     rows = [[str(k), f"{e:.4g}", "chosen" if k == chosen else ""]
             for k, e in enumerate(errors, start=1)]
-    return {"data": rows, "index": list(range(len(rows))),
-            "columns": ["PSFs", "held-out\nerror", ""]}
+    return {"data": rows, "index": list(range(len(rows))), "columns": list(SIZE_COLUMNS)}
 
 
 class LearnOperatorWidget(FollowsBeads, Container):
@@ -124,14 +124,12 @@ class LearnOperatorWidget(FollowsBeads, Container):
         self.learn = PushButton(text="Learn operator")
         self.task = CoreTask(self.learn)
         self.result = result_text()
-        self.sizes = Table(value=sizes_table({}), label="basis size")
-        self.sizes.read_only = True
-        fit_to_width(self.sizes)
+        self.sizes = table_widget(
+            SIZE_COLUMNS, "basis size",
+            "The held-out error of each PSF basis size tried (the relative residual "
+            "energy of beads kept out of the fit): the size is chosen where it stops "
+            "falling.")
         self.sizes.native.setMaximumHeight(SIZES_HEIGHT)  # scrolls past a dozen sizes
-        self.sizes.tooltip = ("The held-out error of each PSF basis size tried (the "
-                              "relative residual energy of beads kept out of the fit): "
-                              "the size is chosen where it stops falling.")
-        self.sizes.visible = False
         self.psf_y = FloatSpinBox(label="PSF at y", min=0.0, max=1e4, step=0.1)
         self.psf_x = FloatSpinBox(label="PSF at x", min=0.0, max=1e4, step=0.1)
         self.psf_unit = Label(value="position in pixels")
@@ -204,10 +202,7 @@ class LearnOperatorWidget(FollowsBeads, Container):
             show_layers(self._viewer, tuples, step="Model", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
             show_step(self, "Model", img)
-            table = sizes_table(est.operator.metadata)
-            self.sizes.value = table
-            self.sizes.native.resizeRowsToContents()
-            self.sizes.visible = bool(table["data"])
+            show_rows(self.sizes, sizes_table(est.operator.metadata))
             self.show_psf.enabled = True
             self.result.value = self._describe(est, self.radius.pixel_size)
             if path is not None:

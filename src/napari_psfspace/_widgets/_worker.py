@@ -386,3 +386,25 @@ def fit_to_width(table) -> None:
     header = native.horizontalHeader()
     header.setSectionResizeMode(QHeaderView.ResizeMode.Stretch)
     header.sectionResized.connect(lambda *_: native.resizeRowsToContents())
+
+
+def table_widget(columns: list[str], label: str, tooltip: str):
+    """A read-only magicgui Table for the dock, hidden until it has rows: its columns
+    share the dock's width and wrap (:func:`fit_to_width`). Show rows with
+    :func:`show_rows`."""
+    from magicgui.widgets import Table
+
+    table = Table(value={"data": [], "columns": list(columns)}, label=label)
+    table.read_only = True
+    fit_to_width(table)
+    table.tooltip = tooltip
+    table.visible = False
+    return table
+
+
+def show_rows(table, value: dict) -> None:
+    """Put a Table's value (``data``, ``index``, ``columns``), its rows as tall as their
+    text; shown when it has rows."""
+    table.value = value
+    table.native.resizeRowsToContents()
+    table.visible = bool(value["data"])
