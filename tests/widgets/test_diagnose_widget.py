@@ -54,13 +54,18 @@ def test_diagnose_shows_steps_maps_and_writes_report(hot_viewer, qtbot, tmp_path
     qtbot.wait(50)
     assert native.horizontalHeader().length() <= native.viewport().width()  # no sideways
     assert "chi2" not in w.result.value and "misfit / noise" in w.result.value
-    # each cell shows the report's text as written (the baseline's error is "0.05515",
-    # not a float rewritten as "5.515e-02"), the effects in words
+    # each cell shows the report's text, its numbers to three digits (the baseline's
+    # error "0.05516" is "0.0552", not a float rewritten as "5.516e-02"), the effects in
+    # words
+    from napari_psfspace._widgets._diagnose import dock_cell
     from napari_psfspace.report import steps_table
 
+    assert dock_cell("0.05516 -> 0.004393") == "0.0552\n-> 0.00439"
+    assert dock_cell("hot_pixels") == "hot pixels"
     report = steps_table(d)
     for i, row in enumerate(report):
-        assert native.item(i, 1).text() == row[5] and native.item(i, 2).text() == row[6]
+        assert native.item(i, 1).text() == dock_cell(row[5])
+        assert native.item(i, 2).text() == dock_cell(row[6])
         assert native.item(i, 0).text() == row[0].replace("_", " ")
     assert len(table) == len(d.steps)
     effects = table["effect"].tolist()

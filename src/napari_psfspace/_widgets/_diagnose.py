@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -59,13 +60,20 @@ DOCK_COLUMNS = {"effect": "effect", "held-out error": "held-out\nerror",
                 "chi2/dof": "misfit /\nnoise", "decision": "decision"}
 
 
+def dock_cell(text: str) -> str:
+    """A report cell as the dock's narrow columns show it: its numbers to three
+    significant digits, "a -> b" on two lines, the effects in words ("hot pixels"): a
+    cell wraps at spaces only, and a long number would be cut."""
+    text = re.sub(r"-?\d+\.\d+(?:e[-+]?\d+)?",
+                  lambda m: f"{float(m.group()):.3g}", text)
+    return text.replace(" -> ", "\n-> ").replace("_", " ")
+
+
 def dock_table(rows: list[list[str]]) -> dict:
     """A magicgui Table's value: the steps' rows (:func:`steps_table`, in the order of
-    ``STEP_COLUMNS``) cut to :data:`DOCK_COLUMNS`."""
+    ``STEP_COLUMNS``) cut to :data:`DOCK_COLUMNS`, each cell :func:`dock_cell`."""
     at = [STEP_COLUMNS.index(c) for c in DOCK_COLUMNS]
-    # effects in words ("hot pixels", not "hot_pixels"): a cell wraps at spaces only
-    data = [[row[i].replace("_", " ") if k == 0 else row[i] for k, i in enumerate(at)]
-            for row in rows]
+    data = [[dock_cell(row[i]) for i in at] for row in rows]
     return {"data": data, "index": list(range(len(rows))),
             "columns": list(DOCK_COLUMNS.values())}
 

@@ -63,7 +63,7 @@ def _learn_and_show(loaders, *, grid: int, **kwargs):
 #: The conditions table's columns: each image's label (its focus where known), its
 #: place among the conditions (the first two coordinates of its operator in the
 #: family), and its held-out residual.
-CONDITION_COLUMNS = ("condition", "place 1", "place 2", "held-out\nresidual")
+CONDITION_COLUMNS = ("image", "place\n1", "place\n2", "held-\nout")
 
 
 def conditions_table(sub: OperatorFamily, coords: np.ndarray) -> dict:
