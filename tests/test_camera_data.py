@@ -172,9 +172,34 @@ def test_one_or_two_beads_give_one_psf_and_say_why():
     image, truth = ps.simulate_beads((256, 256), 1, seed=0)
     op = ps.estimate_operator(image, psf_radius=truth.psf_radius)
     assert op.n_psf == 1 and op.metadata["field_model"] == "shift-invariant"
-    assert "1 usable bead: too few" in op.metadata["field_model_reason"]
+    assert "1 usable bead, fewer than 5: one PSF: too few beads to map the field" in (
+        op.metadata["field_model_reason"])
     assert np.isclose(op.psf_at(10.0, 200.0).sum(), 1.0)
     assert np.allclose(op.psf_at(10.0, 200.0), op.psf_at(200.0, 10.0))
+
+
+def test_four_beads_map_no_field_and_the_maps_say_so():
+    """Four beads spread over a strongly varying field: below the held-out minimum the
+    model is one PSF (never a field fitted through three beads at a time), its reason
+    and its FWHM line say the field was not mapped, and no corner FWHM is quoted."""
+    from napari_psfspace.core.common.measures import field_fwhm, fwhm_line
+    from napari_psfspace.core.model.fewbeads import FIELD_MIN_BEADS, TOO_FEW, one_psf_note
+
+    image, truth = _varying_field(4, 1)
+    op = ps.estimate_operator(image, psf_radius=truth.psf_radius)
+    meta = op.metadata
+    assert meta["n_beads_used"] < FIELD_MIN_BEADS == 5
+    assert op.n_psf == 1 and meta["field_model"] == "shift-invariant"
+    assert TOO_FEW in meta["field_model_reason"]
+    line = fwhm_line(field_fwhm(op), 0.08, one_psf=one_psf_note(meta))
+    assert line.endswith(TOO_FEW) and "corners" not in line
+    # the richer field is scored and named (on this tilted field it predicts the left-out
+    # beads better), and the user can ask for it
+    loo = meta["few_beads_loo_errors"]
+    if loo["affine, I=2"] < loo["shift-invariant"]:
+        assert "`n_psf` = 2 asks for it" in meta["field_model_reason"]
+        asked = ps.estimate_operator(image, psf_radius=truth.psf_radius, n_psf=2)
+        assert asked.n_psf == 2 and asked.metadata["field_model"] == "affine"
 
 
 def test_diagnose_by_leaving_one_bead_out_from_five_beads():

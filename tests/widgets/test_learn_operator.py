@@ -181,3 +181,28 @@ def test_stack_uses_the_detection_slice_and_radius(make_napari_viewer, qtbot, be
     op = load_operator(tmp_path / "m.npz")
     assert op.metadata["n_beads_used"] >= 15
     assert op.metadata["psf_radius"] == pytest.approx(truth.psf_radius)
+
+
+def test_four_beads_give_one_psf_and_each_beads_own_fwhm(make_napari_viewer, qtbot):
+    """Below the held-out minimum the model is one PSF: the dock says the field is not
+    mapped, no weight map is drawn, and each bead's own FWHM is a point at the bead, in
+    µm, within a fifth of the truth's (the model's PSF at the centre, fitted alike)."""
+    import napari_psfspace as ps
+    from conftest import calibrated_viewer
+    from napari_psfspace._widgets._layers import BEAD_FWHM
+    from napari_psfspace.core.common.measures import lateral_measures
+    from napari_psfspace.core.model.fewbeads import TOO_FEW
+
+    image, truth = ps.simulate_beads((256, 256), 4, min_separation=60, seed=1)
+    v = calibrated_viewer(make_napari_viewer, image, truth, "four beads")
+    w = LearnOperatorWidget(v)
+    w.learn.clicked()
+    wait_task(qtbot, w.task)
+    assert w.operator.n_psf == 1 and TOO_FEW in w.result.value
+    assert WEIGHT.format(1) not in v.layers
+    pts = v.layers[f"{BEAD_FWHM} (µm)"]
+    assert len(pts.data) == w.operator.metadata["n_beads_used"] <= 4
+    px = truth.optics.pixel_size
+    own = lateral_measures(w.operator.psf_at(128, 128))["fwhm_lateral"] * px
+    assert np.all(np.abs(pts.features["fwhm"] / own - 1) < 0.2), (list(pts.features["fwhm"]),
+                                                                    own)

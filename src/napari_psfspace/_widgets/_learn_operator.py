@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+import numpy as np
 from magicgui.widgets import (
     CheckBox,
     ComboBox,
@@ -17,14 +18,16 @@ from magicgui.widgets import (
 )
 from napari.utils.notifications import show_info
 
-from ..core.common.measures import field_fwhm, fwhm_line
+from ..core.common.measures import field_fwhm, fwhm_line, patch_fwhms
 from ..core.diagnosis.loop import iter_heldout_error
 from ..core.diagnosis.metric import line as heldout_line
 from ..core.model.estimate import iter_estimate
+from ..core.model.fewbeads import one_psf_note
 from ..core.model.operator import ProductConvolution
 from ..report import model_lines
 from ._layers import (
     PSF_GRID,
+    bead_fwhm_layer,
     beads_layer,
     find_layer,
     heldout_layers,
@@ -71,6 +74,9 @@ def _learn(plane, frame, source: str, **kwargs):
             "heldout_error": held if isinstance(held, str) else held.to_dict()}
     est.operator = ProductConvolution(op.basis, op.coefficients, shape=op.shape,
                                       grid=op.grid, metadata=meta)
+    if one_psf_note(meta):  # no field map: the beads' own FWHMs show the field instead
+        est.info["bead_fwhm"] = (np.asarray(est.patches.centers, float),
+                                 patch_fwhms(est.patches.psf))
     return est
 
 
@@ -199,6 +205,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
             tuples = operator_layers(est.operator, frame)
             if est.heldout is not None and len(est.heldout.residual):
                 tuples.extend(heldout_layers(est.heldout, frame))
+            if "bead_fwhm" in est.info:
+                tuples.append(bead_fwhm_layer(*est.info["bead_fwhm"], frame))
             show_layers(self._viewer, tuples, step="Model", replace=True)
             self._viewer.layers.selection.active = find_layer(self._viewer, PSF_GRID)
             show_step(self, "Model", img)
@@ -224,7 +232,8 @@ class LearnOperatorWidget(FollowsBeads, Container):
             text += f"\nheld-out error not measured: {h}"
         for line in model_lines(meta, markdown=False):
             text += f"\n{line}"
-        return text + "\n" + fwhm_line(field_fwhm(est.operator), pixel_size)
+        return text + "\n" + fwhm_line(field_fwhm(est.operator), pixel_size,
+                                     one_psf=one_psf_note(est.operator.metadata))
 
     def psf_here(self, *_) -> None:
         """Show the PSF at (y, x) as a layer (File > Save Layer... writes a TIFF); the

@@ -21,6 +21,7 @@ def run(args) -> int:
     from ..core.common.measures import field_fwhm, fwhm_line
     from ..core.common.progress import run_with_progress
     from ..core.diagnosis.loop import iter_diagnose
+    from ..core.model.fewbeads import one_psf_note
     from ..io import check_output_file, check_output_folder
     from ..report import model_lines, summary_text, write_report
 
@@ -39,7 +40,8 @@ def run(args) -> int:
     print(summary_text(diag))
     for line in model_lines(diag.operator.metadata, markdown=False):
         print(line)
-    print(fwhm_line(field_fwhm(diag.operator), info.pixel_size))
+    print(fwhm_line(field_fwhm(diag.operator), info.pixel_size,
+                    one_psf=one_psf_note(diag.operator.metadata)))
     extra = {"source": str(args.image), "slice": args.slice}
     path = write_report(diag, args.report, image_name=Path(args.image).name,
                         pixel_size=info.pixel_size, extra=extra)

@@ -19,6 +19,7 @@ def run(args) -> int:
     from ..core.common.progress import run_with_progress
     from ..core.diagnosis.loop import iter_heldout_error
     from ..core.model.estimate import iter_estimate
+    from ..core.model.fewbeads import one_psf_note
     from ..io import check_output_file
     from ..report import model_lines
 
@@ -53,7 +54,8 @@ def run(args) -> int:
     print(f"held-out error not measured: {held}" if isinstance(held, str) else held.line())
     for line in model_lines(meta, markdown=False):
         print(line)
-    print(fwhm_line(field_fwhm(op), info.pixel_size))
+    print(fwhm_line(field_fwhm(op), info.pixel_size,
+                    one_psf=one_psf_note(op.metadata)))
     return 0
 
 

@@ -7,6 +7,7 @@ import math
 
 from ..core.common.measures import field_fwhm, fwhm_line
 from ..core.diagnosis import metric
+from ..core.model.fewbeads import one_psf_note
 from .figures import PATCH_LIMIT
 
 #: Columns of :func:`steps_table`.
@@ -261,7 +262,8 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
         lines += ["", f"Held-out error {_num(d.error_after)} on {d.n_beads} beads; "
                       f"chi-square per degree of freedom {_num(d.chi2_after, '.3g')}."]
     lines += model_lines(d.operator.metadata)
-    lines += ["", fwhm_line(field_fwhm(d.operator), px) + "."]
+    lines += ["", fwhm_line(field_fwhm(d.operator), px,
+                               one_psf=one_psf_note(d.operator.metadata)) + "."]
     motion = d.operator.metadata.get("motion") or {}
     if motion and not motion.get("detected") and not motion.get("note"):
         lines += ["", "**Motion blur**: " + str(motion.get("reason", "not tested")) + "."]

@@ -49,6 +49,7 @@ from .points import (
 )
 from .results import (
     GALLERY_GAP,
+    bead_fwhm_layer,
     family_layers,
     gallery_cell,
     gallery_index,
@@ -59,7 +60,8 @@ from .results import (
 )
 
 __all__ = [*_names, "FIT_VERDICTS", "Frame", "GALLERY_GAP", "LayerTuple", "OVERLAYS_KEY",
-           "advice_layers", "axis_unit", "bead_plane", "beads_from_points", "beads_layer", "dress",
+           "advice_layers", "axis_unit", "bead_fwhm_layer", "bead_plane",
+           "beads_from_points", "beads_layer", "dress",
            "ensure_bead_features", "family_layers", "field_units", "find_layer", "fix_ids",
            "focus_on_step", "for_a_new_fit", "gallery_cell", "gallery_index",
            "gallery_layers", "group_layers", "heldout_layers", "hot_pixels_from_layer",

@@ -49,6 +49,8 @@ BASIS = "PSF basis (relative)"
 #: One weight map a basis PSF: ``WEIGHT.format(i)``, i = 1..
 WEIGHT = "PSF weight {} (relative)"
 HELDOUT_LAYER = "held-out residual (energy fraction)"
+#: Each bead's own FWHM, where the model is one PSF (the unit follows in brackets).
+BEAD_FWHM = "bead FWHM"
 PSF_AT = "PSF at position (fraction per px)"
 SUB_GRID = "family PSF grid (relative)"
 SUB_BASIS = "family PSF basis (relative)"
@@ -71,7 +73,7 @@ MADE_AS = "psfspace_layer"
 #: together on a re-run and removed together (:func:`remove_step`).
 STEP_KEY = "psfspace_step"
 
-__all__ = ["ALL_STATUSES", "BASIS", "BEADS", "CURRENT", "GALLERY", "HELDOUT_LAYER",
+__all__ = ["ALL_STATUSES", "BASIS", "BEAD_FWHM", "BEADS", "CURRENT", "GALLERY", "HELDOUT_LAYER",
            "HOT_PIXELS", "LEFT_OUT", "MADE_AS", "MORE_BEADS", "OPERATOR_KEY", "PSF_AT",
            "PSF_GRID", "STATUS_COLORS", "STATUS_MEANING", "STEP_KEY", "SUBSPACE_KEY",
            "SUB_BASIS", "SUB_GRID", "SUB_SPACE", "WEIGHT"]

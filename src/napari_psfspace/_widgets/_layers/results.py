@@ -10,6 +10,7 @@ from .figure import OVERLAYS_KEY, map_tuple
 from .frame import Frame, LayerTuple, field_units, on_field
 from .names import (
     BASIS,
+    BEAD_FWHM,
     GALLERY,
     HELDOUT_LAYER,
     OPERATOR_KEY,
@@ -67,6 +68,8 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
                                   f"scaled to its largest magnitude, 1.. left to right, "
                                   f"{b_cols} a row"}}, "", frame),
     ]
+    if op.n_psf == 1:  # one PSF everywhere: no weight varies over the field
+        return out
     maps = op.coefficient_maps()
     step = max(1, int(np.ceil(max(maps.shape[1:]) / WEIGHT_SIDE)))
     for i, m in enumerate(maps[:, ::step, ::step]):
@@ -173,6 +176,28 @@ def heldout_layers(heldout, frame: Frame) -> list[LayerTuple]:
                            "about": "held-out residual of each bead, in fraction of its "
                                     "energy"}},
              "points")]
+
+
+def bead_fwhm_layer(positions: np.ndarray, fwhm_px: np.ndarray, frame: Frame) -> LayerTuple:
+    """Each bead's own lateral FWHM as a point at the bead, coloured by it, in µm where
+    the image is calibrated (else px): the field as the beads show it, for a model of
+    one PSF that does not map it."""
+    scale = frame.pixel_size or 1.0
+    unit = "µm" if frame.pixel_size else "px"
+    values = np.asarray(fwhm_px, float) * scale
+    finite = values[np.isfinite(values)]
+    lim = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    if lim[1] <= lim[0]:
+        lim = (lim[0], lim[0] + max(abs(lim[0]), 1e-6))
+    return (np.asarray(positions, float).reshape(-1, 2),
+            {"name": f"{BEAD_FWHM} ({unit})", "features": {"fwhm": values},
+             "scale": frame.scale, "translate": frame.translate, **field_units(frame),
+             "size": 0.04 * max(frame.shape), "face_color": "fwhm",
+             "face_colormap": "viridis", "face_contrast_limits": lim, "border_width": 0,
+             "metadata": {OVERLAYS_KEY: {"unit": unit},
+                          "about": "each bead's own lateral FWHM (Gaussian fit of its "
+                                   "patch): the model is one PSF and maps no field"}},
+            "points")
 
 
 def psf_layers(psf: np.ndarray, y: float, x: float, frame: Frame) -> list[LayerTuple]:

@@ -355,9 +355,18 @@ def field_fwhm(operator) -> dict[str, dict[str, float]]:
     return out
 
 
-def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = None) -> str:
+def patch_fwhms(psfs) -> np.ndarray:
+    """Each bead's own lateral FWHM (pixels; NaN where its fit failed) from its patch
+    (K, P, P): the field as the beads show it, where no model maps it."""
+    return np.array([lateral_measures(p)["fwhm_lateral"] for p in np.asarray(psfs)], float)
+
+
+def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = None, *,
+              one_psf: str | None = None) -> str:
     """One line for a printout or a report: the FWHM at the centre and over the corners,
-    in nm where ``pixel_size`` (µm) is known, else pixels."""
+    in nm where ``pixel_size`` (µm) is known, else pixels. ``one_psf``: the model is one
+    PSF for the whole field, and this says why, in place of the corners (which would
+    repeat the centre as if the field had been mapped)."""
     scale, unit, fmt = (1000.0 * pixel_size, "nm", ".0f") if pixel_size else (1.0, "px",
                                                                              ".2f")
     c = summary["centre"]
@@ -366,11 +375,13 @@ def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = N
     text = (f"FWHM (Gaussian fit with an offset): centre {c['fwhm_lateral'] * scale:{fmt}} "
             f"{unit} (rows {c['fwhm_row'] * scale:{fmt}}, columns {c['fwhm_col'] * scale:{fmt}}"
             f", ellipticity {c['ellipticity']:.2f})")
-    if corners:
+    if one_psf:
+        text += f"; {one_psf}"
+    elif corners:
         text += f"; corners {min(corners):{fmt}}-{max(corners):{fmt}} {unit}"
     return text
 
 
 __all__ = ["FIELD_POINTS", "LATERAL", "LINE_FOCUS_REACH", "MIN_PEAK_SHARE", "NAMES", "UNITS_PX",
            "diffraction_limit", "field_fwhm", "focal_plane", "fwhm_line", "in_units",
-           "lateral_measures", "peak_profile", "psf_measures"]
+           "lateral_measures", "patch_fwhms", "peak_profile", "psf_measures"]

@@ -7,17 +7,19 @@ simplest:
 
 * **shift-invariant**: one PSF for the whole field, the mean of the beads' normalised
   patches;
-* **affine, I = 2 or 3**: a basis of ``I`` PSFs (PCA of the patches) whose coefficients
-  vary as planes over the field (the smoothest field there is: the thin-plate spline's
-  null space), kept inside the cone of the observed coefficients;
+* **affine, I = 2 or 3** (from :data:`FIELD_MIN_BEADS` beads): a basis of ``I`` PSFs
+  (PCA of the patches) whose coefficients vary as planes over the field (the smoothest
+  field there is: the thin-plate spline's null space), kept inside the cone of the
+  observed coefficients;
 * **thin-plate, I = 2 or 3** (from :data:`MIN_THIN_PLATE` beads): the same basis with
   thin-plate splines whose smoothing is chosen by leaving one bead out (a field that
   can bend: the PSF sharp in the centre, defocused towards the corners).
 
 Leave-one-bead-out chooses: each bead in turn is predicted by the model learnt from the
 others (basis and smoothing included), and the candidate with the lowest mean relative
-squared error wins; a richer candidate must beat a simpler one by 1 %. One or two beads
-leave nothing to compare: the model is then shift-invariant, and says so.
+squared error wins; a richer candidate must beat a simpler one by 1 %. Below
+:data:`FIELD_MIN_BEADS` beads (the fewest a model is judged on held-out beads from, as in
+3D) the field is not mapped: the model is one PSF, and says so.
 """
 
 from __future__ import annotations
@@ -32,13 +34,19 @@ from .cone import Cone, reduce_cone
 from .field import assemble_operator
 from .heldout import HeldoutResiduals, heldout_residuals
 from .operator import ProductConvolution
-from .pca import orient
+from .pca import min_beads_for, orient
 from .tps import ThinPlateSpline
 
 #: Up to this many usable beads, :func:`fit_few_beads` chooses the field model.
 FEW_BEADS = 10
 #: Largest basis of the affine candidates.
 MAX_FEW_PSF = 3
+#: Fewest beads a field that varies is learnt from: the fewest a basis is learnt and
+#: judged on held-out beads from (the 3D model's floor too). Four beads leave three to
+#: fit a plane through each left out: no evidence for a map, only for a mean.
+FIELD_MIN_BEADS = min_beads_for(1)
+#: What the field maps say of a model of fewer beads.
+TOO_FEW = "one PSF: too few beads to map the field"
 
 
 @dataclass
@@ -101,9 +109,10 @@ MIN_THIN_PLATE = 6
 
 
 def _candidates(n: int, positions: np.ndarray) -> list[tuple[str, int]]:
-    """(field model, basis size) pairs ``n`` beads support, simplest first: one PSF; an
-    affine field of 2-3 PSFs (leaving one bead out must still fit a plane: 4 beads or
-    more, not all on one line); thin-plate splines with smoothing chosen by leaving one
+    """(field model, basis size) pairs ``n`` beads can be fitted with, simplest first:
+    one PSF; an affine field of 2-3 PSFs (leaving one bead out must still fit a plane: 4
+    beads or more, not all on one line; chosen unasked only from :data:`FIELD_MIN_BEADS`
+    beads); thin-plate splines with smoothing chosen by leaving one
     out (:data:`MIN_THIN_PLATE` beads or more)."""
     spread = n >= 4 and np.linalg.matrix_rank(np.column_stack([np.ones(n), positions])) == 3
     top = min(MAX_FEW_PSF, n - 2) if spread else 1
@@ -233,8 +242,13 @@ def fit_few_beads(
                 np.concatenate([r.positions for r in res]),
                 np.concatenate([r.residual for r in res]),
                 np.concatenate([r.noise_floor for r in res]))
-        best = min(loo.values())
-        chosen = next(c for c in cands if loo[_name(*c)] <= 1.01 * best)
+        # below FIELD_MIN_BEADS every candidate is scored (the reason reports it) but
+        # only one PSF is chosen unasked: a map through three beads at a time is no
+        # evidence of the field
+        allowed = [c for c in cands
+                   if n_psf is not None or c[1] == 1 or n >= FIELD_MIN_BEADS]
+        best = min(loo[_name(*c)] for c in allowed)
+        chosen = next(c for c in allowed if loo[_name(*c)] <= 1.01 * best)
     else:
         chosen = cands[0]
     kind, size = chosen
@@ -246,6 +260,18 @@ def fit_few_beads(
     reason = _reason(n, chosen, loo, n_psf)
     return FewBeadsFit(op, kind, size, reason, basis, beta, cone, loo,
                        residuals.get(chosen))
+
+
+def one_psf_note(metadata: dict) -> str | None:
+    """What a model's field maps say where it is one PSF for the whole field: "one PSF:
+    too few beads to map the field" below :data:`FIELD_MIN_BEADS` beads, else "one PSF
+    for the whole field"; None for a model that varies."""
+    if metadata.get("field_model") != "shift-invariant" and metadata.get("n_psf", 0) != 1:
+        return None
+    used = metadata.get("n_beads_used")
+    if used is not None and used < FIELD_MIN_BEADS:
+        return TOO_FEW
+    return "one PSF for the whole field"
 
 
 def _name(kind: str, size: int) -> str:
@@ -260,13 +286,21 @@ def _reason(n: int, chosen: tuple[str, int], loo: dict, n_psf: int | None) -> st
     if n_psf is not None:
         return (f"{beads}; the basis size was fixed (`n_psf` = {n_psf})"
                 + (f"; leave-one-bead-out error: {errs}." if errs else "."))
-    if n < 3:
-        return (f"{beads}: too few to tell how the PSF changes over the field (comparing "
-                "models by leaving one bead out needs 3). Image more beads to see it vary.")
+    if n < FIELD_MIN_BEADS:
+        text = (f"{beads}, fewer than {FIELD_MIN_BEADS}: {TOO_FEW} (a field that varies is "
+                f"learnt and judged on held-out beads from {FIELD_MIN_BEADS}). Image more "
+                "beads to see it vary.")
+        one = loo.get("shift-invariant")
+        better = {k: v for k, v in loo.items() if one is not None and v < one}
+        if better:
+            name = min(better, key=better.get)
+            text += (f" Leaving one bead out, {name} predicted them better ({errs}): "
+                     f"`n_psf` = {name.rsplit('=', 1)[-1]} asks for it.")
+        return text
     if size == 1 and len(loo) == 1:
-        return (f"{beads}: too few, or all on one line, for a field that varies (an affine "
-                f"field needs 4 beads not on one line; leave-one-bead-out error {errs}). "
-                "Image more beads to see it vary.")
+        return (f"{beads}, all on one line: {TOO_FEW} (a field that varies needs beads "
+                f"not on one line; leave-one-bead-out error {errs}). Image more beads to "
+                "see it vary.")
     if size == 1:
         return (f"{beads}: no model that varies over the field predicted a left-out bead "
                 f"better (leave-one-bead-out error: {errs}). Image more beads to resolve "
