@@ -188,7 +188,7 @@ def test_four_beads_map_no_field_and_the_maps_say_so():
     image, truth = _varying_field(4, 1)
     op = ps.estimate_operator(image, psf_radius=truth.psf_radius)
     meta = op.metadata
-    assert meta["n_beads_used"] < FIELD_MIN_BEADS == 5
+    assert meta["n_beads_used"] < FIELD_MIN_BEADS
     assert op.n_psf == 1 and meta["field_model"] == "shift-invariant"
     assert TOO_FEW in meta["field_model_reason"]
     line = fwhm_line(field_fwhm(op), 0.08, one_psf=one_psf_note(meta))

@@ -215,3 +215,48 @@ def test_the_field_summary_of_a_constant_model_is_its_psf_everywhere():
     assert len(widths) == 5 and np.ptp(widths) < 1e-6
     assert abs(widths[0] / 4.0 - 1) <= 0.03
     assert "px" in fwhm_line(summary) and "nm" in fwhm_line(summary, 0.065)
+
+
+def _widefield(na: float, defocus_um: float, zernike: dict | None = None) -> np.ndarray:
+    """This project's scalar widefield PSF (65 nm pixels, 0.6 µm light, oil above NA 1),
+    ``defocus_um`` from focus (Noll 4, waves rms: n (1 - cos a) dz / wavelength over
+    2 sqrt 3, the path difference at the pupil's edge)."""
+    from napari_psfspace.core.simulation.optics import Optics, simulate_psf
+
+    n = 1.515 if na > 1 else 1.33
+    z4 = n * (1 - np.sqrt(1 - (na / n) ** 2)) * defocus_um / 0.6 / (2 * np.sqrt(3))
+    return simulate_psf({4: z4, **(zernike or {})},
+                        optics=Optics(na=na, wavelength=0.6, pixel_size=0.065), size=49)
+
+
+@pytest.mark.parametrize("defocus_um", [1.2, 1.5])
+def test_a_ring_gets_its_radius_and_no_gaussian_fwhm(defocus_um):
+    """A widefield PSF 1.2-1.5 µm from focus at NA 1.4 (two axial FWHMs and more) is a
+    set of rings: no FWHM and no ellipticity are quoted, its ring radius is, and the
+    summary line says the PSF is not a spot. In focus, and with coma or astigmatism of
+    0.15 waves, the same measure quotes the Gaussian's FWHM."""
+    from napari_psfspace.core.common.measures import (
+        SPOT_CORE,
+        field_fwhm,
+        fwhm_line,
+        spot_measures,
+    )
+
+    ring = spot_measures(_widefield(1.4, defocus_um))
+    assert ring["core_share"] < SPOT_CORE
+    assert np.isnan(ring["fwhm_lateral"]) and np.isnan(ring["ellipticity"])
+    assert 2 <= ring["ring_radius"] <= 24  # inside the window, beyond the core
+    for spot in (_widefield(1.4, 0.0), _widefield(1.4, 0.0, {7: 0.15}),
+                 _widefield(1.4, 0.0, {5: 0.15})):
+        m = spot_measures(spot)
+        assert m["core_share"] >= SPOT_CORE and np.isfinite(m["fwhm_lateral"])
+
+    class OnePsf:
+        shape = (256, 256)
+
+        def psf_at(self, y, x):
+            return _widefield(1.4, defocus_um)
+
+    line = fwhm_line(field_fwhm(OnePsf()), 0.065)
+    assert "not a spot" in line and "a ring of radius" in line
+    assert "FWHM (Gaussian" not in line and "corners" not in line

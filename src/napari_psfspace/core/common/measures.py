@@ -55,6 +55,12 @@ MIN_PEAK_SHARE = 0.3
 #: Planes either side of a line focus through which its parabola is fitted (fewer scatter
 #: more against the pyotf oracle: ``bench/bench_fwhm_reference.py --sets astigmatism``).
 LINE_FOCUS_REACH = 3
+#: A 2-D PSF is quoted a Gaussian FWHM only while it is a spot: while its central lobe
+#: (out to the first minimum of its azimuthal profile about the fitted centre) holds at
+#: least this share of its energy above the background. Set between the shares of the
+#: spots and of the rings, crosses and defocused disks of three optics codes
+#: (``bench/bench_spot_shape.py``).
+SPOT_CORE = 0.33
 #: The lateral measures, in the order of the tables (pixels, but ``ellipticity``).
 LATERAL = ("fwhm_lateral", "fwhm_row", "fwhm_col", "fwhm_major", "fwhm_minor", "ellipticity")
 #: The measures of a 3D PSF, in the order of the tables.
@@ -91,6 +97,65 @@ def lateral_measures(plane, *, centre: tuple[float, float] | None = None,
     return {**_from_covariance(g.covariance if g.ok else None),
             "centre_row": g.centre[0] if g.ok else float("nan"),
             "centre_col": g.centre[1] if g.ok else float("nan")}
+
+
+def spot_shape(plane, centre: tuple[float, float]) -> dict[str, float]:
+    """Whether a 2-D PSF is a spot, from its azimuthal profile about ``centre``
+    (row, column; pixels) above its background (the median of its border).
+
+    Returns
+    -------
+    dict
+        ``core_share``: the share of the energy within the first minimum of the profile
+        (a spot: at least :data:`SPOT_CORE`); ``ring_radius`` and ``ring_width``: the
+        radius of the profile's maximum beyond that minimum and its full width at half
+        that maximum (pixels; NaN for a spot, or where the profile shows no ring).
+    """
+    p = np.asarray(plane, dtype=np.float64)
+    border = np.concatenate([p[0], p[-1], p[1:-1, 0], p[1:-1, -1]])
+    p = p - float(np.median(border))
+    yy, xx = np.indices(p.shape)
+    rr = np.hypot(yy - centre[0], xx - centre[1])
+    half = min(p.shape) // 2
+    r = np.rint(rr).astype(int)
+    inside = r < half
+    prof = (np.bincount(r[inside], p[inside], minlength=half)
+            / np.maximum(np.bincount(r[inside], minlength=half), 1))
+    k = 1  # the first minimum: where the profile first stops falling
+    while k < half - 1 and prof[k + 1] < prof[k]:
+        k += 1
+    total = float(p[rr <= half].sum())
+    share = float(p[rr <= k + 0.5].sum() / total) if total > 0 else float("nan")
+    out = {"core_share": share, "ring_radius": float("nan"), "ring_width": float("nan")}
+    if not share < SPOT_CORE or k >= half - 2:
+        return out
+    j = k + int(np.argmax(prof[k:]))
+    top = prof[j]
+    if top > 0:  # the ring: the run of radii about its maximum above half of it
+        lo, hi = j, j
+        while lo - 1 >= k and prof[lo - 1] >= top / 2:
+            lo -= 1
+        while hi + 1 < half and prof[hi + 1] >= top / 2:
+            hi += 1
+        out.update(ring_radius=float(j), ring_width=float(hi - lo + 1))
+    return out
+
+
+def spot_measures(plane) -> dict[str, float]:
+    """:func:`lateral_measures` of a 2-D PSF, with :func:`spot_shape`: the widths and the
+    ellipticity are NaN where the PSF is not a spot (a ring, a cross, a defocused disk),
+    whose Gaussian FWHM would measure nothing a microscopist reads."""
+    m = lateral_measures(plane)
+    centre = (m["centre_row"], m["centre_col"])
+    if not np.isfinite(centre[0]):
+        q = np.clip(np.asarray(plane, np.float64), 0, None)
+        yy, xx = np.indices(q.shape)
+        w = max(float(q.sum()), 1e-300)
+        centre = (float((q * yy).sum() / w), float((q * xx).sum() / w))
+    shape = spot_shape(plane, centre)
+    if not shape["core_share"] >= SPOT_CORE:
+        m.update({n: float("nan") for n in LATERAL})
+    return {**m, **shape}
 
 
 def _from_covariance(cov) -> dict[str, float]:
@@ -351,14 +416,15 @@ def field_fwhm(operator) -> dict[str, dict[str, float]]:
     out = {}
     for name, fy, fx in FIELD_POINTS:
         y, x = fy * (h - 1), fx * (w - 1)
-        out[name] = {**lateral_measures(operator.psf_at(y, x)), "row": y, "col": x}
+        out[name] = {**spot_measures(operator.psf_at(y, x)), "row": y, "col": x}
     return out
 
 
 def patch_fwhms(psfs) -> np.ndarray:
-    """Each bead's own lateral FWHM (pixels; NaN where its fit failed) from its patch
-    (K, P, P): the field as the beads show it, where no model maps it."""
-    return np.array([lateral_measures(p)["fwhm_lateral"] for p in np.asarray(psfs)], float)
+    """Each bead's own lateral FWHM (pixels; NaN where its fit failed or it is no spot:
+    :func:`spot_measures`) from its patch (K, P, P): the field as the beads show it,
+    where no model maps it."""
+    return np.array([spot_measures(p)["fwhm_lateral"] for p in np.asarray(psfs)], float)
 
 
 def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = None, *,
@@ -372,9 +438,17 @@ def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = N
     c = summary["centre"]
     corners = [v["fwhm_lateral"] * scale for k, v in summary.items() if k != "centre"]
     corners = [v for v in corners if np.isfinite(v)]
-    text = (f"FWHM (Gaussian fit with an offset): centre {c['fwhm_lateral'] * scale:{fmt}} "
-            f"{unit} (rows {c['fwhm_row'] * scale:{fmt}}, columns {c['fwhm_col'] * scale:{fmt}}"
-            f", ellipticity {c['ellipticity']:.2f})")
+    if c.get("core_share", 1.0) < SPOT_CORE:  # a ring, a cross, a disk: no Gaussian
+        ring = (f"a ring of radius {c['ring_radius'] * scale:{fmt}} {unit}, width "
+                f"{c['ring_width'] * scale:{fmt}} {unit}"
+                if np.isfinite(c.get("ring_radius", np.nan)) else "no ring either")
+        text = (f"the PSF at the centre is not a spot ({ring}; its central lobe holds "
+                f"{100 * c['core_share']:.0f} % of its light): no Gaussian FWHM")
+    else:
+        text = (f"FWHM (Gaussian fit with an offset): centre "
+                f"{c['fwhm_lateral'] * scale:{fmt}} {unit} (rows "
+                f"{c['fwhm_row'] * scale:{fmt}}, columns {c['fwhm_col'] * scale:{fmt}}, "
+                f"ellipticity {c['ellipticity']:.2f})")
     if one_psf:
         text += f"; {one_psf}"
     elif corners:
@@ -382,6 +456,7 @@ def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = N
     return text
 
 
-__all__ = ["FIELD_POINTS", "LATERAL", "LINE_FOCUS_REACH", "MIN_PEAK_SHARE", "NAMES", "UNITS_PX",
-           "diffraction_limit", "field_fwhm", "focal_plane", "fwhm_line", "in_units",
-           "lateral_measures", "patch_fwhms", "peak_profile", "psf_measures"]
+__all__ = ["FIELD_POINTS", "LATERAL", "LINE_FOCUS_REACH", "MIN_PEAK_SHARE", "NAMES", "SPOT_CORE",
+           "UNITS_PX", "diffraction_limit", "field_fwhm", "focal_plane", "fwhm_line",
+           "in_units", "lateral_measures", "patch_fwhms", "peak_profile", "psf_measures",
+           "spot_measures", "spot_shape"]
