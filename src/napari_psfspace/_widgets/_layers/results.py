@@ -185,18 +185,21 @@ def bead_fwhm_layer(positions: np.ndarray, fwhm_px: np.ndarray, frame: Frame) ->
     scale = frame.pixel_size or 1.0
     unit = "µm" if frame.pixel_size else "px"
     values = np.asarray(fwhm_px, float) * scale
-    finite = values[np.isfinite(values)]
+    ok = np.isfinite(values)  # a bead whose patch is no spot has no FWHM: not drawn
+    positions = np.asarray(positions, float).reshape(-1, 2)[ok]
+    finite = values = values[ok]
     lim = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
     if lim[1] <= lim[0]:
         lim = (lim[0], lim[0] + max(abs(lim[0]), 1e-6))
-    return (np.asarray(positions, float).reshape(-1, 2),
+    return (positions,
             {"name": f"{BEAD_FWHM} ({unit})", "features": {"fwhm": values},
              "scale": frame.scale, "translate": frame.translate, **field_units(frame),
              "size": 0.04 * max(frame.shape), "face_color": "fwhm",
              "face_colormap": "viridis", "face_contrast_limits": lim, "border_width": 0,
              "metadata": {OVERLAYS_KEY: {"unit": unit},
-                          "about": "each bead's own lateral FWHM (Gaussian fit of its "
-                                   "patch): the model is one PSF and maps no field"}},
+                          "about": f"each bead's own lateral FWHM (Gaussian fit of its "
+                                   f"patch): the model is one PSF and maps no field; "
+                                   f"{int((~ok).sum())} bead(s) not a spot, not drawn"}},
             "points")
 
 
