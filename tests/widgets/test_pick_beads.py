@@ -1,6 +1,7 @@
 """Pick beads: detection fills an editable Points layer coloured by status."""
 
 import numpy as np
+import pytest
 
 from conftest import wait_task
 from napari_psfspace._widgets._layers import BEADS, STATUS_COLORS
@@ -70,6 +71,27 @@ def test_suggest_radius_sets_a_usable_radius(make_napari_viewer, qtbot, bead_ima
     wait_task(qtbot, w.task)
     assert "suggested PSF radius" in w.task.status.value
     assert 0.4 * truth.psf_radius <= w.radius.pixels <= 1.6 * truth.psf_radius
+
+
+def test_suggest_radius_on_a_slice_follows_its_neighbours(make_napari_viewer, qtbot,
+                                                         bead_image):
+    """On a stack's slice the suggestion is the median of the slice's and its
+    neighbours' readings; a slice that jumps (blurred here) says so in the status line."""
+    from scipy import ndimage as ndi
+
+    from napari_psfspace.core.beads.slice_radius import suggest_slice_radius
+
+    image, _ = bead_image
+    stack = np.stack([image, ndi.gaussian_filter(image.astype(float), 4.0), image])
+    v = make_napari_viewer()
+    v.add_image(stack.astype(np.float32), name="stack")
+    v.dims.set_point(0, 1)
+    w = PickBeadsWidget(v)
+    w.suggest.clicked()
+    wait_task(qtbot, w.task)
+    want = suggest_slice_radius(stack.astype(np.float32), 1)
+    assert w.radius.pixels == pytest.approx(want.radius)
+    assert "slice 1 alone reads" in w.task.status.value
 
 
 def test_bead_diameter_in_nanometres_reaches_the_learnt_model(viewer, qtbot):

@@ -8,7 +8,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
 
-from ..core.beads.steps import iter_detect_beads, iter_suggest_psf_radius
+from ..core.beads.steps import (
+    iter_detect_beads,
+    iter_suggest_psf_radius,
+    iter_suggest_slice_radius,
+)
 from ._layers import (
     BEADS,
     HOT_PIXELS,
@@ -132,7 +136,16 @@ class PickBeadsWidget(Container):
         got = self._plane()
         if got is None:
             return
-        plane, _ = got
+        plane, frame = got
+        if frame.index is not None:  # a stack's slice: from it and its neighbours
+            def on_slice(found) -> None:
+                self.radius.set_calibration(self.radius.pixel_size, found.radius)
+                self.task.status.value = (f"suggested PSF radius: {found.radius:g} px"
+                                          + (f". {found.reason}" if found.reason else ""))
+
+            self.task.run(iter_suggest_slice_radius(self.image.value.data, frame.index),
+                          on_slice)
+            return
 
         def on_result(radius: float) -> None:
             self.radius.set_calibration(self.radius.pixel_size, radius)

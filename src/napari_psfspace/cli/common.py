@@ -109,17 +109,23 @@ def image_and_radius(args):
             raise ValueError(f"--pixel-size-nm must be > 0, got {args.pixel_size_nm}.")
         info = dataclasses.replace(info, pixel_size=args.pixel_size_nm / 1000.0)
     r = psf_radius_px(args, info)
-    if r is None:
+    if r is None and args.slice is None:
         from ..core.beads.radius import suggest_psf_radius
 
         r = suggest_psf_radius(image)
         print(f"no --psf-radius given: using {r:g} px, measured from the image "
               "(see suggest_psf_radius)", file=sys.stderr)
-        if args.slice is not None:  # a slice of a stack: against the slice in focus
-            from ..core.beads.focus import radius_against_focus
-            from ..io import read_stack
+    elif r is None:  # a slice of a stack: from it and its neighbours, against focus
+        from ..core.beads.focus import radius_against_focus
+        from ..core.beads.slice_radius import suggest_slice_radius
+        from ..io import read_stack
 
-            why = radius_against_focus(read_stack(args.image)[0], args.slice, r)
+        stack = read_stack(args.image)[0]
+        found = suggest_slice_radius(stack, args.slice)
+        r = found.radius
+        print(f"no --psf-radius given: using {r:g} px, measured from slice {args.slice} "
+              "and its neighbours (see suggest_slice_radius)", file=sys.stderr)
+        for why in (found.reason, radius_against_focus(stack, args.slice, r)):
             if why:
                 print(why, file=sys.stderr)
     return image, info, r

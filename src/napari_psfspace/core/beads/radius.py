@@ -149,8 +149,30 @@ def suggest_psf_radius(image, *, n_beads: int = 20, energy: float = 0.97,
         return _suggest(image, n_beads, energy, max_radius, wings)
 
 
-def _suggest(image, n_beads: int, energy: float, max_radius: float | None,
-             wings: float) -> float:
+def spot_radii(image, *, n_beads: int = 20, energy: float = 0.97,
+               max_radius: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The spots :func:`suggest_psf_radius` measures and their radii.
+
+    Returns
+    -------
+    positions : ndarray of shape (K, 2)
+        Row and column of each spot measured (pixels), aggregates left out.
+    radii : ndarray of shape (K,)
+        The radius enclosing ``energy`` of each one's light (pixels).
+
+    Raises
+    ------
+    NoBeadsError
+        No spot stands out of the noise, or none could be measured.
+    """
+    with reusing(image):
+        pos, radii, _ = _measure(image, n_beads, energy, max_radius)
+    return pos, radii
+
+
+def _measure(image, n_beads: int, energy: float, max_radius: float | None
+             ) -> tuple[np.ndarray, np.ndarray, int]:
+    """(positions, radii, largest radius considered) of the spots measured."""
     img, _, _, _ = prepare_image(image)
     h, w = img.shape
     rmax = int(max_radius or max(6, min(h, w) // 8))
@@ -167,7 +189,7 @@ def _suggest(image, n_beads: int, energy: float, max_radius: float | None,
     rank = np.arange(len(order)) - np.searchsorted(cell[order], cell[order])
     chosen = order[rank < max(1, n_beads // 16 + 1)]
     tree = cKDTree(found.all_spots) if len(found.all_spots) > 1 else None
-    radii = []
+    radii, where = [], []
     for y, x in spots[chosen]:
         room = int(min(search, y, x, h - 1 - y, w - 1 - x))
         if room < 4:
@@ -183,13 +205,20 @@ def _suggest(image, n_beads: int, energy: float, max_radius: float | None,
         r = _spot_radius(win, own, energy)
         if r is not None:
             radii.append(r)
+            where.append((y, x))
     if not radii:
         raise NoBeadsError("Could not measure the width of any bright spot: give "
                            "`psf_radius` yourself.")
-    radii = np.asarray(radii, float)
+    radii_a = np.asarray(radii, float)
     # a spot far wider than the median spot is an aggregate, dust or structure, not a
     # bead: on a defocused slice of few beads one such spot set the radius
-    radii = radii[radii <= MAX_OVER_MEDIAN * np.median(radii)]
+    keep = radii_a <= MAX_OVER_MEDIAN * np.median(radii_a)
+    return np.asarray(where, float)[keep], radii_a[keep], rmax
+
+
+def _suggest(image, n_beads: int, energy: float, max_radius: float | None,
+             wings: float) -> float:
+    _, radii, rmax = _measure(image, n_beads, energy, max_radius)
     visible = float(max(3.0, np.ceil(np.percentile(radii, 75)) + 1.0))
     if not wings > 1.0:
         return visible
@@ -255,5 +284,4 @@ def suggest_series_radius(read: Callable[[int], np.ndarray], n_images: int, *,
 
 
 __all__ = ["KEEP_FRACTION", "MAX_OVER_MEDIAN", "MIN_SEARCH", "SEARCH_SCALES", "SERIES_TRIES",
-           "WINGS", "suggest_psf_radius",
-           "suggest_series_radius"]
+           "WINGS", "spot_radii", "suggest_psf_radius", "suggest_series_radius"]

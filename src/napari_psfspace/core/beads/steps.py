@@ -16,6 +16,7 @@ import numpy as np
 from ..common.progress import Progress, wait_with_progress
 from .detect import Beads, detect_beads
 from .radius import suggest_psf_radius
+from .slice_radius import SliceRadius, suggest_slice_radius
 
 
 def iter_detect_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0
@@ -49,3 +50,12 @@ def iter_suggest_psf_radius(image: np.ndarray) -> Generator[Progress, None, floa
     return (yield from wait_with_progress(
         lambda: suggest_psf_radius(image),
         Progress("suggest", 0.1, "measuring the widths of bright spots...")))
+
+
+def iter_suggest_slice_radius(stack, index: int) -> Generator[Progress, None, SliceRadius]:
+    """Generator form of :func:`.slice_radius.suggest_slice_radius`: the radius of one
+    slice of a stack from it and its neighbours; yields progress while it runs."""
+    return (yield from wait_with_progress(
+        lambda: suggest_slice_radius(stack, index),
+        Progress("suggest", 0.1, f"measuring the widths of bright spots on slice {index} "
+                                 "and its neighbours...")))
