@@ -56,17 +56,11 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
                      f"{_length(op.psf_size, frame)}, each scaled to its maximum, gamma 0.5. "
                      "Save this layer as .npz to save the model."}
     basis = np.asarray(op.basis, np.float32)
-    b_tiles, b_cols = _flat_mosaic(basis, gap=2)
     out = [
         map_tuple(tiles, {"name": PSF_GRID, **on_field(frame, tiles.shape, fill=1.0),
                           "colormap": "magma", "contrast_limits": (0.0, 1.0),
                           "metadata": meta}, "", frame),
-        map_tuple(b_tiles, {
-            "name": BASIS, **on_field(frame, b_tiles.shape, fill=1.0),
-            "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
-            "metadata": {"about": f"orthonormal PSF basis, {basis.shape[0]} PSFs, each "
-                                  f"scaled to its largest magnitude, 1.. left to right, "
-                                  f"{b_cols} a row"}}, "", frame),
+        _basis_tuple(basis, BASIS, "", frame),
     ]
     if op.n_psf == 1:  # one PSF everywhere: no weight varies over the field
         return out
@@ -82,6 +76,18 @@ def operator_layers(op, frame: Frame, *, grid: int = 8) -> list[LayerTuple]:
             "metadata": {"about": f"weight of basis PSF {i + 1} over the field, scaled to "
                                   f"its largest magnitude; every {step} px"}}, "", frame))
     return out
+
+
+def _basis_tuple(basis: np.ndarray, name: str, whose: str, frame: Frame) -> LayerTuple:
+    """A PSF basis (I, P, P) as one mosaic layer on the field, each PSF scaled to its
+    largest magnitude."""
+    tiles, cols = _flat_mosaic(basis, gap=2)
+    return map_tuple(tiles, {
+        "name": name, **on_field(frame, tiles.shape, fill=1.0),
+        "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
+        "metadata": {"about": f"orthonormal PSF basis{whose}, {basis.shape[0]} PSFs, each "
+                              f"scaled to its largest magnitude, 1.. left to right, {cols} "
+                              f"a row"}}, "", frame)
 
 
 def _length(pixels: float, frame: Frame, digits: int = 2) -> str:
@@ -128,7 +134,6 @@ def family_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray, frame: 
     tiles[images] = one
     grid = on_field(frame, tiles.shape, fill=1.0)
     basis = np.asarray(sub.basis, np.float32)
-    b_tiles, b_cols = _flat_mosaic(basis, gap=2)
     space = np.asarray(sub.space, np.float32)
     s_tiles, s_cols = _flat_mosaic(space, gap=1)
     return [
@@ -141,12 +146,7 @@ def family_layers(sub, ys: np.ndarray, xs: np.ndarray, psfs: np.ndarray, frame: 
                          "about": f"PSF of each image's operator at {len(ys)} x {len(xs)} "
                                   "field positions, each scaled to its maximum, gamma 0.5 "
                                   "(slider: image)"}}, "", frame),
-        map_tuple(b_tiles, {
-            "name": SUB_BASIS, **on_field(frame, b_tiles.shape, fill=1.0),
-            "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
-            "metadata": {"about": f"orthonormal PSF basis of the family, {basis.shape[0]} "
-                                  f"PSFs, each scaled to its largest magnitude, 1.. left to "
-                                  f"right, {b_cols} a row"}}, "", frame),
+        _basis_tuple(basis, SUB_BASIS, " of the family", frame),
         map_tuple(s_tiles, {
             "name": SUB_SPACE, **on_field(frame, s_tiles.shape, fill=1.0),
             "colormap": "twilight_shifted", "contrast_limits": (-1.0, 1.0),
