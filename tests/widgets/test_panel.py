@@ -267,6 +267,13 @@ def test_side_by_side_reads_at_the_panels_view_and_at_naparis_home(laptop, qtbot
     panel.tabs.setCurrentIndex(2)
     _settle(qtbot)
     assert grid.enabled
+    # closing the panel gives the user's view back; opening it, the step's view again
+    dock.hide()
+    _settle(qtbot)
+    assert not grid.enabled and grid.spacing == 0.1 and image.visible
+    dock.show()
+    _settle(qtbot)
+    assert grid.enabled
     panel.side_by_side.setChecked(False)
     _settle(qtbot)
     assert not grid.enabled and grid.spacing == 0.1 and not bar.visible

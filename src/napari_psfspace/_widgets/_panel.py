@@ -245,6 +245,19 @@ class PsfSpacePanel(QWidget):
             if edit is not None and edit is not source:
                 edit.set_calibration(edit.pixel_size, source.pixels)
 
+    def hideEvent(self, event):  # noqa: N802 (Qt's name)
+        """The panel closed (or its dock hidden): the user's own view back, the grid and
+        the layers as they were; shown again, the step's view again."""
+        self._resume = self.view.active
+        self.view.leave()
+        super().hideEvent(event)
+
+    def showEvent(self, event):  # noqa: N802 (Qt's name)
+        super().showEvent(event)
+        if getattr(self, "_resume", False):
+            self._resume = False
+            self.view.show_tab(self.tabs.tabText(self.tabs.currentIndex()))
+
     def _on_tab(self, index: int) -> None:
         """The view follows the page: the step's results side by side, or the user's
         own view back."""

@@ -120,6 +120,12 @@ class SideBySide:
         viewer.layers.selection.events.active.connect(self.dress_maps)
         grid_of(viewer).events.enabled.connect(self.dress_maps)
 
+    @property
+    def active(self) -> bool:
+        """Whether the view holds the user's grid settings (they are given back on
+        :meth:`leave`)."""
+        return self._grid is not None
+
     # ------------------------------------------------------------ entry points
     def show(self, step: str, *inputs) -> None:
         """A step showed its results: view them (side by side where it applies)."""
