@@ -88,7 +88,7 @@ def test_a_deblurred_slice_lies_on_its_slice_on_the_field():
                           parameters={})
     res.sparse[5, 7] = 9.0
     frame = Frame((20, 30), (0.1, 0.1), (0.0, 0.0), index=4)
-    out = result_layers(SimpleNamespace(layers=[]), res, frame, stack)
+    out = result_layers(res, frame, stack)
     names = [kw["name"] for _, kw, _ in out]
     assert f"{SPARSE}, slice 4 (image units)" in names
     assert f"{SMOOTH}, slice 4 (image units)" in names
@@ -103,3 +103,12 @@ def test_a_deblurred_slice_lies_on_its_slice_on_the_field():
     # the sparse part's single point is not lost in the contrast: its limits end at it
     sparse = next(kw for _, kw, _ in out if kw["name"].startswith(SPARSE))
     assert sparse["contrast_limits"] == (0.0, 9.0)
+
+
+def test_colour_limits_span_the_finite_values_and_are_never_empty():
+    from napari_psfspace._widgets._layers.figure import finite_limits
+
+    assert finite_limits([0.2, np.nan, 0.5]) == (0.2, 0.5)
+    lo, hi = finite_limits([3.0, 3.0])  # a constant map: a range above its value
+    assert lo == 3.0 and hi > lo
+    assert finite_limits([np.nan]) == (0.0, 1.0)

@@ -119,7 +119,7 @@ def display_limits(plane: np.ndarray) -> tuple[float, float]:
     return lo, max(hi, lo + 1e-12)
 
 
-def result_layers(viewer, res, frame: Frame, layer, *,
+def result_layers(res, frame: Frame, layer, *,
                   limits: tuple[float, float] | None = None) -> list[LayerTuple]:
     """The sparse part, its points and the smooth part, on the image's field, in the
     image's units: the smooth part at ``limits`` (the input's contrast, the same side by
@@ -332,7 +332,7 @@ class DeblurWidget(Container):
             # the input and the smooth part at one contrast, from the input's values
             limits = display_limits(plane)
             layer.contrast_limits = limits
-            tuples = result_layers(self._viewer, res, frame, layer, limits=limits)
+            tuples = result_layers(res, frame, layer, limits=limits)
             info = (op.metadata or {}).get("identification")
             if info:  # on the input: where one more bead would help, beads left out
                 tuples += advice_layers(info, frame, (float(layer.scale[0]),

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._layers import OVERLAYS_KEY, focus_on_step, group_layers
-from ._layers.figure import BAR_FONT, BAR_SIZE, NAME_FONT
+from ._layers.figure import BAR_FONT, BAR_SIZE, NAME_FONT, bar_of
 
 #: Steps shown side by side (their results are maps to read, not marks to click).
 SIDE_BY_SIDE_STEPS = ("Model", "Diagnose", "Family", "Deblur", "3D")
@@ -156,11 +156,6 @@ class SideBySide:
         return [layer for layer in group_layers(self.viewer, step)
                 if OVERLAYS_KEY in (layer.metadata or {})]
 
-    def cells(self, step: str) -> list:
-        """The layers of the side-by-side view of ``step``: its inputs, then its maps."""
-        names = [n for n in self._inputs.get(step, []) if n in self.viewer.layers]
-        return [self.viewer.layers[n] for n in names] + self.maps(step)
-
     def dress_maps(self, *_) -> None:
         """Each map's name and colour bar: on in napari's grid (a cell each), else only
         on the selected layer (maps on each other would pile their texts up)."""
@@ -172,8 +167,8 @@ class SideBySide:
             if OVERLAYS_KEY not in meta:
                 continue
             on = gridded or layer.name == chosen
-            bar = getattr(layer, "colorbar", None) or getattr(layer, "face_colorbar", None)
-            if bar is not None and meta[OVERLAYS_KEY].get("unit") is not None:
+            bar = bar_of(layer)
+            if bar is not None:
                 bar.visible = on
             if getattr(layer, "name_overlay", None) is not None:
                 layer.name_overlay.visible = on
@@ -197,9 +192,9 @@ class SideBySide:
             # whose data run under the names and colour bars
             self.viewer.events.reset_view.connect(self._on_home)
         if grid:
-            cells = self.cells(step)
-            shown = {layer.name for layer in cells}
-            inputs = cells[:len(cells) - len(self.maps(step))]
+            names = [n for n in self._inputs.get(step, []) if n in self.viewer.layers]
+            inputs = [self.viewer.layers[n] for n in names]
+            shown = {layer.name for layer in [*inputs, *self.maps(step)]}
         else:
             ours = {layer.name for layer in self.maps(step)}
             shown = {layer.name for layer in self.viewer.layers
@@ -354,7 +349,7 @@ def collisions(viewer) -> list[str]:
             boxes["name"] = (y0 + OVERLAY_PAD - 4, x0 + OVERLAY_PAD,
                              y0 + OVERLAY_PAD + name.font_size * POINT * 1.6,
                              x0 + OVERLAY_PAD + w)
-        bar = getattr(layer, "colorbar", None) or getattr(layer, "face_colorbar", None)
+        bar = bar_of(layer)
         if bar is not None and bar.visible:
             bw = bar.size[0] + bar.tick_length + 6 * CHAR_WIDTH * bar.font_size * POINT
             bh = bar.size[1] + bar.font_size * POINT

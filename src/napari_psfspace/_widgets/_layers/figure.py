@@ -46,15 +46,33 @@ def map_tuple(data: np.ndarray, kwargs: dict, unit: str, frame: Frame) -> LayerT
     return (data, {**field_units(frame, np.ndim(data)), **kwargs, "metadata": meta}, "image")
 
 
+def bar_of(layer):
+    """The colour-bar overlay napari draws for a map layer (an image's ``colorbar``, a
+    Points layer's ``face_colorbar``), or None: no such overlay, or a layer whose marks
+    have no scale to read (:data:`OVERLAYS_KEY` with a unit of None)."""
+    meta = (getattr(layer, "metadata", None) or {}).get(OVERLAYS_KEY) or {}
+    if "unit" in meta and meta["unit"] is None:
+        return None
+    return getattr(layer, "colorbar", None) or getattr(layer, "face_colorbar", None)
+
+
+def finite_limits(values) -> tuple[float, float]:
+    """Colour limits spanning the finite values (0 to 1 where there are none), never
+    empty (a constant map gets a range above its value)."""
+    values = np.asarray(values, float)
+    finite = values[np.isfinite(values)]
+    lo, hi = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
+    return (lo, hi) if hi > lo else (lo, lo + max(abs(lo), 1e-6))
+
+
 def dress(layer) -> None:
     """Turn on napari's name and colour-bar overlays of a layer made by
     :func:`map_tuple` (or a Points layer whose metadata holds :data:`OVERLAYS_KEY`);
     other layers are left as they are. Read duck-typed: napari 0.7 and later."""
-    meta = getattr(layer, "metadata", None) or {}
-    if OVERLAYS_KEY not in meta:
+    if OVERLAYS_KEY not in (getattr(layer, "metadata", None) or {}):
         return
-    bar = getattr(layer, "colorbar", None) or getattr(layer, "face_colorbar", None)
-    if bar is not None and meta[OVERLAYS_KEY].get("unit") is not None:
+    bar = bar_of(layer)
+    if bar is not None:
         bar.position = BAR_CORNER
         bar.size = BAR_SIZE
         bar.font_size = BAR_FONT

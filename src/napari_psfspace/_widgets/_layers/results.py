@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ...core.common.mosaic import mosaic
-from .figure import OVERLAYS_KEY, map_tuple
+from .figure import OVERLAYS_KEY, finite_limits, map_tuple
 from .frame import Frame, LayerTuple, field_units, on_field
 from .names import (
     BASIS,
@@ -163,10 +163,7 @@ def heldout_layers(heldout, frame: Frame) -> list[LayerTuple]:
     residual = np.asarray(heldout.residual, float)
     features = {"residual": residual,
                 "noise_floor": np.asarray(heldout.noise_floor, float)}
-    finite = residual[np.isfinite(residual)]
-    lim = ((float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0))
-    if lim[1] <= lim[0]:
-        lim = (lim[0], lim[0] + max(abs(lim[0]), 1e-6))
+    lim = finite_limits(residual)
     return [(np.asarray(heldout.positions, float),
              {"name": HELDOUT_LAYER, "features": features, "scale": frame.scale,
               "translate": frame.translate, **field_units(frame), "size": 20,
@@ -187,10 +184,8 @@ def bead_fwhm_layer(positions: np.ndarray, fwhm_px: np.ndarray, frame: Frame) ->
     values = np.asarray(fwhm_px, float) * scale
     ok = np.isfinite(values)  # a bead whose patch is no spot has no FWHM: not drawn
     positions = np.asarray(positions, float).reshape(-1, 2)[ok]
-    finite = values = values[ok]
-    lim = (float(finite.min()), float(finite.max())) if finite.size else (0.0, 1.0)
-    if lim[1] <= lim[0]:
-        lim = (lim[0], lim[0] + max(abs(lim[0]), 1e-6))
+    values = values[ok]
+    lim = finite_limits(values)
     return (positions,
             {"name": f"{BEAD_FWHM} ({unit})", "features": {"fwhm": values},
              "scale": frame.scale, "translate": frame.translate, **field_units(frame),
