@@ -260,3 +260,15 @@ def test_a_ring_gets_its_radius_and_no_gaussian_fwhm(defocus_um):
     line = fwhm_line(field_fwhm(OnePsf()), 0.065)
     assert "not a spot" in line and "a ring of radius" in line
     assert "FWHM (Gaussian" not in line and "corners" not in line
+
+
+def test_a_psf_whose_share_cannot_be_measured_is_not_quoted_a_fwhm():
+    """Light beyond the window leaves no background to measure the share against (NaN):
+    the line says the PSF is not a spot rather than print a width of NaN."""
+    from napari_psfspace.core.common.measures import fwhm_line
+
+    centre = {"fwhm_lateral": np.nan, "fwhm_row": np.nan, "fwhm_col": np.nan,
+              "ellipticity": np.nan, "core_share": np.nan, "ring_radius": np.nan,
+              "ring_width": np.nan}
+    line = fwhm_line({"centre": centre}, 0.065)
+    assert "not a spot" in line and "no ring either" in line and "nan" not in line

@@ -438,12 +438,14 @@ def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = N
     c = summary["centre"]
     corners = [v["fwhm_lateral"] * scale for k, v in summary.items() if k != "centre"]
     corners = [v for v in corners if np.isfinite(v)]
-    if c.get("core_share", 1.0) < SPOT_CORE:  # a ring, a cross, a disk: no Gaussian
+    if not c.get("core_share", 1.0) >= SPOT_CORE:  # a ring, a cross, a disk: no Gaussian
         ring = (f"a ring of radius {c['ring_radius'] * scale:{fmt}} {unit}, width "
                 f"{c['ring_width'] * scale:{fmt}} {unit}"
                 if np.isfinite(c.get("ring_radius", np.nan)) else "no ring either")
-        text = (f"the PSF at the centre is not a spot ({ring}; its central lobe holds "
-                f"{100 * c['core_share']:.0f} % of its light): no Gaussian FWHM")
+        share = (f"its central lobe holds {100 * c['core_share']:.0f} % of its light"
+                 if np.isfinite(c.get("core_share", np.nan))
+                 else "its light reaches beyond the window")
+        text = f"the PSF at the centre is not a spot ({ring}; {share}): no Gaussian FWHM"
     else:
         text = (f"FWHM (Gaussian fit with an offset): centre "
                 f"{c['fwhm_lateral'] * scale:{fmt}} {unit} (rows "
