@@ -108,7 +108,7 @@ def test_beads_counts_and_summary():
     assert set(counts) == set(STATUSES)
     assert counts == {"kept": 2, "saturated": 1, "border": 1, "neighbour": 2,
                       "faint": 0, "outlier": 0, "rejected": 0, "heldout": 0,
-                      "companion": 0, "structure": 0}
+                      "companion": 0, "structure": 0, "off-focus": 0}
     assert beads.kept.tolist() == [True, True, False, False, False, False]
     assert beads.summary() == (
         "6 beads detected: 2 kept, 1 saturated, 1 border, 2 neighbour"

@@ -39,8 +39,9 @@ REJECTED = "rejected"  # by the user (napari widgets)
 HELDOUT = "heldout"  # held out of a fit, still counted as a neighbour
 COMPANION = "companion"  # has a companion in its patch: judged (fitted jointly), not learnt
 STRUCTURE = "structure"  # background structure, not a bead: spoils no neighbour
+OFF_FOCUS = "off-focus"  # in a z-stack: its focus far off the field's focal surface
 STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION,
-            STRUCTURE)
+            STRUCTURE, OFF_FOCUS)
 
 
 #: A detection fainter than this fraction of a bead's peak amplitude does not spoil it as a

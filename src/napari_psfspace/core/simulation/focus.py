@@ -119,6 +119,9 @@ class FocusSeries:
         The microscope's own field, before the defocus of each slice.
     shape : (int, int)
         ``(H, W)`` of a slice.
+    bead_z_um : ndarray of shape (M,), optional
+        Each bead's height above the bead plane, µm: its focus lies on the slice at
+        ``z_um == bead_z_um`` (None: every bead on the plane).
     """
 
     z_um: np.ndarray
@@ -128,6 +131,7 @@ class FocusSeries:
     optics: Optics
     aberrations: FieldAberrations
     shape: tuple[int, int] = (0, 0)
+    bead_z_um: np.ndarray | None = None
 
     def psf_at(self, y: float, x: float, size: int) -> np.ndarray:
         """The true 3D PSF of a point on the bead plane at ``(y, x)``: its image on every
@@ -176,8 +180,10 @@ def simulate_focus_series(
     min_separation: float | None = None,
     dtype=np.uint16,
     seed: int = 0,
+    bead_z=None,
 ) -> tuple[np.ndarray, FocusSeries]:
-    """A bead z-stack: beads on one plane, seen at the focus positions ``z_um``.
+    """A bead z-stack: beads on one plane (or at heights ``bead_z``), seen at the focus
+    positions ``z_um``.
 
     Parameters
     ----------
@@ -202,6 +208,10 @@ def simulate_focus_series(
     dtype : dtype
     seed : int
         Seeds the layout (the same in every slice) and each slice's noise.
+    bead_z : callable, optional
+        ``bead_z(positions, rng)`` -> each bead's height above the bead plane, µm, shape
+        (M,) (a tilted or curved slide, beads at scattered depths): a bead at height
+        ``o`` is in focus on the slice at ``z_um == o``.
 
     Returns
     -------
@@ -226,16 +236,34 @@ def simulate_focus_series(
     rng = np.random.default_rng(seed)
     sep = 2.5 * float(radii.max()) if min_separation is None else float(min_separation)
     positions = place_beads(rng, shape, int(n_beads), sep, float(radii.min()))
+    heights = None
+    if bead_z is not None:
+        heights = np.asarray(bead_z(positions, rng), float).reshape(-1)
+        if heights.shape != (len(positions),) or not np.isfinite(heights).all():
+            raise ValueError(f"`bead_z` must give {len(positions)} finite heights (µm), got "
+                             f"shape {heights.shape}")
+        # the widest PSF a slice holds: the farthest bead's defocus
+        radii = np.array([max(field_psf_radius(with_defocus(base, float(zk - o), optics),
+                                               optics, shape)
+                              for o in (heights.min(), heights.max()))
+                          for zk in z], int)
     amplitudes = rng.uniform(*as_range(amplitude, "amplitude"), size=len(positions))
     bg = smooth_background(rng, shape, *as_range(background, "background"))
     noise = spawn(rng, len(z))
     stack = np.empty((len(z), *shape), dtype=np.dtype(dtype))
     for k, zk in enumerate(z):
         photons = bg.astype(np.float64)
-        render_beads(photons, positions, amplitudes, with_defocus(base, float(zk), optics),
-                      optics, int(RENDER_RADIUS_FACTOR * radii[k]))
+        reach = int(RENDER_RADIUS_FACTOR * radii[k])
+        if heights is None:
+            render_beads(photons, positions, amplitudes, with_defocus(base, float(zk), optics),
+                         optics, reach)
+        else:  # each bead at its own height: its own defocus on this slice
+            for m in range(len(positions)):
+                render_beads(photons, positions[m:m + 1], amplitudes[m:m + 1],
+                             with_defocus(base, float(zk - heights[m]), optics), optics,
+                             reach)
         stack[k] = camera(noise[k], photons, gain, offset, read_noise, np.dtype(dtype))
-    return stack, FocusSeries(z, positions, amplitudes, radii, optics, base, shape)
+    return stack, FocusSeries(z, positions, amplitudes, radii, optics, base, shape, heights)
 
 
 __all__ = ["FocusSeries", "defocus_zernike", "immersion_index", "simulate_focus_series",

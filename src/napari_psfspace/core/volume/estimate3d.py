@@ -1,14 +1,17 @@
 """A space-varying 3D PSF from a bead z-stack (the paper's extension to 3D).
 
-detect on the best-focus slice -> centre laterally -> the bead plane (the median of the
-beads' planes of best focus) -> 3D patches on that common plane
+detect on the best-focus slice -> centre laterally -> each bead's own focus and the
+field's focal surface through them (:mod:`~napari_psfspace.core.volume.focal_surface`;
+beads far off it are left out, ``off-focus``) -> 3D patches about the bead plane (the
+beads' median focus), each moved along z onto the surface
 (:mod:`~napari_psfspace.core.volume.patches3d`) -> PCA of the 3D patches with the 2D
 estimator's outlier rejection -> the same weighted thin-plate field over (row, column)
 -> the cone of the observed coefficients ->
 :class:`~napari_psfspace.core.volume.operator3d.ProductConvolution3D`.
 
-The patches are referenced to one plane, not re-centred in depth bead by bead: field
-curvature and a tilted focus stay in the operator, which a deconvolution needs.
+A bead's scatter about the surface (beads at different depths) is taken out before the
+PCA, so that it does not widen the PSF; the surface itself (field curvature, a tilted
+focus) stays in the operator, which a deconvolution needs.
 """
 
 from __future__ import annotations
@@ -18,8 +21,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..beads.detect import FAINT, KEPT, Beads, NoBeadsError, detect_beads
-from ..beads.focus import best_focus_index
+from ..beads.detect import FAINT, KEPT, OFF_FOCUS, Beads, NoBeadsError, detect_beads
+from ..beads.focus import bead_peaks, best_focus_index
 from ..beads.saturation import saturation_record
 from ..beads.window import radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress, within
@@ -31,9 +34,16 @@ from ..model.field import choose_constraint, coarse_grid, keep_in_cone
 from ..model.pca import PsfBasis, learn_basis, min_beads_for
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
+from .focal_surface import (
+    FocalSurface,
+    axial_centres,
+    fit_focal_surface,
+    focus_line,
+    focus_record,
+)
 from .heldout3d import FOLDS, Heldout3D, iter_heldout_error_3d
 from .operator3d import ProductConvolution3D
-from .patches3d import Patches3D, bead_planes, extract_patches_3d
+from .patches3d import Patches3D, extract_patches_3d
 
 #: Fewest kept beads whose median plane of best focus sets the bead plane.
 MIN_PLANE_VOTES = 5
@@ -54,9 +64,12 @@ class Estimation3D:
         Index into ``beads`` of each patch.
     basis : PsfBasis
     cone : Cone
-    bead_plane : ndarray of shape (K,), int
-        Each patch's bead's plane of best focus (its focal shift is ``bead_plane -
-        operator.plane``).
+    bead_focus : ndarray of shape (K,)
+        Each patch's bead's own focus, planes from the first, sub-plane (NaN: its axial
+        profile's half maximum is not reached inside the stack).
+    surface : FocalSurface
+        The field's focal surface through the beads' foci; each patch is moved along z
+        by its bead's offset from it (``surface.offsets``) before the PCA.
     """
 
     operator: ProductConvolution3D
@@ -65,7 +78,8 @@ class Estimation3D:
     patch_index: np.ndarray
     basis: PsfBasis
     cone: Cone
-    bead_plane: np.ndarray
+    bead_focus: np.ndarray
+    surface: FocalSurface
     info: dict = field(default_factory=dict)
     heldout: Heldout3D | None = None
 
@@ -122,25 +136,35 @@ def iter_estimate_operator_3d(
     kept = centre_beads(img, beads, r)
     yield Progress("centre", 0.3, f"{len(kept)} beads centred laterally")
 
-    own = yield from wait_with_progress(lambda: bead_planes(vol, beads.positions[kept], r),
-                                        Progress("patches", 0.35, "each bead's focus"))
-    # the beads' median plane of best focus; a handful of beads cannot outvote the noise
-    # of one whose peak has two maxima (an index mismatch): the stack's best focus,
-    # from every detection, then
-    plane = int(np.round(np.median(own))) if len(own) >= MIN_PLANE_VOTES else int(focus)
+    peaks = yield from wait_with_progress(
+        lambda: bead_peaks(vol, beads.positions[kept], r),
+        Progress("patches", 0.35, "each bead's focus"))
+    foci, widths = axial_centres(peaks)
+    has = np.isfinite(foci)
+    # the beads' median focus; a handful of beads cannot outvote the noise of one whose
+    # profile has two maxima: the stack's best focus, from every detection, then
+    plane = (int(np.round(np.median(foci[has]))) if has.sum() >= MIN_PLANE_VOTES
+             else int(focus))
     if z_radius is None:
         z_radius = max(plane, depth - 1 - plane)
     # planes beyond the stack hold nothing: at most depth - 1 on each side
     z_radius = check_int(z_radius, "z_radius", minimum=1, maximum=max(depth - 1, 1))
+    surface = fit_focal_surface(beads.positions[kept], foci, widths, (h, w))
+    beads.status[kept[surface.off]] = OFF_FOCUS
+    kept, foci = kept[~surface.off], foci[~surface.off]
+    offsets = np.nan_to_num(surface.offsets[~surface.off])
+    margin = int(np.ceil(np.abs(offsets).max())) if len(offsets) else 0
+    yield Progress("patches", 0.38, focus_line(surface, voxel_size))
     patches = yield from wait_with_progress(
         lambda: extract_patches_3d(vol, beads.positions[kept], r, plane=plane,
-                                   z_radius=z_radius),
-        Progress("patches", 0.4, "3D patches"))
+                                   z_radius=z_radius + margin)
+        .registered(offsets, margin, depth),
+        Progress("patches", 0.4, "3D patches, each bead's focus onto the focal surface"))
     usable = patches.flux > 0
     faint, _ = faint_beads(np.where(usable, patches.flux, 0.0))
     usable &= ~faint
     beads.status[kept[~usable & (beads.status[kept] == KEPT)]] = FAINT
-    kept, own, patches = kept[usable], own[usable], patches.subset(usable)
+    kept, foci, patches = kept[usable], foci[usable], patches.subset(usable)
     need = min_beads_for(n_psf if isinstance(n_psf, int) else 1)
     if len(kept) == 0 or (len(kept) < need and isinstance(n_psf, int)):
         raise NoBeadsError(f"Too few usable beads for a 3D PSF: {len(kept)}, need at least "
@@ -148,10 +172,10 @@ def iter_estimate_operator_3d(
     yield Progress("patches", 0.45, f"{len(kept)} patches of {len(patches.planes)} x "
                    f"{patches.size} x {patches.size} voxels about plane {plane}")
     if len(kept) < need:  # a bead or a few: one 3D PSF for the whole field, their mean
-        return (yield from _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius,
-                                    r, threshold, grid_step, voxel_size, focus))
+        return (yield from _one_psf(stack, vol, beads, patches, kept, foci, surface, plane,
+                                    z_radius, r, threshold, grid_step, voxel_size, focus))
 
-    inside = (patches.planes >= 0) & (patches.planes < depth)
+    inside = patches.data_planes(depth)
     support = (inside[:, None, None]
                & (radial_distance(patches.size) < patches.r_ext)[None])
     basis = yield from wait_with_progress(
@@ -174,12 +198,11 @@ def iter_estimate_operator_3d(
     coarse, cone = keep_in_cone(np.asarray(spline(nodes), np.float64).reshape(len(nodes), -1),
                                 beta, basis.basis, constraint)
     coefficients = coarse.T.reshape(basis.n_psf, len(gy), len(gx))
-    shift = own[basis.inliers] - plane
     meta = {
         "psf_radius": r, "z_radius": z_radius, "plane": plane, "focus_slice": focus,
         "n_psf": basis.n_psf, "n_beads_used": int(basis.inliers.sum()),
         "bead_positions": centers.round(3).tolist(),
-        "bead_focal_shift_planes": shift.astype(int).tolist(),
+        **focus_record(foci[basis.inliers], plane, surface, voxel_size),
         "smoothing": [float(s) for s in spline.smoothing],
         "field_constraint": {"chosen": constraint, **scores},
         "threshold": threshold, "grid_step": grid_step, "image_shape": [depth, h, w],
@@ -191,7 +214,7 @@ def iter_estimate_operator_3d(
     yield Progress("fit", 0.9, f"{basis.n_psf} 3D PSFs of {op.kernel_shape[0]} x "
                    f"{op.kernel_shape[1]} x {op.kernel_shape[2]} voxels from "
                    f"{meta['n_beads_used']} beads")
-    est = Estimation3D(op, beads, patches, kept, basis, cone, own)
+    est = Estimation3D(op, beads, patches, kept, basis, cone, foci, surface)
     if holdout and meta["n_beads_used"] >= 2 * FOLDS:
         try:  # a score of the model: it never aborts the estimate
             held = yield from within(iter_heldout_error_3d(est, stack,
@@ -222,8 +245,8 @@ def iter_estimate_operator_3d(
     return est
 
 
-def _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius, r, threshold,
-             grid_step, voxel_size, focus):
+def _one_psf(stack, vol, beads, patches, kept, foci, surface, plane, z_radius, r,
+             threshold, grid_step, voxel_size, focus):
     """The model of too few beads for a basis (fewer than ``min_beads_for(1)``): their
     mean 3D patch, the same everywhere (a field cannot be learnt from them; said in
     ``metadata["field_model_reason"]``)."""
@@ -236,7 +259,7 @@ def _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius, r, threshol
               "field, their mean")
     meta = {"psf_radius": r, "z_radius": z_radius, "plane": plane, "focus_slice": focus,
             "n_psf": 1, "n_beads_used": n, "bead_positions": patches.centers.round(3).tolist(),
-            "bead_focal_shift_planes": (own - plane).astype(int).tolist(),
+            **focus_record(foci, plane, surface, voxel_size),
             "field_model": "shift-invariant", "field_model_reason": reason,
             "threshold": threshold, "grid_step": grid_step, "image_shape": [depth, h, w],
             "image_dtype": str(np.asarray(stack).dtype), "bead_counts": beads.counts()}
@@ -244,7 +267,8 @@ def _one_psf(stack, vol, beads, patches, kept, own, plane, z_radius, r, threshol
                               grid=(np.array([(h - 1) / 2]), np.array([(w - 1) / 2])),
                               plane=plane, voxel_size=voxel_size, metadata=meta)
     yield Progress("fit", 1.0, reason)
-    return Estimation3D(op, beads, patches, kept, basis, reduce_cone(np.ones((n, 1))), own)
+    return Estimation3D(op, beads, patches, kept, basis, reduce_cone(np.ones((n, 1))), foci,
+                        surface)
 
 
 def estimate_operator_3d(

@@ -132,7 +132,7 @@ def iter_heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     order = morton_order(patches.centers, (h, w))
     group = np.empty(n, int)
     group[order] = np.arange(n) % int(folds)
-    inside = (patches.planes >= 0) & (patches.planes < estimation.operator.shape[0])
+    inside = patches.data_planes(estimation.operator.shape[0])
     support = inside[:, None, None] & (radial_distance(patches.size) < patches.r_ext)[None]
     win2 = np.broadcast_to(bump_window(patches.size, patches.r, patches.r_ext) ** 2,
                            patches.psf.shape[1:]) * inside[:, None, None]

@@ -1,10 +1,11 @@
 """3D bead patches from a z-stack: every bead seen through focus, on one common plane.
 
-Beads on a coverslip share one physical depth. Each bead's patch is cut around its
-lateral centre (sub-pixel, from the bead plane) on the same planes for every bead,
-``plane - z_radius .. plane + z_radius``: the patches are *not* re-centred in depth bead
-by bead, so that a bead whose best focus lies a plane higher (field curvature, a tilted
-focus) shows it in its patch, and the model keeps it.
+Each bead's patch is cut around its lateral centre (sub-pixel, from the bead plane) on
+the same planes for every bead, ``plane - z_radius .. plane + z_radius``. The patches are
+not re-centred on each bead's own focus: :meth:`Patches3D.registered` moves each one
+only by its bead's distance from the field's focal surface
+(:mod:`~napari_psfspace.core.volume.focal_surface`), so that a focus a plane higher
+because of field curvature or a tilted slide stays in the patch, and the model keeps it.
 
 Each plane of a patch is cut by cubic-spline re-sampling at the bead's sub-pixel centre,
 its background (an order-2 polynomial fitted outside the PSF radius ``r``, plane by
@@ -44,6 +45,9 @@ class Patches3D:
         z_radius``; planes beyond the stack are zero).
     r, r_ext : float
         PSF radius and the window's outer radius, pixels.
+    inside : ndarray of shape (Zp,), bool, optional
+        The planes holding measured light for every bead (default: the planes inside
+        the stack); patches moved along z bead by bead hold less.
     """
 
     centers: np.ndarray
@@ -53,6 +57,7 @@ class Patches3D:
     planes: np.ndarray
     r: float
     r_ext: float
+    inside: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.centers)
@@ -63,7 +68,31 @@ class Patches3D:
 
     def subset(self, index) -> Patches3D:
         return Patches3D(self.centers[index], self.psf[index], self.flux[index],
-                         self.noise[index], self.planes, self.r, self.r_ext)
+                         self.noise[index], self.planes, self.r, self.r_ext, self.inside)
+
+    def data_planes(self, depth: int) -> np.ndarray:
+        """The planes holding measured light for every bead, (Zp,) bool, in a stack of
+        ``depth`` planes."""
+        if self.inside is not None:
+            return np.asarray(self.inside, bool)
+        return (self.planes >= 0) & (self.planes < int(depth))
+
+    def registered(self, shifts: np.ndarray, margin: int, depth: int) -> Patches3D:
+        """The patches moved along z by ``-shifts`` planes (each bead's focus onto the
+        focal surface: :func:`~napari_psfspace.core.volume.focal_surface.shift_planes`),
+        ``margin`` planes cut from each end (they were cut for the move, at least the
+        largest ``|shift|``)."""
+        from .focal_surface import shift_planes
+
+        s = np.nan_to_num(np.asarray(shifts, np.float64))
+        keep = slice(margin, len(self.planes) - margin)
+        psf = shift_planes(self.psf, s)[:, keep]
+        planes = self.planes[keep]
+        lo, hi = (float(min(s.min(), 0.0)), float(max(s.max(), 0.0))) if len(s) else (0, 0)
+        # a plane holds a bead's light where it came from within half a plane of the stack
+        inside = (planes + lo >= -0.5) & (planes + hi <= int(depth) - 0.5)
+        return Patches3D(self.centers, psf, self.flux, self.noise, planes, self.r,
+                         self.r_ext, inside)
 
 
 def extract_patches_3d(stack: np.ndarray, centers: np.ndarray, psf_radius: float, *,
