@@ -11,13 +11,17 @@ For each bead z-stack the project's widths are set beside an outside reference:
   stacks have no field: the project's measure of the bead against napari-psf-analysis'.
   Without a pixel size in the file, lengths are in pixels and planes for both.
 * **pyotf** and **psfmodels** (code the project did not write): a field of beads, one
-  PSF for all (so that the truth is one number), noise as a camera gives it. The truth
+  PSF for all (so that the truth is one number), each bead at its own depth within
+  +-0.5 µm (``--z-spread``), noise as a camera gives it; napari-psf-analysis runs on
+  the same beads too. The truth
   is the optical PSF's own half-maximum width on a grid 5x finer than the pixels
   (laterally along rows and columns through the peak; axially along the optical axis on
   planes 5x finer), no Gaussian in it.
 
 * ``--sets pyotf-widefield psfmodels-widefield``: the same at the sampling of a
-  widefield stack (NA 0.95, 108 nm pixels, 300 nm planes, 31 planes).
+  widefield stack (NA 0.95, 108 nm pixels, 300 nm planes, 31 planes);
+  ``pyotf-highna psfmodels-highna``: at that of two public high-NA stacks (NA 1.46,
+  160 nm pixels, 200 nm planes, 31 planes).
 * **astigmatism** (``--sets astigmatism``): pyotf PSFs with vertical astigmatism (Noll 6,
   0-0.2 waves rms) at NA 0.85 and 1.3, 12 noisy pixel-integrated beads each; the truth
   is the split between the line foci of the noise-free PSF on planes 5x finer, its
@@ -233,10 +237,16 @@ def simulated_psf(generator: str, na: float, wl: float, dxy: float, dz: float, n
 
 
 def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
-              photons=20000.0, dz: float | None = None) -> list[dict]:
+              photons=20000.0, dz: float | None = None, z_spread: float = 0.5) -> list[dict]:
     """A field of beads with one PSF, pixel-integrated from fifths of a pixel (each bead
     on one of the ``q x q`` sub-pixel phases), Poisson noise over a background; planes a
-    tenth of the diffraction-limited axial FWHM apart (the stack spans +- 2 FWHM)."""
+    tenth of the diffraction-limited axial FWHM apart (the stack spans +- 2 FWHM). Each
+    bead lies at its own depth, uniform over ``+-z_spread`` µm (on the fine planes, a
+    fifth of a plane apart), so that the estimate must register them in z.
+
+    Rows: the project (per bead, and its model at the beads) against the truth, and
+    against napari-psf-analysis on the same beads; and napari-psf-analysis against the
+    truth (how far the reference itself is)."""
     from napari_psfspace.core.common.measures import diffraction_limit
 
     q, size = 5, 33
@@ -244,18 +254,21 @@ def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
         1.33 if generator == "pyotf" else 1.515)
     if dz is None:
         dz = round(diffraction_limit(na, wl, refractive_index=ni)["axial"] / 10, 3)
-    fine, (kz, ky, kx), true = simulated_psf(generator, na, wl, dxy, dz, nz, q, size)
+    margin = int(np.ceil(z_spread / dz)) + 1  # planes beyond the stack on each side
+    fine, (kz, ky, kx), true = simulated_psf(generator, na, wl, dxy, dz, nz + 2 * margin,
+                                             q, size)
     rng = np.random.default_rng(seed)
     shape = (nz, 256, 256)
     clean = np.full(shape, 20.0)
     half = size // 2
-    pos = []
+    pos, depth = [], []
+    reach = int(np.floor(z_spread / (dz / q)))
     for y in range(28, 230, 40):
         for x in range(28, 230, 40):
-            py, px, pz = rng.integers(0, q, 3)
-            # sub-pixel phase in y, x; the planes keep the stack's sampling (pz: which
-            # of the q fine planes lands on a stack plane)
-            planes = fine[pz % q::q][:nz]
+            py, px = rng.integers(0, q, 2)
+            shift = int(rng.integers(-reach, reach + 1))  # fine planes: the bead's depth
+            # stack plane j sees the fine plane q (margin + j) - shift
+            planes = fine[q * margin - shift::q][:nz]
             sl = np.roll(planes, (py - q // 2, px - q // 2), axis=(1, 2))
             binned = sl.reshape(len(sl), size, q, size, q).sum(axis=(2, 4))
             zpad = np.zeros((nz, size, size))
@@ -263,28 +276,47 @@ def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
             clean[:, y - half:y + half + 1, x - half:x + half + 1] += (
                 photons * zpad / binned.sum(axis=(1, 2)).max())
             pos.append((y, x))
+            depth.append(shift * dz / q)
     stack = rng.poisson(clean).astype(np.float32)
     est = run_with_progress(iter_estimate_operator_3d(stack, psf_radius=12))
     inl = est.basis.inliers
     beads = bead_measures(est.patches.subset(inl))
-    model = model_measures(est.operator, est.patches.centers[inl])
+    centers = est.patches.centers[inl]
+    model = model_measures(est.operator, centers)
     vox = (dz, dxy, dxy)
+    # napari-psf-analysis on the same beads, each at its own focus
+    points = np.column_stack([np.round(est.bead_focus[inl]), centers])
+    ref = reference_fwhm(stack.astype(np.float64) - 20.0, points, vox)
+    refd = {k: np.array([r[k] if r else np.nan for r in ref]) for k in ("row", "col", "axial")}
+    refd["lateral"] = np.sqrt(refd["row"] * refd["col"])
+    # the beads' depths as the estimate found them, against the planted ones
+    near = [int(np.argmin(np.hypot(*(np.asarray(pos) - c).T))) for c in centers]
+    planted = np.asarray(depth)[near]
+    found = (est.bead_focus[inl] - (nz - 1) / 2) * dz
+    off = found - planted - np.nanmedian(found - planted)  # one common offset allowed
+    surface = est.operator.metadata["focal_surface"]
 
     # no astigmatism in these PSFs: the split map should read 0 everywhere
     from napari_psfspace.core.volume.measures import measure_maps
 
     grid = measure_maps(est.operator, 9, 9)[2]["astigmatic_split"]
     bs = beads["astigmatic_split"]
-    print(f"{generator} NA {na} (planes of {dz:g} um): split per bead median "
-          f"{np.nanmedian(bs):+.2f}, |.| max {np.nanmax(np.abs(bs)):.2f}; 9 x 9 map "
+    print(f"{generator} NA {na} (planes of {dz:g} um, beads +-{z_spread:g} um in z): "
+          f"bead depths found within {np.sqrt(np.nanmean(off ** 2)) * 1000:.0f} nm rms; "
+          f"{surface['n_off']} bead(s) left out off the focal surface; split per bead "
+          f"median {np.nanmedian(bs):+.2f}, |.| max {np.nanmax(np.abs(bs)):.2f}; 9 x 9 map "
           f"{np.nanmin(grid):+.2f} to {np.nanmax(grid):+.2f}, |split| >= 2 at "
           f"{int(np.sum(np.abs(grid) >= 2))} of {int(np.isfinite(grid).sum())} nodes",
           flush=True)
     k = int(inl.sum())
     truth = {key: np.full(k, v) for key, v in true.items()}
     name = f"{generator} NA {na} s{seed} (um)"
-    return [_ratio_row(name, k, _phys(beads, vox), truth, "per bead"),
-            _ratio_row(name, k, _phys(model, vox), truth, "map at beads")]
+    n_ref = int(np.isfinite(refd["axial"]).sum())
+    return [_ratio_row(name, k, _phys(beads, vox), truth, "per bead / truth"),
+            _ratio_row(name, k, _phys(model, vox), truth, "map at beads / truth"),
+            _ratio_row(name, n_ref, _phys(beads, vox), refd, "per bead / n-p-a"),
+            _ratio_row(name, n_ref, _phys(model, vox), refd, "map at beads / n-p-a"),
+            _ratio_row(name, n_ref, refd, truth, "n-p-a / truth")]
 
 
 def _gauss_widths(plane: np.ndarray, step: float) -> tuple[float, float]:
@@ -374,6 +406,8 @@ def main() -> None:
     ap.add_argument("--sets", nargs="+", default=["measured", "pyotf", "psfmodels"])
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--na", type=float, nargs="+", default=[0.8, 1.3, 1.45])
+    ap.add_argument("--z-spread", type=float, default=0.5,
+                    help="simulated beads lie uniformly within +- this depth, µm")
     args = ap.parse_args()
     if "astigmatism" in args.sets:
         arows = astigmatism(args.seed)
@@ -390,9 +424,13 @@ def main() -> None:
     for gen in ("pyotf", "psfmodels"):
         if gen in args.sets:
             for na in args.na:
-                rows += simulated(gen, args.seed, na)
+                rows += simulated(gen, args.seed, na, z_spread=args.z_spread)
         if f"{gen}-widefield" in args.sets:  # the issue's widefield stack's sampling
-            rows += simulated(gen, args.seed, 0.95, wl=0.52, dxy=0.108, nz=31, dz=0.3)
+            rows += simulated(gen, args.seed, 0.95, wl=0.52, dxy=0.108, nz=31, dz=0.3,
+                              z_spread=args.z_spread)
+        if f"{gen}-highna" in args.sets:  # the sampling of the two high-NA stacks
+            rows += simulated(gen, args.seed, 1.46, wl=0.6, dxy=0.16, nz=31, dz=0.2,
+                              z_spread=args.z_spread)
     cols = [("stack", "s"), ("what", "s"), ("n", "d")]
     for k in ("row", "col", "lateral", "axial"):
         cols += [(k, ".3f"), (f"{k}_ref", ".3f"), (f"{k}_x", ".3f")]

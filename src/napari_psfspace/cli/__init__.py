@@ -1,5 +1,5 @@
 """Command line: ``psfspace simulate | estimate | diagnose | learn | psf | apply | deblur |
-estimate3d | deblur3d | demo``.
+estimate3d | deblur3d | qc | demo``.
 
 Run ``psfspace COMMAND --help`` for the options of each command. Errors in the input
 (no beads, a stack without a slice, a model for another image size...) end with a
@@ -12,11 +12,24 @@ import argparse
 import sys
 
 from ..core.common.version import package_version
-from . import apply, deblur, deblur3d, demo, diagnose, estimate, estimate3d, learn, psf, simulate
+from . import (
+    apply,
+    deblur,
+    deblur3d,
+    demo,
+    diagnose,
+    estimate,
+    estimate3d,
+    learn,
+    psf,
+    qc,
+    simulate,
+)
 from .common import Parser
 
 #: The commands, in the order ``psfspace --help`` lists them.
-COMMANDS = (simulate, estimate, diagnose, learn, psf, apply, deblur, estimate3d, deblur3d, demo)
+COMMANDS = (simulate, estimate, diagnose, learn, psf, apply, deblur, estimate3d, deblur3d, qc,
+            demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -7,7 +7,15 @@ writer agree.
 
 from __future__ import annotations
 
-from ...core.beads.detect import COMPANION, HELDOUT, OFF_FOCUS, REJECTED, STATUSES, STRUCTURE
+from ...core.beads.detect import (
+    COMPANION,
+    HELDOUT,
+    OFF_FOCUS,
+    REJECTED,
+    STATUS_MEANING,
+    STATUSES,
+    STRUCTURE,
+)
 
 #: Every status a bead of the Points layer can have ("rejected": by the user in the
 #: review; not used for the model).
@@ -25,20 +33,6 @@ STATUS_COLORS = {
     COMPANION: "#8a2be2",
     STRUCTURE: "#8b5a2b",
     OFF_FOCUS: "#ff6f91",
-}
-#: Human-readable meaning of each status (shown in the widgets).
-STATUS_MEANING = {
-    "kept": "kept",
-    "saturated": "saturated",
-    "border": "too close to the border",
-    "neighbour": "too close to a neighbour",
-    "faint": "no signal above the background",
-    "outlier": "z-score outlier",
-    REJECTED: "rejected by hand",
-    HELDOUT: "held out of the fit",
-    COMPANION: "companion in the patch (fitted jointly, not learnt)",
-    STRUCTURE: "background structure, not a bead (wider than the PSF)",
-    OFF_FOCUS: "focus far off the field's focal surface (z-stack)",
 }
 #: Names of the layers the plugin creates. A map's name ends with its unit in brackets:
 #: "relative" where each tile is scaled to its largest magnitude (the metadata's "about"

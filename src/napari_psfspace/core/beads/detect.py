@@ -42,6 +42,20 @@ STRUCTURE = "structure"  # background structure, not a bead: spoils no neighbour
 OFF_FOCUS = "off-focus"  # in a z-stack: its focus far off the field's focal surface
 STATUSES = (KEPT, SATURATED, BORDER, NEIGHBOUR, FAINT, OUTLIER, REJECTED, HELDOUT, COMPANION,
             STRUCTURE, OFF_FOCUS)
+#: Human-readable meaning of each status (shown in the widgets and the QC report).
+STATUS_MEANING = {
+    KEPT: "kept",
+    SATURATED: "saturated",
+    BORDER: "too close to the border",
+    NEIGHBOUR: "too close to a neighbour",
+    FAINT: "no signal above the background",
+    OUTLIER: "z-score outlier",
+    REJECTED: "rejected by hand",
+    HELDOUT: "held out of the fit",
+    COMPANION: "companion in the patch (fitted jointly, not learnt)",
+    STRUCTURE: "background structure, not a bead (wider than the PSF)",
+    OFF_FOCUS: "focus far off the field's focal surface, or not inside the stack",
+}
 
 
 #: A detection fainter than this fraction of a bead's peak amplitude does not spoil it as a

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..beads.detect import FAINT, KEPT, OFF_FOCUS, Beads, NoBeadsError, detect_beads
+from ..beads.detect import FAINT, KEPT, OFF_FOCUS, OUTLIER, Beads, NoBeadsError, detect_beads
 from ..beads.focus import bead_peaks, best_focus_index
 from ..beads.saturation import saturation_record
 from ..beads.window import radial_distance
@@ -182,6 +182,7 @@ def iter_estimate_operator_3d(
         lambda: learn_basis(patches.psf, n_psf, support=support, positions=patches.centers,
                             z_threshold=z_threshold),
         Progress("basis", 0.5, "the PCA basis, outliers rejected"))
+    beads.status[kept[~basis.inliers]] = OUTLIER
     yield Progress("basis", 0.7, f"{basis.n_psf} 3D PSFs from {int(basis.inliers.sum())} "
                    "beads")
     centers = patches.centers[basis.inliers]
