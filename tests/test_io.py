@@ -45,3 +45,24 @@ def test_default_model_path_avoids_read_only_folders(tmp_path, monkeypatch):
         assert default_model_path(data / "beads.tif") == work / "beads_psf_model.npz"
     finally:
         os.chmod(data, stat.S_IRWXU)
+
+
+def test_an_ome_tiff_gives_its_pixel_size_and_plane_spacing(tmp_path):
+    """OME-XML's PhysicalSizeX and PhysicalSizeZ, in their units (µm when unstated)."""
+    import tifffile
+
+    from napari_psfspace.io import read_stack
+
+    data = np.zeros((5, 32, 32), np.uint16)
+    tifffile.imwrite(tmp_path / "a.ome.tif", data, ome=True,
+                     metadata={"axes": "ZYX", "PhysicalSizeX": 0.08, "PhysicalSizeY": 0.08,
+                               "PhysicalSizeZ": 0.25})
+    tifffile.imwrite(tmp_path / "b.ome.tif", data, ome=True,
+                     metadata={"axes": "ZYX", "PhysicalSizeX": 80, "PhysicalSizeXUnit": "nm",
+                               "PhysicalSizeZ": 250, "PhysicalSizeZUnit": "nm"})
+    for name in ("a.ome.tif", "b.ome.tif"):
+        _, info = read_stack(tmp_path / name)
+        assert info.pixel_size == pytest.approx(0.08) and info.z_spacing == pytest.approx(0.25)
+    tifffile.imwrite(tmp_path / "c.ome.tif", data, ome=True, metadata={"axes": "ZYX"})
+    _, info = read_stack(tmp_path / "c.ome.tif")
+    assert info.pixel_size is None and info.z_spacing is None

@@ -116,6 +116,38 @@ def _slice_index(index, n: int, name: str) -> int:
     return int(index)
 
 
+#: OME length units in micrometres.
+_OME_UNITS = {"µm": 1.0, "um": 1.0, "nm": 1e-3, "mm": 1e3, "m": 1e6, "Å": 1e-4}
+
+
+def _ome_sampling(xml: str | None) -> tuple[float | None, float | None]:
+    """The pixel size and the plane spacing (µm) of an OME-XML's first image; None for
+    either it does not give (or gives in a unit not known)."""
+    import xml.etree.ElementTree as ET
+
+    if not xml:
+        return None, None
+    try:
+        root = ET.fromstring(xml)
+    except ET.ParseError:
+        return None, None
+    pixels = next((el for el in root.iter() if el.tag.endswith("}Pixels")
+                   or el.tag == "Pixels"), None)
+    if pixels is None:
+        return None, None
+
+    def size(axis: str) -> float | None:
+        value = pixels.get(f"PhysicalSize{axis}")
+        factor = _OME_UNITS.get(pixels.get(f"PhysicalSize{axis}Unit", "µm"))
+        try:
+            v = float(value) * factor if value is not None and factor else None
+        except ValueError:
+            return None
+        return v if v and np.isfinite(v) and v > 0 else None
+
+    return size("X"), size("Z")
+
+
 def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
     """The first series of a TIFF as a real array (squeezed beyond 3-D) and its
     :class:`ImageInfo`. Colour (RGB) and complex files are refused."""
@@ -145,7 +177,11 @@ def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
         if pixel is not None and unit in ("nm", "nanometer"):
             pixel /= 1000.0
         z = ij.get("spacing")
-        info = ImageInfo(pixel, float(z) if z else None, tuple(data.shape), series.axes)
+        z = float(z) if z else None
+        if tif.is_ome:  # OME-XML's physical sizes, where it gives them
+            ome_pixel, ome_z = _ome_sampling(tif.ome_metadata)
+            pixel, z = ome_pixel or pixel, ome_z or z
+        info = ImageInfo(pixel, z, tuple(data.shape), series.axes)
     if data.dtype.kind not in "uif" and data.dtype != bool:
         raise ValueError(f"{name!r} holds {data.dtype} values; expected real intensities "
                          "(integers or floats)")

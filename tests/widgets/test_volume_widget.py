@@ -50,6 +50,19 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
         now = [layer.name for layer in v.layers]
         assert names is None or now == names  # a re-run updates, never piles up
         names = now
+    # Report: no folder, one line; with one, the three files, the sampling the layer's
+    w.report.clicked()
+    assert w.report_task.status.value.startswith("report folder")
+    w.report_dir.value = tmp_path / "qc"
+    w.na.value, w.wavelength.value = series.optics.na, series.optics.wavelength * 1000
+    w.report.clicked()
+    wait_task(qtbot, w.report_task, timeout=60_000)
+    import json
+
+    rec = json.loads((tmp_path / "qc" / "qc.json").read_text(encoding="utf-8"))
+    assert rec["sampling"]["z_step_nm"] == pytest.approx(200.0)
+    assert rec["theory"] is not None and rec["centre_fwhm_lateral_nm"] > 0
+    assert "qc.html" in w.report_result.value
     # Cancel during Learn 3D PSF: within 2 s, the layers as they were
     before = [layer.name for layer in v.layers]
     w.learn.clicked()

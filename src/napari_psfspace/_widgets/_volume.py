@@ -142,6 +142,19 @@ def _learn(stack, voxel, **kwargs):
     return est, grid, maps, (values, units)
 
 
+def _report(est, stack, voxel, folder, na, wavelength_nm, name):
+    """The QC record and its files (in the worker)."""
+    from ..report.qc import qc_record
+    from ..report.qc_page import write_qc_report
+
+    yield Progress("report", 0.0, "measuring the field, the beads and the theory")
+    rec = qc_record(est, stack, voxel_size=voxel,
+                    sampling_from="the layer's scale" if voxel else "unknown", na=na,
+                    wavelength_nm=wavelength_nm, source=name)
+    yield Progress("report", 0.8, "writing the page")
+    return rec, write_qc_report(rec, est, folder, voxel)
+
+
 def deblurred_layers(res, layer, scale, translate) -> list:
     """The deblurred stack where the input lies (the same planes and field: side by
     side, the z slider and the camera act on both), in the input's colormap."""
@@ -206,12 +219,29 @@ class Volume3DWidget(Container):
         self.deblur_task = CoreTask(self.deblur)
         self.deblur_result = Label(value="")
         self.deblur_result.native.setWordWrap(True)
+        self.na = FloatSpinBox(label="NA (0: not given)", min=0.0, max=1.7, step=0.01,
+                               value=0.0)
+        self.wavelength = FloatSpinBox(label="emission nm (0: not given)", min=0.0,
+                                       max=2000.0, step=1.0, value=0.0)
+        for box in (self.na, self.wavelength):
+            box.tooltip = ("With both, the report sets the widths beside theory (Abbe, "
+                           "and an aberration-free pupil PSF) and judges them.")
+        self.report_dir = FileEdit(mode="d", label="report folder")
+        self.report = PushButton(text="Report")
+        self.report.tooltip = ("Write qc.html (figures inline), qc_beads.csv and qc.json "
+                               "of the learnt 3D PSF into the report folder.")
+        self.report_task = CoreTask(self.report)
+        self.report_result = Label(value="")
+        self.report_result.native.setWordWrap(True)
         super().__init__(widgets=[
             self.image, self.radius, self.z_radius, self.n_psf, self.learn,
-            self.learn_task, self.learn_result, self.model_file, self.iterations,
-            self.accelerate, self.stop, self.device, self.deblur, self.deblur_task,
-            self.deblur_result])
+            self.learn_task, self.learn_result, self.na, self.wavelength, self.report_dir,
+            self.report, self.report_task, self.report_result, self.model_file,
+            self.iterations, self.accelerate, self.stop, self.device, self.deblur,
+            self.deblur_task, self.deblur_result])
         self.operator = None
+        self._learnt = None  # (estimation, stack, voxel size, stack name) of the last Learn
+        self.report.changed.connect(self.run_report)
         self.learn.changed.connect(self.run_learn)
         self.image.changed.connect(self._calibrate)
         self._calibrate()
@@ -258,6 +288,7 @@ class Volume3DWidget(Container):
         def on_result(got) -> None:
             est, (_, _, volume, sections, sections_y), (_, _, maps), (c, u) = got
             self.operator = op = est.operator
+            self._learnt = (est, stack, voxel, self.image.value.name)
             self._show(op, volume, (sections, sections_y), maps, scale, translate,
                        stack.shape[0])
             meta = op.metadata
@@ -279,6 +310,29 @@ class Volume3DWidget(Container):
                     f"floor; one 3D PSF {held['single_median']:.3f}")
 
         self.learn_task.run(gen, on_result)
+
+    def run_report(self, *_) -> None:
+        """Write the QC report of the last Learn into the report folder, in a worker."""
+        folder = str(self.report_dir.value)
+        if self._learnt is None:
+            self._fail(ValueError("Report: learn a 3D PSF first"), self.report_task)
+            return
+        if folder in ("", "."):
+            self._fail(ValueError("report folder: choose a folder to write the report in"),
+                       self.report_task)
+            return
+        est, stack, voxel, name = self._learnt
+        na = float(self.na.value) or None
+        wl = float(self.wavelength.value) or None
+
+        def on_result(got) -> None:
+            rec, paths = got
+            verdict = {True: "PASS", False: "FAIL", None: "not judged"}[rec["passed"]]
+            self.report_result.value = (
+                f"wrote {paths['html']} (and qc_beads.csv, qc.json): {verdict}"
+                + "".join(f"\nwarning: {w}" for w in rec["warnings"]))
+
+        self.report_task.run(_report(est, stack, voxel, folder, na, wl, name), on_result)
 
     def _show(self, op, volume, sections, maps, scale, translate, n_planes) -> None:
         dz, dy, dx = scale
