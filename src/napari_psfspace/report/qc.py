@@ -156,7 +156,6 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
             theory["pupil_psf"] = pupil_theory(na, lam, index, voxel_size)
     inl = estimation.basis.inliers
     patches = estimation.patches.subset(inl)
-    per_bead = bead_measures(patches)
     surface = meta.get("focal_surface") or {}
     checks = []
     ref = (theory or {}).get("pupil_psf") or (theory or {}).get("abbe")
@@ -232,9 +231,6 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                   "field_model": meta.get("field_model", "space-varying"),
                   "heldout": held, "verdict": verdict},
         "average_psf": {"n_beads": int(len(patches))},
-        "per_bead": {"n": int(len(patches)),
-                     "fwhm_lateral_median": _f(np.nanmedian(per_bead["fwhm_lateral"]), 4),
-                     "fwhm_axial_median": _f(np.nanmedian(per_bead["fwhm_axial"]), 4)},
     }
 
 
