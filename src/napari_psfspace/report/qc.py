@@ -103,6 +103,18 @@ def _check(name, value, limit, unit, why, higher_fails=True) -> dict:
             "pass": ok, "why": why}
 
 
+def surface_rise(surface, n: int = 9) -> float:
+    """Peak to valley of a focal surface over an ``n x n`` grid of its field, planes; NaN
+    for a constant surface (too few beads to fit a tilt)."""
+    if surface is None or "tilt_row" not in surface.terms:
+        return float("nan")
+    h, w = surface.shape
+    grid = np.stack(np.meshgrid(np.linspace(0, h - 1, n), np.linspace(0, w - 1, n),
+                                indexing="ij"), -1).reshape(-1, 2)
+    z = surface(grid)
+    return float(np.max(z) - np.min(z))
+
+
 def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unknown",
               na: float | None = None, wavelength_nm: float | None = None,
               immersion_index: float | None = None, tolerances: dict | None = None,
@@ -169,12 +181,14 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                              tol["axial_ratio"], "", "the same along the axis"))
     checks.append(_check("ellipticity", c_px["ellipticity"], tol["ellipticity"], "",
                          "1 - minor / major width at the field's centre"))
-    rise = np.nanmax(maps["focal_plane"]) - np.nanmin(maps["focal_plane"])
+    rise = surface_rise(estimation.surface)
     if np.isfinite(c_px["fwhm_axial"]) and c_px["fwhm_axial"] > 0:
         checks.append(_check("focal surface rise / axial FWHM", rise / c_px["fwhm_axial"],
                              tol["field_flatness"], "", "how far focus moves over the "
-                             "field (peak to valley of the model's focal plane) against "
-                             "the depth of focus"))
+                             "field (peak to valley of the focal surface through the "
+                             "beads' foci) against the depth of focus"
+                             + ("" if np.isfinite(rise) else
+                                "; not judged: too few beads to fit a tilt")))
     warnings = _nyquist(na, lam, index or 1.0, voxel_size, c_px)
     warnings += _saturation(meta, meta.get("image_dtype", "float32"), float(np.max(stack)))
     if meta.get("field_model") == "shift-invariant":
@@ -262,4 +276,4 @@ def bead_rows(estimation, voxel_size=None) -> list[dict]:
 
 
 __all__ = ["MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "average_psf", "bead_rows",
-           "pupil_theory", "qc_record"]
+           "pupil_theory", "qc_record", "surface_rise"]

@@ -46,6 +46,9 @@ def measure_maps(operator, n_rows: int = 8, n_cols: int = 8
     ys = (np.arange(n_rows) + 0.5) * h / n_rows - 0.5
     xs = (np.arange(n_cols) + 0.5) * w / n_cols - 0.5
     maps = {n: np.full((n_rows, n_cols), np.nan) for n in MEASURES}
+    if operator.n_psf == 1:  # one kernel, scaled: every measure is the same everywhere
+        _measure_into(maps, (slice(None), slice(None)), operator.psf_at(ys[0], xs[0]))
+        return ys, xs, maps
     for i, y in enumerate(ys):
         for j, x in enumerate(xs):
             _measure_into(maps, (i, j), operator.psf_at(y, x))  # on the stack's planes
