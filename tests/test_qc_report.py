@@ -110,7 +110,7 @@ def test_the_cli_reads_the_sampling_from_the_file_and_writes_three_files(series,
     stack, _ = series
     _tiff(tmp_path / "s.tif", stack, 0.065, 0.1)
     got = _cli("qc", str(tmp_path / "s.tif"), "-o", str(tmp_path / "out"), "--psf-radius",
-               "12", "-q")
+               "12", "--diagnose", "-q")
     assert got.returncode == 0, got.stderr
     rec = json.loads((tmp_path / "out" / "qc.json").read_text(encoding="utf-8"))
     assert rec["sampling"] == {"pixel_size_nm": 65.0, "z_step_nm": 100.0, "from": "file"}
@@ -118,7 +118,12 @@ def test_the_cli_reads_the_sampling_from_the_file_and_writes_three_files(series,
     assert rec["theory"] is None
     assert [c["name"] for c in rec["checks"]] == ["ellipticity",
                                                   "focal surface rise / axial FWHM"]
-    assert "no theory" in (tmp_path / "out" / "qc.html").read_text(encoding="utf-8")
+    page = (tmp_path / "out" / "qc.html").read_text(encoding="utf-8")
+    assert "no theory" in page
+    # the best-focus slice's diagnosis: its verdict and the effects it added
+    d = rec["diagnosis"]
+    assert d["headline"].startswith("Verdict:") and d["headline"] in page
+    assert isinstance(d["added"], list) and 0 <= d["slice"] < stack.shape[0]
     assert {p.name for p in (tmp_path / "out").iterdir()} == {"qc.html", "qc.json",
                                                                "qc_beads.csv"}
 

@@ -37,13 +37,22 @@ def run(args) -> int:
     est = run_with_progress(iter_estimate_operator_3d(
         stack, psf_radius=r, n_psf=args.n_psf, threshold=args.threshold, voxel_size=voxel),
         None if args.quiet else progress_printer())
+    diagnosis = None
+    if args.diagnose:  # the 2-D diagnosis of the slice the beads were detected on
+        from ..core.diagnosis.loop import iter_diagnose
+
+        focus = int(est.operator.metadata.get("focus_slice", est.operator.plane))
+        diagnosis = run_with_progress(
+            iter_diagnose(np.asarray(stack)[focus], psf_radius=r, threshold=args.threshold),
+            None if args.quiet else progress_printer())
     tol = {k: v for k, v in (("lateral_ratio", args.max_lateral_ratio),
                              ("axial_ratio", args.max_axial_ratio),
                              ("ellipticity", args.max_ellipticity),
                              ("field_flatness", args.max_field_rise)) if v is not None}
     record = qc_record(est, stack, voxel_size=voxel, sampling_from=source, na=args.na,
                        wavelength_nm=args.wavelength_nm, immersion_index=args.immersion_index,
-                       tolerances=tol, source=str(args.stack).rsplit("/", 1)[-1])
+                       tolerances=tol, source=str(args.stack).rsplit("/", 1)[-1],
+                       diagnosis=diagnosis)
     paths = write_qc_report(record, est, out, voxel)
     verdict = {True: "PASS", False: "FAIL", None: "not judged (no NA and wavelength)"}
     lat, ax = record["centre_fwhm_lateral_nm"], record["centre_fwhm_axial_nm"]
@@ -82,5 +91,7 @@ def add_parser(sub) -> None:
     q.add_argument("--n-psf", type=COUNT, help="basis size I (default: held-out beads)")
     q.add_argument("--threshold", type=POSITIVE, default=8.0,
                    help="detection threshold in noise standard deviations (default 8)")
+    q.add_argument("--diagnose", action="store_true", help="also diagnose the best-focus "
+                   "slice's 2-D model (its verdict and the effects it adds; slower)")
     q.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     q.set_defaults(func=run)

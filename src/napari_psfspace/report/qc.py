@@ -118,7 +118,7 @@ def surface_rise(surface, n: int = 9) -> float:
 def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unknown",
               na: float | None = None, wavelength_nm: float | None = None,
               immersion_index: float | None = None, tolerances: dict | None = None,
-              source: str = "") -> dict:
+              source: str = "", diagnosis=None) -> dict:
     """The QC record of a 3D estimate (module notes).
 
     Parameters
@@ -137,6 +137,10 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
         Overrides of :data:`TOLERANCES`.
     source : str
         The stack's file name.
+    diagnosis : Diagnosis, optional
+        The 2-D diagnosis of the best-focus slice
+        (:func:`~napari_psfspace.core.diagnosis.loop.iter_diagnose`): its verdict and the
+        effects it added go in the record.
 
     Returns
     -------
@@ -245,7 +249,20 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                   "field_model": meta.get("field_model", "space-varying"),
                   "heldout": held, "verdict": verdict},
         "average_psf": {"n_beads": int(len(patches))},
+        "diagnosis": None if diagnosis is None else diagnosis_record(
+            diagnosis, int(meta.get("focus_slice", op.plane))),
     }
+
+
+def diagnosis_record(diagnosis, focus_slice: int) -> dict:
+    """What the report says of a 2-D diagnosis: its verdict, the effects it tried and
+    added, the held-out error before and after."""
+    v = diagnosis.verdict
+    return {"slice": focus_slice, "level": v.level, "headline": v.headline,
+            "ratio": _f(v.ratio, 3), "added": list(diagnosis.added),
+            "tested": list(v.tested), "unanswered": list(v.unanswered),
+            "error_before": _f(diagnosis.error_before, 4),
+            "error_after": _f(diagnosis.error_after, 4)}
 
 
 def average_psf(estimation) -> tuple[np.ndarray, np.ndarray]:
@@ -276,4 +293,4 @@ def bead_rows(estimation, voxel_size=None) -> list[dict]:
 
 
 __all__ = ["MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "average_psf", "bead_rows",
-           "pupil_theory", "qc_record", "surface_rise"]
+           "diagnosis_record", "pupil_theory", "qc_record", "surface_rise"]

@@ -194,6 +194,19 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
     lines.append("<h2>The model's own check</h2>")
     m = r["model"]
     lines.append(f"<p>{m['n_psf']} 3D PSF(s), {e(m['field_model'])}; {e(m['verdict'])}.</p>")
+    d = r.get("diagnosis")
+    lines.append("<h2>Diagnosis of the best-focus slice</h2>")
+    if d is None:
+        lines.append("<p>Not run: <code>psfspace qc --diagnose</code> traces the held-out "
+                     "residual of the best-focus slice's 2-D model to the effects it lacks "
+                     "(a minute or more on a large slice).</p>")
+    else:
+        lines.append(f"<p>Slice {d['slice']}: {e(d['headline'])} Effects added: "
+                     f"{e(', '.join(d['added']) or 'none')} (tried: "
+                     f"{e(', '.join(d['tested']) or 'none')}).</p>")
+        if d["unanswered"]:
+            lines.append("<ul>" + "".join(f"<li>{e(u)}</li>" for u in d["unanswered"])
+                         + "</ul>")
     b = r["beads"]
     lines.append(f"<h2>Beads: {b['used']} used of {b['detected']} detected</h2>")
     counts = ", ".join(f"{v} {e(k)}" for k, v in b["counts"].items() if v)
