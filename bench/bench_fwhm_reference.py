@@ -286,7 +286,7 @@ def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
     vox = (dz, dxy, dxy)
     # napari-psf-analysis on the same beads, each at its own focus
     points = np.column_stack([np.round(est.bead_focus[inl]), centers])
-    ref = reference_fwhm(stack.astype(np.float64) - 20.0, points, vox)
+    ref = reference_fwhm(stack.astype(np.float64), points, vox)  # its fit takes the offset
     refd = {k: np.array([r[k] if r else np.nan for r in ref]) for k in ("row", "col", "axial")}
     refd["lateral"] = np.sqrt(refd["row"] * refd["col"])
     # the beads' depths as the estimate found them, against the planted ones
