@@ -63,6 +63,23 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     assert rec["sampling"]["z_step_nm"] == pytest.approx(200.0)
     assert rec["theory"] is not None and rec["centre_fwhm_lateral_nm"] > 0
     assert "qc.html" in w.report_result.value
+    # the page drawn by Qt's HTML engine, offline: every figure decodes (data URIs)
+    from qtpy.QtGui import QColor, QImage, QPainter, QTextDocument
+
+    doc = QTextDocument()
+    doc.setHtml((tmp_path / "qc" / "qc.html").read_text(encoding="utf-8"))
+    doc.setTextWidth(1100)
+    img = QImage(1100, int(doc.size().height()), QImage.Format.Format_RGB32)
+    img.fill(QColor("white"))
+    painter = QPainter(img)
+    doc.drawContents(painter)
+    painter.end()
+    rgb = np.frombuffer(img.constBits().asstring(img.sizeInBytes()) if hasattr(
+        img.constBits(), "asstring") else bytes(img.constBits()), np.uint8)
+    rgb = rgb.reshape(img.height(), -1, 4)[:, :1100, :3].astype(int)
+    # colour (not grey) comes from the figures alone: at least the ten figures' worth
+    coloured = np.ptp(rgb, axis=2) > 40
+    assert coloured.sum() >= 10 * 100 * 100, coloured.sum()
     # Cancel during Learn 3D PSF: within 2 s, the layers as they were
     before = [layer.name for layer in v.layers]
     w.learn.clicked()

@@ -201,6 +201,7 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
     refused = [{"row": _f(p[0], 2), "col": _f(p[1], 2), "status": str(s),
                 "reason": STATUS_MEANING.get(str(s), str(s))}
                for p, s in zip(estimation.beads.positions, status, strict=True) if s != KEPT]
+    refused.sort(key=lambda x: (x["status"], x["row"] or 0.0, x["col"] or 0.0))
     held = meta.get("heldout") or {}
     if held.get("n_beads"):
         verdict = (f"on {held['n_beads']} held-out beads the model's residual is "
