@@ -4,7 +4,8 @@ For each bead z-stack the project's widths are set beside an outside reference:
 
 * **measured** (``../shared/data``): every z-stack there. The project's 3D estimate
   (``estimate_operator_3d``, the CLI's defaults but the PSF radius) gives the beads; at
-  each bead the table has the model's PSF (map), the bead's own patch (per bead) and
+  each bead the table has the model's PSF (map), the bead's own pixels (per bead:
+  ``direct_bead_measures``, not re-sampled nor moved in z) and
   **napari-psf-analysis** 1.2 run on the same bead (its bead extractor, its Gaussian
   fits: 2-D on the plane of the bead's peak, 1-D along the axis through it; box 2 µm x
   6 µm as its panel's defaults, 4 µm deep where the stack is shallower). Single-bead
@@ -50,7 +51,7 @@ from benchlib import table
 from napari_psfspace.core.common.measures import psf_measures
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.volume import iter_estimate_operator_3d
-from napari_psfspace.core.volume.measures import bead_measures, model_measures
+from napari_psfspace.core.volume.measures import direct_bead_measures, model_measures
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: (path under ../shared/data, PSF radius in px); the voxel size is the file's.
@@ -142,7 +143,7 @@ def measured() -> list[dict]:
         if est is not None:
             inl = est.basis.inliers
             centers = est.patches.centers[inl]
-            beads = bead_measures(est.patches.subset(inl))
+            beads = direct_bead_measures(stack, est)  # each bead on its own pixels
             model = model_measures(est.operator, centers)
             planes = beads["focal_plane"]
         else:  # one bead: its brightest voxel, a patch about it
@@ -280,7 +281,7 @@ def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
     stack = rng.poisson(clean).astype(np.float32)
     est = run_with_progress(iter_estimate_operator_3d(stack, psf_radius=12))
     inl = est.basis.inliers
-    beads = bead_measures(est.patches.subset(inl))
+    beads = direct_bead_measures(stack, est)  # each bead on its own pixels
     centers = est.patches.centers[inl]
     model = model_measures(est.operator, centers)
     vox = (dz, dxy, dxy)

@@ -13,6 +13,7 @@ def run(args) -> int:
     from ..core.volume import iter_estimate_operator_3d
     from ..core.volume.measures import (
         bead_measures,
+        direct_bead_measures,
         map_uncertainty,
         measure_maps,
         measure_table,
@@ -72,7 +73,9 @@ def run(args) -> int:
 
         from ..core.common.atomic import atomic_write
 
-        rows = measure_table(beads, est.patches.centers[inl], voxel)
+        # each bead fitted to its own pixels, as the microscopist's own fit reads it
+        rows = measure_table(direct_bead_measures(stack, est), est.patches.centers[inl],
+                             voxel)
 
         def write(fh):
             w = csv.DictWriter(fh, fieldnames=list(rows[0]))

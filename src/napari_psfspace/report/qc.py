@@ -3,11 +3,14 @@
 From a 3D estimate (:func:`~napari_psfspace.core.volume.iter_estimate_operator_3d`,
 beads registered to the focal surface) the record holds:
 
-* the PSF at the field's centre (the model there): lateral FWHM (rows, columns, major,
-  minor), axial FWHM, ellipticity, astigmatic split, by the measures napari-psf-analysis
-  quotes (a 2-D Gaussian in focus, a 1-D Gaussian along the axis: the QUAREP-LiMi
-  working group 5 practice); ``centre_fwhm_lateral_nm`` and ``centre_fwhm_axial_nm`` at
-  the top level;
+* the PSF at the field's centre: lateral FWHM (rows, columns, major, minor), axial
+  FWHM, ellipticity, astigmatic split, by the measures napari-psf-analysis quotes (a
+  2-D Gaussian in focus, a 1-D Gaussian along the axis: the QUAREP-LiMi working group 5
+  practice), each fitted to every bead's own pixels and taken to the centre by a plane
+  over the field (:func:`centre_value`), the model's PSF there beside it (the model is
+  learnt from patches re-sampled to each bead's sub-pixel centre, which widens a PSF
+  sampled near Nyquist); ``centre_fwhm_lateral_nm`` and ``centre_fwhm_axial_nm`` at the
+  top level;
 * the same measures on an 8 x 8 grid of the field (``maps``) and their range;
 * the focal surface (tilt and curvature, µm) and the beads left off it;
 * theory, where NA and wavelength are given: Abbe's widths
@@ -28,7 +31,7 @@ import numpy as np
 
 from ..core.beads.detect import KEPT, STATUS_MEANING
 from ..core.common.measures import diffraction_limit, in_units, psf_measures
-from ..core.volume.measures import bead_measures, measure_maps, model_measures
+from ..core.volume.measures import direct_bead_measures, measure_maps, model_measures
 
 #: Version of the record's layout (``qc.json``'s ``version``).
 QC_VERSION = 1
@@ -103,6 +106,30 @@ def _check(name, value, limit, unit, why, higher_fails=True) -> dict:
             "pass": ok, "why": why}
 
 
+def centre_value(positions, values, shape) -> float:
+    """A measure at the field's centre from the beads' own values: a plane (a constant
+    and a tilt) fitted over the field to five beads or more, refitted without those
+    beyond four robust standard deviations of it; the median of fewer. NaN without a
+    finite value."""
+    from ..core.volume.focal_surface import design
+
+    v = np.asarray(values, float)
+    ok = np.isfinite(v)
+    if ok.sum() == 0:
+        return float("nan")
+    if ok.sum() < 5:
+        return float(np.median(v[ok]))
+    terms = ("constant", "tilt_row", "tilt_col")
+    a = design(np.asarray(positions, float)[ok], shape, terms)
+    coef = np.linalg.lstsq(a, v[ok], rcond=None)[0]
+    res = v[ok] - a @ coef
+    sd = 1.4826 * np.median(np.abs(res - np.median(res)))
+    keep = np.abs(res) <= 4 * sd if sd > 0 else np.ones(len(res), bool)
+    if 3 <= keep.sum() < len(res):
+        coef = np.linalg.lstsq(a[keep], v[ok][keep], rcond=None)[0]
+    return float(coef[0])  # the constant: the value at the field's centre
+
+
 def surface_rise(surface, n: int = 9) -> float:
     """Peak to valley of a focal surface over an ``n x n`` grid of its field, planes; NaN
     for a constant surface (too few beads to fit a tilt)."""
@@ -154,8 +181,13 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
     meta = op.metadata
     depth, h, w = op.shape
     centre = (np.array([h, w], float) - 1) / 2
-    c_px = {k: float(v[0]) for k, v in model_measures(op, centre[None]).items()}
-    c_nm, units = in_units(c_px, voxel_size)
+    model_px = {k: float(v[0]) for k, v in model_measures(op, centre[None]).items()}
+    model_nm, units = in_units(model_px, voxel_size)
+    inl = estimation.basis.inliers
+    direct = direct_bead_measures(stack, estimation)
+    positions = estimation.patches.centers[inl]
+    c_px = {k: centre_value(positions, direct[k], (h, w)) for k in model_px}
+    c_nm, _ = in_units(c_px, voxel_size)
     ys, xs, maps = measure_maps(op, 8, 8)
     lam = wavelength_nm / 1000.0 if wavelength_nm else None
     index, index_from = immersion_index, "given"
@@ -170,7 +202,6 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                            "axial_nm": _f(abbe["axial"] * 1000)}}
         if voxel_size is not None:
             theory["pupil_psf"] = pupil_theory(na, lam, index, voxel_size)
-    inl = estimation.basis.inliers
     patches = estimation.patches.subset(inl)
     surface = meta.get("focal_surface") or {}
     checks = []
@@ -233,8 +264,8 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                    "immersion_index_from": index_from if index else None},
         "centre_fwhm_lateral_nm": in_nm("fwhm_lateral"),
         "centre_fwhm_axial_nm": in_nm("fwhm_axial"),
-        "centre": {name: {"value": _f(c_nm[name], 3), "unit": units[name]}
-                   for name in c_nm},
+        "centre": {name: {"value": _f(c_nm[name], 3), "model": _f(model_nm[name], 3),
+                          "unit": units[name]} for name in c_nm},
         "theory": theory, "tolerances": tol, "checks": checks,
         "passed": (all(c["pass"] for c in checks if c["pass"] is not None)
                    if any(c["pass"] is not None for c in checks) else None),
@@ -250,6 +281,7 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                   "field_model": meta.get("field_model", "space-varying"),
                   "heldout": held, "verdict": verdict},
         "average_psf": {"n_beads": int(len(patches))},
+        "per_bead": bead_rows(estimation, direct, voxel_size),
         "diagnosis": None if diagnosis is None else diagnosis_record(
             diagnosis, int(meta.get("focus_slice", op.plane))),
     }
@@ -273,25 +305,24 @@ def average_psf(estimation) -> tuple[np.ndarray, np.ndarray]:
     return p.mean(axis=0), (p.std(axis=0, ddof=1) if len(p) > 1 else np.zeros(p.shape[1:]))
 
 
-def bead_rows(estimation, voxel_size=None) -> list[dict]:
+def bead_rows(estimation, direct: dict, voxel_size=None) -> list[dict]:
     """The per-bead CSV's rows: position, own focus and distance from the focal surface
-    (planes), and every direct measure of its patch (nm with a voxel size)."""
+    (planes), and every measure fitted to its own pixels (``direct``, from
+    :func:`~napari_psfspace.core.volume.measures.direct_bead_measures`; nm with a voxel
+    size)."""
     from ..core.volume.measures import measure_table
 
     inl = estimation.basis.inliers
     patches = estimation.patches.subset(inl)
-    rows = measure_table(bead_measures(patches), patches.centers, voxel_size)
+    rows = measure_table(direct, patches.centers, voxel_size)
     focus = np.asarray(estimation.bead_focus)[inl]
     surface = estimation.surface
     offset = focus - surface(patches.centers)
     for row, f, o in zip(rows, focus, offset, strict=True):
-        # a registered patch's focal plane is the surface's: the bead's own is its focus
-        for key in [k for k in row if k.startswith("focal_plane")]:
-            del row[key]
         row["focus_plane"] = _f(f, 3)
         row["offset_from_surface_planes"] = _f(o, 3)
     return rows
 
 
 __all__ = ["MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "average_psf", "bead_rows",
-           "diagnosis_record", "pupil_theory", "qc_record", "surface_rise"]
+           "centre_value", "diagnosis_record", "pupil_theory", "qc_record", "surface_rise"]

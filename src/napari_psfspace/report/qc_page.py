@@ -19,7 +19,7 @@ import numpy as np
 
 from ..core.common.atomic import atomic_write
 from ..figure import labelled_figure
-from .qc import average_psf, bead_rows
+from .qc import average_psf
 
 #: The field maps of the page: measure, title, colour map.
 MAPS = (("fwhm_col", "lateral FWHM along x (columns)", "viridis"),
@@ -161,17 +161,23 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
     crow = []
     for name, key in (("lateral FWHM", "fwhm_lateral"), ("axial FWHM", "fwhm_axial")):
         short = "lateral" if key == "fwhm_lateral" else "axial"
-        crow.append([name, _v(r["centre"][key]["value"]), e(r["centre"][key]["unit"]),
+        crow.append([name, _v(r["centre"][key]["value"]), _v(r["centre"][key]["model"]),
+                     e(r["centre"][key]["unit"]),
                      _v((th.get("abbe") or {}).get(f"{short}_nm")),
                      _v((th.get("pupil_psf") or {}).get(f"{short}_nm"))])
     for key in ("fwhm_row", "fwhm_col", "fwhm_major", "fwhm_minor", "ellipticity",
                 "astigmatic_split"):
         crow.append([key.replace("_", " "), _v(r["centre"][key]["value"]),
-                     e(r["centre"][key]["unit"]), "-", "-"])
-    lines.append(_table(["measure", "model", "unit", "Abbe (nm)", "pupil PSF (nm)"], crow))
+                     _v(r["centre"][key]["model"]), e(r["centre"][key]["unit"]), "-", "-"])
+    lines.append(_table(["measure", "beads", "model", "unit", "Abbe (nm)",
+                         "pupil PSF (nm)"], crow))
     lines.append("<p>Widths: a 2-D Gaussian with an offset in focus and a 1-D Gaussian "
                  "along the axis (the QUAREP-LiMi working group 5 practice, as "
-                 "napari-psf-analysis fits them). Theory, for a widefield microscope (a "
+                 "napari-psf-analysis fits them). <i>beads</i>: each bead fitted on its own "
+                 "pixels, taken to the centre by a plane over the field (the figures "
+                 "judged); <i>model</i>: the model's PSF at the centre (re-sampled to the "
+                 "beads' sub-pixel centres, it reads wider where the PSF spans few "
+                 "pixels). Theory, for a widefield microscope (a "
                  "confocal's is narrower): Abbe's widths and an aberration-free scalar pupil "
                  "PSF at this sampling, measured the same way."
                  "</p>")
@@ -221,12 +227,12 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
 
 def write_qc_report(record: dict, estimation, out_dir: str | os.PathLike,
                     voxel_size=None) -> dict[str, Path]:
-    """Write ``qc.html``, ``qc_beads.csv`` and ``qc.json`` into ``out_dir`` (made if
-    missing); return their paths."""
+    """Write ``qc.html``, ``qc_beads.csv`` (``record["per_bead"]``) and ``qc.json`` into
+    ``out_dir`` (made if missing); return their paths."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     page = qc_html(record, estimation, voxel_size)
-    rows = bead_rows(estimation, voxel_size)
+    rows = record["per_bead"]
     buf = io.StringIO()
     if rows:
         w = csv.DictWriter(buf, fieldnames=list(rows[0]))

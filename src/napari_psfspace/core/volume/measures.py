@@ -2,7 +2,8 @@
 :mod:`napari_psfspace.core.common.measures` (a Gaussian with an offset fitted in focus and
 along the axis, as napari-psf-analysis quotes them; the focal plane from the peak; the
 astigmatic split from the two line foci) on a grid of the field (:func:`measure_maps`),
-on each bead's own patch (:func:`bead_measures`, a direct fit with no model) and in a
+on each bead's own patch (:func:`bead_measures`, a direct fit with no model;
+:func:`direct_bead_measures` on its pixels as they were recorded) and in a
 table with the units (:func:`measure_table`, nm where the voxel size is known).
 """
 
@@ -75,6 +76,35 @@ def bead_measures(patches) -> dict[str, np.ndarray]:
     return out
 
 
+def direct_bead_measures(stack, estimation) -> dict[str, np.ndarray]:
+    """The measures of each bead in a model (``estimation.basis.inliers``), fitted to its
+    own pixels: its patch cut at the nearest whole pixel and plane, not re-sampled to its
+    sub-pixel centre nor moved in z (the Gaussian fits find the centre). Re-sampling
+    widens a PSF sampled near or below Nyquist (a lateral FWHM of one or two pixels);
+    these are the widths a microscopist's own fit of the bead reads.
+
+    Parameters
+    ----------
+    stack : array_like of shape (Z, H, W)
+        The stack the model was learnt from.
+    estimation : Estimation3D
+
+    Returns
+    -------
+    dict
+        Measure name (:data:`MEASURES`) -> ndarray (K,) in the order of
+        ``estimation.patches.centers[estimation.basis.inliers]``; ``focal_plane`` on the
+        stack's planes.
+    """
+    from .patches3d import extract_patches_3d
+
+    p = estimation.patches.subset(estimation.basis.inliers)
+    half = (len(p.planes) - 1) // 2
+    raw = extract_patches_3d(np.asarray(stack, np.float32), np.round(p.centers), p.r,
+                             plane=int(p.planes[half]), z_radius=half)
+    return bead_measures(raw)
+
+
 def model_measures(operator, centers: np.ndarray) -> dict[str, np.ndarray]:
     """The measures of the model's PSF at each position ``(row, column)``, shape (K, 2):
     measure name -> ndarray (K,), ``focal_plane`` on the stack's planes."""
@@ -121,5 +151,6 @@ def measure_table(beads: dict[str, np.ndarray], centers: np.ndarray,
     return rows
 
 
-__all__ = ["MEASURES", "NAMES", "bead_measures", "map_uncertainty", "measure_maps",
+__all__ = ["MEASURES", "NAMES", "bead_measures", "direct_bead_measures", "map_uncertainty",
+           "measure_maps",
            "measure_table", "model_measures", "psf_measures"]
