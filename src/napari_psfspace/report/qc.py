@@ -191,7 +191,7 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
     ys, xs, maps = measure_maps(op, 8, 8)
     lam = wavelength_nm / 1000.0 if wavelength_nm else None
     index, index_from = immersion_index, "given"
-    if na and not index:  # air to NA 0.95, water to 1.27, glycerol to 1.4, oil beyond
+    if na and not index:  # a plausible immersion for the NA: air, water, glycerol or oil
         from ..core.simulation.focus import immersion_index as plausible
 
         index, index_from = plausible(na), "assumed from the NA"
