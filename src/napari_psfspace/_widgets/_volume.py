@@ -219,13 +219,14 @@ class Volume3DWidget(Container):
         self.deblur_task = CoreTask(self.deblur)
         self.deblur_result = Label(value="")
         self.deblur_result.native.setWordWrap(True)
-        self.na = FloatSpinBox(label="NA (0: not given)", min=0.0, max=1.7, step=0.01,
+        self.na = FloatSpinBox(label="NA", min=0.0, max=1.7, step=0.01,
                                value=0.0)
-        self.wavelength = FloatSpinBox(label="emission nm (0: not given)", min=0.0,
+        self.wavelength = FloatSpinBox(label="emission (nm)", min=0.0,
                                        max=2000.0, step=1.0, value=0.0)
         for box in (self.na, self.wavelength):
-            box.tooltip = ("With both, the report sets the widths beside theory (Abbe, "
-                           "and an aberration-free pupil PSF) and judges them.")
+            box.tooltip = ("0: not given. With both, the report sets the widths beside "
+                           "theory (Abbe, and an aberration-free pupil PSF) and judges "
+                           "them.")
         self.report_dir = FileEdit(mode="d", label="report folder")
         self.report = PushButton(text="Report")
         self.report.tooltip = ("Write qc.html (figures inline), qc_beads.csv and qc.json "
