@@ -182,9 +182,22 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
                  "PSF at this sampling, measured the same way."
                  "</p>")
     lines.append("<h2>Over the field</h2>")
-    frows = [[k.replace("_", " "), _v(v["min"]), _v(v["median"]), _v(v["max"]), e(v["unit"])]
-             for k, v in r["field"].items() if k != "astigmatic_split_limit"]
-    lines.append(_table(["measure", "min", "median", "max", "unit"], frows))
+    ref = th.get("pupil_psf") or th.get("abbe") or {}
+    ideal = {"fwhm_lateral": ref.get("lateral_nm"), "fwhm_row": ref.get("lateral_nm"),
+             "fwhm_col": ref.get("lateral_nm"), "fwhm_major": ref.get("lateral_nm"),
+             "fwhm_minor": ref.get("lateral_nm"), "fwhm_axial": ref.get("axial_nm"),
+             "ellipticity": 0.0, "astigmatic_split": 0.0}
+    frows = []
+    for k, v in r["field"].items():
+        if k == "astigmatic_split_limit":
+            continue
+        want = ideal.get(k) if v["unit"] in ("nm", "") or k in ("ellipticity",
+                                                                "astigmatic_split") else None
+        if k == "focal_plane":
+            want = "flat"
+        frows.append([k.replace("_", " "), _v(v["min"]), _v(v["median"]), _v(v["max"]),
+                      e(v["unit"]), _v(want) if want != "flat" else "flat"])
+    lines.append(_table(["measure", "min", "median", "max", "unit", "theory"], frows))
     lines.append(_map_figures(r, voxel_size))
     fs = r["focal_surface"] or {}
     if fs:
