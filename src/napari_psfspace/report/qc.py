@@ -43,6 +43,16 @@ TOLERANCES = {"lateral_ratio": 1.5, "axial_ratio": 1.5, "ellipticity": 0.2,
 MIN_PIXELS_PER_FWHM = 2.0
 
 
+#: The immersion index assumed from the NA where none is given: (largest NA, index) of
+#: air, water and oil objectives (the common immersion of each range).
+IMMERSION = ((0.95, 1.0), (1.27, 1.333), (float("inf"), 1.518))
+
+
+def assumed_immersion(na: float) -> float:
+    """The immersion index of the common objective of this NA (:data:`IMMERSION`)."""
+    return next(n for top, n in IMMERSION if na <= top)
+
+
 def _f(v, digits: int = 1):
     return round(float(v), digits) if v is not None and np.isfinite(v) else None
 
@@ -191,10 +201,8 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
     ys, xs, maps = measure_maps(op, 8, 8)
     lam = wavelength_nm / 1000.0 if wavelength_nm else None
     index, index_from = immersion_index, "given"
-    if na and not index:  # a plausible immersion for the NA: air, water, glycerol or oil
-        from ..core.simulation.focus import immersion_index as plausible
-
-        index, index_from = plausible(na), "assumed from the NA"
+    if na and not index:
+        index, index_from = assumed_immersion(na), "assumed from the NA"
     theory = None
     if na and lam:
         abbe = diffraction_limit(na, lam, refractive_index=index)
@@ -324,5 +332,6 @@ def bead_rows(estimation, direct: dict, voxel_size=None) -> list[dict]:
     return rows
 
 
-__all__ = ["MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "average_psf", "bead_rows",
-           "centre_value", "diagnosis_record", "pupil_theory", "qc_record", "surface_rise"]
+__all__ = ["IMMERSION", "MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "assumed_immersion",
+           "average_psf", "bead_rows", "centre_value", "diagnosis_record", "pupil_theory",
+           "qc_record", "surface_rise"]
