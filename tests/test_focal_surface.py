@@ -4,13 +4,13 @@ it left out, and each patch moved onto the surface.
 
 The stack: a tilted and curved slide (NA 1.4, 100 nm pixels and planes, +-1.2 µm) with
 beads scattered +-0.5 µm about it, and one bead floating 1.6 µm above it (its focus is
-not inside the stack).
+not inside the stack). The rules for a bead off the surface are checked on planted foci.
 """
 
 import numpy as np
 import pytest
 
-from napari_psfspace.core.beads.detect import OFF_FOCUS
+from napari_psfspace.core.beads.detect import OFF_FOCUS, OUTLIER
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.simulation.focus import simulate_focus_series
 from napari_psfspace.core.simulation.optics import Optics
@@ -68,16 +68,19 @@ def test_the_surface_through_foci_is_recovered_and_a_far_bead_is_left_out():
     sd = 0.3
     foci = design(pos, shape, terms) @ truth + rng.normal(0, sd, len(pos))
     foci[7] += 9.0  # a bead far off (its width is 6 planes)
-    foci[11] = np.nan  # and one whose focus is not in the stack
-    s = fit_focal_surface(pos, foci, np.full(len(pos), 6.0), shape)
+    # a stack of 38 planes: the surface is at plane 30 in the centre, 33 in the corners; a
+    # bead is off 6 planes (its width) from it, so a focus beyond the stack is
+    foci[11], pos[11] = np.nan, (299.5, 399.5)  # unexplained in the centre (30 < 31)
+    foci[12], pos[12] = np.nan, (0.0, 0.0)  # and where the surface nears the end (33)
+    s = fit_focal_surface(pos, foci, np.full(len(pos), 6.0), shape, depth=38)
     assert s.terms == terms
     assert np.flatnonzero(s.off).tolist() == [7, 11]
-    # least squares of 48 beads, 4 terms: the surface's rms error is sd sqrt(4 / 48) at
+    # least squares of 47 beads, 4 terms: the surface's rms error is sd sqrt(4 / 47) at
     # the beads; 3 times that bounds it with room for the draw
     grid = np.stack(np.meshgrid(np.linspace(0, 599, 9), np.linspace(0, 799, 9),
                                 indexing="ij"), -1).reshape(-1, 2)
     err = s(grid) - design(grid, shape, terms) @ truth
-    assert np.sqrt(np.mean(err ** 2)) <= 3 * sd * np.sqrt(4 / 48)
+    assert np.sqrt(np.mean(err ** 2)) <= 3 * sd * np.sqrt(4 / 47)
     # fewer beads, fewer terms: a tilt from 5, a constant below
     assert fit_focal_surface(pos[:6], foci[:6], np.full(6, 6.0), shape).terms == terms[:3]
     assert fit_focal_surface(pos[:3], foci[:3], np.full(3, 6.0), shape).terms == terms[:1]
@@ -120,10 +123,12 @@ def test_the_focal_surface_of_a_tilted_curved_slide_is_found_and_a_far_bead_left
     # beads uniform over +-0.5 µm (sd 0.29 µm), about 35 of them, 4 terms: the surface's
     # rms error is near 0.29 sqrt(4 / 35) = 0.098 µm; 1.5 times that bounds the draw
     assert np.sqrt(np.mean(err_um ** 2)) <= 1.5 * 0.098
+    # the floating bead has no focus inside the stack; with beads scattered +-0.5 µm the
+    # surface's limit (four robust sd, 1.5 µm) reaches past the stack's ends, so the
+    # focus rule cannot judge it: it is still not in the model (the PCA's outlier test)
     far = np.argmin(np.hypot(*(est.beads.positions - series.positions[0]).T))
-    assert est.beads.status[far] == OFF_FOCUS
+    assert est.beads.status[far] in (OFF_FOCUS, OUTLIER)
     meta = est.operator.metadata
-    assert meta["off_focus_beads"] and meta["focal_surface"]["n_off"] >= 1
     assert abs(meta["focal_surface"]["tilt_um"] - 2 * np.hypot(0.25, 0.15)) <= 0.15
     # each bead's own focus (the slice where z equals its height)
     near = np.array([np.argmin(np.hypot(*(series.positions - c).T))

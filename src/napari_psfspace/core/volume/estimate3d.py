@@ -149,7 +149,7 @@ def iter_estimate_operator_3d(
         z_radius = max(plane, depth - 1 - plane)
     # planes beyond the stack hold nothing: at most depth - 1 on each side
     z_radius = check_int(z_radius, "z_radius", minimum=1, maximum=max(depth - 1, 1))
-    surface = fit_focal_surface(beads.positions[kept], foci, widths, (h, w))
+    surface = fit_focal_surface(beads.positions[kept], foci, widths, (h, w), depth=depth)
     beads.status[kept[surface.off]] = OFF_FOCUS
     kept, foci = kept[~surface.off], foci[~surface.off]
     offsets = np.nan_to_num(surface.offsets[~surface.off])

@@ -35,7 +35,7 @@ from scipy import ndimage as ndi
 SURFACE_TERMS = ((8, ("constant", "tilt_row", "tilt_col", "curvature")),
                  (5, ("constant", "tilt_row", "tilt_col")),
                  (1, ("constant",)))
-#: Beads with a focus inside the stack that make a bead without one an outlier.
+#: Beads with a focus inside the stack needed to judge a bead without one.
 MIN_SURFACE_BEADS = 5
 #: A bead is off the surface beyond this many robust standard deviations of the
 #: distances (and beyond the beads' median axial half-maximum width).
@@ -153,7 +153,8 @@ def design(positions, shape, terms) -> np.ndarray:
     return np.column_stack([cols[t] for t in terms])
 
 
-def fit_focal_surface(positions, foci, widths, shape, *, rounds: int = 3) -> FocalSurface:
+def fit_focal_surface(positions, foci, widths, shape, *, depth: int | None = None,
+                      rounds: int = 3) -> FocalSurface:
     """The focal surface through the beads' foci (module notes).
 
     Parameters
@@ -161,13 +162,17 @@ def fit_focal_surface(positions, foci, widths, shape, *, rounds: int = 3) -> Foc
     positions : ndarray of shape (K, 2)
         Lateral centres (row, column), pixels.
     foci : ndarray of shape (K,)
-        Each bead's focus, planes (NaN: none). A bead with none is not fitted; it is off
-        the surface when :data:`MIN_SURFACE_BEADS` beads or more have one (its focus
-        is then not where theirs are, inside the stack), else kept.
+        Each bead's focus, planes (NaN: none inside the stack). A bead with none is not
+        fitted. It is off the surface where the surface, fitted to
+        :data:`MIN_SURFACE_BEADS` beads or more, puts its focus inside the stack by
+        more than the limit from either end (``depth`` given); else it is kept, not
+        moved (a field whose focus leaves the stack at its corners keeps its corners).
     widths : ndarray of shape (K,)
         Each bead's axial half-maximum width, planes.
     shape : (int, int)
         The field, pixels.
+    depth : int, optional
+        The stack's planes (to judge the beads without a focus).
     rounds : int
         Refits without the beads off the surface.
 
@@ -199,13 +204,17 @@ def fit_focal_surface(positions, foci, widths, shape, *, rounds: int = 3) -> Foc
         if np.array_equal(new, off):
             break
         off = new
-    if int((finite & ~off).sum()) >= MIN_SURFACE_BEADS:
-        off = off | ~finite
     surface = FocalSurface(terms, np.asarray(coef, np.float64), tuple(shape),
                            np.full(len(foci), np.nan), off, float(limit), float(sd),
                            int((finite & ~off).sum()), pos)
     if len(foci):
         surface.offsets = np.where(finite, foci - surface(pos), np.nan)
+    if depth is not None and surface.n_used >= MIN_SURFACE_BEADS and (~finite).any():
+        # a bead with no focus inside the stack where the surface puts its focus well
+        # inside it (farther than the limit from either end) is not where the others are
+        at = surface(pos[~finite])
+        inside = (at > limit) & (at < int(depth) - 1 - limit)
+        surface.off[np.flatnonzero(~finite)[inside]] = True
     return surface
 
 
