@@ -138,6 +138,19 @@ def test_the_cli_reads_the_sampling_from_the_file_and_writes_three_files(series,
                                                                "qc_beads.csv"}
 
 
+def test_the_cli_reads_an_ome_zarr_stack_and_its_voxel_size(series, tmp_path):
+    from test_io import _ome_zarr
+
+    stack, _ = series
+    _ome_zarr(tmp_path / "s.zarr", stack, "zyx", (0.1, 0.065, 0.065), ("micrometer",) * 3)
+    got = _cli("qc", str(tmp_path / "s.zarr"), "-o", str(tmp_path / "out"), "--psf-radius",
+               "12", "-q")
+    assert got.returncode == 0, got.stderr
+    rec = json.loads((tmp_path / "out" / "qc.json").read_text(encoding="utf-8"))
+    assert rec["sampling"] == {"pixel_size_nm": 65.0, "z_step_nm": 100.0, "from": "file"}
+    assert rec["source"] == "s.zarr"
+
+
 def test_bad_inputs_are_one_line_before_any_work(tmp_path):
     missing = _cli("qc", str(tmp_path / "none.tif"), "-o", str(tmp_path / "o"))
     assert missing.returncode == 2 and missing.stderr.count("\n") == 1

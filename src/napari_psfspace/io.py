@@ -190,7 +190,8 @@ def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
 
 
 def read_stack(path: str | os.PathLike):
-    """Read a z-stack (Z, Y, X) and its sampling from a TIFF file.
+    """Read a z-stack (Z, Y, X) and its sampling from a TIFF file (ImageJ or OME) or an
+    OME-Zarr folder (:mod:`napari_psfspace.ome_zarr`).
 
     Returns
     -------
@@ -205,7 +206,13 @@ def read_stack(path: str | os.PathLike):
         A 2-D image, more than 3 dimensions, a colour or complex image, a file that is
         not a readable TIFF.
     """
-    data, info = _read_tiff(path)
+    from .ome_zarr import is_ome_zarr, read_ome_zarr
+
+    if is_ome_zarr(path):
+        data, pixel, z, axes = read_ome_zarr(path)
+        info = ImageInfo(pixel, z, tuple(data.shape), axes)
+    else:
+        data, info = _read_tiff(path)
     if data.ndim != 3:
         raise ValueError(f"{os.fspath(path)!r} holds an array of shape {data.shape}; "
                          "expected a z-stack (Z, Y, X)")
