@@ -131,6 +131,40 @@ def image_and_radius(args):
     return image, info, r
 
 
+def stack_sampling(args, info):
+    """A z-stack's voxel size ``(dz, dy, dx)`` in µm (None unless both are known) from
+    ``--pixel-size-nm``/``--z-step-nm`` or the file, where it came from ("given",
+    "file", "unknown"), and the PSF radius in pixels from ``--psf-radius`` or
+    ``--psf-radius-um`` (None where neither is given)."""
+    pixel = args.pixel_size_nm / 1000.0 if args.pixel_size_nm else info.pixel_size
+    dz = args.z_step_nm / 1000.0 if args.z_step_nm else info.z_spacing
+    voxel = (dz, pixel, pixel) if pixel and dz else None
+    source = ("given" if args.pixel_size_nm or args.z_step_nm
+              else "file" if voxel else "unknown")
+    r = args.psf_radius
+    if r is None and args.psf_radius_um is not None:
+        if not pixel:
+            raise ValueError("--psf-radius-um needs the pixel size, which the file does not "
+                             "give: pass --pixel-size-nm or --psf-radius in pixels")
+        r = args.psf_radius_um / pixel
+    return voxel, source, r
+
+
+def add_stack_sampling(parser: argparse.ArgumentParser, *, radius_required: bool,
+                       radius_default: str) -> None:
+    """The z-stack argument and the options :func:`stack_sampling` reads."""
+    parser.add_argument("stack", help="z-stack of beads on a coverslip (Z, Y, X): TIFF "
+                        "(ImageJ or OME) or OME-Zarr")
+    g = parser.add_mutually_exclusive_group(required=radius_required)
+    g.add_argument("--psf-radius", type=POSITIVE, help="lateral PSF radius on the widest "
+                   f"plane, pixels{radius_default}")
+    g.add_argument("--psf-radius-um", type=POSITIVE, help="the same in micrometres")
+    parser.add_argument("--pixel-size-nm", type=POSITIVE,
+                        help="pixel size (overrides the file's)")
+    parser.add_argument("--z-step-nm", type=POSITIVE,
+                        help="plane spacing (overrides the file's)")
+
+
 def bead_diameter_px(args, info) -> float:
     """--bead-diameter-nm in pixels (0 without it), with the image's pixel size."""
     d = getattr(args, "bead_diameter_nm", None)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .common import COUNT, POSITIVE, progress_printer
+from .common import COUNT, POSITIVE, add_stack_sampling, progress_printer, stack_sampling
 
 
 def run(args) -> int:
@@ -24,16 +24,7 @@ def run(args) -> int:
     if args.table:
         check_output_file(args.table, "--table")
     stack, info = read_stack(args.stack)
-    pixel = args.pixel_size_nm / 1000.0 if args.pixel_size_nm else info.pixel_size
-    dz = args.z_step_nm / 1000.0 if args.z_step_nm else info.z_spacing
-    if args.psf_radius is not None:
-        r = args.psf_radius
-    elif not pixel:
-        raise ValueError("--psf-radius-um needs the pixel size, which the file does not "
-                         "give: pass --pixel-size-nm or --psf-radius in pixels")
-    else:
-        r = args.psf_radius_um / pixel
-    voxel = (dz, pixel, pixel) if pixel and dz else None
+    voxel, _, r = stack_sampling(args, info)
     est = run_with_progress(iter_estimate_operator_3d(
         stack, psf_radius=r, z_radius=args.z_radius, n_psf=args.n_psf,
         threshold=args.threshold, voxel_size=voxel),
@@ -90,19 +81,13 @@ def run(args) -> int:
 def add_parser(sub) -> None:
     e3 = sub.add_parser("estimate3d", help="learn the space-varying 3D PSF from a bead "
                         "z-stack; print its maps (focal shift, FWHM, astigmatism)")
-    e3.add_argument("stack", help="TIFF z-stack of beads on a coverslip (Z, Y, X)")
     e3.add_argument("-o", "--output", required=True, help="3D model file to write (.npz)")
-    g = e3.add_mutually_exclusive_group(required=True)
-    g.add_argument("--psf-radius", type=POSITIVE,
-                   help="lateral PSF radius on the widest plane used, pixels")
-    g.add_argument("--psf-radius-um", type=POSITIVE, help="the same in micrometres")
+    add_stack_sampling(e3, radius_required=True, radius_default="")
     e3.add_argument("--z-radius", type=COUNT, help="planes kept on each side of the bead "
                     "plane (default: the whole stack)")
     e3.add_argument("--n-psf", type=COUNT, help="basis size I (default: held-out beads)")
     e3.add_argument("--threshold", type=POSITIVE, default=8.0,
                     help="detection threshold in noise standard deviations (default 8)")
-    e3.add_argument("--pixel-size-nm", type=POSITIVE, help="pixel size (overrides the file's)")
-    e3.add_argument("--z-step-nm", type=POSITIVE, help="plane spacing (overrides the file's)")
     e3.add_argument("--table", metavar="CSV", help="also write each bead's direct fits")
     e3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     e3.set_defaults(func=run)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from .common import COUNT, POSITIVE, progress_printer
+from .common import COUNT, POSITIVE, add_stack_sampling, progress_printer, stack_sampling
 
 
 def run(args) -> int:
@@ -19,19 +19,8 @@ def run(args) -> int:
 
     out = check_output_folder(args.output, "-o")
     stack, info = read_stack(args.stack)
-    given = bool(args.pixel_size_nm or args.z_step_nm)
-    pixel = args.pixel_size_nm / 1000.0 if args.pixel_size_nm else info.pixel_size
-    dz = args.z_step_nm / 1000.0 if args.z_step_nm else info.z_spacing
-    voxel = (dz, pixel, pixel) if pixel and dz else None
-    source = "given" if given else ("file" if voxel else "unknown")
-    if args.psf_radius is not None:
-        r = args.psf_radius
-    elif args.psf_radius_um is not None:
-        if not pixel:
-            raise ValueError("--psf-radius-um needs the pixel size, which the file does not "
-                             "give: pass --pixel-size-nm or --psf-radius in pixels")
-        r = args.psf_radius_um / pixel
-    else:  # the widest plane's: from the maximum projection, where every plane shows
+    voxel, source, r = stack_sampling(args, info)
+    if r is None:  # the widest plane's: from the maximum projection, where every plane shows
         r = suggest_psf_radius(np.asarray(stack).max(axis=0))
     t0 = time.perf_counter()
     est = run_with_progress(iter_estimate_operator_3d(
@@ -68,15 +57,10 @@ def run(args) -> int:
 def add_parser(sub) -> None:
     q = sub.add_parser("qc", help="a QC report from a bead z-stack: HTML page, per-bead CSV, "
                        "JSON (FWHM maps, focal surface, theory, pass/fail)")
-    q.add_argument("stack", help="TIFF z-stack of beads on a coverslip (Z, Y, X)")
     q.add_argument("-o", "--output", required=True, help="folder for qc.html, "
                    "qc_beads.csv and qc.json (made if missing)")
-    g = q.add_mutually_exclusive_group()
-    g.add_argument("--psf-radius", type=POSITIVE, help="lateral PSF radius on the widest "
-                   "plane, pixels (default: suggested from the maximum projection)")
-    g.add_argument("--psf-radius-um", type=POSITIVE, help="the same in micrometres")
-    q.add_argument("--pixel-size-nm", type=POSITIVE, help="pixel size (overrides the file's)")
-    q.add_argument("--z-step-nm", type=POSITIVE, help="plane spacing (overrides the file's)")
+    add_stack_sampling(q, radius_required=False,
+                       radius_default=" (default: suggested from the maximum projection)")
     q.add_argument("--na", type=POSITIVE, help="numerical aperture (for theory, Nyquist)")
     q.add_argument("--wavelength-nm", type=POSITIVE, help="emission wavelength")
     q.add_argument("--immersion-index", type=POSITIVE,
