@@ -5,10 +5,9 @@ beads resting on one another put their foci on different planes. Averaging or
 decomposing their 3D patches on one common plane then mixes a bead's focal offset into
 the PSF (a bead focused three planes away widens the mean's axial profile). So:
 
-1. **Each bead's focus** (:func:`axial_centres`): the centre of its axial profile, the
-   midpoint of the two half-maximum crossings of its peak above the local background
-   along z (:func:`~napari_psfspace.core.beads.focus.bead_peaks`), linear between
-   planes: sub-plane, and the same for any profile symmetric about its centre. The
+1. **Each bead's focus** (:func:`axial_centres`): the sub-plane maximum of its axial
+   profile, its peak above the local background on each plane
+   (:func:`~napari_psfspace.core.beads.focus.bead_peaks`), lightly smoothed. The
    profile's half-maximum width comes with it. A profile whose half maximum is not
    reached on both sides inside the stack gives no focus (NaN).
 2. **The focal surface** (:func:`fit_focal_surface`): a least-squares surface through
@@ -42,8 +41,19 @@ MIN_SURFACE_BEADS = 5
 OFF_SURFACE_SD = 4.0
 
 
+def _peak_vertex(p: np.ndarray, k: int) -> float:
+    """The sub-plane position of the maximum at ``k`` of a sampled profile: the vertex of
+    a parabola through the logarithms of ``k - 1, k, k + 1`` (exact for a Gaussian), or
+    through the values where one of them is not positive."""
+    a, b, c = p[k - 1], p[k], p[k + 1]
+    if min(a, b, c) > 0:
+        a, b, c = np.log(a), np.log(b), np.log(c)
+    den = a - 2 * b + c
+    return float(k + (0.5 * (a - c) / den if den < 0 else 0.0))
+
+
 def axial_centres(profiles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The centre and half-maximum width of each axial profile.
+    """The focus and the half-maximum width of each axial profile.
 
     Parameters
     ----------
@@ -53,15 +63,24 @@ def axial_centres(profiles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     Returns
     -------
     centre : ndarray of shape (K,)
-        The midpoint of the half-maximum crossings, in planes from the first; NaN where
-        the peak is not positive or its half maximum is not crossed inside the stack.
+        The plane of the profile's maximum, sub-plane: the vertex of a parabola through
+        the logarithms of the three planes about the maximum of the profile smoothed by
+        ``[1, 2, 1] / 4`` (the noise of one plane does not move it a plane), in planes
+        from the first. The brightest plane is what a microscopist calls focus; where
+        spherical aberration gives the profile a tail on one side, the midpoint of its
+        half-maximum crossings would lie planes away from it. NaN where the peak is not
+        positive or its half maximum is not crossed inside the stack on both sides.
     width : ndarray of shape (K,)
-        The distance between the crossings, planes (NaN with the centre).
+        The distance between the half-maximum crossings, planes, linear between planes
+        (NaN with the centre).
     """
     p = np.asarray(profiles, np.float64)
     k, z = p.shape
     centre = np.full(k, np.nan)
     width = np.full(k, np.nan)
+    smooth = p.copy()
+    if z >= 3:
+        smooth[:, 1:-1] = 0.25 * p[:, :-2] + 0.5 * p[:, 1:-1] + 0.25 * p[:, 2:]
     for i in range(k):
         top = int(np.argmax(p[i]))
         half = 0.5 * p[i, top]
@@ -75,8 +94,9 @@ def axial_centres(profiles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         a, b = left[-1], top + right[0]
         zl = a + (half - p[i, a]) / (p[i, a + 1] - p[i, a])
         zr = b - 1 + (p[i, b - 1] - half) / (p[i, b - 1] - p[i, b])
-        centre[i] = 0.5 * (zl + zr)
         width[i] = zr - zl
+        ks = int(np.argmax(smooth[i, a + 1:b])) + a + 1  # the smoothed peak, inside
+        centre[i] = _peak_vertex(smooth[i], ks) if 0 < ks < z - 1 else float(ks)
     return centre, width
 
 
