@@ -238,7 +238,8 @@ def simulated_psf(generator: str, na: float, wl: float, dxy: float, dz: float, n
 
 
 def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
-              photons=20000.0, dz: float | None = None, z_spread: float = 0.5) -> list[dict]:
+              photons=20000.0, dz: float | None = None, z_spread: float = 0.5,
+              pixel_truth: bool = False) -> list[dict]:
     """A field of beads with one PSF, pixel-integrated from fifths of a pixel (each bead
     on one of the ``q x q`` sub-pixel phases), Poisson noise over a background; planes a
     tenth of the diffraction-limited axial FWHM apart (the stack spans +- 2 FWHM). Each
@@ -247,7 +248,10 @@ def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
 
     Rows: the project (per bead, and its model at the beads) against the truth, and
     against napari-psf-analysis on the same beads; and napari-psf-analysis against the
-    truth (how far the reference itself is)."""
+    truth (how far the reference itself is). ``pixel_truth``: also against the
+    half-maximum width of the PSF integrated over one camera pixel (the in-focus plane
+    convolved with a pixel-sized box on the fine grid), what a perfect fit to pixels
+    could read."""
     from napari_psfspace.core.common.measures import diffraction_limit
 
     q, size = 5, 33
@@ -313,11 +317,37 @@ def simulated(generator: str, seed: int, na: float, wl=0.6, dxy=0.065, nz=41,
     truth = {key: np.full(k, v) for key, v in true.items()}
     name = f"{generator} NA {na} s{seed} (um)"
     n_ref = int(np.isfinite(refd["axial"]).sum())
-    return [_ratio_row(name, k, _phys(beads, vox), truth, "per bead / truth"),
+    rows = [_ratio_row(name, k, _phys(beads, vox), truth, "per bead / truth"),
             _ratio_row(name, k, _phys(model, vox), truth, "map at beads / truth"),
             _ratio_row(name, n_ref, _phys(beads, vox), refd, "per bead / n-p-a"),
             _ratio_row(name, n_ref, _phys(model, vox), refd, "map at beads / n-p-a"),
             _ratio_row(name, n_ref, refd, truth, "n-p-a / truth")]
+    if pixel_truth:
+        from scipy import ndimage as ndi
+
+        box = ndi.uniform_filter(fine[kz], size=q, mode="constant")
+        by, bx = np.unravel_index(int(np.argmax(box)), box.shape)
+        pix = {"row": _half_width(box[:, bx], dxy / q), "col": _half_width(box[by, :], dxy / q),
+               "axial": true["axial"]}
+        pix["lateral"] = float(np.sqrt(pix["row"] * pix["col"]))
+        print(f"{generator} NA {na}: the optical PSF's lateral FWHM {true['lateral']:.3f} um, "
+              f"integrated over a pixel {pix['lateral']:.3f} um", flush=True)
+        # what re-sampling does to a spot this narrow: the in-focus plane binned to pixels
+        # on a pixel's centre, moved by a fraction of a pixel (cubic spline, Fourier),
+        # widths from scipy's curve_fit
+        binned = fine[kz].reshape(size, q, size, q).sum(axis=(1, 3))
+        for d in (0.2, 0.4):
+            cub = ndi.shift(binned, (d, d), order=3, mode="constant")
+            fou = np.fft.ifftn(ndi.fourier_shift(np.fft.fftn(binned), (d, d))).real
+            w0, w3, wf = (np.sqrt(np.prod(_gauss_widths(a, dxy))) for a in (binned, cub, fou))
+            print(f"  re-sampled by {d:.1f} px: Gaussian FWHM {w0:.3f} um on the pixels, "
+                  f"{w3:.3f} after a cubic spline, {wf:.3f} after a Fourier shift", flush=True)
+        ptruth = {key: np.full(k, v) for key, v in pix.items()}
+        rows += [_ratio_row(name, k, _phys(beads, vox), ptruth, "per bead / pixel truth"),
+                 _ratio_row(name, k, _phys(model, vox), ptruth, "map / pixel truth"),
+                 _ratio_row(name, n_ref, refd, {kk: v[:n_ref] for kk, v in ptruth.items()},
+                            "n-p-a / pixel truth")]
+    return rows
 
 
 def _gauss_widths(plane: np.ndarray, step: float) -> tuple[float, float]:
@@ -431,7 +461,7 @@ def main() -> None:
                               z_spread=args.z_spread)
         if f"{gen}-highna" in args.sets:  # the sampling of the two high-NA stacks
             rows += simulated(gen, args.seed, 1.46, wl=0.6, dxy=0.16, nz=31, dz=0.2,
-                              z_spread=args.z_spread)
+                              z_spread=args.z_spread, pixel_truth=True)
     cols = [("stack", "s"), ("what", "s"), ("n", "d")]
     for k in ("row", "col", "lateral", "axial"):
         cols += [(k, ".3f"), (f"{k}_ref", ".3f"), (f"{k}_x", ".3f")]
