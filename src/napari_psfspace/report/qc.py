@@ -287,6 +287,7 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
                   "counts": meta.get("bead_counts", {}), "refused": refused},
         "model": {"n_psf": int(op.n_psf), "plane": int(op.plane),
                   "field_model": meta.get("field_model", "space-varying"),
+                  "field_model_reason": meta.get("field_model_reason"),
                   "heldout": held, "verdict": verdict},
         "average_psf": {"n_beads": int(len(patches))},
         "per_bead": bead_rows(estimation, direct, voxel_size),

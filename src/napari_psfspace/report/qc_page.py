@@ -61,6 +61,10 @@ def _v(x, fmt=".4g") -> str:
 
 
 def _map_figures(record: dict, voxel_size) -> str:
+    if record["model"]["field_model"] == "shift-invariant":
+        return ("<p><b>One PSF: no map of the field.</b> "
+                f"{html.escape((record['model'].get('field_model_reason') or '').rstrip('.'))}"
+                ". The beads' own values are in qc_beads.csv.</p>")
     maps = record["maps"]
     h, w = record["stack_shape"][1:]
     node_um = (h / len(maps["rows_px"]) * voxel_size[1]) if voxel_size else None
