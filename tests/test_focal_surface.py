@@ -92,6 +92,12 @@ def test_the_surface_through_foci_is_recovered_and_a_far_bead_is_left_out():
     # fewer beads, fewer terms: a tilt from 5, a constant below
     assert fit_focal_surface(pos[:6], foci[:6], np.full(6, 6.0), shape).terms == terms[:3]
     assert fit_focal_surface(pos[:3], foci[:3], np.full(3, 6.0), shape).terms == terms[:1]
+    # no focus at all (a stack too short for any profile): a summary JSON can hold
+    import json
+
+    none = fit_focal_surface(pos[:4], np.full(4, np.nan), np.full(4, np.nan), shape)
+    assert not none.off.any() and np.isnan(none.offsets).all()
+    json.dumps(none.summary(0.1), allow_nan=False)
 
 
 SHAPE = (512, 512)

@@ -151,6 +151,21 @@ def test_the_cli_reads_an_ome_zarr_stack_and_its_voxel_size(series, tmp_path):
     assert rec["source"] == "s.zarr"
 
 
+def test_a_stack_too_short_for_any_axial_profile_gives_a_report_and_no_warning(series,
+                                                                             tmp_path):
+    """Three planes: no bead's half maximum is crossed in z, so no focus, no axial width,
+    no focal surface; the report says so (null), with no NaN and no warning."""
+    stack, _ = series
+    mid = stack.shape[0] // 2
+    _tiff(tmp_path / "short.tif", stack[mid - 1:mid + 2], 0.065, 0.1)
+    got = _cli("qc", str(tmp_path / "short.tif"), "-o", str(tmp_path / "out"),
+               "--psf-radius", "12", "-q")
+    assert got.returncode == 0 and "Warning" not in got.stderr, got.stderr
+    rec = json.loads((tmp_path / "out" / "qc.json").read_text(encoding="utf-8"))
+    assert rec["centre_fwhm_axial_nm"] is None
+    assert rec["focal_surface"]["centre_plane"] is None
+
+
 def test_bad_inputs_are_one_line_before_any_work(tmp_path):
     missing = _cli("qc", str(tmp_path / "none.tif"), "-o", str(tmp_path / "o"))
     assert missing.returncode == 2 and missing.stderr.count("\n") == 1

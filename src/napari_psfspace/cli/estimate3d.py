@@ -41,8 +41,9 @@ def run(args) -> int:
           + ("nm" if voxel else "px and planes: pass --pixel-size-nm and --z-step-nm for nm")
           + "):")
     for name in NAMES:
-        lo, lo_u = in_units({name: float(np.nanmin(maps[name]))}, voxel)
-        hi, _ = in_units({name: float(np.nanmax(maps[name]))}, voxel)
+        seen = maps[name][np.isfinite(maps[name])]
+        lo, lo_u = in_units({name: float(seen.min()) if seen.size else np.nan}, voxel)
+        hi, _ = in_units({name: float(seen.max()) if seen.size else np.nan}, voxel)
         sd, _ = in_units({name: unc[name]}, voxel)
         unit = f" {lo_u[name]}" if lo_u[name] else ""
         what = "focal_plane (from the first plane)" if name == "focal_plane" else name

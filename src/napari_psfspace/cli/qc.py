@@ -47,8 +47,11 @@ def run(args) -> int:
     lat, ax = record["centre_fwhm_lateral_nm"], record["centre_fwhm_axial_nm"]
     print(f"wrote {paths['html']}, {paths['csv'].name}, {paths['json'].name} "
           f"({time.perf_counter() - t0:.0f} s): {verdict[record['passed']]}")
-    if lat is not None:
-        print(f"  centre: lateral FWHM {lat:.0f} nm, axial {ax:.0f} nm")
+    if lat is not None or ax is not None:
+        def nm(v):
+            return "not measured" if v is None else f"{v:.0f} nm"
+
+        print(f"  centre: lateral FWHM {nm(lat)}, axial {nm(ax)}")
     for w in record["warnings"]:
         print(f"  warning: {w}")
     return 0

@@ -256,9 +256,11 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
 
     field = {}
     for name, arr in maps.items():
-        vals, u = in_units({name: float(np.nanmedian(arr))}, voxel_size)
-        lo, _ = in_units({name: float(np.nanmin(arr))}, voxel_size)
-        hi, _ = in_units({name: float(np.nanmax(arr))}, voxel_size)
+        seen = arr[np.isfinite(arr)]  # none: a measure the field does not allow
+        vals, u = in_units({name: float(np.median(seen)) if seen.size else np.nan},
+                           voxel_size)
+        lo, _ = in_units({name: float(seen.min()) if seen.size else np.nan}, voxel_size)
+        hi, _ = in_units({name: float(seen.max()) if seen.size else np.nan}, voxel_size)
         field[name] = {"median": _f(vals[name], 3), "min": _f(lo[name], 3),
                        "max": _f(hi[name], 3), "unit": u[name]}
     return {

@@ -152,7 +152,8 @@ class FocalSurface:
                "limit_planes": float(self.limit), "tilt_planes": tilt,
                "curvature_planes": curv,
                "centre_plane": float(c.get("constant", np.nan)),
-               "coefficients": [float(v) for v in self.coefficients]}
+               "coefficients": [float(v) if np.isfinite(v) else None
+                                for v in self.coefficients]}
         if z_step:
             out.update(tilt_um=tilt * z_step, curvature_um=curv * z_step,
                        sd_um=float(self.sd) * z_step)
