@@ -30,7 +30,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.beads.detect import KEPT, STATUS_MEANING
-from ..core.common.measures import diffraction_limit, in_units, psf_measures
+from ..core.common.measures import (
+    assumed_immersion,
+    diffraction_limit,
+    in_units,
+    psf_measures,
+)
 from ..core.volume.measures import direct_bead_measures, measure_maps, model_measures
 
 #: Version of the record's layout (``qc.json``'s ``version``).
@@ -41,16 +46,6 @@ TOLERANCES = {"lateral_ratio": 1.5, "axial_ratio": 1.5, "ellipticity": 0.2,
               "field_flatness": 1.0}
 #: A lateral FWHM sampled by fewer pixels than this is below Nyquist for a Gaussian fit.
 MIN_PIXELS_PER_FWHM = 2.0
-
-
-#: The immersion index assumed from the NA where none is given: (largest NA, index) of
-#: air, water and oil objectives (the common immersion of each range).
-IMMERSION = ((0.95, 1.0), (1.27, 1.333), (float("inf"), 1.518))
-
-
-def assumed_immersion(na: float) -> float:
-    """The immersion index of the common objective of this NA (:data:`IMMERSION`)."""
-    return next(n for top, n in IMMERSION if na <= top)
 
 
 def _f(v, digits: int = 1):
@@ -335,6 +330,5 @@ def bead_rows(estimation, direct: dict, voxel_size=None) -> list[dict]:
     return rows
 
 
-__all__ = ["IMMERSION", "MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "assumed_immersion",
-           "average_psf", "bead_rows", "centre_value", "diagnosis_record", "pupil_theory",
-           "qc_record", "surface_rise"]
+__all__ = ["MIN_PIXELS_PER_FWHM", "QC_VERSION", "TOLERANCES", "average_psf", "bead_rows",
+           "centre_value", "diagnosis_record", "pupil_theory", "qc_record", "surface_rise"]

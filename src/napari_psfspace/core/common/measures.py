@@ -356,6 +356,16 @@ def in_units(measures: dict[str, float], voxel_size) -> tuple[dict[str, float],
     return values, units
 
 
+#: The immersion index assumed from the NA where none is given: (largest NA, index) of
+#: air, water and oil objectives (the common immersion of each range).
+IMMERSION = ((0.95, 1.0), (1.27, 1.333), (float("inf"), 1.518))
+
+
+def assumed_immersion(na: float) -> float:
+    """The immersion index of the common objective of this NA (:data:`IMMERSION`)."""
+    return next(n for top, n in IMMERSION if na <= top)
+
+
 def diffraction_limit(na: float, wavelength: float, *,
                       refractive_index: float | None = None) -> dict[str, float]:
     """The widefield diffraction-limited FWHM, µm.
@@ -367,8 +377,7 @@ def diffraction_limit(na: float, wavelength: float, *,
     wavelength : float
         Emission wavelength, µm (> 0).
     refractive_index : float, optional
-        Of the immersion; default 1.518 (oil) above NA 1.33, 1.333 (water) above NA 1,
-        else 1.0 (air).
+        Of the immersion; default :func:`assumed_immersion` (air, water or oil).
 
     Returns
     -------
@@ -383,9 +392,7 @@ def diffraction_limit(na: float, wavelength: float, *,
     if not (np.isfinite(wavelength) and wavelength > 0):
         raise ValueError(f"`wavelength` must be a positive number of µm, got {wavelength}.")
     n = refractive_index
-    if n is None:
-        n = 1.518 if na > 1.33 else (1.333 if na > 1.0 else 1.0)
-    n = float(n)
+    n = float(assumed_immersion(na) if n is None else n)
     if not (np.isfinite(n) and n >= na):
         raise ValueError(f"`refractive_index` must be at least the NA ({na}), got {n}.")
     return {"lateral": 0.514 * wavelength / na,
@@ -458,7 +465,7 @@ def fwhm_line(summary: dict[str, dict[str, float]], pixel_size: float | None = N
     return text
 
 
-__all__ = ["FIELD_POINTS", "LATERAL", "LINE_FOCUS_REACH", "MIN_PEAK_SHARE", "NAMES", "SPOT_CORE",
-           "UNITS_PX", "diffraction_limit", "field_fwhm", "focal_plane", "fwhm_line",
-           "in_units", "lateral_measures", "patch_fwhms", "peak_profile", "psf_measures",
-           "spot_measures", "spot_shape"]
+__all__ = ["FIELD_POINTS", "IMMERSION", "LATERAL", "LINE_FOCUS_REACH", "MIN_PEAK_SHARE",
+           "NAMES", "SPOT_CORE", "UNITS_PX", "assumed_immersion", "diffraction_limit",
+           "field_fwhm", "focal_plane", "fwhm_line", "in_units", "lateral_measures",
+           "patch_fwhms", "peak_profile", "psf_measures", "spot_measures", "spot_shape"]

@@ -24,6 +24,7 @@ import numpy as np
 from ..beads.background import fit_background
 from ..beads.patches import R_EXT_FACTOR, observed_mask, patch_size, resample_patches
 from ..beads.window import bump_window, radial_distance
+from .focal_surface import shift_planes
 
 
 @dataclass
@@ -82,8 +83,6 @@ class Patches3D:
         focal surface: :func:`~napari_psfspace.core.volume.focal_surface.shift_planes`),
         ``margin`` planes cut from each end (they were cut for the move, at least the
         largest ``|shift|``)."""
-        from .focal_surface import shift_planes
-
         s = np.nan_to_num(np.asarray(shifts, np.float64))
         keep = slice(margin, len(self.planes) - margin)
         psf = shift_planes(self.psf, s)[:, keep]
