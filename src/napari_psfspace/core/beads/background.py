@@ -1,15 +1,25 @@
 """Per-patch background removal by a low-order polynomial (paper, Appendix B).
 
-The pixels farther than ``r`` from the patch centre hold only background and noise; a
-polynomial of order 2 (monomials 1, x, y, xy, x², y²) is fitted to them by least squares
-and subtracted from the whole patch. The fit is one pseudo-inverse shared by all
-patches, so it costs one matrix product for any number of beads.
+Two ways, both linear least squares:
+
+- :func:`fit_background` (the paper's): a polynomial of order 2 (monomials 1, x, y, xy,
+  x², y²) fitted to the patch's pixels farther than ``r`` from its centre. One
+  pseudo-inverse serves every patch, so it costs one matrix product for any number of
+  beads. Those pixels still hold the PSF's wings (a tenth of its light lies beyond the
+  radius that holds nine tenths), and the quadratic terms carry the wings' fall-off into
+  the core: the background is biased under the bead.
+- :func:`ring_background` (the estimator's): a plane fitted on a wider ring, from the
+  window's edge ``r_ext`` to :data:`RING_OUTER` radii, on the image's own pixels (no
+  re-sampling), pixels far above the plane left out as another source's light, and the
+  plane evaluated on the patch's sub-pixel grid. Farther out the wings are fainter, and a
+  plane cannot bend under the core.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .centering import gather_windows
 from .window import radial_distance
 
 #: Highest order of the background of a patch cut by the image's edge: a quadratic fitted
@@ -95,3 +105,86 @@ def fit_background(patches: np.ndarray, r: float, *, order: int = 2,
             c, *_ = np.linalg.lstsq(d[use], flat[i, use], rcond=None)
             out[i] = (d @ c).reshape(p, p)
     return out.astype(patches.dtype, copy=False)
+
+
+#: Outer radius of the ring :func:`ring_background` fits its plane on, in PSF radii.
+RING_OUTER = 1.6
+
+#: Pixels of the ring more than this many robust standard deviations above the first
+#: plane are left out of the second fit: light of a source the neighbour model missed.
+RING_CLIP = 3.0
+
+
+def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: float,
+                    size: int, *, outer: float | None = None, neighbours=None
+                    ) -> np.ndarray:
+    """A plane fitted to each bead's ring of background, evaluated on its patch.
+
+    Parameters
+    ----------
+    image : ndarray of shape (M, N)
+    centers : ndarray of shape (K, 2)
+        Sub-pixel centres (row, column), pixels.
+    r, r_ext : float
+        PSF and window radii, pixels: the ring starts beyond ``r_ext``.
+    size : int
+        Odd patch size: pixel ``(i, j)`` of a patch lies at ``center - size // 2 + (i,
+        j)`` (as :func:`~napari_psfspace.core.beads.patches.resample_patches`).
+    outer : float, optional
+        Half-width of the square the ring is cut from, pixels (default
+        ``RING_OUTER * r``, at least one pixel beyond the patch).
+    neighbours : NeighbourLight, optional
+        Other detections' modelled light, taken out of the ring first.
+
+    Returns
+    -------
+    ndarray of shape (K, size, size), float64
+        Each patch's background. A ring cut by the image's edge is fitted on its pixels
+        inside the image; with fewer than six of them, their median level.
+    """
+    centers = np.asarray(centers, np.float64).reshape(-1, 2)
+    half = int(size) // 2
+    h = max(int(np.ceil(RING_OUTER * r if outer is None else outer)), half + 1)
+    d = np.arange(-h, h + 1, dtype=np.float64)
+    wins = gather_windows(image, centers, h).astype(np.float64).reshape(len(centers), -1)
+    base = np.round(centers)
+    rows, cols = base[:, :1] + d, base[:, 1:] + d
+    seen = (((rows >= 0) & (rows < image.shape[0]))[:, :, None]
+            & ((cols >= 0) & (cols < image.shape[1]))[:, None, :]).reshape(len(centers), -1)
+    ring = np.hypot(d[:, None], d[None, :]).ravel() > r_ext
+    yy, xx = np.meshgrid(d / h, d / h, indexing="ij")
+    design = np.stack([np.ones(yy.size), xx.ravel(), yy.ravel()], axis=1)[ring]
+    vals = wins[:, ring]
+    if neighbours is not None:
+        points = np.stack([yy.ravel(), xx.ravel()], axis=1)[ring] * h
+        for k in range(len(centers)):
+            vals[k] -= neighbours.around(centers[k], base[k] + points)
+    use = seen[:, ring].astype(np.float64)
+    coef = _planes(design, vals, use)
+    # fitted again without the pixels far above the first plane
+    res = vals - coef @ design.T
+    mad = np.array([np.median(np.abs(x[u > 0] - np.median(x[u > 0]))) if u.any() else 0.0
+                    for x, u in zip(res, use, strict=True)])
+    coef = _planes(design, vals, use * (res <= RING_CLIP * 1.4826 * mad[:, None]))
+    frac = centers - base
+    off = (np.arange(size, dtype=np.float64) - half)
+    py = (off[None, :] + frac[:, :1]) / h  # (K, size)
+    px = (off[None, :] + frac[:, 1:]) / h
+    return (coef[:, 0, None, None] + coef[:, 1, None, None] * px[:, None, :]
+            + coef[:, 2, None, None] * py[:, :, None])
+
+
+def _planes(design: np.ndarray, vals: np.ndarray, use: np.ndarray) -> np.ndarray:
+    """Weighted least-squares planes (K, 3) of ``vals`` (K, n) on ``design`` (n, 3) with
+    0/1 weights ``use`` (K, n); a bead with fewer than six pixels in use gets its median
+    level (no slope)."""
+    gram = np.einsum("kn,ni,nj->kij", use, design, design)
+    rhs = np.einsum("kn,ni->ki", use * vals, design)
+    enough = use.sum(axis=1) >= 2 * design.shape[1]
+    coef = np.zeros((len(vals), design.shape[1]))
+    if enough.any():
+        coef[enough] = np.linalg.solve(gram[enough], rhs[enough][:, :, None])[:, :, 0]
+    for k in np.flatnonzero(~enough):
+        u = use[k] > 0
+        coef[k, 0] = float(np.median(vals[k, u])) if u.any() else 0.0
+    return coef

@@ -1,7 +1,8 @@
 """Extraction of centred, background-free, windowed and normalised PSF patches.
 
 Paper, Appendix A and B, section 2.5: each bead is re-sampled (cubic spline) so that
-its sub-pixel centre falls on the patch centre, its polynomial background is removed,
+its sub-pixel centre falls on the patch centre, its background is removed (a plane fitted
+on a ring beyond the window: :func:`~napari_psfspace.core.beads.background.ring_background`),
 a bump window confines it to radius ``r_ext = 1.2 r``, and it is normalised to sum 1.
 """
 
@@ -14,7 +15,7 @@ from scipy import ndimage as ndi
 
 from ..common.progress import check_halt
 from ..common.validate import as_image, check_psf_radius
-from .background import fit_background
+from .background import fit_background, ring_background
 from .centering import gather_windows
 from .window import bump_window, radial_distance
 
@@ -131,6 +132,7 @@ def extract_patches(
     psf_radius: float,
     *,
     r_ext_factor: float = R_EXT_FACTOR,
+    background: str = "ring",
     background_order: int = 2,
     neighbours=None,
 ) -> Patches:
@@ -147,8 +149,14 @@ def extract_patches(
         PSF radius ``r`` in pixels; pixels beyond ``r`` hold background only.
     r_ext_factor : float
         Window outer radius ``r_ext = r_ext_factor * r`` (paper: 1.2).
+    background : {"ring", "patch"}
+        "ring": a plane fitted on a ring beyond the window, from ``r_ext`` to
+        :data:`~napari_psfspace.core.beads.background.RING_OUTER` radii
+        (:func:`~napari_psfspace.core.beads.background.ring_background`); "patch": the
+        paper's polynomial of ``background_order`` fitted to the patch beyond ``r``, which
+        takes part of the PSF's wings for background.
     background_order : int
-        Order of the background polynomial (paper: 2).
+        Order of the "patch" background polynomial (paper: 2).
     neighbours : NeighbourLight, optional
         A model of the other detections' light
         (:func:`~napari_psfspace.core.beads.overlap.neighbour_light`), taken out of each
@@ -170,6 +178,8 @@ def extract_patches(
     if r_ext_factor <= 1:
         raise ValueError(f"`r_ext_factor` must be > 1, got {r_ext_factor}.")
     centers = np.asarray(centers, dtype=np.float64).reshape(-1, 2)
+    if background not in ("ring", "patch"):
+        raise ValueError(f"`background` must be 'ring' or 'patch', got {background!r}.")
     r_ext = r_ext_factor * r
     size = patch_size(r, r_ext_factor)
     raw = resample_patches(img, centers, size)
@@ -181,7 +191,10 @@ def extract_patches(
             raw[k] -= neighbours.around(c, c + grid).reshape(size, size)
     seen = observed_mask(centers, size, img.shape)
     partial = not seen.all()
-    bg = fit_background(raw, r, order=background_order, observed=seen if partial else None)
+    if background == "ring":
+        bg = ring_background(img, centers, r, r_ext, size, neighbours=neighbours)
+    else:
+        bg = fit_background(raw, r, order=background_order, observed=seen if partial else None)
     if partial:  # beyond the edge: no light measured, the background's level
         raw = np.where(seen, raw, bg)
     signal = raw - bg

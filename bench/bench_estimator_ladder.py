@@ -1,0 +1,148 @@
+"""Where the estimator's error enters: an oracle per stage, on a clean field and on a
+defocus gradient, noise-free and with the camera's noise.
+
+    python bench/bench_estimator_ladder.py [--seeds 0 1 2] [--gradient 0.15] [--noise]
+                                           [--beads 150]
+
+The scene is ``bench_accuracy.py``'s moderate one (1024 x 1024, 150 beads, NA 1.3), with
+and without defocus (Noll 4) growing linearly along the columns, ``+-gradient`` waves rms
+at the field's left and right edges. "Noise-free" renders the beads' expected photons on a
+constant background of 100 photons (no shot noise, no camera); ``--noise`` takes the
+simulator's camera image. Each row replaces one stage of the estimate with its oracle:
+
+- the full estimate;
+- the same with every bead kept (no outlier rejection);
+- patches cut at the true bead centres (spline re-sampling), then by a Fourier phase ramp
+  (``core.beads.subpixel``);
+- the paper's background (order-2 polynomial on the patch beyond ``r``) in place of the
+  plane on a ring;
+- the background known (the constant that was added), at the true centres;
+- the true PSFs themselves at the true centres, windowed: what the window, the PCA, the
+  thin-plate field and the cone leave.
+
+Error: the mean over an 8 x 8 grid of the aligned relative l2 error against the true PSFs
+(``simulation.metrics.grid_errors``), and the same over the grid's outer ring ("rim").
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from benchlib import table
+from napari_psfspace.core.beads import patches as patch_module
+from napari_psfspace.core.beads.patches import Patches, extract_patches
+from napari_psfspace.core.beads.subpixel import fourier_resample_patches
+from napari_psfspace.core.beads.window import bump_window
+from napari_psfspace.core.common.validate import as_image
+from napari_psfspace.core.model.estimate import centre_beads, find_usable_beads, usable_patches
+from napari_psfspace.core.model.patch_fit import fit_patches
+from napari_psfspace.core.simulation import simulate_beads
+from napari_psfspace.core.simulation.aberrations import FieldAberrations, as_aberrations
+from napari_psfspace.core.simulation.metrics import grid_errors
+from napari_psfspace.core.simulation.render import render_beads
+from napari_psfspace.core.simulation.scene import RENDER_RADIUS_FACTOR
+
+BACKGROUND = 100.0  # photons, the noise-free scenes' constant background
+
+
+def aberrations(gradient: float) -> FieldAberrations:
+    """The moderate preset with defocus growing along the columns (``u`` in [-1, 1])."""
+    terms = {j: list(v) for j, v in as_aberrations("moderate").terms.items()}
+    z4 = terms.get(4, [0.0] * 6)
+    z4[1] += gradient
+    terms[4] = z4
+    return FieldAberrations(terms)
+
+
+def scene(seed: int, gradient: float, noise: bool, n_beads: int = 150):
+    """The image (noise-free: float photons) and the simulator's truth."""
+    image, truth = simulate_beads((1024, 1024), n_beads, aberrations=aberrations(gradient),
+                                  seed=seed)
+    if noise:
+        return image, truth
+    photons = np.full(image.shape, BACKGROUND)
+    render_beads(photons, truth.positions, truth.amplitudes, truth.aberrations, truth.optics,
+                 RENDER_RADIUS_FACTOR * truth.psf_radius)
+    return photons, truth
+
+
+def errors(patches: Patches, shape, truth, **kw) -> tuple[float, float, int, int]:
+    basis, op, _, _ = fit_patches(patches, shape, **kw)
+    e = grid_errors(op, truth, 8)
+    rim = np.r_[e[0], e[-1], e[1:-1, 0], e[1:-1, -1]]
+    return float(e.mean()), float(rim.mean()), basis.n_psf, int(basis.inliers.sum())
+
+
+def ladder(seed: int, gradient: float, noise: bool, n_beads: int) -> dict:
+    image, truth = scene(seed, gradient, noise, n_beads)
+    r = truth.psf_radius
+    raw = np.asarray(image)
+    beads, img = find_usable_beads(raw, as_image(raw), r, beads=None, threshold=8.0,
+                                   saturation=None)
+    kept = centre_beads(img, beads, r)
+    kept, ours, _ = usable_patches(img, beads, kept, r)
+    true_pos = truth.positions[cKDTree(truth.positions).query(ours.centers)[1]]
+    shape = img.shape
+    rows = {"full estimate": errors(ours, shape, truth),
+            "all beads kept": errors(ours, shape, truth, z_threshold=np.inf)}
+    at_truth = extract_patches(img, true_pos, r)
+    rows["true centres"] = errors(at_truth, shape, truth)
+    spline = patch_module.resample_patches
+    patch_module.resample_patches = fourier_resample_patches
+    try:
+        fourier = extract_patches(img, true_pos, r)
+    finally:
+        patch_module.resample_patches = spline
+    rows["true centres, Fourier shift"] = errors(fourier, shape, truth)
+    rows["true centres, paper's background"] = errors(
+        extract_patches(img, true_pos, r, background="patch"), shape, truth)
+    win = bump_window(at_truth.size, r, at_truth.r_ext)
+    if not noise:
+        known = (at_truth.raw - BACKGROUND) * win
+        known /= known.sum(axis=(1, 2), keepdims=True)
+        rows["true centres, background known"] = errors(
+            Patches(true_pos, at_truth.raw, np.full_like(known, BACKGROUND), known,
+                    at_truth.flux, np.full(len(known), 1e-6), r, at_truth.r_ext),
+            shape, truth, denoise=False)
+    psfs = np.array([truth.psf_at(y, x, at_truth.size) for y, x in true_pos]) * win
+    psfs /= psfs.sum(axis=(1, 2), keepdims=True)
+    rows["true PSFs, windowed"] = errors(
+        Patches(true_pos, psfs, np.zeros_like(psfs), psfs, np.ones(len(psfs)),
+                np.full(len(psfs), 1e-6), r, at_truth.r_ext), shape, truth, denoise=False)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    ap.add_argument("--gradient", type=float, default=0.15)
+    ap.add_argument("--beads", type=int, default=150)
+    ap.add_argument("--noise", action="store_true")
+    args = ap.parse_args()
+    out = []
+    runs = {g: [ladder(s, g, args.noise, args.beads) for s in args.seeds]
+            for g in (0.0, args.gradient)}
+    for step in runs[0.0][0]:
+        row = {"step": step}
+        for g, name in ((0.0, "clean"), (args.gradient, "gradient")):
+            v = np.array([r[step] for r in runs[g]])
+            row[name] = v[:, 0].mean()
+            row[f"{name}_rim"] = v[:, 1].mean()
+            row[f"{name}_I"] = f"{v[:, 2].min():.0f}-{v[:, 2].max():.0f}"
+            row[f"{name}_beads"] = f"{v[:, 3].min():.0f}-{v[:, 3].max():.0f}"
+        out.append(row)
+    print(f"Oracle ladder, {'camera noise' if args.noise else 'noise-free'}, "
+          f"{args.beads} beads, gradient +-{args.gradient:g} waves rms, seeds {args.seeds} "
+          "(means)")
+    cols = [("step", "s")]
+    for name in ("clean", "gradient"):
+        cols += [(name, ".4f"), (f"{name}_rim", ".4f"), (f"{name}_I", "s"),
+                 (f"{name}_beads", "s")]
+    print(table(out, cols))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,72 @@
+"""The background plane on a ring beyond the window (core/beads/background.ring_background)
+against known truths: an exact plane, a wing the paper's polynomial takes for background,
+the image's edge and a stray source in the ring."""
+
+import numpy as np
+
+from napari_psfspace.core.beads.background import ring_background
+from napari_psfspace.core.beads.patches import extract_patches, patch_size
+from napari_psfspace.core.beads.window import bump_window
+
+
+def _lorentz_bead(shape, center, width, flux=1e4):
+    """A bead whose wings fall as the distance to the power -3 (as an Airy pattern's
+    envelope): a tenth of its light or more lies beyond a few widths."""
+    y, x = np.indices(shape, dtype=np.float64)
+    rho2 = (y - center[0]) ** 2 + (x - center[1]) ** 2
+    bead = (1.0 + rho2 / width**2) ** -1.5
+    return flux * bead / bead.sum()
+
+
+def test_a_plane_is_recovered_exactly_on_the_patch_grid():
+    shape, c, r = (96, 96), np.array([[47.3, 50.6]]), 8.0
+    y, x = np.indices(shape, dtype=np.float64)
+    plane = 100.0 + 0.5 * y - 0.25 * x
+    size = patch_size(r)
+    bg = ring_background(plane, c, r, 1.2 * r, size)
+    off = np.arange(size) - size // 2
+    want = 100.0 + 0.5 * (c[0, 0] + off)[:, None] - 0.25 * (c[0, 1] + off)[None, :]
+    # exact arithmetic up to the solve's rounding (values near 100, a 3 x 3 system)
+    np.testing.assert_allclose(bg[0], want, rtol=0, atol=1e-9)
+
+
+def test_the_ring_takes_less_of_the_wings_than_the_papers_polynomial():
+    shape, c, r = (128, 128), np.array([64.0, 64.0]), 10.0
+    bead = _lorentz_bead(shape, c, width=2.5)
+    image = bead + 50.0
+    size = patch_size(r)
+    half = size // 2
+    window = bump_window(size, r, 1.2 * r)
+    truth = bead[64 - half:64 + half + 1, 64 - half:64 + half + 1] * window
+    truth /= truth.sum()
+    errs = {}
+    for kind in ("ring", "patch"):
+        p = extract_patches(image, c[None], r, background=kind)
+        errs[kind] = np.linalg.norm(p.psf[0] - truth) / np.linalg.norm(truth)
+    # the ring starts at 1.2 r, where the wing is (1 / 1.2)^3 = 0.58 of its level at r,
+    # and its plane cannot bend under the core: its error must be the smaller by far
+    assert errs["ring"] < 0.5 * errs["patch"], errs
+
+
+def test_a_bead_by_the_edge_is_fitted_on_the_pixels_inside_the_image():
+    shape, r = (80, 80), 6.0
+    y, x = np.indices(shape, dtype=np.float64)
+    image = 20.0 + 0.1 * y + 0.2 * x
+    c = np.array([[7.0, 40.0]])  # the ring reaches 3 px past the top edge
+    size = patch_size(r)
+    bg = ring_background(image, c, r, 1.2 * r, size)
+    off = np.arange(size) - size // 2
+    want = 20.0 + 0.1 * (7.0 + off)[:, None] + 0.2 * (40.0 + off)[None, :]
+    np.testing.assert_allclose(bg[0], want, atol=1e-9)
+
+
+def test_a_stray_source_in_the_ring_is_left_out():
+    shape, r = (96, 96), 8.0
+    rng = np.random.default_rng(3)
+    image = 100.0 + rng.normal(0, 1.0, shape)
+    image[48 + 12, 48 - 2:48 + 3] += 400.0  # a bright streak in the ring (at 1.5 r)
+    size = patch_size(r)
+    bg = ring_background(image, np.array([[48.0, 48.0]]), r, 1.2 * r, size)
+    # 5 of the ring's ~450 pixels at +400 would lift a least-squares level by ~4; left
+    # out, the level is the noise's mean over ~450 pixels: sd 1 / sqrt(450) < 0.05
+    assert abs(bg[0, size // 2, size // 2] - 100.0) < 0.25
