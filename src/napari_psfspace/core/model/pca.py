@@ -475,7 +475,6 @@ def judge_outliers(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, n_test:
         Each bead's standardized statistic.
     inliers : ndarray of shape (K,), bool
     """
-    k = len(x)
     beta = x @ vt[:n_test].T
     norm2 = np.maximum((x**2).sum(axis=1), 1e-300)
     off = np.maximum(norm2 - (beta**2).sum(axis=1), 0.0)
