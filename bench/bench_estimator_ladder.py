@@ -37,6 +37,9 @@ from napari_psfspace.core.beads.patches import Patches, extract_patches
 from napari_psfspace.core.beads.subpixel import fourier_resample_patches
 from napari_psfspace.core.beads.window import bump_window
 from napari_psfspace.core.common.validate import as_image
+from napari_psfspace.core.beads.detect import STRUCTURE
+from napari_psfspace.core.beads.overlap import neighbour_light
+from napari_psfspace.core.model import estimate
 from napari_psfspace.core.model.estimate import centre_beads, find_usable_beads, usable_patches
 from napari_psfspace.core.model.patch_fit import fit_patches
 from napari_psfspace.core.simulation import simulate_beads
@@ -57,16 +60,26 @@ def aberrations(gradient: float) -> FieldAberrations:
     return FieldAberrations(terms)
 
 
-def scene(seed: int, gradient: float, noise: bool, n_beads: int = 150):
-    """The image (noise-free: float photons) and the simulator's truth."""
+def scene(seed: int, gradient: float, noise: bool, n_beads: int = 150,
+          separation: float | None = None, photons: float = 1.0):
+    """The image (noise-free: float photons) and the simulator's truth; ``photons``
+    scales the beads' photons (2e4 to 6e4 each) and their image's bit depth goes to 16."""
     image, truth = simulate_beads((1024, 1024), n_beads, aberrations=aberrations(gradient),
-                                  seed=seed)
+                                  seed=seed, min_separation=separation,
+                                  amplitude=(2e4 * photons, 6e4 * photons),
+                                  dtype=np.uint16 if photons <= 1 else np.float32)
     if noise:
         return image, truth
     photons = np.full(image.shape, BACKGROUND)
     render_beads(photons, truth.positions, truth.amplitudes, truth.aberrations, truth.optics,
                  RENDER_RADIUS_FACTOR * truth.psf_radius)
     return photons, truth
+
+
+def cut(image, centres, r, **kw) -> Patches:
+    """:func:`extract_patches`, less any patch with no light left (a crowded field)."""
+    p = extract_patches(image, centres, r, **kw)
+    return p.subset(p.flux > 0)
 
 
 def errors(patches: Patches, shape, truth, **kw) -> tuple[float, float, int, int]:
@@ -76,29 +89,37 @@ def errors(patches: Patches, shape, truth, **kw) -> tuple[float, float, int, int
     return float(e.mean()), float(rim.mean()), basis.n_psf, int(basis.inliers.sum())
 
 
-def ladder(seed: int, gradient: float, noise: bool, n_beads: int) -> dict:
-    image, truth = scene(seed, gradient, noise, n_beads)
+def ladder(seed: int, gradient: float, noise: bool, n_beads: int,
+           separation: float | None = None, photons: float = 1.0) -> dict:
+    image, truth = scene(seed, gradient, noise, n_beads, separation, photons)
     r = truth.psf_radius
     raw = np.asarray(image)
     beads, img = find_usable_beads(raw, as_image(raw), r, beads=None, threshold=8.0,
                                    saturation=None)
     kept = centre_beads(img, beads, r)
     kept, ours, _ = usable_patches(img, beads, kept, r)
-    true_pos = truth.positions[cKDTree(truth.positions).query(ours.centers)[1]]
+    dist, nearest = cKDTree(truth.positions).query(ours.centers)
+    found = dist < 2.0  # the oracles: the beads found within 2 px, at their true centres
+    true_pos = truth.positions[nearest[found]]
+    moved = beads.positions.copy()  # the neighbour model with each bead at its true centre
+    moved[kept[found]] = true_pos
+    light = (neighbour_light(img, moved[beads.status != STRUCTURE], r)
+             if estimate.SUBTRACT_NEIGHBOURS else None)
     shape = img.shape
     rows = {"full estimate": errors(ours, shape, truth),
             "all beads kept": errors(ours, shape, truth, z_threshold=np.inf)}
-    at_truth = extract_patches(img, true_pos, r)
+    at_truth = cut(img, true_pos, r, neighbours=light)
+    true_pos = at_truth.centers
     rows["true centres"] = errors(at_truth, shape, truth)
     spline = patch_module.resample_patches
     patch_module.resample_patches = fourier_resample_patches
     try:
-        fourier = extract_patches(img, true_pos, r)
+        fourier = cut(img, true_pos, r, neighbours=light)
     finally:
         patch_module.resample_patches = spline
     rows["true centres, Fourier shift"] = errors(fourier, shape, truth)
     rows["true centres, paper's background"] = errors(
-        extract_patches(img, true_pos, r, background="patch"), shape, truth)
+        cut(img, true_pos, r, background="patch", neighbours=light), shape, truth)
     win = bump_window(at_truth.size, r, at_truth.r_ext)
     if not noise:
         known = (at_truth.raw - BACKGROUND) * win

@@ -110,9 +110,13 @@ def fit_background(patches: np.ndarray, r: float, *, order: int = 2,
 #: Outer radius of the ring :func:`ring_background` fits its plane on, in PSF radii.
 RING_OUTER = 1.6
 
-#: Pixels of the ring more than this many robust standard deviations above the first
-#: plane are left out of the second fit: light of a source the neighbour model missed.
+#: Pixels of the ring more than this many robust standard deviations from the plane are
+#: left out of the next fit: light of a source the neighbour model missed, or took out
+#: too much of.
 RING_CLIP = 3.0
+
+#: Fits of the plane after the first, each without the pixels :data:`RING_CLIP` leaves out.
+RING_PASSES = 2
 
 
 def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: float,
@@ -161,11 +165,14 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
             vals[k] -= neighbours.around(centers[k], base[k] + points)
     use = seen[:, ring].astype(np.float64)
     coef = _planes(design, vals, use)
-    # fitted again without the pixels far above the first plane
-    res = vals - coef @ design.T
-    mad = np.array([np.median(np.abs(x[u > 0] - np.median(x[u > 0]))) if u.any() else 0.0
-                    for x, u in zip(res, use, strict=True)])
-    coef = _planes(design, vals, use * (res <= RING_CLIP * 1.4826 * mad[:, None]))
+    for _ in range(RING_PASSES):  # fitted again without the pixels far from the plane
+        res = vals - coef @ design.T
+        med = np.array([np.median(x[u > 0]) if u.any() else 0.0
+                        for x, u in zip(res, use, strict=True)])
+        mad = np.array([np.median(np.abs(x[u > 0] - m)) if u.any() else 0.0
+                        for x, u, m in zip(res, use, med, strict=True)])
+        keep = np.abs(res - med[:, None]) <= RING_CLIP * 1.4826 * mad[:, None]
+        coef = _planes(design, vals, use * keep)
     frac = centers - base
     off = (np.arange(size, dtype=np.float64) - half)
     py = (off[None, :] + frac[:, :1]) / h  # (K, size)
