@@ -33,12 +33,12 @@ from scipy.spatial import cKDTree
 
 from benchlib import table
 from napari_psfspace.core.beads import patches as patch_module
+from napari_psfspace.core.beads.detect import STRUCTURE
+from napari_psfspace.core.beads.overlap import neighbour_light
 from napari_psfspace.core.beads.patches import Patches, extract_patches
 from napari_psfspace.core.beads.subpixel import fourier_resample_patches
 from napari_psfspace.core.beads.window import bump_window
 from napari_psfspace.core.common.validate import as_image
-from napari_psfspace.core.beads.detect import STRUCTURE
-from napari_psfspace.core.beads.overlap import neighbour_light
 from napari_psfspace.core.model import estimate
 from napari_psfspace.core.model.estimate import centre_beads, find_usable_beads, usable_patches
 from napari_psfspace.core.model.patch_fit import fit_patches

@@ -332,7 +332,7 @@ def learn_basis(
         zmax = _zmax(coef)
         inliers = zmax <= (3.0 if z_threshold is None else z_threshold)
     else:
-        zmax, inliers = judge_outliers(xn, vt, pos, n_first,
+        zmax, inliers = judge_outliers(xn, vt, pos, min(n_first, JUDGE_COMPONENTS),
                                        3.0 if z_threshold is None else z_threshold)
     if np.count_nonzero(inliers) < min_beads_for(n_psf or 1):
         inliers[:] = True  # too few left: keep everything rather than fail
@@ -352,8 +352,7 @@ def learn_basis(
         per_bead = heldout_basis_errors(psfs[inliers][:, mask], vt[:n_max], pos[inliers],
                                         per_bead=True)
         heldout_errors = per_bead.mean(axis=0)
-        best = float(heldout_errors.min())
-        n_final = int(np.flatnonzero(heldout_errors <= 1.01 * best)[0]) + 1
+        n_final = size_by_heldout(per_bead)
     more = vt[:int(components)].copy() if components else None
     vt = orient(vt[:n_final])
     basis = np.zeros((n_final, *patch_shape))
@@ -365,6 +364,12 @@ def learn_basis(
 #: Neighbours that must surround a bead for :func:`judge_outliers` to compare it with
 #: their prediction: the bead lies inside the convex hull of its nearest this many.
 SURROUND_NEIGHBOURS = 6
+
+#: Components :func:`judge_outliers` measures each bead's error against, at most: a
+#: doublet or debris shows in the leading ones, and with many more the error left is the
+#: field's fine structure, which a noise-free field makes tiny and the test then reads
+#: as significant everywhere.
+JUDGE_COMPONENTS = 5
 
 #: Most basis sizes the held-out comparison of :func:`judge_outliers` looks at.
 GAIN_COMPONENTS = 30
@@ -496,6 +501,31 @@ def judge_outliers(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, n_test:
             break
         cand = cand[:len(cand) // 2]
     return z, inliers
+
+
+def size_by_heldout(per_bead: np.ndarray) -> int:
+    """The basis size where the held-out error stops falling beyond its noise.
+
+    Parameters
+    ----------
+    per_bead : ndarray of shape (K, I_max)
+        Each bead's held-out error at each basis size (:func:`heldout_basis_errors`).
+
+    Returns
+    -------
+    int
+        The smallest size ``I`` whose beads' errors exceed those at the best size by no
+        more than :data:`GAIN_SE` standard errors of their paired differences: a larger
+        basis is taken only where the beads say, beyond their spread, that it predicts
+        them better.
+    """
+    err = np.asarray(per_bead, np.float64)
+    best = int(np.argmin(err.mean(axis=0)))
+    if len(err) < 2:
+        return best + 1
+    d = err[:, :best + 1] - err[:, best:best + 1]
+    se = d.std(axis=0, ddof=1) / np.sqrt(len(err))
+    return int(np.flatnonzero(d.mean(axis=0) <= GAIN_SE * se)[0]) + 1
 
 
 def _robust_zmax(values: np.ndarray) -> np.ndarray:
