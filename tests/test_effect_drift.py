@@ -31,8 +31,10 @@ def test_uniform_drift_is_absorbed_by_the_operator():
         runs[drift] = diagnose(image, psf_radius=truth.psf_radius)
     still, moving = runs[None], runs[(3.0, 0.0)]
     assert moving.added == []
-    # measured: 0.0126 with the drift, 0.0132 without
-    assert moving.error_before < 1.15 * still.error_before
+    # the smear widens every PSF, so each bead's noise floor rises with it; absorbed by
+    # the operator, it leaves the held-out error the same multiple of that floor
+    assert (moving.error_before / moving.noise_floor
+            < 1.15 * still.error_before / still.noise_floor)
     vy0, vx0 = _axis_variances(still.operator.psf_at(320, 320))
     vy1, vx1 = _axis_variances(moving.operator.psf_at(320, 320))
     extra = (vy1 - vy0) - (vx1 - vx0)

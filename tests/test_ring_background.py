@@ -70,3 +70,31 @@ def test_a_stray_source_in_the_ring_is_left_out():
     # 5 of the ring's ~450 pixels at +400 would lift a least-squares level by ~4; left
     # out, the level is the noise's mean over ~450 pixels: sd 1 / sqrt(450) < 0.05
     assert abs(bg[0, size // 2, size // 2] - 100.0) < 0.25
+
+
+def test_a_neighbours_light_is_taken_out_with_the_models_psf():
+    """ModelLight against a known truth: an elongated neighbour's light at a patch's
+    pixels is its PSF at its sub-pixel offset, times its light."""
+    from napari_psfspace.core.model.deblend import ModelLight, crowded
+
+    size = 21
+    g = np.arange(size) - size // 2
+    psf = np.exp(-0.5 * (g[:, None] ** 2 / 2.0**2 + g[None, :] ** 2 / 4.0**2))
+    psf /= psf.sum()
+
+    class Constant:  # a model whose PSF is the same everywhere
+        psf_size = size
+
+        def psf_at(self, y, x):
+            return psf
+
+    light = ModelLight(Constant(), np.array([[50.0, 50.0], [50.0, 62.25]]),
+                       np.array([1e3, 2e3]))
+    pts = np.array([[50.0, 60.25], [52.0, 62.25], [50.0, 50.0]])
+    got = light.around(np.array([50.0, 50.0]), pts)
+    # the bead itself (at the centre) is not its own neighbour; the neighbour's PSF is
+    # sampled at whole-pixel offsets here: (0, -2), (2, 0) and (0, -12.25), beyond reach
+    want = 2e3 * np.array([psf[10, 8], psf[12, 10], 0.0])
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert crowded(np.array([0]), np.array([[0.0, 0.0], [0.0, 20.0]]), size)
+    assert not crowded(np.array([0]), np.array([[0.0, 0.0], [0.0, 30.0]]), size)

@@ -43,6 +43,7 @@ from ..common.validate import (
     check_saturation,
 )
 from .cone import Cone
+from .deblend import crowded, model_light
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .motion import detect_motion
@@ -152,6 +153,13 @@ def iter_estimate(
     yield Progress("centre", 0.3, f"{len(kept)} beads centred to sub-pixel precision")
     kept, patches, reasons = usable_patches(img, beads, kept, r, patch_filter=patch_filter)
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
+    if len(kept) > FEW_BEADS and crowded(kept, beads.positions, patches.size):
+        first = fit_patches(patches, shape, n_psf=n_psf, smoothing=smoothing,
+                            grid_step=grid_step, z_threshold=z_threshold, denoise=denoise)[1]
+        kept, patches, more = usable_patches(img, beads, kept, r, patch_filter=patch_filter,
+                                             neighbours=model_light(first, img, beads, r))
+        reasons.update(more)
+        yield Progress("patches", 0.5, "neighbours' light taken out with the model's PSFs")
 
     motion = (motion_of(patches) if motion_test or remove_motion else None)
     removers = PointSource(bead_diameter, motion if remove_motion else None)
@@ -258,20 +266,25 @@ def centre_beads(img: np.ndarray, beads: Beads, r: float) -> np.ndarray:
     return np.flatnonzero(beads.kept)
 
 
-def kept_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float) -> Patches:
+def kept_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float, *,
+                 neighbours=None) -> Patches:
     """The patches of the beads ``kept`` (indices into ``beads``), the other detections'
-    modelled light taken out (:func:`~napari_psfspace.core.beads.overlap.neighbour_light`;
-    background structure excepted): every path that learns from an image's beads (the
-    estimate, the family's) cuts the same patches."""
-    light = (neighbour_light(img, beads.positions[beads.status != STRUCTURE], r)
-             if SUBTRACT_NEIGHBOURS else None)
+    modelled light taken out (``neighbours``, default
+    :func:`~napari_psfspace.core.beads.overlap.neighbour_light`; background structure
+    excepted): every path that learns from an image's beads (the estimate, the family's)
+    cuts the same patches."""
+    light = neighbours
+    if light is None and SUBTRACT_NEIGHBOURS:
+        light = neighbour_light(img, beads.positions[beads.status != STRUCTURE], r)
     return extract_patches(img, beads.positions[kept], r, neighbours=light)
 
 
 def usable_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float, *,
-                   patch_filter=None) -> tuple[np.ndarray, Patches, dict[int, str]]:
+                   patch_filter=None, neighbours=None
+                   ) -> tuple[np.ndarray, Patches, dict[int, str]]:
     """Step 3: the kept beads' patches (background removed, windowed, sum 1), faint
-    beads left out (status set to faint in ``beads``), ``patch_filter`` applied.
+    beads left out (status set to faint in ``beads``), ``patch_filter`` applied; the
+    neighbours' light as :func:`kept_patches` takes it out.
 
     Returns
     -------
@@ -281,7 +294,7 @@ def usable_patches(img: np.ndarray, beads: Beads, kept: np.ndarray, r: float, *,
     reasons : dict
         Bead index -> why it was left out, beyond its status.
     """
-    patches = kept_patches(img, beads, kept, r)
+    patches = kept_patches(img, beads, kept, r, neighbours=neighbours)
     reasons: dict[int, str] = {}
     faint, why_faint = faint_beads(patches.flux)
     if faint.any():
