@@ -1,9 +1,10 @@
-"""Outliers judged by one held-out error per bead (core/model/pca.judge_outliers): the rim
+"""Outliers judged by one held-out error per bead (core/model/outliers.judge_outliers): the rim
 of a steep field kept, gross misfits left out, the surround rule on known layouts."""
 
 import numpy as np
 
-from napari_psfspace.core.model.pca import learn_basis, surrounded
+from napari_psfspace.core.model.outliers import surrounded
+from napari_psfspace.core.model.pca import learn_basis
 
 
 def _gaussians(pos, shape, size=21, sigma_of=None):

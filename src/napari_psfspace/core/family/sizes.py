@@ -85,7 +85,7 @@ def confirmed_size(psf: list[np.ndarray], centers: list[np.ndarray], support: np
     The pooled patches' principal directions (each patch l2-normalised); for each image
     with at least ``min_beads`` beads, each bead is predicted from the others by the
     image's own thin-plate field of its coefficients
-    (:func:`~napari_psfspace.core.model.pca.heldout_basis_errors`); the smallest size
+    (:func:`~napari_psfspace.core.model.outliers.heldout_basis_errors`); the smallest size
     within 1 % of the lowest mean error over every such bead. ``n_max`` where no image
     has enough beads.
 
@@ -99,7 +99,7 @@ def confirmed_size(psf: list[np.ndarray], centers: list[np.ndarray], support: np
         The window's support.
     n_max : int
     """
-    from ..model.pca import heldout_basis_errors
+    from ..model.outliers import heldout_basis_errors
 
     x = np.concatenate([p[:, support] for p in psf])
     xn = x / np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-300)
