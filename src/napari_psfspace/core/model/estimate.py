@@ -197,7 +197,7 @@ def iter_estimate(
         "r_ext": patches.r_ext,
         **basis_record(basis, n_psf, spline, smoothing, few),
         "threshold": threshold,
-        "z_threshold": z_threshold,
+        "z_threshold": float(z_threshold) if np.isfinite(z_threshold) else None,
         "grid_step": grid_step,
         "image_shape": list(shape),
         "image_dtype": str(raw.dtype),

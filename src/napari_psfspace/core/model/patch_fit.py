@@ -73,6 +73,18 @@ def fit_patches(
         record.update(info)
     basis = learn_basis(learn, n_psf, support=support, positions=patches.centers,
                         z_threshold=z_threshold, weights=weights)
+    if denoise and not basis.inliers.all():
+        # the learning filter again without the outliers: a gross one (a hot pixel the
+        # detector missed in a bead's core) fills the patches' mean power spectrum with
+        # noise that the filter would then let through on every bead
+        inl = basis.inliers
+        learn, info = band_limit(patches.psf[inl], sd[inl], window)
+        record.update(info)
+        again = learn_basis(learn, n_psf, support=support, positions=patches.centers[inl],
+                            z_threshold=np.inf, weights=weights[inl])
+        basis = PsfBasis(again.basis, again.coefficients, inl, basis.zscores,
+                         again.singular_values, again.rank_threshold, again.n_psf_rule,
+                         again.heldout_errors, again.components)
     if denoise:
         inl = basis.inliers
 
