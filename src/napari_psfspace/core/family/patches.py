@@ -18,7 +18,10 @@ from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches
 from ..common.spacing import bead_border, centring_sigma
 from ..common.validate import as_image
+from ..model.deblend import crowded, model_light
 from ..model.estimate import faint_beads, kept_patches
+from ..model.fewbeads import FEW_BEADS
+from ..model.patch_fit import fit_patches
 
 
 @dataclass
@@ -116,10 +119,20 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
         kept = np.flatnonzero(beads.kept)
     if len(kept) == 0:
         return ImagePatches(int(index), img.shape, None, beads.summary())
-    patches = kept_patches(img, beads, kept, r)
-    # as estimate_operator: a detection too faint to shape the PSF is left out, so that
-    # an image's beads (and its held-out split) are those of its own estimate
+    # as estimate_operator: a detection too faint to shape the PSF is left out, and a
+    # crowded field's patches are cut again with the first model's PSFs as the
+    # neighbours' light, so that an image's beads (and its held-out split) are those of
+    # its own estimate
+    patches, kept = _usable(kept_patches(img, beads, kept, r), kept)
+    if patches is not None and len(kept) > FEW_BEADS and crowded(kept, beads.positions,
+                                                                 patches.size):
+        light = model_light(fit_patches(patches, img.shape)[1], img, beads, r)
+        patches, kept = _usable(kept_patches(img, beads, kept, r, neighbours=light), kept)
+    return ImagePatches(int(index), img.shape, patches, beads.summary())
+
+
+def _usable(patches: Patches, kept: np.ndarray) -> tuple[Patches | None, np.ndarray]:
+    """The patches with light enough to shape the PSF (not faint), and their beads."""
     faint, _ = faint_beads(patches.flux)
     usable = (patches.flux > 0) & ~faint
-    patches = patches.subset(usable) if usable.any() else None
-    return ImagePatches(int(index), img.shape, patches, beads.summary())
+    return (patches.subset(usable) if usable.any() else None), kept[usable]
