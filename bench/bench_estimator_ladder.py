@@ -2,7 +2,7 @@
 defocus gradient, noise-free and with the camera's noise.
 
     python bench/bench_estimator_ladder.py [--seeds 0 1 2] [--gradient 0.15] [--noise]
-                                           [--beads 150]
+                                           [--beads 150] [--photons 1 10 100]
 
 The scene is ``bench_accuracy.py``'s moderate one (1024 x 1024, 150 beads, NA 1.3), with
 and without defocus (Noll 4) growing linearly along the columns, ``+-gradient`` waves rms
@@ -138,13 +138,50 @@ def ladder(seed: int, gradient: float, noise: bool, n_beads: int,
     return rows
 
 
+def photons_sweep(seeds, gradient: float, factors) -> None:
+    """The full estimate with the camera's noise at ``factors`` times the photons: the
+    gradient's cost against the clean field's, and each bead's noise floor (the norm of
+    its windowed noise over its patch's), whose ratio between the fields is what the
+    photons alone make of it."""
+    from napari_psfspace.core.common.progress import run_with_progress
+    from napari_psfspace.core.model.estimate import iter_estimate
+    from napari_psfspace.core.model.heldout import noise_floors
+
+    rows = []
+    for f in factors:
+        row = {"photons": f"x{f:g}"}
+        for g, name in ((0.0, "clean"), (gradient, "gradient")):
+            err, floor = [], []
+            for seed in seeds:
+                image, truth = scene(seed, g, True, photons=f)
+                est = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius))
+                err.append(float(grid_errors(est.operator, truth, 8).mean()))
+                floor.append(float(np.median(noise_floors(est.patches))))
+            row[name], row[f"{name}_floor"] = np.mean(err), np.mean(floor)
+        row["ratio"] = row["gradient"] / row["clean"]
+        row["floor_ratio"] = row["gradient_floor"] / row["clean_floor"]
+        rows.append(row)
+        print(rows[-1], flush=True)
+    print(f"\nThe gradient's cost with the camera's noise at more photons (16 bits above x1), "
+          f"seeds {list(seeds)} (means); floor: the beads' median noise floor")
+    print(table(rows, [("photons", "s"), ("clean", ".4f"), ("gradient", ".4f"),
+                       ("ratio", ".2f"), ("clean_floor", ".4f"), ("gradient_floor", ".4f"),
+                       ("floor_ratio", ".2f")]))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--gradient", type=float, default=0.15)
     ap.add_argument("--beads", type=int, default=150)
     ap.add_argument("--noise", action="store_true")
+    ap.add_argument("--photons", type=float, nargs="+", default=None,
+                    help="instead of the ladder: the full estimate with noise at these "
+                         "multiples of the photons")
     args = ap.parse_args()
+    if args.photons:
+        photons_sweep(args.seeds, args.gradient, args.photons)
+        return
     out = []
     runs = {g: [ladder(s, g, args.noise, args.beads) for s in args.seeds]
             for g in (0.0, args.gradient)}
