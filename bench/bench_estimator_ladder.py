@@ -63,7 +63,7 @@ def aberrations(gradient: float) -> FieldAberrations:
 def scene(seed: int, gradient: float, noise: bool, n_beads: int = 150,
           separation: float | None = None, photons: float = 1.0):
     """The image (noise-free: float photons) and the simulator's truth; ``photons``
-    scales the beads' photons (2e4 to 6e4 each) and their image's bit depth goes to 16."""
+    scales the beads' photons (2e4 to 6e4 each); above 1 the image is float, not 16 bits."""
     image, truth = simulate_beads((1024, 1024), n_beads, aberrations=aberrations(gradient),
                                   seed=seed, min_separation=separation,
                                   amplitude=(2e4 * photons, 6e4 * photons),
@@ -162,7 +162,7 @@ def photons_sweep(seeds, gradient: float, factors) -> None:
         row["floor_ratio"] = row["gradient_floor"] / row["clean_floor"]
         rows.append(row)
         print(rows[-1], flush=True)
-    print(f"\nThe gradient's cost with the camera's noise at more photons (16 bits above x1), "
+    print(f"\nThe gradient's cost with the camera's noise at more photons (float images above x1), "
           f"seeds {list(seeds)} (means); floor: the beads' median noise floor")
     print(table(rows, [("photons", "s"), ("clean", ".4f"), ("gradient", ".4f"),
                        ("ratio", ".2f"), ("clean_floor", ".4f"), ("gradient_floor", ".4f"),
