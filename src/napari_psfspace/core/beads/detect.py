@@ -49,7 +49,7 @@ STATUS_MEANING = {
     BORDER: "too close to the border",
     NEIGHBOUR: "too close to a neighbour",
     FAINT: "no signal above the background",
-    OUTLIER: "z-score outlier",
+    OUTLIER: "shape unlike its neighbours' prediction",
     REJECTED: "rejected by hand",
     HELDOUT: "held out of the fit",
     COMPANION: "companion in the patch (fitted jointly, not learnt)",

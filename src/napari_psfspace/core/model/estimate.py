@@ -1,6 +1,6 @@
 """Estimate a product-convolution operator from one image of beads (paper, sec. 2.3).
 
-detect -> centre -> extract patches (background, window, normalise) -> PCA with z-score
+detect -> centre -> extract patches (background, window, normalise) -> PCA with outlier
 rejection -> weighted thin-plate splines of the coefficients on a coarse grid -> cone
 projection -> :class:`~napari_psfspace.core.model.operator.ProductConvolution`.
 
@@ -404,7 +404,7 @@ STATUS_REASONS = {
     "border": "too close to the image border for its patch",
     "neighbour": "another detection within 2 PSF radii",
     "faint": "too faint to shape the PSF",
-    "outlier": "its shape is an outlier among the beads (PCA z-score)",
+    "outlier": "its shape is unlike what its neighbours predict (held-out error)",
     "rejected": "rejected by the user",
     "companion": "a companion inside its patch",
     "structure": "background structure, not a bead",

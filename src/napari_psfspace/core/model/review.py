@@ -41,13 +41,15 @@ class PatchReview:
         Sub-pixel centres (row, column) in pixels the patches are re-sampled on.
     views : dict of str to ndarray of shape (K, P, P)
         ``"raw"`` (image units), ``"background removed"`` (raw minus the fitted
-        polynomial background) and ``"windowed"`` (background removed times the bump
+        background) and ``"windowed"`` (background removed times the bump
         window), keys :data:`VIEWS`.
     zscore : ndarray of shape (K,)
-        Largest absolute z-score of the bead in the PCA of the kept beads (NaN for a
-        bead that is not kept, or when there are too few kept beads).
+        The bead's held-out error among the kept beads' in robust standard deviations
+        (:func:`~napari_psfspace.core.model.outliers.judge_outliers`; NaN for a bead
+        that is not kept, or when there are too few kept beads).
     outlier : ndarray of shape (K,), bool
-        ``zscore > z_threshold``.
+        Left out by that judge (above ``z_threshold`` and with a held-out gain, or
+        grossly off).
     neighbour : ndarray of shape (K,), bool
         Another bead (any status) lies closer than ``2 r``.
     saturated : ndarray of shape (K,), bool
@@ -69,7 +71,7 @@ class PatchReview:
         """Human-readable flags of patch ``k`` (empty when it looks clean)."""
         out = []
         if self.outlier[k]:
-            out.append(f"z-score outlier (z = {self.zscore[k]:.1f})")
+            out.append(f"outlier (held-out error z = {self.zscore[k]:.1f})")
         if self.neighbour[k]:
             out.append("neighbour closer than 2 r")
         if self.saturated[k]:
@@ -140,13 +142,14 @@ def iter_patch_review(
     yield Progress("patches", 0.6, f"{len(index)} patches of {patches.size} px")
 
     zscore = np.full(len(index), np.nan)
+    outlier = np.zeros(len(index), bool)
     kept = (beads.status[index] == KEPT) & (patches.flux > 0)
     if np.count_nonzero(kept) >= min_beads_for(1):
         support = radial_distance(patches.size) < patches.r_ext
         basis = learn_basis(patches.psf[kept], "rule", support=support,
                             positions=patches.centers[kept], z_threshold=z_threshold)
         zscore[kept] = basis.zscores
-    outlier = np.nan_to_num(zscore, nan=0.0) > z_threshold
+        outlier[kept] = ~basis.inliers
 
     neighbour = np.zeros(len(index), bool)
     if len(pos) > 1:  # the estimate's rule: the light the others add to the patch
@@ -162,7 +165,7 @@ def iter_patch_review(
     if saturation is not None:
         core = gather_windows(raw, pos[index], max(1, int(round(r / 3))))
         saturated = core.reshape(len(index), -1).max(axis=1) >= saturation
-    yield Progress("flags", 1.0, f"{int(outlier.sum())} z-score outliers, "
+    yield Progress("flags", 1.0, f"{int(outlier.sum())} outliers, "
                                  f"{int(neighbour.sum())} with a neighbour, "
                                  f"{int(saturated.sum())} saturated")
     return PatchReview(index, centers, views, zscore, outlier, neighbour, saturated)
