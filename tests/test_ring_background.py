@@ -98,3 +98,19 @@ def test_a_neighbours_light_is_taken_out_with_the_models_psf():
     np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
     assert crowded(np.array([0]), np.array([[0.0, 0.0], [0.0, 20.0]]), size)
     assert not crowded(np.array([0]), np.array([[0.0, 0.0], [0.0, 30.0]]), size)
+
+
+def test_a_bead_the_ring_leaves_no_light_takes_its_patchs_background():
+    """A faint bead in a dark hole of bright structure: the ring, on the structure, lies
+    above the bead's own surround; that bead falls back on the paper's background."""
+    shape, c, r = (128, 128), np.array([[64.0, 64.0]]), 8.0
+    y, x = np.indices(shape, dtype=np.float64)
+    image = np.where(np.hypot(y - 64, x - 64) < 1.5 * r, 100.0, 300.0)
+    image += _lorentz_bead(shape, c[0], width=1.5, flux=2e3)
+    ring = extract_patches(image, c, r)
+    patch = extract_patches(image, c, r, background="patch")
+    plane = ring_background(image, c, r, 1.2 * r, ring.size)
+    window = bump_window(ring.size, r, 1.2 * r)
+    assert ((ring.raw - plane) * window).sum() <= 0  # the ring alone leaves it no light
+    assert patch.flux[0] > 0 and ring.flux[0] == patch.flux[0]
+    np.testing.assert_array_equal(ring.psf, patch.psf)

@@ -152,9 +152,10 @@ def extract_patches(
     background : {"ring", "patch"}
         "ring": a plane fitted on a ring beyond the window, from ``r_ext`` to
         :data:`~napari_psfspace.core.beads.background.RING_OUTER` radii
-        (:func:`~napari_psfspace.core.beads.background.ring_background`); "patch": the
-        paper's polynomial of ``background_order`` fitted to the patch beyond ``r``, which
-        takes part of the PSF's wings for background.
+        (:func:`~napari_psfspace.core.beads.background.ring_background`), or "patch"'s
+        for a bead the ring leaves no light; "patch": the paper's polynomial of
+        ``background_order`` fitted to the patch beyond ``r``, which takes part of the
+        PSF's wings for background.
     background_order : int
         Order of the "patch" background polynomial (paper: 2).
     neighbours : NeighbourLight, optional
@@ -191,8 +192,15 @@ def extract_patches(
             raw[k] -= neighbours.around(c, c + grid).reshape(size, size)
     seen = observed_mask(centers, size, img.shape)
     partial = not seen.all()
+    window = bump_window(size, r, r_ext)
     if background == "ring":
         bg = ring_background(img, centers, r, r_ext, size, neighbours=neighbours)
+        # a ring lying on structure brighter than the bead's own surround leaves the
+        # bead no light: such a bead takes its patch's own background, the paper's
+        dark = np.flatnonzero(((raw - bg) * window).sum(axis=(1, 2)) <= 0)
+        if len(dark):
+            bg[dark] = fit_background(raw[dark], r, order=background_order,
+                                      observed=seen[dark] if partial else None)
     else:
         bg = fit_background(raw, r, order=background_order, observed=seen if partial else None)
     if partial:  # beyond the edge: no light measured, the background's level
@@ -205,7 +213,7 @@ def extract_patches(
         resid = signal[k][outside & seen[k]]  # the pixels in the image only
         noise[k] = (1.4826 * np.median(np.abs(resid - np.median(resid))) if len(resid)
                     else 0.0)
-    windowed = signal * bump_window(size, r, r_ext)
+    windowed = signal * window
     flux = windowed.sum(axis=(1, 2))
     psf = np.zeros_like(windowed)
     good = flux > 0
