@@ -165,13 +165,13 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
             vals[k] -= neighbours.around(centers[k], base[k] + points)
     use = seen[:, ring].astype(np.float64)
     coef = _planes(design, vals, use)
+    seen_any = use.any(axis=1)
     for _ in range(RING_PASSES):  # fitted again without the pixels far from the plane
-        res = vals - coef @ design.T
-        med = np.array([np.median(x[u > 0]) if u.any() else 0.0
-                        for x, u in zip(res, use, strict=True)])
-        mad = np.array([np.median(np.abs(x[u > 0] - m)) if u.any() else 0.0
-                        for x, u, m in zip(res, use, med, strict=True)])
-        keep = np.abs(res - med[:, None]) <= RING_CLIP * 1.4826 * mad[:, None]
+        res = np.where(use > 0, vals - coef @ design.T, np.nan)
+        res[~seen_any] = 0.0
+        med = np.nanmedian(res, axis=1, keepdims=True)
+        mad = np.nanmedian(np.abs(res - med), axis=1, keepdims=True)
+        keep = np.abs(res - med) <= RING_CLIP * 1.4826 * mad  # NaN (not seen): False
         coef = _planes(design, vals, use * keep)
     frac = centers - base
     off = (np.arange(size, dtype=np.float64) - half)

@@ -65,33 +65,53 @@ def _robust_z(values: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return (values - med) / max(scale, 1e-12 * max(abs(med), 1e-300))
 
 
-def _heldout_each(x: np.ndarray, positions: np.ndarray, judged: np.ndarray) -> np.ndarray:
-    """The held-out errors of the ``judged`` beads' rows of ``x`` (K, n), shape (J,), for
-    a model (PCA and thin-plate field) learnt on all rows, at the basis size where their
-    mean is least."""
-    _, vt = np.linalg.svd(x, full_matrices=False)[1:]
-    n_max = min(GAIN_COMPONENTS, max(1, (len(x) - 2) // 2), len(vt))
+def _leading(x: np.ndarray, n: int) -> np.ndarray:
+    """The ``n`` leading right singular vectors of ``x`` (K, S), shape (<= n, S), from
+    the eigendecomposition of its smaller Gram matrix (a bead set's patches: far fewer
+    rows than pixels, and only the leading directions are asked for)."""
+    if x.shape[0] <= x.shape[1]:
+        w, u = np.linalg.eigh(x @ x.T)
+        order = np.argsort(w)[::-1][:n]
+        s = np.sqrt(np.clip(w[order], 0.0, None))
+        keep = s > 1e-7 * max(float(s[0]), 1e-300)
+        return (u[:, order[keep]].T @ x) / s[keep, None]
+    w, v = np.linalg.eigh(x.T @ x)
+    return v[:, np.argsort(w)[::-1][:n]].T
+
+
+def _heldout_matrix(x: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """Every bead's held-out error at every basis size (K, I_max), for a model (PCA and
+    thin-plate field) learnt on all rows of ``x`` (K, S)."""
+    n_max = min(GAIN_COMPONENTS, max(1, (len(x) - 2) // 2), min(x.shape))
+    vt = _leading(x, n_max)
     norm2 = (x**2).sum(axis=1).mean()
-    err = heldout_basis_errors(x, vt[:n_max], positions, per_bead=True)[judged] * norm2
-    return err[:, int(np.argmin(err.mean(axis=0)))]
+    return heldout_basis_errors(x, vt, positions, per_bead=True) * norm2
 
 
-def held_out_gain(x: np.ndarray, positions: np.ndarray, keep: np.ndarray) -> bool:
+def _at_best(err: np.ndarray, judged: np.ndarray) -> np.ndarray:
+    """The ``judged`` beads' errors at the basis size where their mean is least."""
+    e = err[judged]
+    return e[:, int(np.argmin(e.mean(axis=0)))]
+
+
+def held_out_gain(x: np.ndarray, positions: np.ndarray, keep: np.ndarray, *,
+                  before: np.ndarray | None = None) -> bool:
     """Whether leaving out the beads not in ``keep`` lowers the held-out error of the
     kept beads near them beyond its spread: the paired differences of those beads' errors
     with and without the others average more than :data:`GAIN_SE` standard errors above
     zero. "Near" is each left-out bead's ``2 SURROUND_NEIGHBOURS`` nearest kept beads:
     the thin-plate field changes little farther away, and beads that do not change would
-    only dilute the test."""
+    only dilute the test. ``before``: the errors of the model of all rows
+    (:func:`_heldout_matrix`), when already at hand."""
     kept_pos = positions[keep]
     n_near = min(2 * SURROUND_NEIGHBOURS, len(kept_pos))
     near = np.zeros(len(kept_pos), bool)
     near[np.unique(cKDTree(kept_pos).query(positions[~keep], k=n_near)[1])] = True
     judged = np.zeros(len(x), bool)
     judged[np.flatnonzero(keep)[near]] = True
-    before = _heldout_each(x, positions, judged)
-    after = _heldout_each(x[keep], kept_pos, near)
-    d = before - after
+    if before is None:
+        before = _heldout_matrix(x, positions)
+    d = _at_best(before, judged) - _at_best(_heldout_matrix(x[keep], kept_pos), near)
     if len(d) < 2:
         return False
     return bool(d.mean() > GAIN_SE * d.std(ddof=1) / np.sqrt(len(d)))
@@ -147,10 +167,13 @@ def judge_outliers(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, n_test:
     inliers = z <= max(GROSS_Z, threshold)
     cand = np.flatnonzero((z > threshold) & inliers)
     cand = cand[np.argsort(-z[cand])]
+    before = None
     while len(cand) and int(inliers.sum()) - len(cand) >= min_keep:
         keep = inliers.copy()
         keep[cand] = False
-        if held_out_gain(x[inliers], positions[inliers], keep[inliers]):
+        if before is None:
+            before = _heldout_matrix(x[inliers], positions[inliers])
+        if held_out_gain(x[inliers], positions[inliers], keep[inliers], before=before):
             inliers = keep
             break
         cand = cand[:len(cand) // 2]
