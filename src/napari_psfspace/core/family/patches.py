@@ -21,7 +21,6 @@ from ..common.validate import as_image
 from ..model.deblend import crowded, model_light
 from ..model.estimate import faint_beads, kept_patches
 from ..model.fewbeads import FEW_BEADS
-from ..model.patch_fit import fit_patches
 
 
 @dataclass
@@ -126,7 +125,7 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     patches, kept = _usable(kept_patches(img, beads, kept, r), kept)
     if patches is not None and len(kept) > FEW_BEADS and crowded(kept, beads.positions,
                                                                  patches.size):
-        light = model_light(fit_patches(patches, img.shape)[1], img, beads, r)
+        light = model_light(patches, img, beads, r)
         patches, kept = _usable(kept_patches(img, beads, kept, r, neighbours=light), kept)
     return ImagePatches(int(index), img.shape, patches, beads.summary())
 

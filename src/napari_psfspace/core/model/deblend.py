@@ -64,12 +64,17 @@ class ModelLight:
         return out
 
 
-def model_light(operator, image: np.ndarray, beads, psf_radius: float) -> ModelLight:
+def model_light(patches, image: np.ndarray, beads, psf_radius: float) -> ModelLight:
     """The :class:`ModelLight` of ``beads`` (all but background structure) on ``image``:
     each one's light as :func:`~napari_psfspace.core.beads.overlap.neighbour_light`
-    measures it, its shape the model's PSF at its position."""
+    measures it, its shape the PSF at its position of a first model learnt from
+    ``patches`` (the basis by the rank rule, every bead kept: the neighbours' light is a
+    small share of a patch, and this model only has to draw it)."""
+    from .patch_fit import fit_patches
+
+    first = fit_patches(patches, image.shape, n_psf="rule", z_threshold=np.inf)[1]
     pos = beads.positions[beads.status != STRUCTURE]
-    return ModelLight(operator, pos, neighbour_light(image, pos, psf_radius).flux)
+    return ModelLight(first, pos, neighbour_light(image, pos, psf_radius).flux)
 
 
 def crowded(kept: np.ndarray, positions: np.ndarray, size: int) -> bool:

@@ -154,10 +154,8 @@ def iter_estimate(
     kept, patches, reasons = usable_patches(img, beads, kept, r, patch_filter=patch_filter)
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
     if len(kept) > FEW_BEADS and crowded(kept, beads.positions, patches.size):
-        first = fit_patches(patches, shape, n_psf=n_psf, smoothing=smoothing,
-                            grid_step=grid_step, z_threshold=z_threshold, denoise=denoise)[1]
         kept, patches, more = usable_patches(img, beads, kept, r, patch_filter=patch_filter,
-                                             neighbours=model_light(first, img, beads, r))
+                                             neighbours=model_light(patches, img, beads, r))
         reasons.update(more)
         yield Progress("patches", 0.5, "neighbours' light taken out with the model's PSFs")
 
