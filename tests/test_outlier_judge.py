@@ -44,3 +44,23 @@ def test_a_noise_free_steep_field_keeps_every_bead_and_a_doublet_is_left_out():
     basis = learn_basis(bad, 6, positions=pos)
     assert not basis.inliers[k] and not basis.inliers[corner]
     assert basis.inliers.sum() == len(pos) - 2
+
+
+def test_z_threshold_is_checked_before_any_work():
+    from napari_psfspace.core.model.estimate import iter_estimate
+
+    for bad in ("x", -1.0, float("nan"), 0):
+        try:
+            next(iter_estimate(np.zeros((64, 64)), psf_radius=4, z_threshold=bad))
+        except ValueError as err:
+            assert "`z_threshold`" in str(err) and repr(bad) in str(err)
+        else:
+            raise AssertionError(f"z_threshold={bad!r} accepted")
+
+
+def test_an_infinite_threshold_keeps_every_bead_unjudged():
+    rng = np.random.default_rng(2)
+    pos = rng.uniform(20, 980, (40, 2))
+    basis = learn_basis(_gaussians(pos, (1000, 1000)), 3, positions=pos,
+                        z_threshold=np.inf)
+    assert basis.inliers.all() and np.isnan(basis.zscores).all()

@@ -78,6 +78,18 @@ def check_positive(value, name: str, *, allow_zero: bool = False) -> float:
     return v
 
 
+def check_threshold(value, name: str) -> float:
+    """Return ``float(value)`` after checking it is a positive number; ``inf`` (nothing
+    exceeds it) is allowed."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number, got {value!r}.") from None
+    if np.isnan(v) or v <= 0:
+        raise ValueError(f"`{name}` must be > 0 (inf: none exceeds it), got {value!r}.")
+    return v
+
+
 def check_psf_radius(psf_radius, shape: tuple[int, int]) -> float:
     """Check the PSF radius (pixels) against the image shape."""
     r = check_positive(psf_radius, "psf_radius")

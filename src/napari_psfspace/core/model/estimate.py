@@ -41,6 +41,7 @@ from ..common.validate import (
     check_positive,
     check_psf_radius,
     check_saturation,
+    check_threshold,
 )
 from .cone import Cone
 from .deblend import crowded, model_light
@@ -133,6 +134,7 @@ def iter_estimate(
     r = check_psf_radius(psf_radius, shape)
     grid_step = check_grid_step(grid_step, np.shape(image)[-2:])
     saturation = check_saturation(saturation)
+    z_threshold = check_threshold(z_threshold, "z_threshold")
     if n_psf is not None and not isinstance(n_psf, str):
         try:
             bad = isinstance(n_psf, (bool, np.bool_)) or int(n_psf) != n_psf or n_psf < 1

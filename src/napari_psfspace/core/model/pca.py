@@ -47,8 +47,11 @@ class PsfBasis:
     inliers : ndarray of shape (K,), bool
         Patches kept after the z-score test.
     zscores : ndarray of shape (K,)
-        Largest absolute z-score of each patch's coefficients, or of their residuals
-        about the field (first PCA); with ``groups``, in robust standard deviations.
+        Without positions, the largest absolute z-score of each patch's coefficients
+        (first PCA); with positions, its held-out error in robust standard deviations
+        (NaN where ``z_threshold`` is infinite: no bead judged); with ``groups``, its
+        largest standardized residual about its image's field, in robust standard
+        deviations.
     singular_values : ndarray
         Singular values of the inlier matrix (second PCA), decreasing.
     rank_threshold : float
@@ -343,6 +346,8 @@ def learn_basis(
     elif pos is None:
         zmax = _zmax(coef)
         inliers = zmax <= (3.0 if z_threshold is None else z_threshold)
+    elif z_threshold is not None and np.isinf(z_threshold):  # every bead kept, unjudged
+        zmax, inliers = np.full(k, np.nan), np.ones(k, bool)
     else:
         zmax, inliers = judge_outliers(xn, vt, pos, min(n_first, JUDGE_COMPONENTS),
                                        3.0 if z_threshold is None else z_threshold,
