@@ -127,6 +127,22 @@ def check_int(value, name: str, *, minimum: int | None = None,
     return v
 
 
+def check_n_psf(n_psf, name: str = "n_psf") -> int | None:
+    """Check a basis size: a positive whole number, ``'heldout'``, ``'rule'`` or None.
+    Returns the fixed size (an int), or None when the data choose it."""
+    if n_psf is None or (isinstance(n_psf, str) and n_psf in ("heldout", "rule")):
+        return None
+    try:
+        bad = (isinstance(n_psf, (bool, np.bool_, str)) or int(n_psf) != n_psf
+               or n_psf < 1)
+    except (TypeError, ValueError, OverflowError):
+        bad = True
+    if bad:
+        raise ValueError(f"`{name}` must be a positive integer, 'heldout', 'rule' or None, "
+                         f"got {n_psf!r}.")
+    return int(n_psf)
+
+
 def check_grid_step(grid_step, shape: tuple[int, ...], name: str = "grid_step", *,
                     minimum: float = 1.0) -> float:
     """Check a coarse grid's spacing (pixels): finite, at least ``minimum``, at most the

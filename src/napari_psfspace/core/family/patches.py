@@ -18,7 +18,7 @@ from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches
 from ..common.spacing import bead_border, centring_sigma
 from ..common.validate import as_image
-from ..model.deblend import crowded, model_light
+from ..model.deblend import crowded, deblend
 from ..model.estimate import faint_beads, kept_patches
 from ..model.fewbeads import FEW_BEADS
 
@@ -125,8 +125,11 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     patches, kept = _usable(kept_patches(img, beads, kept, r), kept)
     if patches is not None and len(kept) > FEW_BEADS and crowded(kept, beads.positions,
                                                                  patches.size):
-        light = model_light(patches, img, beads, r)
-        patches, kept = _usable(kept_patches(img, beads, kept, r, neighbours=light), kept)
+        def cut(light):
+            new, k = _usable(kept_patches(img, beads, kept, r, neighbours=light), kept)
+            return k, new
+
+        kept, patches = deblend(patches, kept, img, beads, r, cut)
     return ImagePatches(int(index), img.shape, patches, beads.summary())
 
 

@@ -7,6 +7,13 @@ puts a wide halo on one side), that profile is wrong near the beads whose light 
 most. Once a first model is fitted, :class:`ModelLight` gives each neighbour the
 model's PSF at its own position, at its sub-pixel offset, times its light; the patches
 are cut again with it and the model fitted again.
+
+Each detection's light is fitted to the image with the model's PSF at its position
+(:func:`fit_light`), not read from its core with the isotropic profile: in a defocus
+gradient the profile holds too much light in a wide PSF's core, and the defocused beads'
+light came out a third short. :func:`deblend` repeats the three steps (a model from the
+patches, the light fitted with it, the patches cut again) :data:`DEBLEND_PASSES` times:
+each pass's patches are cleaner, so the next model draws the neighbours better.
 """
 
 from __future__ import annotations
@@ -18,6 +25,12 @@ from scipy.spatial import cKDTree
 from ..beads.detect import STRUCTURE
 from ..beads.overlap import neighbour_light
 from ..common.progress import check_halt
+
+#: Passes of :func:`deblend` (a model, the light fitted with it, the patches cut again).
+DEBLEND_PASSES = 3
+#: Passes of :func:`fit_light` over the detections (Gauss-Seidel: each fit uses the
+#: neighbours' latest light).
+LIGHT_PASSES = 3
 
 
 class ModelLight:
@@ -64,17 +77,72 @@ class ModelLight:
         return out
 
 
-def model_light(patches, image: np.ndarray, beads, psf_radius: float) -> ModelLight:
+def fit_light(light: ModelLight, image: np.ndarray, psf_radius: float, *,
+              passes: int = LIGHT_PASSES) -> ModelLight:
+    """Each detection's light fitted to ``image``, in place (``light.flux``).
+
+    For each detection, the image over the disk of radius ``r`` about it, less its
+    neighbours' modelled light, is fitted by least squares with its own model PSF times a
+    light plus a constant (the local background); a negative light is 0. Each fit uses
+    the neighbours' latest light (Gauss-Seidel, ``passes`` sweeps): with overlapping
+    PSFs, holding them all at the last sweep's (Jacobi) overshoots and oscillates. The
+    light is that of the model's PSF, sum 1 over the patch's window.
+    """
+    img = np.asarray(image, np.float64)
+    half = int(np.ceil(psf_radius))
+    d = np.arange(-half, half + 1)
+    dy, dx = (a[np.hypot(*np.meshgrid(d, d, indexing="ij")) <= psf_radius]
+              for a in np.meshgrid(d, d, indexing="ij"))
+    light.flux = np.array(light.flux, np.float64)
+    for _ in range(passes):
+        for n, p in enumerate(light.positions):
+            check_halt()
+            ys, xs = np.rint(p[0]).astype(int) + dy, np.rint(p[1]).astype(int) + dx
+            inside = (ys >= 0) & (ys < img.shape[0]) & (xs >= 0) & (xs < img.shape[1])
+            pts = np.stack([ys[inside], xs[inside]], axis=1).astype(np.float64)
+            h = light._psf(n)
+            a = np.stack([ndi.map_coordinates(h, (pts - p + h.shape[0] // 2).T, order=3,
+                                              mode="constant", cval=0.0),
+                          np.ones(len(pts))], axis=1)
+            y = img[ys[inside], xs[inside]] - light.around(p, pts)
+            light.flux[n] = max(float(np.linalg.lstsq(a, y, rcond=None)[0][0]), 0.0)
+    return light
+
+
+def model_light(patches, image: np.ndarray, beads, psf_radius: float,
+                light: ModelLight | None = None) -> ModelLight:
     """The :class:`ModelLight` of ``beads`` (all but background structure) on ``image``:
-    each one's light as :func:`~napari_psfspace.core.beads.overlap.neighbour_light`
-    measures it, its shape the PSF at its position of a first model learnt from
-    ``patches`` (the basis by the rank rule, every bead kept: the neighbours' light is a
-    small share of a patch, and this model only has to draw it)."""
+    each one's shape the PSF at its position of a model learnt from ``patches`` (the
+    basis by the rank rule, every bead kept: the neighbours' light is a small share of a
+    patch, and this model only has to draw it), its light fitted with it
+    (:func:`fit_light`), starting from ``light``'s or, without one, from what
+    :func:`~napari_psfspace.core.beads.overlap.neighbour_light` measures."""
     from .patch_fit import fit_patches
 
-    first = fit_patches(patches, image.shape, n_psf="rule", z_threshold=np.inf)[1]
+    model = fit_patches(patches, image.shape, n_psf="rule", z_threshold=np.inf)[1]
     pos = beads.positions[beads.status != STRUCTURE]
-    return ModelLight(first, pos, neighbour_light(image, pos, psf_radius).flux)
+    flux = (light.flux if light is not None and len(light.flux) == len(pos)
+            else neighbour_light(image, pos, psf_radius).flux)
+    return fit_light(ModelLight(model, pos, flux), image, psf_radius)
+
+
+def deblend(patches, kept: np.ndarray, image: np.ndarray, beads, psf_radius: float, cut, *,
+            passes: int = DEBLEND_PASSES):
+    """The patches of a crowded field, cut with the neighbours' light taken out.
+
+    ``passes`` times: a model from the last patches with the detections' light fitted
+    with it (:func:`model_light`); then ``cut(light)``, the caller's cut of its beads'
+    patches, gives the next ``(kept, patches)``: ``kept`` the indices into ``beads`` of
+    the patches (None patches when a cut leaves none). Returns the last cut's ``(kept,
+    patches)``.
+    """
+    light = None
+    for _ in range(passes):
+        light = model_light(patches, image, beads, psf_radius, light)
+        kept, patches = cut(light)
+        if patches is None:  # no usable patch left
+            break
+    return kept, patches
 
 
 def crowded(kept: np.ndarray, positions: np.ndarray, size: int) -> bool:
@@ -87,4 +155,4 @@ def crowded(kept: np.ndarray, positions: np.ndarray, size: int) -> bool:
     return bool(np.any(dist[:, 1] < size))
 
 
-__all__ = ["ModelLight", "crowded", "model_light"]
+__all__ = ["DEBLEND_PASSES", "ModelLight", "crowded", "deblend", "fit_light", "model_light"]

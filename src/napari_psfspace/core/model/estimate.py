@@ -38,13 +38,14 @@ from ..common.threads import blas_threads
 from ..common.validate import (
     as_image,
     check_grid_step,
+    check_n_psf,
     check_positive,
     check_psf_radius,
     check_saturation,
     check_threshold,
 )
 from .cone import Cone
-from .deblend import crowded, model_light
+from .deblend import crowded, deblend
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .motion import detect_motion
@@ -135,15 +136,7 @@ def iter_estimate(
     grid_step = check_grid_step(grid_step, np.shape(image)[-2:])
     saturation = check_saturation(saturation)
     z_threshold = check_threshold(z_threshold, "z_threshold")
-    if n_psf is not None and not isinstance(n_psf, str):
-        try:
-            bad = isinstance(n_psf, (bool, np.bool_)) or int(n_psf) != n_psf or n_psf < 1
-        except (TypeError, ValueError, OverflowError):
-            bad = True
-        if bad:
-            raise ValueError(f"`n_psf` must be a positive integer, 'heldout', 'rule' or None, "
-                             f"got {n_psf!r}.")
-    fixed_n = n_psf if isinstance(n_psf, (int, np.integer)) else None
+    fixed_n = check_n_psf(n_psf)
     if smoothing is not None:
         check_positive(smoothing, "smoothing", allow_zero=True)
     bead_diameter = check_bead_diameter(bead_diameter, r)
@@ -156,9 +149,13 @@ def iter_estimate(
     kept, patches, reasons = usable_patches(img, beads, kept, r, patch_filter=patch_filter)
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
     if len(kept) > FEW_BEADS and crowded(kept, beads.positions, patches.size):
-        kept, patches, more = usable_patches(img, beads, kept, r, patch_filter=patch_filter,
-                                             neighbours=model_light(patches, img, beads, r))
-        reasons.update(more)
+        def cut(light):
+            k, new, more = usable_patches(img, beads, kept, r, patch_filter=patch_filter,
+                                          neighbours=light)
+            reasons.update(more)
+            return k, new
+
+        kept, patches = deblend(patches, kept, img, beads, r, cut)
         yield Progress("patches", 0.5, "neighbours' light taken out with the model's PSFs")
 
     motion = (motion_of(patches) if motion_test or remove_motion else None)
