@@ -114,3 +114,27 @@ def test_a_bead_the_ring_leaves_no_light_takes_its_patchs_background():
     assert ((ring.raw - plane) * window).sum() <= 0  # the ring alone leaves it no light
     assert patch.flux[0] > 0 and ring.flux[0] == patch.flux[0]
     np.testing.assert_array_equal(ring.psf, patch.psf)
+
+
+def test_a_quantised_background_is_not_pulled_to_its_commonest_level():
+    """An 8-bit camera at low gain: the background is 12.4 ADU with 0.35 ADU of noise,
+    so most ring pixels read 12 and the ring's MAD is 0. The clip must not leave only
+    the 12s (a level 0.4 ADU low over the whole patch): its scale has the step of the
+    levels as a floor. Rounded Gaussian noise of sd 0.35 step dithers the levels, whose
+    mean then lies within 0.03 of the truth; the ring's ~450 pixels of sd 0.46 (noise
+    and rounding) give the plane's level an sd of about 0.02: 0.1 is 4 sd beyond."""
+    from napari_psfspace.core.beads.background import value_step
+
+    shape, r = (96, 96), 8.0
+    rng = np.random.default_rng(5)
+    truth = 12.4
+    image = np.round(truth + rng.normal(0, 0.35, shape))
+    size = patch_size(r)
+    ring = np.hypot(*np.mgrid[-12:13, -12:13]) > 1.2 * r
+    window = image[48 - 12:48 + 13, 48 - 12:48 + 13]
+    assert np.median(np.abs(window[ring] - np.median(window[ring]))) == 0.0  # the case
+    bg = ring_background(image, np.array([[48.0, 48.0]]), r, 1.2 * r, size)
+    assert abs(bg[0, size // 2, size // 2] - truth) < 0.1
+    assert value_step(image) == 1.0
+    assert value_step(0.25 * image + 3.0) == 0.25
+    assert value_step(rng.normal(size=shape)) == 0.0

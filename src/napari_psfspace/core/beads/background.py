@@ -166,12 +166,16 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
     use = seen[:, ring].astype(np.float64)
     coef = _planes(design, vals, use)
     seen_any = use.any(axis=1)
+    step = value_step(image)
     for _ in range(RING_PASSES):  # fitted again without the pixels far from the plane
         res = np.where(use > 0, vals - coef @ design.T, np.nan)
         res[~seen_any] = 0.0
         med = np.nanmedian(res, axis=1, keepdims=True)
-        mad = np.nanmedian(np.abs(res - med), axis=1, keepdims=True)
-        keep = np.abs(res - med) <= RING_CLIP * 1.4826 * mad  # NaN (not seen): False
+        # a quantised image's background can hold one level in most of its pixels:
+        # its MAD is then 0, and every pixel a level away would be left out
+        scale = np.maximum(1.4826 * np.nanmedian(np.abs(res - med), axis=1, keepdims=True),
+                           step)
+        keep = np.abs(res - med) <= RING_CLIP * scale  # NaN (not seen): False
         coef = _planes(design, vals, use * keep)
     frac = centers - base
     off = (np.arange(size, dtype=np.float64) - half)
@@ -179,6 +183,22 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
     px = (off[None, :] + frac[:, 1:]) / h
     return (coef[:, 0, None, None] + coef[:, 1, None, None] * px[:, None, :]
             + coef[:, 2, None, None] * py[:, :, None])
+
+
+def value_step(image: np.ndarray, *, sample: int = 65536) -> float:
+    """The step between an image's levels: the least difference between its distinct
+    values when every value lies on that lattice (a camera's ADU, or a scaled copy of
+    them) of at most 2**20 levels, else 0. Read from at most ``sample`` pixels spread
+    over the image."""
+    flat = np.asarray(image).ravel()
+    vals = np.unique(flat[::max(1, flat.size // sample)].astype(np.float64))
+    if len(vals) < 2:
+        return 0.0
+    step = float(np.min(np.diff(vals)))
+    levels = (vals - vals[0]) / step
+    if levels[-1] > 2**20 or not np.allclose(levels, np.round(levels), atol=1e-3):
+        return 0.0  # more levels than a camera has, or off any lattice: continuous
+    return step
 
 
 def _planes(design: np.ndarray, vals: np.ndarray, use: np.ndarray) -> np.ndarray:

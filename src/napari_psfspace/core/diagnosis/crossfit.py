@@ -5,7 +5,7 @@ Z-order curve, so each fold is a spatially spread ~1/k of the beads). For each f
 model is estimated without it (its beads still count as neighbours of the others), and
 the fold's beads are fitted with that model
 (:func:`~napari_psfspace.core.diagnosis.residuals.fit_beads`).
-With ``k = 5`` each fold is the 20 % hold-out of the issue; together the folds give
+With ``k = 5`` each fold is a 20 % hold-out, as one split would keep; together the folds give
 held-out residuals for *all* beads, which makes before/after comparisons paired and
 powerful.
 """
