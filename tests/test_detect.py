@@ -216,3 +216,23 @@ def test_a_reusing_block_gives_the_same_beads_and_scale_and_leaves_the_image_alo
         np.testing.assert_array_equal(a.status, b.status)
     assert plain[1].sigma == held[1].sigma and plain[1].responses == held[1].responses
     np.testing.assert_array_equal(plain[1].spots, held[1].spots)
+
+
+@pytest.mark.parametrize("distance", [1, 3, 6])
+def test_local_peaks_are_scikit_images(distance):
+    """``local_peaks`` is kept because it looks only at the pixels above the threshold;
+    on a smooth random field (no ties) its peaks, in their order, are
+    :func:`skimage.feature.peak_local_max`'s with ``exclude_border=False``."""
+    from scipy import ndimage as ndi
+    from skimage.feature import peak_local_max
+
+    from napari_psfspace.core.beads.log import local_peaks
+
+    rng = np.random.default_rng(3)
+    img = ndi.gaussian_filter(rng.normal(size=(300, 400)), 3)
+    thr = float(np.percentile(img, 70))
+    ours = local_peaks(img, distance, thr)
+    theirs = peak_local_max(img, min_distance=distance, threshold_abs=thr,
+                            exclude_border=False)
+    assert len(ours) > 100
+    np.testing.assert_array_equal(ours, theirs)

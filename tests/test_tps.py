@@ -236,3 +236,30 @@ def test_the_chosen_smoothing_is_the_least_loo_score_of_the_grid(block, monkeypa
         assert sp.smoothing[j] == grid[best]
         # the same arithmetic up to the order of its sums: rounding, relative
         assert abs(sp.score[j] - scores[best]) <= 1e-9 * scores[best]
+
+
+def test_the_spline_is_scipys_thin_plate_rbf():
+    """The spline kept here (its eigendecomposition gives every smoothing value's
+    leave-one-out error at once) is the function scipy's ``RBFInterpolator`` fits with
+    the same kernel, degree-1 polynomial and smoothing ``eta / w_m`` per sample, in the
+    spline's scaled coordinates: the two solve one linear system, so they agree to
+    rounding (1e-9 of the values' scale), with a given smoothing and with the
+    leave-one-out choice."""
+    from scipy.interpolate import RBFInterpolator
+
+    rng = np.random.default_rng(11)
+    pts = rng.uniform(0, 500, (60, 2))
+    vals = np.column_stack([np.sin(pts[:, 0] / 90.0) + 0.05 * rng.normal(size=60),
+                            np.cos(pts[:, 1] / 70.0) * pts[:, 0] / 500.0,
+                            rng.normal(size=60)])
+    w = rng.uniform(0.5, 2.0, 60)
+    new = rng.uniform(0, 500, (200, 2))
+    for smoothing in (0.01, None):
+        tps = ThinPlateSpline(pts, vals, weights=w, smoothing=smoothing)
+        z = (pts - tps._center) / tps._scale
+        zn = (new - tps._center) / tps._scale
+        wn = w / w.mean()
+        for j, eta in enumerate(tps.smoothing):
+            ref = RBFInterpolator(z, vals[:, j], kernel="thin_plate_spline", degree=1,
+                                  smoothing=eta / wn)(zn)
+            np.testing.assert_allclose(tps(new)[:, j], ref, rtol=0, atol=1e-9)

@@ -1,4 +1,4 @@
-"""Stage 4, subspace: a family of operators from many bead images.
+"""Stage 4, family: a family of operators from many bead images.
 
 Takes images of one microscope under varying conditions (a list, a stack's slices, or
 loaders that read one image at a time); gives an :class:`~.result.OperatorFamily`: a

@@ -13,6 +13,12 @@ system for every ``eta`` at once: the residuals at the beads and the leverages
 ``sum_m w_m (r_m / (1 - S_mm))^2`` (default) or the GCV score
 ``M sum_m w_m r_m^2 / (sum_k eta / (Lambda_k + eta))^2`` is evaluated on a log grid.
 Each output column gets its own ``eta``.
+
+The fitted function is the one :class:`scipy.interpolate.RBFInterpolator` gives with
+``kernel="thin_plate_spline"``, ``degree=1`` and ``smoothing = eta / w_m`` in the scaled
+coordinates (``tests/test_tps.py`` checks it): that solves one system per smoothing
+value, where the eigendecomposition here scores the whole grid of values, for every
+column, from one factorisation.
 """
 
 from __future__ import annotations
