@@ -73,3 +73,37 @@ def test_deblend_cuts_once_per_pass_and_stops_when_nothing_is_left():
 
     out = deblend(None, np.array([0, 1]), np.zeros((80, 100)), Beads(), 8.0, cut, passes=0)
     assert out[0].tolist() == [0, 1] and out[1] is None and not calls
+
+
+def test_deblend_stops_when_the_light_settles(monkeypatch):
+    """A light that halves its distance to the truth each pass (as the fields measured
+    do): from 8 % off, the relative changes between passes are 0.04 / 1.04, 0.02 / 1.02
+    and 0.01 / 1.01, so the fourth pass's is the first under the 1 % tolerance; a light
+    that never settles runs the most passes."""
+    import napari_psfspace.core.model.deblend as dm
+
+    class Beads:
+        positions = np.zeros((3, 2))
+        status = np.zeros(3, int)
+
+    truth = np.array([1e3, 2e3, 4e3])
+
+    def fake(errors):
+        state = {"k": 0}
+
+        def model_light(patches, image, beads, psf_radius, light=None):
+            err = errors(state["k"])
+            state["k"] += 1
+            return ModelLight(Constant(), beads.positions, truth * (1 + err))
+
+        return state, model_light
+
+    cuts = []
+    state, ml = fake(lambda k: 0.08 / 2**k)
+    monkeypatch.setattr(dm, "model_light", ml)
+    deblend("p", np.array([0]), None, Beads(), 8.0, lambda light: cuts.append(1) or (0, "p"))
+    assert state["k"] == 4 and len(cuts) == 4
+    state, ml = fake(lambda k: 0.08 * (-1) ** k)
+    monkeypatch.setattr(dm, "model_light", ml)
+    deblend("p", np.array([0]), None, Beads(), 8.0, lambda light: (0, "p"))
+    assert state["k"] == dm.DEBLEND_PASSES

@@ -12,8 +12,9 @@ Each detection's light is fitted to the image with the model's PSF at its positi
 (:func:`fit_light`), not read from its core with the isotropic profile: in a defocus
 gradient the profile holds too much light in a wide PSF's core, and the defocused beads'
 light came out a third short. :func:`deblend` repeats the three steps (a model from the
-patches, the light fitted with it, the patches cut again) :data:`DEBLEND_PASSES` times:
-each pass's patches are cleaner, so the next model draws the neighbours better.
+patches, the light fitted with it, the patches cut again) until the light settles
+(:data:`DEBLEND_TOL`, at most :data:`DEBLEND_PASSES` times): each pass's patches are
+cleaner, so the next model draws the neighbours better.
 """
 
 from __future__ import annotations
@@ -26,8 +27,14 @@ from ..beads.detect import STRUCTURE
 from ..beads.overlap import neighbour_light
 from ..common.progress import check_halt
 
-#: Passes of :func:`deblend` (a model, the light fitted with it, the patches cut again).
-DEBLEND_PASSES = 3
+#: Most passes of :func:`deblend` (a model, the light fitted with it, the patches cut
+#: again).
+DEBLEND_PASSES = 6
+#: :func:`deblend` stops once a pass changes the detections' light by less than this
+#: (relative, 90th percentile): a neighbour adds a fraction of a patch's light, so the
+#: patches then move by less than a percent of their neighbours' light. Each pass
+#: about halves the change.
+DEBLEND_TOL = 0.01
 #: Passes of :func:`fit_light` over the detections (Gauss-Seidel: each fit uses the
 #: neighbours' latest light).
 LIGHT_PASSES = 3
@@ -127,22 +134,36 @@ def model_light(patches, image: np.ndarray, beads, psf_radius: float,
 
 
 def deblend(patches, kept: np.ndarray, image: np.ndarray, beads, psf_radius: float, cut, *,
-            passes: int = DEBLEND_PASSES):
+            passes: int = DEBLEND_PASSES, tol: float = DEBLEND_TOL):
     """The patches of a crowded field, cut with the neighbours' light taken out.
 
-    ``passes`` times: a model from the last patches with the detections' light fitted
-    with it (:func:`model_light`); then ``cut(light)``, the caller's cut of its beads'
-    patches, gives the next ``(kept, patches)``: ``kept`` the indices into ``beads`` of
-    the patches (None patches when a cut leaves none). Returns the last cut's ``(kept,
-    patches)``.
+    Up to ``passes`` times: a model from the last patches with the detections' light
+    fitted with it (:func:`model_light`); then ``cut(light)``, the caller's cut of its
+    beads' patches, gives the next ``(kept, patches)``: ``kept`` the indices into
+    ``beads`` of the patches (None patches when a cut leaves none). It stops once a
+    pass changes the light by less than ``tol`` (:func:`light_change`). Returns the last
+    cut's ``(kept, patches)``.
     """
     light = None
     for _ in range(passes):
-        light = model_light(patches, image, beads, psf_radius, light)
+        last, light = light, model_light(patches, image, beads, psf_radius, light)
         kept, patches = cut(light)
-        if patches is None:  # no usable patch left
-            break
+        if patches is None or (last is not None and light_change(last, light) < tol):
+            break  # no usable patch left, or the light has settled
     return kept, patches
+
+
+def light_change(before: ModelLight, after: ModelLight) -> float:
+    """The 90th percentile of the relative change of the detections' light between two
+    passes, over those with at least a tenth of the median light (fainter ones barely
+    reach a patch)."""
+    a, b = np.asarray(before.flux, np.float64), np.asarray(after.flux, np.float64)
+    if a.shape != b.shape or not len(b):
+        return np.inf
+    use = b > 0.1 * np.median(b)
+    if not use.any():
+        return 0.0
+    return float(np.percentile(np.abs(b[use] - a[use]) / b[use], 90))
 
 
 def crowded(kept: np.ndarray, positions: np.ndarray, size: int) -> bool:
@@ -155,4 +176,5 @@ def crowded(kept: np.ndarray, positions: np.ndarray, size: int) -> bool:
     return bool(np.any(dist[:, 1] < size))
 
 
-__all__ = ["DEBLEND_PASSES", "ModelLight", "crowded", "deblend", "fit_light", "model_light"]
+__all__ = ["DEBLEND_PASSES", "DEBLEND_TOL", "ModelLight", "crowded", "deblend", "fit_light",
+           "light_change", "model_light"]
