@@ -15,7 +15,7 @@ from scipy import ndimage as ndi
 
 from ..common.progress import check_halt
 from ..common.validate import as_image, check_psf_radius
-from .background import fit_background, ring_background, value_step
+from .background import fit_background, ring_background
 from .centering import gather_windows
 from .window import bump_window, radial_distance
 
@@ -213,9 +213,6 @@ def extract_patches(
         resid = signal[k][outside & seen[k]]  # the pixels in the image only
         noise[k] = (1.4826 * np.median(np.abs(resid - np.median(resid))) if len(resid)
                     else 0.0)
-    # a quantised image's rounding is noise of sd step / sqrt(12) at least, which the
-    # MAD of a background held at few levels misses
-    noise = np.maximum(noise, value_step(img) / np.sqrt(12.0))
     windowed = signal * window
     flux = windowed.sum(axis=(1, 2))
     psf = np.zeros_like(windowed)
