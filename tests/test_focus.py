@@ -103,12 +103,15 @@ def test_the_spots_scale_follows_the_defocus():
 def test_best_focus_on_every_measured_stack(shared_data):
     """Within one frame of the slice of highest peak on every stack of ../shared/data
     (sources and licences: ../shared/data/README.md)."""
+    checked = 0
     for path in sorted(shared_data.glob("*/*.tif")):
         stack = tifffile.imread(path)
         if stack.ndim != 3:
             continue
         peak = int(np.argmax([np.percentile(s, 99.99) for s in stack]))
         assert abs(best_focus_index(stack) - peak) <= 1, path.name
+        checked += 1
+    assert checked, f"no 3-D stack under {shared_data}"
 
 
 def test_gaps_between_absorbing_blobs_are_not_beads(shared_data):

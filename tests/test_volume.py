@@ -378,7 +378,9 @@ def test_single_bead_stacks_give_one_3d_psf_at_its_focus(shared_data):
     on, within a plane)."""
     import tifffile
 
-    for path in sorted((shared_data / "single_bead_psfs").glob("*.tif")):
+    paths = sorted((shared_data / "single_bead_psfs").glob("*.tif"))
+    assert paths, f"no stack under {shared_data / 'single_bead_psfs'}"
+    for path in paths:
         op = estimate_operator_3d(tifffile.imread(path), psf_radius=12)
         assert op.n_psf == 1 and op.metadata["field_model"] == "shift-invariant"
         assert "one 3D PSF" in op.metadata["field_model_reason"]
