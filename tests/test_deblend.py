@@ -67,7 +67,7 @@ def test_deblend_cuts_once_per_pass_and_stops_when_nothing_is_left():
 
     calls = []
 
-    def cut(light):
+    def cut(light, kept):
         calls.append(light)
         return np.array([0]), None
 
@@ -101,9 +101,36 @@ def test_deblend_stops_when_the_light_settles(monkeypatch):
     cuts = []
     state, ml = fake(lambda k: 0.08 / 2**k)
     monkeypatch.setattr(dm, "model_light", ml)
-    deblend("p", np.array([0]), None, Beads(), 8.0, lambda light: cuts.append(1) or (0, "p"))
+    deblend("p", np.array([0]), None, Beads(), 8.0, lambda light, kept: cuts.append(1) or (0, "p"))
     assert state["k"] == 4 and len(cuts) == 4
     state, ml = fake(lambda k: 0.08 * (-1) ** k)
     monkeypatch.setattr(dm, "model_light", ml)
-    deblend("p", np.array([0]), None, Beads(), 8.0, lambda light: (0, "p"))
+    deblend("p", np.array([0]), None, Beads(), 8.0, lambda light, kept: (0, "p"))
     assert state["k"] == dm.DEBLEND_PASSES
+
+
+
+def test_each_cut_takes_the_last_cuts_beads(monkeypatch):
+    """A bead one cut leaves out (faint: its status says so) is not cut again by the
+    next pass: each cut is handed the beads the last one returned."""
+    import napari_psfspace.core.model.deblend as dm
+
+    class Beads:
+        positions = np.zeros((4, 2))
+        status = np.zeros(4, int)
+
+    k = {"n": 0}
+
+    def model_light(patches, image, beads, psf_radius, light=None):
+        k["n"] += 1  # a light that never settles: every pass runs
+        return ModelLight(Constant(), beads.positions, np.full(4, 100.0 * (-1) ** k["n"] + 200))
+
+    monkeypatch.setattr(dm, "model_light", model_light)
+    handed = []
+
+    def cut(light, kept):
+        handed.append(kept.tolist())
+        return kept[1:], "p"  # each cut leaves one more bead out
+
+    kept, _ = deblend("p", np.arange(4), None, Beads(), 8.0, cut, passes=3)
+    assert handed == [[0, 1, 2, 3], [1, 2, 3], [2, 3]] and kept.tolist() == [3]

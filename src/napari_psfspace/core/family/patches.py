@@ -125,8 +125,8 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
     patches, kept = _usable(kept_patches(img, beads, kept, r), kept)
     if patches is not None and len(kept) > FEW_BEADS and crowded(kept, beads.positions,
                                                                  patches.size):
-        def cut(light):
-            new, k = _usable(kept_patches(img, beads, kept, r, neighbours=light), kept)
+        def cut(light, last):
+            new, k = _usable(kept_patches(img, beads, last, r, neighbours=light), last)
             return k, new
 
         kept, patches = deblend(patches, kept, img, beads, r, cut)

@@ -138,16 +138,17 @@ def deblend(patches, kept: np.ndarray, image: np.ndarray, beads, psf_radius: flo
     """The patches of a crowded field, cut with the neighbours' light taken out.
 
     Up to ``passes`` times: a model from the last patches with the detections' light
-    fitted with it (:func:`model_light`); then ``cut(light)``, the caller's cut of its
-    beads' patches, gives the next ``(kept, patches)``: ``kept`` the indices into
-    ``beads`` of the patches (None patches when a cut leaves none). It stops once a
+    fitted with it (:func:`model_light`); then ``cut(light, kept)``, the caller's cut of
+    the beads ``kept`` (the last cut's: a bead left out once stays out, as its status
+    says), gives the next ``(kept, patches)``: ``kept`` the indices into ``beads`` of the
+    patches (None patches when a cut leaves none). It stops once a
     pass changes the light by less than ``tol`` (:func:`light_change`). Returns the last
     cut's ``(kept, patches)``.
     """
     light = None
     for _ in range(passes):
         last, light = light, model_light(patches, image, beads, psf_radius, light)
-        kept, patches = cut(light)
+        kept, patches = cut(light, kept)
         if patches is None or (last is not None and light_change(last, light) < tol):
             break  # no usable patch left, or the light has settled
     return kept, patches

@@ -149,8 +149,8 @@ def iter_estimate(
     kept, patches, reasons = usable_patches(img, beads, kept, r, patch_filter=patch_filter)
     yield Progress("patches", 0.45, f"{len(kept)} patches of {patches.size} px")
     if len(kept) > FEW_BEADS and crowded(kept, beads.positions, patches.size):
-        def cut(light):
-            k, new, more = usable_patches(img, beads, kept, r, patch_filter=patch_filter,
+        def cut(light, last):
+            k, new, more = usable_patches(img, beads, last, r, patch_filter=patch_filter,
                                           neighbours=light)
             reasons.update(more)
             return k, new
