@@ -108,11 +108,11 @@ def test_outliers_rejected(use_positions):
 def test_heldout_picks_true_size():
     x, pos, _ = _patches(0)
     b = learn_basis(x, "heldout", positions=pos)
-    assert abs(b.n_psf - 3) <= 1  # measured 3 on seeds 0-5
+    assert abs(b.n_psf - 3) <= 1  # measured 3 on seeds 0-5 but 4 (a flat tail) on seed 4
     err = b.heldout_errors
     assert err is not None and len(err) >= 4
-    # the third element matters, the fourth does not: measured err[2]/err[1] = 0.19
-    # (seeds 0-5: 0.19-0.27) and err[3]/err[2] = 1.001
+    # the third element matters, the fourth does not: measured err[2]/err[1] = 0.20
+    # (seeds 0-5: 0.20-0.25) and err[3]/err[2] = 1.0005
     assert err[2] < 0.4 * err[1]
     assert abs(err[3] / err[2] - 1) < 0.01
     # default with positions is "heldout"

@@ -4,9 +4,10 @@ beads held out.
 A bead's patch is judged by its own held-out error against the field its neighbours
 predict, not by z-scores of its coefficients (:func:`judge_outliers`); a rejection that
 the data cannot spare must lower the held-out error of the beads near it
-(:func:`held_out_gain`). The basis size is where the held-out error stops falling beyond
-its noise (:func:`size_by_heldout`). Both rest on :func:`heldout_basis_errors`, the
-closed-form leave-one-bead-out error of the whole model (basis and thin-plate field).
+(:func:`held_out_gain`). Both rest on :func:`heldout_basis_errors`, the closed-form
+leave-one-bead-out error of the whole model (basis and thin-plate field). The basis size
+is where the error of beads the model never saw is least (:func:`size_by_heldout`, on
+:func:`crossvalidated_basis_errors`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..common.progress import check_halt
+from ..common.threads import map_threads
 from .tps import ThinPlateSpline
 
 #: Neighbours that must surround a bead for :func:`judge_outliers` to compare it with
@@ -39,6 +42,9 @@ GROSS_Z = 10.0
 #: Standard errors by which the kept beads' held-out error must fall for a rejection
 #: (:func:`held_out_gain`): a one-sided test at about 2 %.
 GAIN_SE = 2.0
+
+#: Folds of the cross-validation that sizes the basis (:func:`size_by_heldout`).
+SIZE_FOLDS = 5
 
 
 def surrounded(positions: np.ndarray, k: int = SURROUND_NEIGHBOURS) -> np.ndarray:
@@ -181,28 +187,76 @@ def judge_outliers(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, n_test:
 
 
 def size_by_heldout(per_bead: np.ndarray) -> int:
-    """The basis size where the held-out error stops falling beyond its noise.
+    """The basis size of least cross-validated error.
 
     Parameters
     ----------
     per_bead : ndarray of shape (K, I_max)
-        Each bead's held-out error at each basis size (:func:`heldout_basis_errors`).
+        Each bead's error at each basis size for a model learnt without it
+        (:func:`crossvalidated_basis_errors`).
 
     Returns
     -------
     int
-        The smallest size ``I`` whose beads' errors exceed those at the best size by no
-        more than :data:`GAIN_SE` standard errors of their paired differences: a larger
-        basis is taken only where the beads say, beyond their spread, that it predicts
-        them better.
+        The size ``I`` whose mean error is least. The errors are those of beads the
+        model never saw, so a size that only fits the learning beads' noise raises them,
+        and no margin is added: a margin of one or two standard errors stops early on
+        images of a few faint beads, where every size's error is noisy.
     """
     err = np.asarray(per_bead, np.float64)
-    best = int(np.argmin(err.mean(axis=0)))
-    if len(err) < 2:
-        return best + 1
-    d = err[:, :best + 1] - err[:, best:best + 1]
-    se = d.std(axis=0, ddof=1) / np.sqrt(len(err))
-    return int(np.flatnonzero(d.mean(axis=0) <= GAIN_SE * se)[0]) + 1
+    return int(np.argmin(err.mean(axis=0))) + 1
+
+
+def crossvalidated_basis_errors(x: np.ndarray, xn: np.ndarray, positions: np.ndarray,
+                                n_max: int, *, folds: int = SIZE_FOLDS) -> np.ndarray:
+    """Each bead's error at each basis size ``I = 1 .. n_max`` for a model learnt
+    without it.
+
+    The beads are dealt into ``folds`` folds (a fixed shuffle); for each fold the
+    basis is the PCA of the other folds' patches and the coefficients at the fold's
+    beads are predicted by the thin-plate field of the others' coefficients. Unlike the
+    closed form of :func:`heldout_basis_errors`, whose basis has seen the held-out bead
+    (its noise lowers its own error by a share that grows with the basis), nothing
+    here has seen it.
+
+    Parameters
+    ----------
+    x : ndarray of shape (K, n)
+        Sum-normalised patches (support pixels only), whose errors are measured.
+    xn : ndarray of shape (K, n)
+        The same patches as the PCA weights them (its input rows).
+    positions : ndarray of shape (K, 2)
+    n_max : int
+        Largest basis size.
+    folds : int
+        Number of folds (at most ``K``).
+
+    Returns
+    -------
+    ndarray of shape (K, n_max)
+        Squared errors relative to the mean squared patch norm.
+    """
+    check_halt()
+    x = np.asarray(x, np.float64)
+    k = len(x)
+    folds = max(2, min(int(folds), k))
+    order = np.random.default_rng(0).permutation(k)
+    norm2 = (x**2).sum(axis=1)
+    err = np.empty((k, n_max))
+
+    def fold(test):
+        train = np.setdiff1d(order, test)
+        vt = np.zeros((n_max, x.shape[1]))
+        lead = _leading(xn[train], n_max)
+        vt[:len(lead)] = lead
+        pred = ThinPlateSpline(positions[train], x[train] @ vt.T)(positions[test])
+        return norm2[test, None] + np.cumsum(pred * (pred - 2 * (x[test] @ vt.T)), axis=1)
+
+    # the folds on the pool of threads: their time is in LAPACK's GIL-free calls
+    tests = [np.sort(order[f::folds]) for f in range(folds)]
+    for test, e in zip(tests, map_threads(fold, tests), strict=True):
+        err[test] = e
+    return err / norm2.mean()
 
 
 def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, *,
@@ -238,5 +292,6 @@ def heldout_basis_errors(x: np.ndarray, vt: np.ndarray, positions: np.ndarray, *
     return err if per_bead else err.mean(axis=0)
 
 
-__all__ = ["GAIN_SE", "GROSS_Z", "JUDGE_COMPONENTS", "heldout_basis_errors", "held_out_gain",
+__all__ = ["GAIN_SE", "GROSS_Z", "JUDGE_COMPONENTS", "SIZE_FOLDS",
+           "crossvalidated_basis_errors", "heldout_basis_errors", "held_out_gain",
            "judge_outliers", "size_by_heldout", "surrounded"]

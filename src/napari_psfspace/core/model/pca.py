@@ -10,8 +10,9 @@ its neighbours and rejected only for a held-out gain
 the paper's z-score test at 3 sigma on the coefficients; a family's images are each
 tested on a robust scale (:data:`GROUP_Z`).
 
-The basis size is where the whole model's leave-one-bead-out error stops falling beyond
-its noise (:func:`~napari_psfspace.core.model.outliers.size_by_heldout`), or Gavish &
+The basis size is where the cross-validated error of the whole model (basis and
+thin-plate field learnt without the beads it predicts) is least
+(:func:`~napari_psfspace.core.model.outliers.size_by_heldout`), or Gavish &
 Donoho's optimal hard threshold for an unknown noise level: keep the singular values
 above ``omega(beta) * sigma_med``, where ``omega(1) = 2.858`` is the value quoted in the
 paper (square matrices) and ``omega(beta)`` its published polynomial approximation for an
@@ -27,7 +28,7 @@ import numpy as np
 from ..common.progress import check_halt
 from .outliers import (
     JUDGE_COMPONENTS,
-    heldout_basis_errors,
+    crossvalidated_basis_errors,
     judge_outliers,
     size_by_heldout,
 )
@@ -59,7 +60,7 @@ class PsfBasis:
     n_psf_rule : int
         Basis size that the threshold rule gives (whether or not it was used).
     heldout_errors : ndarray of shape (I_max,) or None
-        Relative leave-one-bead-out error for each basis size, when ``n_psf`` was
+        Relative cross-validated error for each basis size, when ``n_psf`` was
         chosen by held-out beads.
     components : ndarray of shape (M, S) or None
         The first ``M`` principal directions of the inliers (second PCA) on the
@@ -169,6 +170,12 @@ def orient(vt: np.ndarray) -> np.ndarray:
 #: held-out check, and on noisy pooled patches it keeps noise components.
 RULE_CAP = 12
 
+#: Default cap of the held-out basis size: beyond it the cross-validated error of the
+#: scene set's fields falls by a fraction of a percent, while every component costs the
+#: operator two FFTs and the cross-validation's smoothing choice grows with it
+#: (``bench/bench_caps.py``, ``bench/bench_speed.py``).
+HELDOUT_CAP = 30
+
 #: Threshold of the grouped test (``groups``), in robust standard deviations of each
 #: image's standardized residuals: a gross-misfit gate. Good beads' residuals about a
 #: field are heavy-tailed (faint beads, the steep field at the rim), and the family's
@@ -203,10 +210,10 @@ def learn_basis(
         normalisation; the basis has the patches' shape).
     n_psf : int, "heldout", "rule" or None
         Basis size ``I``. "heldout" (the default when ``positions`` are given): the
-        ``I`` with the lowest leave-one-bead-out error of the whole model (basis and
-        thin-plate interpolation), see :func:`heldout_basis_errors`; the smallest
-        ``I`` within its noise of that minimum is kept
-        (:func:`~napari_psfspace.core.model.outliers.size_by_heldout`). "rule" (the
+        ``I`` with the lowest cross-validated error of the whole model (basis and
+        thin-plate interpolation learnt without the beads predicted), see
+        :func:`~napari_psfspace.core.model.outliers.crossvalidated_basis_errors` and
+        :func:`~napari_psfspace.core.model.outliers.size_by_heldout`. "rule" (the
         default without positions): the Gavish-Donoho threshold. Both are capped at what the number
         of beads supports and at ``max_psf``; the rule, which no held-out bead checks,
         at :data:`RULE_CAP` by default.
@@ -230,9 +237,10 @@ def learn_basis(
         and ``n_psf`` is given; "gram" the eigendecomposition of the Gram matrix (the
         family's pooled patches: faster, as precise in the leading components).
     max_psf : int, optional
-        Upper bound of the automatic basis size. Default: none but what the beads
-        support (``(K - 2) // 2`` inliers' worth). The paper capped it at 12; on wide
-        strongly aberrated fields the held-out error still fell beyond it
+        Upper bound of the automatic basis size. Default: :data:`HELDOUT_CAP` for the
+        held-out choice (and what the beads support, ``(K - 2) // 2`` inliers' worth),
+        :data:`RULE_CAP` for the rule. The paper capped it at 12; on wide strongly
+        aberrated fields the held-out error still fell beyond it
         (``bench/bench_caps.py``).
     weights : ndarray of shape (K,), optional
         Weight of each patch in the SVD (its row is scaled by ``sqrt(weights)``).
@@ -364,11 +372,10 @@ def learn_basis(
     elif select == "rule":
         n_final = capped
     else:
-        n_max = min(max(1, (n_in - 2) // 2), len(vt))
-        if max_psf is not None:
-            n_max = min(n_max, int(max_psf))
-        per_bead = heldout_basis_errors(psfs[inliers][:, mask], vt[:n_max], pos[inliers],
-                                        per_bead=True)
+        n_max = min(max(1, (n_in - 2) // 2), len(vt),
+                    HELDOUT_CAP if max_psf is None else int(max_psf))
+        per_bead = crossvalidated_basis_errors(psfs[inliers][:, mask], xn[inliers],
+                                               pos[inliers], n_max)
         heldout_errors = per_bead.mean(axis=0)
         n_final = size_by_heldout(per_bead)
     more = vt[:int(components)].copy() if components else None
