@@ -50,6 +50,7 @@ from .core.volume import (
     iter_richardson_lucy_3d,
     load_operator_3d,
     richardson_lucy_3d,
+    richardson_lucy_3d_exchange,
     richardson_lucy_3d_tiled,
 )
 
@@ -92,6 +93,7 @@ __all__ = [
     "load_family",
     "psf_error",
     "richardson_lucy_3d",
+    "richardson_lucy_3d_exchange",
     "richardson_lucy_3d_tiled",
     "run_with_progress",
     "simulate_beads",

@@ -1,4 +1,5 @@
-"""npe2 readers: model files (``.npz``) and TIFF images with their pixel size.
+"""npe2 readers: model files (``.npz``), TIFF images with their pixel size, and OME-Zarr
+z-stacks (lazily, with their voxel size).
 
 No napari import: readers return layer-data tuples.
 """
@@ -96,4 +97,31 @@ def read_tiff(path) -> list[tuple]:
     if px:
         kwargs["scale"] = ((info.z_spacing or px, px, px) if data.ndim == 3 else (px, px))
         kwargs["units"] = ("µm",) * data.ndim  # napari's scale bar reads them
+    return [(data, kwargs, "image")]
+
+
+def get_ome_zarr_reader(path) -> Callable | None:
+    """npe2 reader contribution: an OME-Zarr image folder (a z-stack of one channel);
+    None for anything else, so that other readers (napari-ome-zarr) take the rest."""
+    from .ome_zarr import is_ome_zarr
+
+    p = _single_path(path)
+    if p is None or not is_ome_zarr(p):
+        return None
+    return read_ome_zarr_layer
+
+
+def read_ome_zarr_layer(path) -> list[tuple]:
+    """An OME-Zarr z-stack as an image layer on a dask array (read a chunk at a time as
+    napari shows it), scaled in micrometres from its metadata."""
+    from .ome_zarr import read_ome_zarr
+
+    p = _single_path(path)
+    data, px, dz, _ = read_ome_zarr(p, lazy=True)
+    meta = {"pixel_size_um": px, "z_spacing_um": dz}
+    kwargs = {"name": os.path.splitext(os.path.basename(p.rstrip("/\\")))[0],
+              "metadata": meta}
+    if px:
+        kwargs["scale"] = (dz or px, px, px)[-data.ndim:]
+        kwargs["units"] = ("µm",) * data.ndim
     return [(data, kwargs, "image")]

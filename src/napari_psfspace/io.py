@@ -148,9 +148,10 @@ def _ome_sampling(xml: str | None) -> tuple[float | None, float | None]:
     return size("X"), size("Z")
 
 
-def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
+def _read_tiff(path, lazy: bool = False) -> tuple[np.ndarray, ImageInfo]:
     """The first series of a TIFF as a real array (squeezed beyond 3-D) and its
-    :class:`ImageInfo`. Colour (RGB) and complex files are refused."""
+    :class:`ImageInfo`. Colour (RGB) and complex files are refused. ``lazy``: a dask
+    array reading the file a page at a time (tifffile's Zarr view of it)."""
     name = os.fspath(path)
     if os.path.isdir(name):
         raise ValueError(f"{name!r} is a folder, expected a TIFF file")
@@ -167,7 +168,7 @@ def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
                              f"{series.shape}): export the bead channel as a grey-level "
                              "image or stack")
         try:
-            data = series.asarray()
+            data = _lazy_tiff(name, series) if lazy else series.asarray()
         except Exception as exc:  # a damaged strip: tifffile raises many kinds
             raise ValueError(f"{name!r}: damaged TIFF, its pixels cannot be read "
                              f"({type(exc).__name__}: {exc})") from exc
@@ -185,17 +186,38 @@ def _read_tiff(path) -> tuple[np.ndarray, ImageInfo]:
     if data.dtype.kind not in "uif" and data.dtype != bool:
         raise ValueError(f"{name!r} holds {data.dtype} values; expected real intensities "
                          "(integers or floats)")
-    data = np.squeeze(data) if data.ndim > 3 else data
+    if data.ndim > 3:
+        data = data.reshape([n for n in data.shape if n != 1]) if lazy else np.squeeze(data)
     return data, info
 
 
-def read_stack(path: str | os.PathLike):
+def _lazy_tiff(name: str, series):
+    """The first series of a TIFF as a dask array on tifffile's Zarr view of it (a
+    tifffile too old for the installed Zarr: read whole, as a dask array)."""
+    import dask.array as da
+
+    try:
+        import zarr
+
+        return da.from_zarr(zarr.open(tifffile.imread(name, aszarr=True), mode="r"))
+    except (TypeError, ValueError, ImportError, AttributeError, NotImplementedError):
+        return da.from_array(series.asarray())
+
+
+def read_stack(path: str | os.PathLike, *, lazy: bool = False):
     """Read a z-stack (Z, Y, X) and its sampling from a TIFF file (ImageJ or OME) or an
     OME-Zarr folder (:mod:`napari_psfspace.ome_zarr`).
 
+    Parameters
+    ----------
+    path : str or PathLike
+    lazy : bool
+        Return a dask array that reads the file a piece at a time when computed (a
+        stack larger than memory).
+
     Returns
     -------
-    stack : ndarray of shape (Z, M, N)
+    stack : ndarray or dask.array.Array of shape (Z, M, N)
         Pixel values in the file's dtype.
     info : ImageInfo
         ``pixel_size`` and ``z_spacing`` in µm where the file gives them.
@@ -209,10 +231,10 @@ def read_stack(path: str | os.PathLike):
     from .ome_zarr import is_ome_zarr, read_ome_zarr
 
     if is_ome_zarr(path):
-        data, pixel, z, axes = read_ome_zarr(path)
+        data, pixel, z, axes = read_ome_zarr(path, lazy=lazy)
         info = ImageInfo(pixel, z, tuple(data.shape), axes)
     else:
-        data, info = _read_tiff(path)
+        data, info = _read_tiff(path, lazy=lazy)
     if data.ndim != 3:
         raise ValueError(f"{os.fspath(path)!r} holds an array of shape {data.shape}; "
                          "expected a z-stack (Z, Y, X)")

@@ -1,9 +1,16 @@
-"""Reading a z-stack and its voxel size from an OME-Zarr (OME-NGFF 0.4 or 0.5) image.
+"""Reading a z-stack and its voxel size from an OME-Zarr (OME-NGFF 0.4 or 0.5) image, and
+writing one (NGFF 0.4) a chunk at a time.
 
 The array is the first (full-resolution) dataset of the first multiscale; the voxel
 size is the product of the multiscale's and the dataset's ``scale`` transforms, in the
 axes' units. Axes ``t`` and ``c`` of length 1 are dropped; longer ones are refused (a
 z-stack of one channel is expected).
+
+A written image holds one full-resolution dataset ``0`` with the voxel size as its scale
+(µm), chunked by plane ``(1, C, C)`` (a viewer reads the plane it shows). Every chunk is
+written whole by Zarr's store (a temporary file renamed into place), so an interrupted
+writer leaves only whole chunks, and :func:`missing_chunks` says which are still to be
+written.
 
 The metadata are read with ``zarr`` alone: the ecosystem's OME-Zarr reader (``ome-zarr``)
 pins a pydantic that napari-psf-analysis, the benches' reference, cannot share.
@@ -43,12 +50,18 @@ def _scale(transforms, n: int) -> np.ndarray:
     return out
 
 
-def read_ome_zarr(path: str | os.PathLike):
+def read_ome_zarr(path: str | os.PathLike, *, lazy: bool = False):
     """The z-stack of an OME-Zarr image and its sampling.
+
+    Parameters
+    ----------
+    path : str or PathLike
+    lazy : bool
+        Return a dask array on the store, read a chunk at a time when computed.
 
     Returns
     -------
-    data : ndarray of shape (Z, Y, X)
+    data : ndarray or dask.array.Array of shape (Z, Y, X)
     pixel_size, z_spacing : float or None
         µm, from the scale transforms and the axes' units (None where the unit is not a
         length or the axis is missing).
@@ -83,7 +96,12 @@ def read_ome_zarr(path: str | os.PathLike):
                              "channel at one time point (a z-stack Z, Y, X)")
         index.append(0 if ax in ("t", "c") else slice(None))
     kept = [i for i, ax in enumerate(names) if ax not in ("t", "c")]
-    data = np.asarray(arr[tuple(index)])
+    if lazy:
+        import dask.array as da
+
+        data = da.from_zarr(arr)[tuple(index)]
+    else:
+        data = np.asarray(arr[tuple(index)])
 
     def length(axis: str) -> float | None:
         if axis not in names:
@@ -95,4 +113,79 @@ def read_ome_zarr(path: str | os.PathLike):
     return data, length("x"), length("z"), "".join(names[i].upper() for i in kept)
 
 
-__all__ = ["UNITS_UM", "is_ome_zarr", "read_ome_zarr"]
+def _zarr():
+    try:
+        import zarr
+    except ImportError:
+        raise ValueError("writing OME-Zarr needs the `zarr` package: pip install zarr") from None
+    return zarr
+
+
+def create_ome_zarr(path: str | os.PathLike, shape: tuple[int, int, int], *,
+                    dtype="float32", voxel_size: tuple[float, float, float] | None = None,
+                    chunk: int = 512):
+    """An empty OME-Zarr image (NGFF 0.4, Zarr v2) of a z-stack, to be written a chunk at
+    a time.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The image's folder; it must not exist.
+    shape : tuple of int (Z, Y, X)
+    dtype : dtype
+    voxel_size : tuple of float (z, y, x), optional
+        µm; written as the dataset's scale (1 where not given, with no unit).
+    chunk : int
+        Lateral chunk size, pixels; every chunk is one plane's.
+
+    Returns
+    -------
+    zarr.Array
+        The dataset ``0``, filled with 0 where nothing is written.
+    """
+    zarr = _zarr()
+    name = os.fspath(path)
+    if os.path.exists(name):
+        raise ValueError(f"{name!r} exists; the OME-Zarr output must be a new folder")
+    z, h, w = (int(v) for v in shape)
+    root = zarr.open_group(name, mode="w-", zarr_format=2)
+    arr = root.create_array("0", shape=(z, h, w), dtype=dtype,
+                            chunks=(1, min(chunk, h), min(chunk, w)), fill_value=0,
+                            chunk_key_encoding={"name": "v2", "separator": "/"})
+    unit = {} if voxel_size is None else {"unit": "micrometer"}
+    scale = [1.0, 1.0, 1.0] if voxel_size is None else [float(v) for v in voxel_size]
+    root.attrs["multiscales"] = [{
+        "version": "0.4", "name": os.path.basename(name.rstrip(os.sep)),
+        "axes": [{"name": a, "type": "space", **unit} for a in "zyx"],
+        "datasets": [{"path": "0", "coordinateTransformations": [
+            {"type": "scale", "scale": scale}]}]}]
+    return arr
+
+
+def open_ome_zarr_output(path: str | os.PathLike):
+    """The dataset ``0`` of an OME-Zarr image written by :func:`create_ome_zarr`, open
+    for writing (a resumed run)."""
+    zarr = _zarr()
+    name = os.fspath(path)
+    try:
+        return zarr.open_group(name, mode="r+")["0"]
+    except Exception as exc:  # zarr raises several kinds on a damaged store
+        raise ValueError(f"{name!r} is not an OME-Zarr output to resume ({exc})") from exc
+
+
+def missing_chunks(arr, path: str | os.PathLike) -> list[tuple[int, int, int]]:
+    """The chunk indices (iz, iy, ix) of :func:`create_ome_zarr`'s dataset at ``path``
+    that hold no written chunk yet, in order; the store's leftover temporary files (a
+    writer killed mid-chunk) are removed."""
+    root = os.path.join(os.fspath(path), "0")
+    for folder, _, files in os.walk(root):
+        for f in files:
+            if f.endswith(".partial"):
+                os.remove(os.path.join(folder, f))
+    grid = [-(-n // c) for n, c in zip(arr.shape, arr.chunks, strict=True)]
+    return [idx for idx in np.ndindex(*grid)
+            if not os.path.exists(os.path.join(root, *(str(i) for i in idx)))]
+
+
+__all__ = ["UNITS_UM", "create_ome_zarr", "is_ome_zarr", "missing_chunks",
+           "open_ome_zarr_output", "read_ome_zarr"]

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_psfspace import estimate_operator, load_operator
-from napari_psfspace._reader import get_model_reader, get_tiff_reader
+from napari_psfspace._reader import get_model_reader, get_ome_zarr_reader, get_tiff_reader
 from napari_psfspace._widgets._layers import BASIS, OPERATOR_KEY, PSF_GRID, WEIGHT
 from napari_psfspace._writer import write_model, write_psf_tiff
 from napari_psfspace.io import read_image, write_tiff
@@ -83,6 +83,21 @@ def test_tiff_reader_sets_scale(tmp_path):
     write_tiff(stack, np.ones((4, 20, 30), np.float32), pixel_size=0.1)
     (data, kw, kind), = get_tiff_reader(str(stack))(str(stack))
     assert data.shape == (4, 20, 30) and len(kw["scale"]) == 3
+
+
+def test_ome_zarr_reader_is_lazy_and_sets_the_voxel_size(tmp_path):
+    pytest.importorskip("zarr", minversion="3", reason="the OME-Zarr writer takes zarr 3")
+    import dask.array as da
+
+    from napari_psfspace.ome_zarr import create_ome_zarr
+
+    arr = create_ome_zarr(tmp_path / "s.zarr", (4, 20, 30), voxel_size=(0.3, 0.1, 0.1))
+    arr[2] = 5.0
+    (data, kw, kind), = get_ome_zarr_reader(str(tmp_path / "s.zarr"))(str(tmp_path / "s.zarr"))
+    assert kind == "image" and isinstance(data, da.Array) and data.shape == (4, 20, 30)
+    assert np.allclose(kw["scale"], (0.3, 0.1, 0.1)) and kw["name"] == "s"
+    assert float(data[2].mean().compute()) == 5.0
+    assert get_ome_zarr_reader(str(tmp_path)) is None  # a folder that is no OME-Zarr
 
 
 def test_viewer_opens_model_with_plugin(make_napari_viewer, model):

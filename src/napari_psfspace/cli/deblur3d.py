@@ -13,22 +13,30 @@ def run(args) -> int:
     from ..core.volume import load_operator_3d
     from ..core.volume.deconvolve3d import iter_richardson_lucy_3d
     from ..core.volume.fista3d import iter_deblur_3d
-    from ..core.volume.tiles3d import richardson_lucy_3d_tiled
+    from ..deblur_store import is_zarr_path
     from ..io import check_output_file, read_stack, write_tiff
 
     existing(args.model, "--model")
-    check_output_file(args.output, "-o")
-    if args.scheduler and not args.tile:
-        raise ValueError("--scheduler runs tiles: give --tile too")
-    if args.method == "sparse" and args.tile:
-        raise ValueError("--tile runs Richardson-Lucy only: drop --tile, or use --method rl")
+    tiled = bool(args.tile or args.memory or args.resume)
+    if not args.resume and not is_zarr_path(args.output):
+        check_output_file(args.output, "-o")
+    if args.scheduler and not tiled:
+        raise ValueError("--scheduler runs tiles: give --memory or --tile too")
+    if args.method == "sparse" and tiled:
+        raise ValueError("--memory, --tile and --resume run Richardson-Lucy only: use "
+                         "--method rl")
+    if is_zarr_path(args.output) and not tiled:
+        raise ValueError("an OME-Zarr output (-o *.zarr) is written tile by tile: give "
+                         "--memory (e.g. --memory 4GB) or --tile")
     from ..core.common.device import array_module
 
-    if args.device == "gpu" and args.tile:
+    if args.device == "gpu" and tiled:
         raise ValueError("--device gpu runs on the whole stack (its blocks sized from the "
-                         "GPU's memory): drop --tile, or use --device cpu")
-    device = array_module("cpu" if args.tile else args.device)
+                         "GPU's memory): drop --tile and --memory, or use --device cpu")
+    device = array_module("cpu" if tiled else args.device)
     op = load_operator_3d(args.model)
+    if tiled:
+        return _run_tiled(args, op)
     stack, info = read_stack(args.stack)
     if stack.shape[1:] != op.shape[1:]:
         raise ValueError(f"STACK {args.stack} has slices of {stack.shape[1:]}, the model "
@@ -50,21 +58,6 @@ def run(args) -> int:
         what = (f"{res.iterations} sparse + smooth iterations on the "
                 f"{res.parameters['device'].upper()} "
                 f"({'converged' if res.converged else 'stopped at the limit'})")
-    elif args.tile:
-        client = None
-        if args.scheduler:
-            from distributed import Client
-
-            client = Client(args.scheduler, timeout=common.SCHEDULER_TIMEOUT)
-        try:
-            volume = richardson_lucy_3d_tiled(stack, op, n_iter=args.iterations,
-                                              background=args.background, tile=args.tile,
-                                              rtol=rtol, client=client)
-        finally:
-            if client is not None:
-                client.close()
-        meta.update(iterations=args.iterations, tile=args.tile)
-        what = f"{args.iterations} Richardson-Lucy iterations on {args.tile} px tiles"
     else:
         res = run_with_progress(iter_richardson_lucy_3d(stack, op, n_iter=args.iterations,
                                                         background=args.background,
@@ -78,13 +71,59 @@ def run(args) -> int:
     return 0
 
 
+def _run_tiled(args, op) -> int:
+    """Richardson-Lucy on tiles that exchange their margins, from the file, the
+    iterates beside the output, resumable (:mod:`napari_psfspace.deblur_store`)."""
+    from ..core.volume.blocks3d import RTOL
+    from ..deblur_store import deblur_to_store
+
+    client = None
+    if args.scheduler:
+        from distributed import Client
+
+        client = Client(args.scheduler, timeout=common.SCHEDULER_TIMEOUT)
+    t0 = time.perf_counter()
+    try:
+        run = deblur_to_store(args.stack, op, args.output, n_iter=args.iterations,
+                              memory=args.memory, tile=args.tile or None,
+                              background=args.background,
+                              rtol=RTOL if args.rtol is None else args.rtol,
+                              resume=args.resume, client=client,
+                              progress=None if args.quiet else progress_printer())
+    finally:
+        if client is not None:
+            client.close()
+    print(f"wrote {args.output}: {run.iterations} Richardson-Lucy iterations on {run.tile} "
+          f"px tiles exchanging their margins ({run.chunks_written} of {run.chunks_total} "
+          f"chunks written by this run), {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def _bytes(text: str) -> float:
+    """A memory size such as ``4GB``, ``512MiB`` or ``2e9`` (bytes), for argparse."""
+    import argparse
+
+    from dask.utils import parse_bytes
+
+    try:
+        value = float(parse_bytes(text))
+    except (ValueError, TypeError):
+        raise argparse.ArgumentTypeError(f"expected a memory size such as 4GB or 512MiB, "
+                                         f"got {text!r}") from None
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive memory size, got {text!r}")
+    return value
+
+
 def add_parser(sub) -> None:
     d3 = sub.add_parser("deblur3d", help="deblur a z-stack with a space-varying 3D PSF "
                         "(Richardson-Lucy with H and H^T)")
-    d3.add_argument("stack", help="TIFF z-stack of the model's lateral size")
+    d3.add_argument("stack", help="z-stack of the model's lateral size: TIFF or OME-Zarr")
     d3.add_argument("--model", required=True, metavar="FILE",
                     help="3D model (psfspace estimate3d)")
-    d3.add_argument("-o", "--output", required=True, help="deblurred stack (TIFF, float32)")
+    d3.add_argument("-o", "--output", required=True,
+                    help="deblurred stack, float32: TIFF, or OME-Zarr (*.zarr, with "
+                         "--memory or --tile)")
     d3.add_argument("--method", choices=("rl", "sparse"), default="rl",
                     help="rl: Richardson-Lucy with H and H^T (default); sparse: sparse + "
                          "smooth (points and a smooth background)")
@@ -96,11 +135,19 @@ def add_parser(sub) -> None:
                     help="largest relative error of a block's PSF against the model's "
                          "(fewer kernels a block; 0: exact; default: the library's, "
                          "napari_psfspace.core.volume.blocks3d.RTOL)")
+    d3.add_argument("--memory", type=_bytes, metavar="SIZE",
+                    help="rl on lateral tiles that exchange their margins every iteration "
+                         "(the whole stack's result), sized to hold at most SIZE (e.g. "
+                         "4GB); the stack is read a piece at a time and the iterates kept "
+                         "beside the output (OUTPUT.iterates)")
     d3.add_argument("--tile", type=COUNT,
-                    help="rl on lateral tiles of this size through dask (a stack larger "
-                         "than memory; 0: the whole stack at once)")
+                    help="as --memory, with tiles of this size (pixels) instead")
+    d3.add_argument("--resume", action="store_true",
+                    help="finish an interrupted --memory/--tile run of the same output "
+                         "from its last iteration and the chunks it wrote")
     d3.add_argument("--scheduler", metavar="ADDRESS",
-                    help="with --tile: a dask.distributed scheduler to run the tiles on")
+                    help="with --memory or --tile: a dask.distributed scheduler to run "
+                         "the tiles on")
     d3.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
                     help="where it runs; auto (default): the GPU when CuPy sees one "
                          "(pip install 'napari-psfspace[gpu]'), else the CPU")

@@ -109,6 +109,15 @@ class BlockedOperator3D:
         one after the other (the device is parallel within each); the volumes given to
         :meth:`apply` and :meth:`adjoint` may be on the device or the host (each block
         is then copied over and back: a volume larger than the device's memory runs).
+    window : tuple of int (y0, y1, x0, x1), optional
+        Act on this lateral window of the operator's field only (volumes of the
+        window's shape): its blocks are the field's blocks cut by the window, each
+        with the kernels of its whole block, so that the window's products are the
+        field's wherever the light they need lies in the window (tiles that exchange
+        their margins, :mod:`.exchange3d`). Default: the whole field.
+    basis_spectra : dict, optional
+        A cache of the basis spectra by FFT shape, shared by the operators of one
+        field's windows (they depend on the shape only).
 
     Attributes
     ----------
@@ -117,7 +126,9 @@ class BlockedOperator3D:
 
     def __init__(self, operator: ProductConvolution3D, *, block: int = BLOCK,
                  rtol: float = RTOL, cache_bytes: int = CACHE_BYTES,
-                 device: str | ArrayModule = "cpu") -> None:
+                 device: str | ArrayModule = "cpu",
+                 window: tuple[int, int, int, int] | None = None,
+                 basis_spectra: dict | None = None) -> None:
         if not isinstance(operator, ProductConvolution3D):
             raise TypeError(f"`operator` must be a ProductConvolution3D, got "
                             f"{type(operator).__name__}")
@@ -125,22 +136,32 @@ class BlockedOperator3D:
         block = check_int(block, "block", minimum=p)
         if not (np.isfinite(rtol) and rtol >= 0):
             raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
-        self.operator = operator
+        _, h, w = operator.shape
+        wy0, wy1, wx0, wx1 = (0, h, 0, w) if window is None else (int(v) for v in window)
+        whole = (wy0, wy1, wx0, wx1) == (0, h, 0, w)
+        self.operator = operator if whole else operator.cropped(wy0, wy1, wx0, wx1)
+        self.window = (wy0, wy1, wx0, wx1)
         self.am = device if isinstance(device, ArrayModule) else array_module(device)
         self.block = block
         self.rtol = float(rtol)
         self.cache_bytes = int(cache_bytes)
-        _, h, w = operator.shape
-        maps = operator.coefficient_maps(np.float64)
+        maps = operator.coefficient_maps(np.float64) if whole else None
         basis = operator.basis
         self.blocks: list[Block] = []
-        for y0 in range(0, h, block):
-            for x0 in range(0, w, block):
+        # the field's blocks (a grid from its origin), clipped to the window; each keeps
+        # the kernels of its whole block, so that a window's product is the field's
+        for y0 in range(wy0 // block * block, wy1, block):
+            for x0 in range(wx0 // block * block, wx1, block):
                 y1, x1 = min(y0 + block, h), min(x0 + block, w)
-                mix, combo, err = _local_kernels(basis, maps[:, y0:y1, x0:x1], self.rtol)
-                self.blocks.append(Block(y0, y1, x0, x1, mix, combo, err))
+                own = (maps[:, y0:y1, x0:x1] if maps is not None else
+                       operator.cropped(y0, y1, x0, x1).coefficient_maps(np.float64))
+                mix, combo, err = _local_kernels(basis, own, self.rtol)
+                self.blocks.append(Block(max(y0, wy0) - wy0, min(y1, wy1) - wy0,
+                                         max(x0, wx0) - wx0, min(x1, wx1) - wx0,
+                                         mix, combo, err))
         self._device_maps = None
-        self._basis_spectra: dict[tuple, np.ndarray] = {}
+        self._basis_spectra: dict[tuple, np.ndarray] = ({} if basis_spectra is None
+                                                         else basis_spectra)
         self._block_spectra: dict[tuple, np.ndarray] = {}
         self._cached = 0
         self._lock = threading.Lock()
@@ -167,12 +188,28 @@ class BlockedOperator3D:
         return float(sum(b.n_kernels + 1 for b in self.blocks))
 
     def fft_shape(self, depth: int) -> tuple[int, int, int]:
+        """The FFT shape of a whole block on ``depth`` planes (the largest)."""
         k, p, _ = self.operator.kernel_shape
         lat = scipy.fft.next_fast_len(self.block + p - 1, real=True)
         return (scipy.fft.next_fast_len(depth + k // 2, real=True), lat, lat)
 
+    def _block_fft_shape(self, b: Block, depth: int) -> tuple[int, int, int]:
+        """The FFT shape of block ``b``: its own size and the kernel's (a block cut by
+        the field's or the window's edge takes a smaller one)."""
+        k, p, _ = self.operator.kernel_shape
+        return (scipy.fft.next_fast_len(depth + k // 2, real=True),
+                scipy.fft.next_fast_len(b.y1 - b.y0 + p - 1, real=True),
+                scipy.fft.next_fast_len(b.x1 - b.x0 + p - 1, real=True))
+
+    def _prepare(self, depth: int) -> None:
+        """The basis spectra of every block's FFT shape, once, before the threads."""
+        for b in self.blocks:
+            shape = self._block_fft_shape(b, depth)
+            with self._lock:
+                self._base(shape)
+
     def _spectra(self, index: int, fshape: tuple[int, int, int]) -> np.ndarray:
-        """The kernel spectra of block ``index`` (k, fz, fl, fl // 2 + 1), complex64;
+        """The kernel spectra of block ``index`` (k, fz, fy, fx // 2 + 1), complex64;
         kernels centred at 0 in z and at ``P // 2`` laterally."""
         key = (index, fshape)
         spec = self._block_spectra.get(key)
@@ -192,7 +229,8 @@ class BlockedOperator3D:
         return spec
 
     def _base(self, fshape: tuple[int, int, int]) -> np.ndarray:
-        """The basis spectra on ``fshape`` (I, fz, fl, fl // 2 + 1), complex64."""
+        """The basis spectra on ``fshape`` (I, fz, fy, fx // 2 + 1), complex64 (one set
+        a shape: a whole block's and those of the blocks cut by an edge)."""
         base = self._basis_spectra.get(fshape)
         if base is None:
             k, p, _ = self.operator.kernel_shape
@@ -204,7 +242,7 @@ class BlockedOperator3D:
                 big = np.roll(big, -(k // 2), axis=0)
                 base[i] = scipy.fft.rfftn(big)
             base = self.am.asarray(base)  # on the device, once
-            self._basis_spectra = {fshape: base}
+            self._basis_spectra[fshape] = base
         return base
 
     def _maps(self, b: Block) -> np.ndarray:
@@ -286,14 +324,14 @@ class BlockedOperator3D:
                 xp.zeros((z, h, w), np.float32)
         else:
             out[...] = 0
-        fshape = self.fft_shape(z)
         c = self.operator.kernel_shape[1] // 2
         lock = threading.Lock()
         halt = threading.Event()
-        self._spectra(0, fshape)  # the basis spectra, once, before the threads
+        self._prepare(z)
 
         def one(j: int) -> None:
             b = self.blocks[j]
+            fshape = self._block_fft_shape(b, z)
             spec, maps = self._spectra(j, fshape), self._maps(b)
             bh, bw = b.y1 - b.y0, b.x1 - b.x0
             part_in = am.asarray(arr[:, b.y0:b.y1, b.x0:b.x1])
@@ -350,13 +388,13 @@ class BlockedOperator3D:
         else:
             out = np.empty((z, h, w), np.float32) if _on_host(arr) else \
                 xp.empty((z, h, w), np.float32)
-        fshape = self.fft_shape(z)
         c = self.operator.kernel_shape[1] // 2
         halt = threading.Event()
-        self._spectra(0, fshape)
+        self._prepare(z)
 
         def one(j: int) -> None:
             b = self.blocks[j]
+            fshape = self._block_fft_shape(b, z)
             spec, maps = self._spectra(j, fshape), self._maps(b)
             bh, bw = b.y1 - b.y0, b.x1 - b.x0
             # v on rows y0 - c .. y1 + c (zero outside the volume) at pad rows 0 ..

@@ -1,0 +1,345 @@
+"""3D Richardson-Lucy on lateral tiles that exchange their margins at every iteration:
+the whole volume's iterates, a tile at a time.
+
+The blocked operator (:mod:`.blocks3d`) cuts the field into ``B x B`` blocks, each with
+its own kernels (compressed from the block's own maps, so they depend on nothing else).
+``H u`` at a pixel is the light of the pixels within ``P // 2`` of it, each through its
+own block's kernels; ``H^T v`` likewise reads ``v`` within ``P // 2``. So a tile gets
+exact values of both from a window of the tile and a ring of ``P // 2`` pixels, when the
+window's blocks are the field's blocks cut by the window, each with its whole block's
+kernels (``BlockedOperator3D(window=...)``). One iteration is two passes over the tiles
+(two ``dask.array.map_overlap`` calls whose overlap is the ring)::
+
+    r = y / max(H u + b, tiny)                    u on each tile's window
+    u = u * H^T r / max(H^T 1, tiny max(H^T 1))    r on each tile's window
+
+with ``u`` and ``r`` held between the passes in memory (``persist``: the threads' or a
+``dask.distributed`` cluster's) or written to a Zarr store (``store``: the volume larger
+than memory). Every voxel then follows the same arithmetic as
+:func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d` on the whole volume
+with the same blocks, up to the order of float32 additions: the tiles leave no seam.
+Independent tiles with a fixed margin (:mod:`.tiles3d`) cannot: a bead's influence
+spreads by ``P // 2`` pixels every iteration.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Generator
+
+import numpy as np
+import scipy.fft
+
+from ..common.atomic import atomic_write
+from ..common.progress import Progress, run_with_progress
+from ..common.validate import check_int
+from .blocks3d import BLOCK, RTOL, BlockedOperator3D
+from .deconvolve3d import TINY, check_stack, stack_statistics
+from .operator3d import ProductConvolution3D
+
+#: Default lateral tile size, pixels (a multiple of the default block: no tile cuts a
+#: block but at the field's edge).
+TILE = 4 * BLOCK
+
+
+def ring_width(operator: ProductConvolution3D) -> int:
+    """The margin each tile's window reads, pixels: the kernel's half-width ``P // 2``."""
+    return int(operator.kernel_shape[1] // 2)
+
+
+def task_bytes(operator: ProductConvolution3D, depth: int, tile: int, block: int) -> int:
+    """Memory one tile's pass holds at its peak, bytes (a bound: ``bench/run.py
+    deblur3d_scale`` measures it): its window ``(tile + 2 ring)`` wide, three volumes of
+    it in float32 (the window dask assembles, the product, the tile's own chunks), the
+    window's maps in float64 and float32, and spectra of a whole block's FFT shape: the
+    basis's ``I`` twice over (the whole blocks' and those cut by the window's edge), a
+    block's kernels (at most ``I``) and two buffers."""
+    n, p, _ = operator.kernel_shape
+    side = tile + 2 * ring_width(operator)
+    fz = scipy.fft.next_fast_len(depth + n // 2, real=True)
+    fl = scipy.fft.next_fast_len(block + p - 1, real=True)
+    spectrum = fz * fl * (fl // 2 + 1) * 8
+    i = operator.n_psf
+    return int(3 * depth * side * side * 4 + i * side * side * 12
+               + (3 * i + 2) * spectrum)
+
+
+#: Memory of the interpreter, NumPy, SciPy and dask before any volume, bytes: the part of
+#: a budget no tile can use.
+BASE_BYTES = 400 * 2**20
+
+
+def plan_for_memory(operator: ProductConvolution3D, depth: int, memory: float, *,
+                    block: int = BLOCK, workers: int | None = None) -> tuple[int, int]:
+    """The tile size and the tiles at once for a memory budget of ``memory`` bytes.
+
+    The largest multiple of ``block`` whose passes, ``workers`` at once, fit beside
+    :data:`BASE_BYTES` (:func:`task_bytes`); where even one block's tile does not fit,
+    fewer at once (down to one). Then evened out: the axes cut into as few tiles as that
+    size needs, of equal sizes, and at least as many tiles as run at once where the
+    field allows.
+
+    Returns
+    -------
+    tile : int
+        Lateral tile size, pixels.
+    workers : int
+        Tiles computed at once.
+
+    Raises
+    ------
+    ValueError
+        Where one tile of one block does not fit: the line names ``memory`` and the
+        least that would do.
+    """
+    from ..common.threads import default_workers
+
+    workers = default_workers() if workers is None else max(1, int(workers))
+    _, h, w = operator.shape
+
+    def fits(tile: int, n: int) -> bool:
+        return BASE_BYTES + n * task_bytes(operator, depth, tile, block) <= memory
+
+    while workers > 1 and not fits(block, workers):
+        workers -= 1
+    if not fits(block, workers):
+        need = BASE_BYTES + task_bytes(operator, depth, block, block)
+        raise ValueError(f"`memory` must be at least {need / 2**30:.2f} GiB for one tile "
+                         f"of {block} px on {depth} planes, got {memory / 2**30:.2f} GiB")
+    most = -(-max(h, w) // block) * block
+    tile = block
+    while tile + block <= most and fits(tile + block, workers):
+        tile += block
+    while tile > block and -(-h // tile) * -(-w // tile) < workers:
+        tile -= block  # every thread a tile
+    # as few tiles as that size needs along each axis, of equal sizes: no thread is left
+    # with a sliver while the others wait
+    return max(-(-n // -(-n // tile)) for n in (h, w)), workers
+
+
+def tile_edges(n: int, tile: int, ring: int = 0) -> tuple[int, ...]:
+    """Tile sizes along an axis of ``n`` pixels: ``tile`` each, the rest the last, or
+    merged into the last where it is narrower than the ``ring`` (``map_overlap`` takes
+    a margin from the neighbouring tile only)."""
+    sizes = [tile] * (n // tile)
+    rest = n % tile
+    if rest and sizes and rest < ring:
+        sizes[-1] += rest
+    elif rest:
+        sizes.append(rest)
+    return tuple(sizes)
+
+
+def write_state(store, state: dict) -> None:
+    """``state.json`` in ``store``, replaced atomically: the iterations done and the
+    settings they were done with."""
+    atomic_write(os.path.join(os.fspath(store), "state.json"),
+                 lambda f: json.dump(state, f), mode="w", encoding="utf-8")
+
+
+def read_state(store, settings: dict) -> dict | None:
+    """The state of an interrupted run in ``store`` (None where it finished no
+    iteration); one line naming what differs when its settings are not ``settings``."""
+    path = os.path.join(os.fspath(store), "state.json")
+    if not os.path.exists(path):
+        return None
+    try:
+        with open(path, encoding="utf-8") as f:
+            state = json.load(f)
+        done = int(state["done"])
+        float(state["background"]), float(state["start"])
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise ValueError(f"nothing to resume in {os.fspath(store)!r}: no readable "
+                         f"state.json ({type(exc).__name__})") from None
+    for key, want in settings.items():
+        if state.get(key) != want:
+            raise ValueError(f"cannot resume: the interrupted run had {key} "
+                             f"{state.get(key)!r}, this one {want!r}")
+    if done < 0:
+        raise ValueError(f"cannot resume: state.json says {done} iterations done")
+    return state
+
+
+class WindowTask:
+    """The blocked operator's product (``kind`` "apply" or "adjoint") on one tile's
+    window, as ``map_overlap`` calls it; picklable, so a cluster can run it. The
+    window's origin is its chunk's start less the ring (clipped at 0)."""
+
+    def __init__(self, operator: ProductConvolution3D, kind: str, starts_y, starts_x,
+                 ring: int, block: int, rtol: float) -> None:
+        self.operator, self.kind, self.ring = operator, kind, int(ring)
+        self.starts_y, self.starts_x = tuple(starts_y), tuple(starts_x)
+        self.block, self.rtol = int(block), float(rtol)
+        self.spectra: dict = {}  # the basis spectra by FFT shape, for every window
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "spectra": {}}  # a worker forms its own
+
+    def __call__(self, window: np.ndarray, block_info=None) -> np.ndarray:
+        _, iy, ix = block_info[0]["chunk-location"]
+        y0 = max(self.starts_y[iy] - self.ring, 0)
+        x0 = max(self.starts_x[ix] - self.ring, 0)
+        # each block is used once a pass: no spectra kept beyond it
+        blocked = BlockedOperator3D(self.operator, block=self.block, rtol=self.rtol,
+                                    cache_bytes=0, window=(y0, y0 + window.shape[1], x0,
+                                                           x0 + window.shape[2]),
+                                    basis_spectra=self.spectra)
+        data = np.ascontiguousarray(window, dtype=np.float32)
+        if self.kind == "apply":
+            return blocked.apply(data, workers=1)
+        return blocked.adjoint(data, workers=1)
+
+
+def iter_richardson_lucy_3d_exchange(
+    stack,
+    operator: ProductConvolution3D,
+    *,
+    n_iter: int = 50,
+    background: float | None = None,
+    start: float | None = None,
+    tile: int = TILE,
+    block: int = BLOCK,
+    rtol: float = RTOL,
+    store: str | os.PathLike | None = None,
+    resume: bool = False,
+    client=None,
+    workers: int | None = None,
+) -> Generator[Progress, None, object]:
+    """Generator form of :func:`richardson_lucy_3d_exchange`: yields progress after
+    every pass (two an iteration; stop it there to cancel), returns the volume.
+
+    ``store``: a folder where the iterates are written between the passes (Zarr arrays
+    ``norm``, ``ratio0``, ``ratio1``, ``u0``, ``u1``, and ``state.json``, the iterations
+    done, written after each); the result is then the last iterate there, a lazy dask
+    array. ``resume``: continue from the store's last finished iteration (its
+    settings must be these; from the start where it finished none)."""
+    import dask
+    import dask.array as da
+
+    check_stack(stack, operator)
+    n_iter = check_int(n_iter, "n_iter", minimum=1)
+    block = check_int(block, "block", minimum=operator.kernel_shape[1])
+    tile = check_int(tile, "tile", minimum=operator.kernel_shape[1])
+    if not (np.isfinite(rtol) and rtol >= 0):
+        raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
+    if resume and store is None:
+        raise ValueError("`resume` needs the `store` of the interrupted run")
+    z, h, w = stack.shape
+    settings = {"shape": [z, h, w], "tile": tile, "block": block, "rtol": float(rtol)}
+    state = read_state(store, settings) if resume else None
+    done = 0
+    if state is not None:
+        done, b, u0 = state["done"], state["background"], state["start"]
+    else:
+        yield Progress("setup", 0.0, "statistics of the stack")
+        b0, mean = stack_statistics(stack)
+        b = b0 if background is None else float(background)
+        if not np.isfinite(b):
+            raise ValueError(f"`background` must be finite, got {background!r}")
+        u0 = max(mean - b, TINY) if start is None else float(start)
+    ring = ring_width(operator)
+    rows, cols = tile_edges(h, tile, ring), tile_edges(w, tile, ring)
+    chunks = ((z,), rows, cols)
+    lazy = isinstance(stack, da.Array)
+    y = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
+    y = da.clip(y.astype(np.float32), 0, None)
+    starts_y = np.cumsum((0,) + rows)[:-1]
+    starts_x = np.cumsum((0,) + cols)[:-1]
+
+    tasks = {kind: WindowTask(operator, kind, starts_y, starts_x, ring, block, rtol)
+             for kind in ("apply", "adjoint")}
+
+    def product(arr, kind):
+        return arr.map_overlap(tasks[kind], depth={0: 0, 1: ring, 2: ring}, boundary="none",
+                               dtype=np.float32, trim=True, allow_rechunk=False,
+                               meta=np.empty((0, 0, 0), np.float32))
+
+    def hold(arr, name):
+        """The array computed once and held: in memory (the scheduler's), or in the
+        store, read back lazily."""
+        if store is None:
+            return client.persist(arr) if client is not None else arr.persist()
+        path = os.path.join(os.fspath(store), name)
+        arr.to_zarr(path, overwrite=True, compute=True)
+        return da.from_zarr(path)
+
+    from ..common.threads import dask_workers
+
+    config = ({"scheduler": client.get} if client is not None else
+              {"scheduler": "threads",
+               "num_workers": dask_workers() if workers is None else int(workers)})
+    with dask.config.set(config):
+        if done:
+            norm = da.from_zarr(os.path.join(os.fspath(store), "norm"))
+            u = da.from_zarr(os.path.join(os.fspath(store), f"u{(done - 1) % 2}"))
+        else:
+            yield Progress("setup", 0.0, "H^T 1")
+            norm = hold(product(da.ones((z, h, w), np.float32, chunks=chunks), "adjoint"),
+                        "norm")
+            u = da.full((z, h, w), np.float32(u0), dtype=np.float32, chunks=chunks)
+        top = float(norm.max().compute())
+        norm = da.maximum(norm, np.float32(TINY * max(top, 1.0)))
+        for k in range(done, n_iter):
+            forward = product(u, "apply")
+            ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)),
+                         f"ratio{k % 2}")
+            yield Progress("iteration", (k + 0.5) / n_iter,
+                           f"iteration {k + 1} of {n_iter}: H u on every tile")
+            u = hold(u * product(ratio, "adjoint") / norm, f"u{k % 2}")
+            if store is not None:
+                write_state(store, {**settings, "done": k + 1, "background": b,
+                                    "start": u0})
+            yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
+        return np.asarray(u.compute()) if store is None else u
+
+
+def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter: int = 50,
+                                background: float | None = None,
+                                start: float | None = None, tile: int = TILE,
+                                block: int = BLOCK, rtol: float = RTOL, client=None,
+                                workers: int | None = None, progress=None) -> np.ndarray:
+    """Space-varying Richardson-Lucy on lateral tiles that exchange their margins at
+    every iteration (the module's notes): the whole volume's result, tile by tile.
+
+    Parameters
+    ----------
+    stack : array_like or dask.array.Array of shape (Z, H, W)
+        The blurred volume, image units.
+    operator : ProductConvolution3D
+    n_iter : int
+        Iterations.
+    background : float, optional
+        Constant background, image units; default the stack's
+        (:func:`~napari_psfspace.core.volume.deconvolve3d.stack_statistics`).
+    start : float, optional
+        Starting value; default the stack's mean less the background.
+    tile : int
+        Lateral tile size, pixels (at least the kernel's; a multiple of ``block``
+        cuts no block but at the field's edge).
+    block, rtol
+        The blocked operator's block size and kernel tolerance
+        (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`).
+    client : dask.distributed.Client, optional
+        Runs the tiles on this cluster, the iterates held in its memory.
+    workers : int, optional
+        Tiles at once on the local threads; default dask's (the cores).
+    progress : callable, optional
+        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
+
+    Returns
+    -------
+    ndarray of shape (Z, H, W), float32
+        Equal to :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d`
+        with the same ``block``, ``rtol``, background and start, to float32 rounding.
+    """
+    return run_with_progress(
+        iter_richardson_lucy_3d_exchange(stack, operator, n_iter=n_iter,
+                                         background=background, start=start, tile=tile,
+                                         block=block, rtol=rtol, client=client,
+                                         workers=workers), progress)
+
+
+__all__ = ["BASE_BYTES", "TILE", "WindowTask", "iter_richardson_lucy_3d_exchange",
+           "read_state", "richardson_lucy_3d_exchange", "ring_width", "task_bytes",
+           "tile_edges", "plan_for_memory", "write_state"]
