@@ -59,6 +59,11 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
 
     out = os.fspath(output)
     work = work_folder(out)
+    parent = os.path.dirname(os.path.abspath(out.rstrip("/\\")))
+    if not os.path.isdir(parent):
+        raise ValueError(f"cannot write {out}: the folder {parent} does not exist")
+    if not os.access(parent, os.W_OK):
+        raise ValueError(f"cannot write {out}: the folder {parent} is not writable")
     zarr_out = is_zarr_path(out)
     if resume and not os.path.isdir(work):
         if zarr_out and os.path.isdir(out):

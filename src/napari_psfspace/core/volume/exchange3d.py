@@ -98,15 +98,17 @@ def plan_for_memory(operator: ProductConvolution3D, depth: int, memory: float, *
     workers = default_workers() if workers is None else max(1, int(workers))
     _, h, w = operator.shape
 
+    least = min(block, max(h, w))
+
     def fits(tile: int, n: int) -> bool:
         return BASE_BYTES + n * task_bytes(operator, depth, tile, block) <= memory
 
-    while workers > 1 and not fits(block, workers):
+    while workers > 1 and not fits(least, workers):
         workers -= 1
-    if not fits(block, workers):
-        need = BASE_BYTES + task_bytes(operator, depth, block, block)
+    if not fits(least, workers):
+        need = BASE_BYTES + task_bytes(operator, depth, least, block)
         raise ValueError(f"`memory` must be at least {need / 2**30:.2f} GiB for one tile "
-                         f"of {block} px on {depth} planes, got {memory / 2**30:.2f} GiB")
+                         f"of {least} px on {depth} planes, got {memory / 2**30:.2f} GiB")
     most = -(-max(h, w) // block) * block
     tile = block
     while tile + block <= most and fits(tile + block, workers):
