@@ -85,7 +85,7 @@ def test_a_resumed_run_writes_only_the_missing_chunks(files):
             break
     gen.close()
     assert os.path.isdir(work_folder(out)) and not out.exists()
-    arr = create_ome_zarr(out, full.shape, voxel_size=(0.3, 0.1, 0.1))
+    arr = create_ome_zarr(out, full.shape, voxel_size=(0.3, 0.1, 0.1), chunk=32)
     arr[0] = 7.0
     torn = out / "0" / "1" / "0" / "0.abc.partial"
     torn.parent.mkdir(parents=True)

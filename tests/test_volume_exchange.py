@@ -48,7 +48,7 @@ def test_the_iterates_can_live_in_a_store(tmp_path):
         store=tmp_path))
     assert isinstance(lazy, da.Array)
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["norm", "ratio0", "ratio1", "state.json", "u0", "u1"]
+    assert names == ["data", "norm", "ratio0", "ratio1", "state.json", "u0", "u1"]
     assert np.abs(lazy.compute() - whole).max() <= 1e-4 * whole.max()
 
 

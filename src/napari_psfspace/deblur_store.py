@@ -95,15 +95,30 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
         voxel = (info.z_spacing or 1.0, info.pixel_size, info.pixel_size)
     written = total = 1
     if zarr_out:
+        # chunks of one plane and one tile's lateral size: each lies in one tile of the
+        # iterate, which is read once for all the chunks it holds
         arr = (open_ome_zarr_output(out) if resume and os.path.isdir(out) else
-               create_ome_zarr(out, tuple(stack.shape), voxel_size=voxel))
+               create_ome_zarr(out, tuple(stack.shape), voxel_size=voxel, chunk=tile))
         todo = missing_chunks(arr, out)
         total = int(np.prod([-(-n // c) for n, c in zip(arr.shape, arr.chunks,
                                                           strict=True)]))
+        cy, cx = arr.chunks[1:]
+        by_tile: dict[tuple[int, int], list] = {}
         for idx in todo:
-            sl = tuple(slice(i * c, min((i + 1) * c, n))
-                       for i, c, n in zip(idx, arr.chunks, arr.shape, strict=True))
-            arr[sl] = np.asarray(u[sl].compute(), np.float32)
+            tile_y = int(np.searchsorted(np.cumsum(u.chunks[1]), idx[1] * cy, side="right"))
+            tile_x = int(np.searchsorted(np.cumsum(u.chunks[2]), idx[2] * cx, side="right"))
+            by_tile.setdefault((tile_y, tile_x), []).append(idx)
+        starts_y = np.cumsum((0,) + u.chunks[1])
+        starts_x = np.cumsum((0,) + u.chunks[2])
+        for (ty, tx), chunks in by_tile.items():
+            y0, y1 = int(starts_y[ty]), int(starts_y[ty + 1])
+            x0, x1 = int(starts_x[tx]), int(starts_x[tx + 1])
+            part = np.asarray(u[:, y0:y1, x0:x1].compute(), np.float32)
+            for iz, iy, ix in chunks:
+                ys = slice(iy * cy, min((iy + 1) * cy, arr.shape[1]))
+                xs = slice(ix * cx, min((ix + 1) * cx, arr.shape[2]))
+                arr[iz, ys, xs] = part[iz, ys.start - y0:ys.stop - y0,
+                                       xs.start - x0:xs.stop - x0]
         written = len(todo)
     else:
         write_tiff(out, np.asarray(u.compute(), np.float32),

@@ -118,6 +118,9 @@ class BlockedOperator3D:
     basis_spectra : dict, optional
         A cache of the basis spectra by FFT shape, shared by the operators of one
         field's windows (they depend on the shape only).
+    block_kernels : dict, optional
+        A cache of each field block's kernels by its origin, shared likewise (they
+        depend on the block's own maps only).
 
     Attributes
     ----------
@@ -128,7 +131,8 @@ class BlockedOperator3D:
                  rtol: float = RTOL, cache_bytes: int = CACHE_BYTES,
                  device: str | ArrayModule = "cpu",
                  window: tuple[int, int, int, int] | None = None,
-                 basis_spectra: dict | None = None) -> None:
+                 basis_spectra: dict | None = None,
+                 block_kernels: dict | None = None) -> None:
         if not isinstance(operator, ProductConvolution3D):
             raise TypeError(f"`operator` must be a ProductConvolution3D, got "
                             f"{type(operator).__name__}")
@@ -153,9 +157,14 @@ class BlockedOperator3D:
         for y0 in range(wy0 // block * block, wy1, block):
             for x0 in range(wx0 // block * block, wx1, block):
                 y1, x1 = min(y0 + block, h), min(x0 + block, w)
-                own = (maps[:, y0:y1, x0:x1] if maps is not None else
-                       operator.cropped(y0, y1, x0, x1).coefficient_maps(np.float64))
-                mix, combo, err = _local_kernels(basis, own, self.rtol)
+                found = None if block_kernels is None else block_kernels.get((y0, x0))
+                if found is None:
+                    own = (maps[:, y0:y1, x0:x1] if maps is not None else
+                           operator.cropped(y0, y1, x0, x1).coefficient_maps(np.float64))
+                    found = _local_kernels(basis, own, self.rtol)
+                    if block_kernels is not None:
+                        block_kernels[(y0, x0)] = found
+                mix, combo, err = found
                 self.blocks.append(Block(max(y0, wy0) - wy0, min(y1, wy1) - wy0,
                                          max(x0, wx0) - wx0, min(x1, wx1) - wx0,
                                          mix, combo, err))

@@ -173,10 +173,12 @@ class WindowTask:
         self.operator, self.kind, self.ring = operator, kind, int(ring)
         self.starts_y, self.starts_x = tuple(starts_y), tuple(starts_x)
         self.block, self.rtol = int(block), float(rtol)
-        self.spectra: dict = {}  # the basis spectra by FFT shape, for every window
+        # for every window: the basis spectra by FFT shape, each field block's kernels
+        self.spectra: dict = {}
+        self.kernels: dict = {}
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "spectra": {}}  # a worker forms its own
+        return {**self.__dict__, "spectra": {}, "kernels": {}}  # a worker forms its own
 
     def __call__(self, window: np.ndarray, block_info=None) -> np.ndarray:
         _, iy, ix = block_info[0]["chunk-location"]
@@ -186,7 +188,8 @@ class WindowTask:
         blocked = BlockedOperator3D(self.operator, block=self.block, rtol=self.rtol,
                                     cache_bytes=0, window=(y0, y0 + window.shape[1], x0,
                                                            x0 + window.shape[2]),
-                                    basis_spectra=self.spectra)
+                                    basis_spectra=self.spectra,
+                                    block_kernels=self.kernels)
         data = np.ascontiguousarray(window, dtype=np.float32)
         if self.kind == "apply":
             return blocked.apply(data, workers=1)
@@ -212,7 +215,8 @@ def iter_richardson_lucy_3d_exchange(
     every pass (two an iteration; stop it there to cancel), returns the volume.
 
     ``store``: a folder where the iterates are written between the passes (Zarr arrays
-    ``norm``, ``ratio0``, ``ratio1``, ``u0``, ``u1``, and ``state.json``, the iterations
+    ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio0``, ``ratio1``, ``u0``,
+    ``u1``, and ``state.json``, the iterations
     done, written after each); the result is then the last iterate there, a lazy dask
     array. ``resume``: continue from the store's last finished iteration (its
     settings must be these; from the start where it finished none)."""
@@ -251,6 +255,8 @@ def iter_richardson_lucy_3d_exchange(
 
     tasks = {kind: WindowTask(operator, kind, starts_y, starts_x, ring, block, rtol)
              for kind in ("apply", "adjoint")}
+    tasks["adjoint"].spectra = tasks["apply"].spectra  # one cache of each for both
+    tasks["adjoint"].kernels = tasks["apply"].kernels
 
     def product(arr, kind):
         return arr.map_overlap(tasks[kind], depth={0: 0, 1: ring, 2: ring}, boundary="none",
@@ -263,7 +269,8 @@ def iter_richardson_lucy_3d_exchange(
         if store is None:
             return client.persist(arr) if client is not None else arr.persist()
         path = os.path.join(os.fspath(store), name)
-        arr.to_zarr(path, overwrite=True, compute=True)
+        # uncompressed: an iterate's float32 noise does not compress, and is read once
+        arr.to_zarr(path, overwrite=True, compute=True, compressors=None)
         return da.from_zarr(path)
 
     from ..common.threads import dask_workers
@@ -272,6 +279,11 @@ def iter_richardson_lucy_3d_exchange(
               {"scheduler": "threads",
                "num_workers": dask_workers() if workers is None else int(workers)})
     with dask.config.set(config):
+        if store is not None:  # the data cut in tiles once: each pass reads its windows
+            path = os.path.join(os.fspath(store), "data")
+            if not (done and os.path.isdir(path)):
+                y.to_zarr(path, overwrite=True, compute=True, compressors=None)
+            y = da.from_zarr(path)
         if done:
             norm = da.from_zarr(os.path.join(os.fspath(store), "norm"))
             u = da.from_zarr(os.path.join(os.fspath(store), f"u{(done - 1) % 2}"))
