@@ -50,18 +50,20 @@ def ring_width(operator: ProductConvolution3D) -> int:
 
 def task_bytes(operator: ProductConvolution3D, depth: int, tile: int, block: int) -> int:
     """Memory one tile's pass holds at its peak, bytes (a bound: ``bench/run.py
-    deblur3d_scale`` measures it): its window ``(tile + 2 ring)`` wide, three volumes of
-    it in float32 (the window dask assembles, the product, the tile's own chunks), the
-    window's maps in float64 and float32, and spectra of a whole block's FFT shape: the
-    basis's ``I`` twice over (the whole blocks' and those cut by the window's edge), a
-    block's kernels (at most ``I``) and two buffers."""
+    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 2
+    ring)`` wide, six volumes of it in float32 (the window dask assembles from the
+    neighbouring chunks, the product, its trimmed copy, and the tile's data, forward
+    product and ratio in the elementwise step), the window's maps in float64 and
+    float32, and spectra of a whole block's FFT shape: the basis's ``I`` twice over (the
+    whole blocks' and those cut by the window's edge), a block's kernels (at most ``I``)
+    and two buffers."""
     n, p, _ = operator.kernel_shape
     side = tile + 2 * ring_width(operator)
     fz = scipy.fft.next_fast_len(depth + n // 2, real=True)
     fl = scipy.fft.next_fast_len(block + p - 1, real=True)
     spectrum = fz * fl * (fl // 2 + 1) * 8
     i = operator.n_psf
-    return int(3 * depth * side * side * 4 + i * side * side * 12
+    return int(6 * depth * side * side * 4 + i * side * side * 12
                + (3 * i + 2) * spectrum)
 
 
