@@ -48,7 +48,7 @@ def test_the_iterates_can_live_in_a_store(tmp_path):
         store=tmp_path))
     assert isinstance(lazy, da.Array)
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["data", "norm", "state.json", "u0", "u1"]
+    assert names == ["data", "norm", "ratio0", "ratio1", "state.json", "u0", "u1"]
     assert np.abs(lazy.compute() - whole).max() <= 1e-4 * whole.max()
 
 
@@ -116,7 +116,8 @@ def test_the_plan_fits_the_budget_and_says_when_nothing_does():
     for (tile, n), m in zip(plans, budgets, strict=True):
         assert BASE_BYTES + n * task_bytes(op, 64, tile, 256) <= m
         assert (-(-2048 // tile)) ** 2 >= n  # a tile for every thread
-    # 1.2 GB: two tiles of a block at once do not fit; 4 GB: tiles of two blocks
-    assert plans == [(256, 1), (256, 2), (512, 2)]
-    with pytest.raises(ValueError, match=r"`memory` must be at least 0\.99 GiB for one tile"):
+    # 1.2 GB: two tiles of a block at once do not fit; 4 GB: tiles of three blocks fit,
+    # and the field is cut in three tiles of 683 px a side
+    assert plans == [(256, 1), (256, 2), (683, 2)]
+    with pytest.raises(ValueError, match=r"`memory` must be at least 0\.90 GiB for one tile"):
         plan_for_memory(op, 64, 0.8e9, block=256)

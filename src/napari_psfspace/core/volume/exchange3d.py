@@ -7,15 +7,13 @@ its own kernels (compressed from the block's own maps, so they depend on nothing
 own block's kernels; ``H^T v`` likewise reads ``v`` within ``P // 2``. So a tile gets
 exact values of both from a window of the tile and a ring of ``P // 2`` pixels, when the
 window's blocks are the field's blocks cut by the window, each with its whole block's
-kernels (``BlockedOperator3D(window=...)``). One iteration is one pass over the tiles
-(:class:`IterationTask`, one ``dask.array.map_overlap`` call): from ``u`` on the tile
-and two rings, ``H u`` is exact on the tile and one ring, so is the ratio, and ``H^T`` of
-it is exact on the tile::
+kernels (``BlockedOperator3D(window=...)``). One iteration is two passes over the tiles
+(two ``dask.array.map_overlap`` calls whose overlap is the ring)::
 
-    r = y / max(H u + b, tiny)                    on the tile and one ring
-    u = u * H^T r / max(H^T 1, tiny max(H^T 1))    on the tile
+    r = y / max(H u + b, tiny)                    u on each tile's window
+    u = u * H^T r / max(H^T 1, tiny max(H^T 1))    r on each tile's window
 
-with ``u`` held between the iterations in memory (``persist``: the threads' or a
+with ``u`` and ``r`` held between the passes in memory (``persist``: the threads' or a
 ``dask.distributed`` cluster's) or written to a Zarr store (``store``: the volume larger
 than memory). Every voxel then follows the same arithmetic as
 :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d` on the whole volume
@@ -52,19 +50,20 @@ def ring_width(operator: ProductConvolution3D) -> int:
 
 def task_bytes(operator: ProductConvolution3D, depth: int, tile: int, block: int) -> int:
     """Memory one tile's pass holds at its peak, bytes (a bound: ``bench/run.py
-    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 4
-    ring)`` wide, eight volumes of it in float32 (the iterate's and the data's windows
-    and the copies dask assembles them in, the forward product, the ratio, its adjoint,
-    the new tile), the window's maps in float64 and float32, and spectra of a whole
-    block's FFT shape: the basis's ``I`` twice over (the whole blocks' and those cut by
-    the window's edge), a block's kernels (at most ``I``) and two buffers."""
+    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 2
+    ring)`` wide, six volumes of it in float32 (the window dask assembles from the
+    neighbouring chunks, the product, its trimmed copy, and the tile's data, forward
+    product and ratio in the elementwise step), the window's maps in float64 and
+    float32, and spectra of a whole block's FFT shape: the basis's ``I`` twice over (the
+    whole blocks' and those cut by the window's edge), a block's kernels (at most ``I``)
+    and two buffers."""
     n, p, _ = operator.kernel_shape
-    side = tile + 4 * ring_width(operator)
+    side = tile + 2 * ring_width(operator)
     fz = scipy.fft.next_fast_len(depth + n // 2, real=True)
     fl = scipy.fft.next_fast_len(block + p - 1, real=True)
     spectrum = fz * fl * (fl // 2 + 1) * 8
     i = operator.n_psf
-    return int(8 * depth * side * side * 4 + i * side * side * 12
+    return int(6 * depth * side * side * 4 + i * side * side * 12
                + (3 * i + 2) * spectrum)
 
 
@@ -199,50 +198,6 @@ class WindowTask:
         return blocked.adjoint(data, workers=1)
 
 
-class IterationTask:
-    """One Richardson-Lucy iteration on one tile, as ``map_overlap`` calls it with the
-    iterate's window two rings wide, the data's one ring wide and ``H^T 1`` on the tile:
-    ``H u`` is exact on the tile and one ring around it, so the ratio is too, and
-    ``H^T`` of that ratio is exact on the tile. One pass an iteration; picklable."""
-
-    def __init__(self, operator: ProductConvolution3D, edges_y, edges_x, ring: int,
-                 block: int, rtol: float, background: float) -> None:
-        self.operator, self.ring = operator, int(ring)
-        self.edges_y, self.edges_x = tuple(edges_y), tuple(edges_x)
-        self.block, self.rtol, self.background = int(block), float(rtol), float(background)
-        self.spectra: dict = {}
-        self.kernels: dict = {}
-
-    def __getstate__(self) -> dict:
-        return {**self.__dict__, "spectra": {}, "kernels": {}}  # a worker forms its own
-
-    def _blocked(self, y0: int, y1: int, x0: int, x1: int) -> BlockedOperator3D:
-        return BlockedOperator3D(self.operator, block=self.block, rtol=self.rtol,
-                                 cache_bytes=0, window=(y0, y1, x0, x1),
-                                 basis_spectra=self.spectra, block_kernels=self.kernels)
-
-    def __call__(self, u_win: np.ndarray, y_win: np.ndarray, norm: np.ndarray,
-                 block_info=None) -> np.ndarray:
-        _, iy, ix = block_info[0]["chunk-location"]
-        _, h, w = self.operator.shape
-        r = self.ring
-        ty0, ty1 = self.edges_y[iy], self.edges_y[iy + 1]
-        tx0, tx1 = self.edges_x[ix], self.edges_x[ix + 1]
-        wy0, wx0 = max(ty0 - 2 * r, 0), max(tx0 - 2 * r, 0)
-        ry0, ry1 = max(ty0 - r, 0), min(ty1 + r, h)
-        rx0, rx1 = max(tx0 - r, 0), min(tx1 + r, w)
-        u_win = np.ascontiguousarray(u_win, dtype=np.float32)
-        forward = self._blocked(wy0, wy0 + u_win.shape[1], wx0,
-                                wx0 + u_win.shape[2]).apply(u_win, workers=1)
-        ratio = forward[:, ry0 - wy0:ry1 - wy0, rx0 - wx0:rx1 - wx0]
-        ratio += np.float32(self.background)
-        np.maximum(ratio, np.float32(TINY), out=ratio)
-        ratio = np.asarray(y_win, np.float32) / ratio
-        back = self._blocked(ry0, ry1, rx0, rx1).adjoint(ratio, workers=1)
-        u = u_win[:, ty0 - wy0:ty1 - wy0, tx0 - wx0:tx1 - wx0]
-        return u * back[:, ty0 - ry0:ty1 - ry0, tx0 - rx0:tx1 - rx0] / norm
-
-
 def iter_richardson_lucy_3d_exchange(
     stack,
     operator: ProductConvolution3D,
@@ -262,8 +217,8 @@ def iter_richardson_lucy_3d_exchange(
     every pass (two an iteration; stop it there to cancel), returns the volume.
 
     ``store``: a folder where the iterates are written between the passes (Zarr arrays
-    ``data``, the stack in float32 cut in tiles, ``norm``, ``u0``, ``u1``, and
-    ``state.json``, the iterations
+    ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio0``, ``ratio1``, ``u0``,
+    ``u1``, and ``state.json``, the iterations
     done, written after each); the result is then the last iterate there, a lazy dask
     array. ``resume``: continue from the store's last finished iteration (its
     settings must be these; from the start where it finished none)."""
@@ -292,7 +247,7 @@ def iter_richardson_lucy_3d_exchange(
             raise ValueError(f"`background` must be finite, got {background!r}")
         u0 = max(mean - b, TINY) if start is None else float(start)
     ring = ring_width(operator)
-    rows, cols = tile_edges(h, tile, 2 * ring), tile_edges(w, tile, 2 * ring)
+    rows, cols = tile_edges(h, tile, ring), tile_edges(w, tile, ring)
     chunks = ((z,), rows, cols)
     lazy = isinstance(stack, da.Array)
     y = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
@@ -341,17 +296,13 @@ def iter_richardson_lucy_3d_exchange(
             u = da.full((z, h, w), np.float32(u0), dtype=np.float32, chunks=chunks)
         top = float(norm.max().compute())
         norm = da.maximum(norm, np.float32(TINY * max(top, 1.0)))
-        edges_y = tuple(int(v) for v in np.cumsum((0,) + rows))
-        edges_x = tuple(int(v) for v in np.cumsum((0,) + cols))
-        step = IterationTask(operator, edges_y, edges_x, ring, block, rtol, b)
-        step.spectra, step.kernels = tasks["adjoint"].spectra, tasks["adjoint"].kernels
         for k in range(done, n_iter):
-            new = da.map_overlap(step, u, y, norm,
-                                 depth=[{0: 0, 1: 2 * ring, 2: 2 * ring},
-                                        {0: 0, 1: ring, 2: ring}, {0: 0, 1: 0, 2: 0}],
-                                 boundary="none", trim=False, dtype=np.float32,
-                                 allow_rechunk=False, meta=np.empty((0, 0, 0), np.float32))
-            u = hold(new, f"u{k % 2}")
+            forward = product(u, "apply")
+            ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)),
+                         f"ratio{k % 2}")
+            yield Progress("iteration", (k + 0.5) / n_iter,
+                           f"iteration {k + 1} of {n_iter}: H u on every tile")
+            u = hold(u * product(ratio, "adjoint") / norm, f"u{k % 2}")
             if store is not None:
                 write_state(store, {**settings, "done": k + 1, "background": b,
                                     "start": u0})
