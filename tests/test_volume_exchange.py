@@ -12,8 +12,8 @@ from napari_psfspace.core.volume.exchange3d import (
     iter_richardson_lucy_3d_exchange,
     richardson_lucy_3d_exchange,
     ring_width,
-    tile_edges,
 )
+from napari_psfspace.core.volume.tiles3d import tile_sizes
 from test_volume_blocks import _operator
 
 
@@ -65,9 +65,9 @@ def test_the_tiles_run_on_a_client():
 
 def test_the_ring_and_the_tiles():
     assert ring_width(_operator(kernel=(5, 7, 7))) == 3
-    assert tile_edges(90, 32) == (32, 32, 26)
-    assert tile_edges(64, 32) == (32, 32)
-    assert tile_edges(50, 24, 3) == (24, 26)  # a 2 px tile would be narrower than the ring
+    assert tile_sizes(90, 32, 0) == (32, 32, 26)
+    assert tile_sizes(64, 32, 0) == (32, 32)
+    assert tile_sizes(50, 24, 3) == (24, 26)  # a 2 px tile would be narrower than the ring
 
 
 def test_tiles_that_cut_the_blocks_are_exact_too():

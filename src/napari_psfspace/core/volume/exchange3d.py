@@ -37,6 +37,7 @@ from ..common.validate import check_int
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import TINY, check_stack, stack_statistics
 from .operator3d import ProductConvolution3D
+from .tiles3d import tile_sizes
 
 #: Default lateral tile size, pixels (a multiple of the default block: no tile cuts a
 #: block but at the field's edge).
@@ -120,19 +121,6 @@ def plan_for_memory(operator: ProductConvolution3D, depth: int, memory: float, *
     # as few tiles as that size needs along each axis, of equal sizes: no thread is left
     # with a sliver while the others wait
     return max(-(-n // -(-n // tile)) for n in (h, w)), workers
-
-
-def tile_edges(n: int, tile: int, ring: int = 0) -> tuple[int, ...]:
-    """Tile sizes along an axis of ``n`` pixels: ``tile`` each, the rest the last, or
-    merged into the last where it is narrower than the ``ring`` (``map_overlap`` takes
-    a margin from the neighbouring tile only)."""
-    sizes = [tile] * (n // tile)
-    rest = n % tile
-    if rest and sizes and rest < ring:
-        sizes[-1] += rest
-    elif rest:
-        sizes.append(rest)
-    return tuple(sizes)
 
 
 def write_state(store, state: dict) -> None:
@@ -247,7 +235,7 @@ def iter_richardson_lucy_3d_exchange(
             raise ValueError(f"`background` must be finite, got {background!r}")
         u0 = max(mean - b, TINY) if start is None else float(start)
     ring = ring_width(operator)
-    rows, cols = tile_edges(h, tile, ring), tile_edges(w, tile, ring)
+    rows, cols = tile_sizes(h, tile, ring), tile_sizes(w, tile, ring)
     chunks = ((z,), rows, cols)
     lazy = isinstance(stack, da.Array)
     y = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
@@ -358,4 +346,4 @@ def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter
 
 __all__ = ["BASE_BYTES", "TILE", "WindowTask", "iter_richardson_lucy_3d_exchange",
            "read_state", "richardson_lucy_3d_exchange", "ring_width", "task_bytes",
-           "tile_edges", "plan_for_memory", "write_state"]
+           "plan_for_memory", "write_state"]
