@@ -129,3 +129,75 @@ def test_a_run_killed_mid_way_resumes_to_the_uninterrupted_result(files):
     assert 2 <= done < 40
     assert _cli(d, "-o", str(out), "--tile", "32", "--iterations", "40", "--resume") == 0
     assert np.abs(read_stack(out)[0] - ref).max() <= 1e-6 * ref.max()
+
+
+def _stopped_before_writing(d, op, out):
+    """A run stopped once its iterations are done, before the output is written."""
+    gen = iter_deblur_to_store(d / "in.tif", op, out, n_iter=2, tile=32)
+    for p in gen:
+        if p.stage == "write":
+            break
+    gen.close()
+
+
+def _snapshot(folder):
+    import os
+
+    return {os.path.relpath(os.path.join(f, n), folder): open(os.path.join(f, n), "rb").read()
+            for f, _, names in os.walk(folder) for n in names}
+
+
+@pytest.mark.parametrize("damage, says", [
+    ("chunks", "chunks are (1, 16, 16), not (1, 32, 32)"),
+    ("dtype", "it holds float64"),
+    ("readonly", "is not writable"),
+])
+def test_a_resume_into_a_store_it_cannot_finish_is_refused_with_nothing_lost(
+        files, capsys, damage, says):
+    import os
+    import stat
+
+    from napari_psfspace.ome_zarr import create_ome_zarr
+
+    d, op, stack = files
+    out = d / "out.zarr"
+    _stopped_before_writing(d, op, out)
+    arr = create_ome_zarr(out, stack.shape, chunk=16 if damage == "chunks" else 32,
+                          dtype="float64" if damage == "dtype" else "float32")
+    arr[0] = 7.0
+    if damage == "readonly":
+        for folder, _, names in os.walk(out):
+            for n in names:
+                os.chmod(os.path.join(folder, n), stat.S_IRUSR)
+    before = _snapshot(d)
+    capsys.readouterr()
+    assert _cli(d, "-o", str(out), "--tile", "32", "--iterations", "2", "--resume") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and says in err, err
+    assert _snapshot(d) == before  # the iterates and the chunks written are kept
+
+
+@pytest.mark.parametrize("damage, says", [
+    # 6 planes of 3 x 3 chunks of 32 px (90 x 80 px)
+    ("missing", "is incomplete: 1 of its 54 chunks are missing"),
+    ("complex", "holds complex64 data"),
+])
+def test_a_damaged_ome_zarr_input_is_refused_before_any_work(files, capsys, damage, says):
+    import os
+
+    from napari_psfspace.ome_zarr import create_ome_zarr
+
+    d, op, stack = files
+    arr = create_ome_zarr(d / "in.zarr", stack.shape, chunk=32, voxel_size=(0.3, 0.1, 0.1),
+                          dtype="complex64" if damage == "complex" else "uint16")
+    arr[:] = stack
+    if damage == "missing":
+        os.remove(d / "in.zarr" / "0" / "3" / "1" / "2")
+    capsys.readouterr()
+    for extra in (["--tile", "32"], []):
+        out = d / ("o.zarr" if extra else "o.tif")
+        assert main(["deblur3d", str(d / "in.zarr"), "--model", str(d / "m3.npz"), "-q",
+                     "-o", str(out), *extra]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and says in err, err
+        assert not out.exists() and not (d / "o.zarr.iterates").exists()

@@ -117,7 +117,7 @@ def read_ome_zarr_layer(path) -> list[tuple]:
     from .ome_zarr import read_ome_zarr
 
     p = _single_path(path)
-    data, px, dz, _ = read_ome_zarr(p, lazy=True)
+    data, px, dz, _ = read_ome_zarr(p, lazy=True, complete=False)
     meta = {"pixel_size_um": px, "z_spacing_um": dz}
     kwargs = {"name": os.path.splitext(os.path.basename(p.rstrip("/\\")))[0],
               "metadata": meta}

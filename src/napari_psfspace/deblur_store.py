@@ -41,6 +41,99 @@ def is_zarr_path(path: str | os.PathLike) -> bool:
     return os.fspath(path).rstrip("/\\").lower().endswith(".zarr")
 
 
+#: Largest relative difference between the stack's voxel size and the model's that is
+#: taken as the same sampling: far above the rounding of a file's metadata (a TIFF's
+#: rational resolution, a decimal z step), far below a change of objective or binning.
+VOXEL_RTOL = 0.01
+
+
+def stack_voxel_size(operator: ProductConvolution3D, info, *,
+                     voxel_size: tuple[float, float, float] | None = None,
+                     name: str = "the stack") -> tuple[float, float, float] | None:
+    """The voxel size ``(dz, dy, dx)`` (µm) a stack is deblurred at, checked against the
+    model's.
+
+    Parameters
+    ----------
+    operator : ProductConvolution3D
+    info : StackInfo
+        The file's sampling (:func:`~napari_psfspace.io.read_stack`).
+    voxel_size : (float, float, float), optional
+        Given by the user; replaces the file's (each entry None keeps the file's).
+    name : str
+        The stack, as the error messages name it.
+
+    Returns
+    -------
+    (float, float, float) or None
+        None where neither the model nor the stack has one (both in pixels and planes).
+
+    Raises
+    ------
+    ValueError
+        The model has a voxel size and the stack neither has one nor is given one, or the
+        two differ by more than :data:`VOXEL_RTOL`.
+    """
+    given = (None, None, None) if voxel_size is None else tuple(voxel_size)
+    if len(given) != 3:
+        raise ValueError(f"`voxel_size` must be (dz, dy, dx) in µm, got {voxel_size!r}")
+    for v in given:
+        if v is not None and not (np.isfinite(v) and v > 0):
+            raise ValueError(f"`voxel_size` must hold positive µm, got {voxel_size!r}")
+    dz = given[0] or getattr(info, "z_spacing", None)
+    dy = given[1] or getattr(info, "pixel_size", None)
+    dx = given[2] or getattr(info, "pixel_size", None)
+    voxel = (dz, dy, dx) if dz and dy and dx else None
+    model = operator.voxel_size
+    if model is None:
+        return voxel
+    want = ", ".join(f"{v * 1000:.4g}" for v in model)
+    if voxel is None:
+        missing = [w for w, v in (("pixel size", dy), ("z step", dz)) if not v]
+        raise ValueError(f"{name} gives no {' and no '.join(missing)}, and the model was "
+                         f"learnt at {want} nm (dz, dy, dx): give the stack's "
+                         "(--pixel-size-nm and --z-step-nm, or voxel_size=)")
+    if not np.allclose(voxel, model, rtol=VOXEL_RTOL, atol=0):
+        have = ", ".join(f"{v * 1000:.4g}" for v in voxel)
+        raise ValueError(f"{name} is sampled at {have} nm (dz, dy, dx), the model at {want} "
+                         "nm: deblur with a model learnt at the stack's sampling")
+    return voxel
+
+
+def _writable(path: str) -> bool:
+    """Whether a file, or a folder and every folder and file in it, may be written."""
+    from pathlib import Path
+
+    from .io import _file_writable, _folder_writable
+
+    if not os.path.isdir(path):
+        return _file_writable(Path(path))
+    for folder, _, files in os.walk(path):
+        if not _folder_writable(Path(folder)) or not all(
+                _file_writable(Path(folder, f)) for f in files):
+            return False
+    return True
+
+
+def _check_resumed_output(out: str, shape: tuple[int, int, int], tile: int) -> None:
+    """One line where an OME-Zarr output to resume is not the one this run writes: its
+    shape, dtype and chunks (one plane and one tile wide, so that each lies in one tile)."""
+    from .ome_zarr import open_ome_zarr_output
+
+    arr = open_ome_zarr_output(out)
+    want = (1, min(tile, shape[1]), min(tile, shape[2]))
+    if tuple(arr.shape) != shape:
+        raise ValueError(f"cannot resume into {out!r}: it holds {tuple(arr.shape)} voxels, "
+                         f"the stack {shape}")
+    if np.dtype(arr.dtype) != np.float32:
+        raise ValueError(f"cannot resume into {out!r}: it holds {arr.dtype}, this run "
+                         "writes float32")
+    if tuple(arr.chunks) != want:
+        raise ValueError(f"cannot resume into {out!r}: its chunks are {tuple(arr.chunks)}, "
+                         f"not {want} (one plane of one {tile} px tile): the chunks must "
+                         "divide the tiles")
+
+
 def work_folder(output: str | os.PathLike) -> str:
     """The folder of a run's iterates, beside its output."""
     return os.fspath(output).rstrip("/\\") + ".iterates"
@@ -51,7 +144,8 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                          memory: float | None = None, tile: int | None = None,
                          background: float | None = None, rtol: float = RTOL,
                          block: int = BLOCK, resume: bool = False, client=None,
-                         workers: int | None = None):
+                         workers: int | None = None,
+                         voxel_size: tuple[float, float, float] | None = None):
     """Generator form of :func:`deblur_to_store` (progress records; the
     :class:`StoreRun` as its value)."""
     from .io import read_stack, write_tiff
@@ -62,7 +156,11 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
     parent = os.path.dirname(os.path.abspath(out.rstrip("/\\")))
     if not os.path.isdir(parent):
         raise ValueError(f"cannot write {out}: the folder {parent} does not exist")
-    if not os.access(parent, os.W_OK):
+    from pathlib import Path
+
+    from .io import _folder_writable
+
+    if not _folder_writable(Path(parent)):
         raise ValueError(f"cannot write {out}: the folder {parent} is not writable")
     zarr_out = is_zarr_path(out)
     if resume and not os.path.isdir(work):
@@ -80,19 +178,28 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
     if tuple(stack.shape[1:]) != tuple(operator.shape[1:]):
         raise ValueError(f"the stack has slices of {tuple(stack.shape[1:])}, the model acts "
                          f"on {tuple(operator.shape[1:])}")
+    voxel = stack_voxel_size(operator, info, voxel_size=voxel_size,
+                             name=f"the stack {os.fspath(stack_path)!r}")
     depth = int(stack.shape[0])
     if tile is None and memory is not None:
         tile, workers = plan_for_memory(operator, depth, memory, block=block,
                                         workers=workers)
     tile = 4 * block if tile is None else tile
+    if resume:
+        for p in (work, out):
+            if os.path.exists(p) and not _writable(p):
+                raise ValueError(f"cannot resume into {p!r}: it is not writable")
+        if zarr_out and os.path.isdir(out):
+            _check_resumed_output(out, tuple(stack.shape), tile)
+    if not np.issubdtype(stack.dtype, np.integer) and not np.issubdtype(stack.dtype,
+                                                                          np.floating):
+        raise ValueError(f"the stack {os.fspath(stack_path)!r} holds {stack.dtype} data; "
+                         "expected intensities (integers or floats)")
     os.makedirs(work, exist_ok=True)
     u = yield from iter_richardson_lucy_3d_exchange(
         stack, operator, n_iter=n_iter, background=background, tile=tile, block=block,
         rtol=rtol, store=work, resume=resume, client=client, workers=workers)
     yield Progress("write", 1.0, f"writing {out}")
-    voxel = None
-    if info.pixel_size is not None:
-        voxel = (info.z_spacing or 1.0, info.pixel_size, info.pixel_size)
     written = total = 1
     if zarr_out:
         # chunks of one plane and one tile's lateral size: each lies in one tile of the
@@ -122,7 +229,8 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
         written = len(todo)
     else:
         write_tiff(out, np.asarray(u.compute(), np.float32),
-                   pixel_size=info.pixel_size, metadata={"deblur3d": {
+                   pixel_size=info.pixel_size if voxel is None else voxel[2],
+                   z_spacing=None if voxel is None else voxel[0], metadata={"deblur3d": {
                        "method": "rl", "iterations": n_iter, "tile": tile}})
     shutil.rmtree(work, ignore_errors=True)
     return StoreRun(tile, n_iter, written, total, background)
@@ -132,7 +240,9 @@ def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
                     n_iter: int = 50, memory: float | None = None, tile: int | None = None,
                     background: float | None = None, rtol: float = RTOL,
                     block: int = BLOCK, resume: bool = False, client=None,
-                    workers: int | None = None, progress=None) -> StoreRun:
+                    workers: int | None = None,
+                    voxel_size: tuple[float, float, float] | None = None,
+                    progress=None) -> StoreRun:
     """Deblur a z-stack file into an OME-Zarr (``.zarr``) or TIFF output, tile by tile.
 
     Parameters
@@ -159,6 +269,9 @@ def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
         Runs the tiles on this cluster.
     workers : int, optional
         Tiles at once (the memory budget's divisor); default the machine's cores.
+    voxel_size : (float, float, float), optional
+        The stack's voxel size (dz, dy, dx), µm, where its file gives none or a wrong one;
+        checked against the model's (:func:`stack_voxel_size`) and written with the output.
     progress : callable, optional
         Called with each progress record.
 
@@ -169,8 +282,8 @@ def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
     return run_with_progress(iter_deblur_to_store(
         stack_path, operator, output, n_iter=n_iter, memory=memory, tile=tile,
         background=background, rtol=rtol, block=block, resume=resume, client=client,
-        workers=workers), progress)
+        workers=workers, voxel_size=voxel_size), progress)
 
 
-__all__ = ["StoreRun", "deblur_to_store", "is_zarr_path", "iter_deblur_to_store",
-           "work_folder"]
+__all__ = ["VOXEL_RTOL", "StoreRun", "deblur_to_store", "is_zarr_path",
+           "iter_deblur_to_store", "stack_voxel_size", "work_folder"]

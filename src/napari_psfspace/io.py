@@ -372,7 +372,7 @@ def best_focus_index(stack: np.ndarray) -> int:
 
 
 def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float | None = None,
-               metadata: dict | None = None) -> None:
+               metadata: dict | None = None, z_spacing: float | None = None) -> None:
     """Write an array as an ImageJ-compatible TIFF, atomically.
 
     Parameters
@@ -382,6 +382,8 @@ def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float |
         Image (Y, X) or stack (Z, Y, X). float64 is stored as float32 (ImageJ).
     pixel_size : float, optional
         Pixel size in micrometres, stored as resolution tags.
+    z_spacing : float, optional
+        A stack's plane spacing in micrometres (ImageJ's ``spacing``).
     metadata : dict, optional
         Extra JSON-serialisable information, stored in the ImageJ "Info" field.
     """
@@ -391,6 +393,8 @@ def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float |
     ij = {"unit": "um", "axes": "ZYX" if arr.ndim == 3 else "YX"}
     if metadata:
         ij["Info"] = json.dumps(metadata)
+    if z_spacing and arr.ndim == 3:
+        ij["spacing"] = float(z_spacing)
     kwargs = {}
     if pixel_size:
         kwargs["resolution"] = (1.0 / pixel_size, 1.0 / pixel_size)

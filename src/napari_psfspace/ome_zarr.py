@@ -50,7 +50,7 @@ def _scale(transforms, n: int) -> np.ndarray:
     return out
 
 
-def read_ome_zarr(path: str | os.PathLike, *, lazy: bool = False):
+def read_ome_zarr(path: str | os.PathLike, *, lazy: bool = False, complete: bool = True):
     """The z-stack of an OME-Zarr image and its sampling.
 
     Parameters
@@ -58,6 +58,10 @@ def read_ome_zarr(path: str | os.PathLike, *, lazy: bool = False):
     path : str or PathLike
     lazy : bool
         Return a dask array on the store, read a chunk at a time when computed.
+    complete : bool
+        Refuse an image some of whose chunks are missing (Zarr reads each as its fill
+        value, which would pass for data); False opens it as it is (to view a partly
+        written image).
 
     Returns
     -------
@@ -79,7 +83,14 @@ def read_ome_zarr(path: str | os.PathLike, *, lazy: bool = False):
         raise ValueError(f"{name!r} is not a readable Zarr group ({exc})") from exc
     m = _multiscale(dict(root.attrs), name)
     ds = m["datasets"][0]
-    arr = root[ds["path"]]
+    try:
+        arr = root[ds["path"]]
+    except KeyError:
+        raise ValueError(f"{name!r} names a dataset {ds['path']!r} it does not hold") from None
+    kind = np.dtype(arr.dtype).kind
+    if kind not in "uif":
+        raise ValueError(f"{name!r} holds {arr.dtype} data; expected intensities (integers "
+                         "or floats)")
     # NGFF 0.3 and before name no axes: the last ones of t, c, z, y, x
     axes = m.get("axes") or [{"name": a} for a in "tczyx"[-arr.ndim:]]
     names = [(a["name"] if isinstance(a, dict) else str(a)).lower() for a in axes]
@@ -96,6 +107,11 @@ def read_ome_zarr(path: str | os.PathLike, *, lazy: bool = False):
                              "channel at one time point (a z-stack Z, Y, X)")
         index.append(0 if ax in ("t", "c") else slice(None))
     kept = [i for i, ax in enumerate(names) if ax not in ("t", "c")]
+    if complete and arr.nchunks_initialized < arr.nchunks:
+        raise ValueError(f"{name!r} is incomplete: {arr.nchunks - arr.nchunks_initialized} of "
+                         f"its {arr.nchunks} chunks are missing (Zarr would read them as "
+                         f"{arr.fill_value}: a copy cut short, or a writer that skips the "
+                         "chunks equal to it); expected a complete image")
     if lazy:
         import dask.array as da
 
@@ -151,7 +167,8 @@ def create_ome_zarr(path: str | os.PathLike, shape: tuple[int, int, int], *,
     root = zarr.open_group(name, mode="w-", zarr_format=2)
     arr = root.create_array("0", shape=(z, h, w), dtype=dtype,
                             chunks=(1, min(chunk, h), min(chunk, w)), fill_value=0,
-                            chunk_key_encoding={"name": "v2", "separator": "/"})
+                            chunk_key_encoding={"name": "v2", "separator": "/"},
+                            config={"write_empty_chunks": True})
     unit = {} if voxel_size is None else {"unit": "micrometer"}
     scale = [1.0, 1.0, 1.0] if voxel_size is None else [float(v) for v in voxel_size]
     root.attrs["multiscales"] = [{
@@ -164,11 +181,11 @@ def create_ome_zarr(path: str | os.PathLike, shape: tuple[int, int, int], *,
 
 def open_ome_zarr_output(path: str | os.PathLike):
     """The dataset ``0`` of an OME-Zarr image written by :func:`create_ome_zarr`, open
-    for writing (a resumed run)."""
+    for writing (a resumed run); every chunk is written whole, empty or not."""
     zarr = _zarr()
     name = os.fspath(path)
     try:
-        return zarr.open_group(name, mode="r+")["0"]
+        return zarr.open_group(name, mode="r+")["0"].with_config({"write_empty_chunks": True})
     except Exception as exc:  # zarr raises several kinds on a damaged store
         raise ValueError(f"{name!r} is not an OME-Zarr output to resume ({exc})") from exc
 

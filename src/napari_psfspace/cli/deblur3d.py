@@ -5,7 +5,7 @@ from __future__ import annotations
 import time
 
 from . import common
-from .common import COUNT, FINITE, NON_NEGATIVE, existing, progress_printer
+from .common import COUNT, FINITE, NON_NEGATIVE, POSITIVE, existing, progress_printer
 
 
 def run(args) -> int:
@@ -13,7 +13,7 @@ def run(args) -> int:
     from ..core.volume import load_operator_3d
     from ..core.volume.deconvolve3d import iter_richardson_lucy_3d
     from ..core.volume.fista3d import iter_deblur_3d
-    from ..deblur_store import is_zarr_path
+    from ..deblur_store import is_zarr_path, stack_voxel_size
     from ..io import check_output_file, read_stack, write_tiff
 
     existing(args.model, "--model")
@@ -41,6 +41,8 @@ def run(args) -> int:
     if stack.shape[1:] != op.shape[1:]:
         raise ValueError(f"STACK {args.stack} has slices of {stack.shape[1:]}, the model "
                          f"{args.model} acts on {op.shape[1:]}")
+    voxel = stack_voxel_size(op, info, voxel_size=_given_voxel(args),
+                             name=f"STACK {args.stack}")
     t0 = time.perf_counter()
     printer = None if args.quiet else progress_printer()
     from ..core.volume.blocks3d import RTOL
@@ -65,7 +67,8 @@ def run(args) -> int:
         volume = res.volume
         meta.update(iterations=res.iterations, background=res.background, device=res.device)
         what = f"{res.iterations} Richardson-Lucy iterations on the {res.device.upper()}"
-    write_tiff(args.output, volume, pixel_size=info.pixel_size, metadata={"deblur3d": meta})
+    write_tiff(args.output, volume, pixel_size=info.pixel_size if voxel is None else voxel[2],
+               z_spacing=None if voxel is None else voxel[0], metadata={"deblur3d": meta})
     print(f"wrote {args.output}: {what} with the space-varying 3D PSF, "
           f"{time.perf_counter() - t0:.1f} s")
     return 0
@@ -89,6 +92,7 @@ def _run_tiled(args, op) -> int:
                               background=args.background,
                               rtol=RTOL if args.rtol is None else args.rtol,
                               resume=args.resume, client=client,
+                              voxel_size=_given_voxel(args),
                               progress=None if args.quiet else progress_printer())
     finally:
         if client is not None:
@@ -97,6 +101,15 @@ def _run_tiled(args, op) -> int:
           f"px tiles exchanging their margins ({run.chunks_written} of {run.chunks_total} "
           f"chunks written by this run), {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+def _given_voxel(args) -> tuple | None:
+    """--z-step-nm and --pixel-size-nm as a voxel size (dz, dy, dx) in µm, None where
+    neither is given (each missing one is the file's)."""
+    if not (args.pixel_size_nm or args.z_step_nm):
+        return None
+    px = args.pixel_size_nm / 1000.0 if args.pixel_size_nm else None
+    return (args.z_step_nm / 1000.0 if args.z_step_nm else None, px, px)
 
 
 def _bytes(text: str) -> float:
@@ -124,6 +137,11 @@ def add_parser(sub) -> None:
     d3.add_argument("-o", "--output", required=True,
                     help="deblurred stack, float32: TIFF, or OME-Zarr (*.zarr, with "
                          "--memory or --tile)")
+    d3.add_argument("--pixel-size-nm", type=POSITIVE,
+                    help="the stack's pixel size (overrides the file's); checked against "
+                         "the model's")
+    d3.add_argument("--z-step-nm", type=POSITIVE,
+                    help="the stack's plane spacing (overrides the file's)")
     d3.add_argument("--method", choices=("rl", "sparse"), default="rl",
                     help="rl: Richardson-Lucy with H and H^T (default); sparse: sparse + "
                          "smooth (points and a smooth background)")
