@@ -121,3 +121,30 @@ def test_the_plan_fits_the_budget_and_says_when_nothing_does():
     assert plans == [(256, 1), (256, 2), (683, 2)]
     with pytest.raises(ValueError, match=r"`memory` must be at least 0\.90 GiB for one tile"):
         plan_for_memory(op, 64, 0.8e9, block=256)
+
+
+def test_a_stack_thinner_than_the_kernel_is_deep():
+    """Two planes under kernels five planes deep: a constant map is the plain 'same'
+    convolution (zero outside the stack), through the whole-volume operator and its
+    blocks, and the exchanged tiles are the whole volume's Richardson-Lucy."""
+    from scipy.signal import convolve
+
+    from napari_psfspace.core.volume.blocks3d import BlockedOperator3D
+    from napari_psfspace.core.volume.operator3d import ProductConvolution3D
+
+    rng = np.random.default_rng(4)
+    h = rng.random((5, 7, 7))
+    flat = ProductConvolution3D(h[None], np.ones((1, 2, 2)), shape=(2, 40, 36),
+                                grid=(np.array([0.0, 39]), np.array([0.0, 35])), plane=1)
+    u = rng.random(flat.shape)
+    plain = convolve(u, h, mode="same")
+    assert np.allclose(flat.apply(u), plain, rtol=0, atol=1e-12 * plain.max())
+    blocked = BlockedOperator3D(flat, block=16, rtol=0.0).apply(u)
+    assert np.abs(blocked - plain).max() <= 1e-5 * plain.max()  # float32 FFTs
+    op = ProductConvolution3D(rng.random((3, 5, 7, 7)), rng.random((3, 5, 4)),
+                              shape=(2, 64, 48), plane=1,
+                              grid=(np.linspace(0, 63, 5), np.linspace(0, 47, 4)))
+    stack = rng.poisson(op.apply((rng.random(op.shape) < 0.01) * 300.0) + 5)
+    whole = richardson_lucy_3d(stack, op, n_iter=5, block=16).volume
+    tiled = richardson_lucy_3d_exchange(stack, op, n_iter=5, tile=32, block=16)
+    assert np.abs(tiled - whole).max() <= 1e-4 * whole.max()

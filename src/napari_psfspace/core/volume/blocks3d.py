@@ -200,13 +200,13 @@ class BlockedOperator3D:
         """The FFT shape of a whole block on ``depth`` planes (the largest)."""
         k, p, _ = self.operator.kernel_shape
         lat = scipy.fft.next_fast_len(self.block + p - 1, real=True)
-        return (scipy.fft.next_fast_len(depth + k // 2, real=True), lat, lat)
+        return (scipy.fft.next_fast_len(max(depth + k // 2, k), real=True), lat, lat)
 
     def _block_fft_shape(self, b: Block, depth: int) -> tuple[int, int, int]:
         """The FFT shape of block ``b``: its own size and the kernel's (a block cut by
         the field's or the window's edge takes a smaller one)."""
         k, p, _ = self.operator.kernel_shape
-        return (scipy.fft.next_fast_len(depth + k // 2, real=True),
+        return (scipy.fft.next_fast_len(max(depth + k // 2, k), real=True),
                 scipy.fft.next_fast_len(b.y1 - b.y0 + p - 1, real=True),
                 scipy.fft.next_fast_len(b.x1 - b.x0 + p - 1, real=True))
 

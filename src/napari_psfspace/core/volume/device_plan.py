@@ -59,7 +59,7 @@ def block_bytes(operator: ProductConvolution3D, depth: int, block: int) -> int:
     at work (the adjoint's transform, its product, the inverse transform, the padded
     input), and the block's own planes (its sum and a temporary)."""
     k, p, _ = operator.kernel_shape
-    fz = scipy.fft.next_fast_len(depth + k // 2, real=True)
+    fz = scipy.fft.next_fast_len(max(depth + k // 2, k), real=True)
     fl = scipy.fft.next_fast_len(block + p - 1, real=True)
     spectrum = fz * fl * (fl // 2 + 1) * 8
     real = fz * fl * fl * 4

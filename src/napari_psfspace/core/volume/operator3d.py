@@ -223,12 +223,13 @@ class ProductConvolution3D(DeviceCache):
     # ------------------------------------------------------------------ operator
     def fft_shape(self, depth: int) -> tuple[int, int, int]:
         """The padded FFT shape for a volume of ``depth`` planes: each axis padded by
-        half the kernel, so that no wrap-around reaches the volume."""
+        half the kernel, so that no wrap-around reaches the volume, and at least the
+        kernel (a stack thinner than the kernel is deep)."""
         k, p, _ = self.kernel_shape
         _, h, w = self._shape
-        return (scipy.fft.next_fast_len(depth + k // 2, real=True),
-                scipy.fft.next_fast_len(h + p // 2, real=True),
-                scipy.fft.next_fast_len(w + p // 2, real=True))
+        return (scipy.fft.next_fast_len(max(depth + k // 2, k), real=True),
+                scipy.fft.next_fast_len(max(h + p // 2, p), real=True),
+                scipy.fft.next_fast_len(max(w + p // 2, p), real=True))
 
     def _kernel_spectra(self, fshape: tuple[int, int, int], dt: np.dtype,
                         am: ArrayModule = CPU) -> np.ndarray:
