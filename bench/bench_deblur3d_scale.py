@@ -23,6 +23,10 @@ block takes ``2 (k + 1)`` FFTs against 4 for one PSF: the ``floor`` column is
 ``(k + 1) / 2`` times RedLionfish's time, and ``x floor`` how far above it the
 space-varying run is.
 
+``--scaling``: one stack of 8 tiles deblurred on a ``dask.distributed`` ``LocalCluster``
+of 1 and of 2 worker processes, one thread each (a tile's FFTs run on one core): the
+seconds an iteration, and the speed-up.
+
 ``--large``: a stack of that size, written as a uint16 OME-Zarr a plane at a time (never
 whole in memory), deblurred by ``psfspace deblur3d --memory`` (``--large-memory``) into an
 OME-Zarr: its peak memory against the budget, and its seconds per iteration.
@@ -127,6 +131,33 @@ def child(kind, path, n_iter, **extra) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def scaling(shape, tile, n_iter) -> None:
+    """Seconds an iteration on a LocalCluster of 1 and 2 single-threaded workers."""
+    from distributed import Client, LocalCluster
+
+    from napari_psfspace.core.volume.exchange3d import richardson_lucy_3d_exchange
+
+    op, stack = make_operator(shape), make_stack(shape).astype(np.float32)
+    n_tiles = -(-shape[1] // tile) * -(-shape[2] // tile)
+    rows, ref = [], None
+    for n in (1, 2):
+        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
+                          dashboard_address=None) as cluster, Client(cluster) as client:
+            richardson_lucy_3d_exchange(stack[:, :tile, :tile], make_operator(
+                (shape[0], tile, tile)), n_iter=1, tile=tile, client=client)  # warm up
+            t0 = time.perf_counter()
+            out = richardson_lucy_3d_exchange(stack, op, n_iter=n_iter, tile=tile,
+                                              client=client)
+            secs = (time.perf_counter() - t0) / n_iter
+        ref = out if ref is None else ref
+        rows.append({"workers": n, "s_it": secs, "speedup": rows[0]["s_it"] / secs
+                     if rows else 1.0, "max_diff": float(np.abs(out - ref).max() / ref.max())})
+    print(f"\ndask LocalCluster, {shape[0]} x {shape[1]} x {shape[2]}, {n_tiles} tiles of "
+          f"{tile} px, {n_iter} iterations, one thread a worker")
+    print(table(rows, [("workers", "d"), ("s_it", ".2f"), ("speedup", ".2f"),
+                       ("max_diff", ".1e")]))
+
+
 def main() -> None:
     from dask.utils import parse_bytes
 
@@ -135,6 +166,9 @@ def main() -> None:
                     help="stacks DEPTHxSIDE (none: only --large)")
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--memory", default="4GB", help="the tiled runs' budget")
+    ap.add_argument("--scaling", help="a stack DEPTHxHEIGHTxWIDTH run on 1 and 2 dask "
+                    "workers, in tiles of --scaling-tile")
+    ap.add_argument("--scaling-tile", type=int, default=512)
     ap.add_argument("--large", help="a stack DEPTHxSIDE far larger than --large-memory")
     ap.add_argument("--large-memory", default="2GB")
     args = ap.parse_args()
@@ -199,6 +233,9 @@ def main() -> None:
                                ("max_diff", ".1e"), ("redlionfish_s_it", ".2f"),
                                ("x_redlionfish", ".2f"), ("x_floor", ".2f"),
                                ("skimage_s_it", ".2f"), ("x_skimage", ".2f")]))
+        if args.scaling:
+            scaling(tuple(int(v) for v in args.scaling.split("x")), args.scaling_tile,
+                    args.iterations)
         if args.large:
             depth, side = (int(v) for v in args.large.split("x"))
             shape = (depth, side, side)

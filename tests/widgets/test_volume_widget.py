@@ -210,3 +210,40 @@ def test_the_estimate_before_the_iterations_gives_way_to_the_measured_one():
     assert estimate_line(Progress("iteration", 0.1, "iteration 2 of 25, 3.1 min left "
                                                     "at most")) == ""
     assert estimate_line(Progress("setup", 0.0, "the acceleration's volumes")) is None
+
+
+def test_an_ome_zarr_opened_lazily_is_learnt_and_deblurred(make_napari_viewer, qtbot,
+                                                          bead_stack, tmp_path):
+    """The plugin's reader opens an OME-Zarr as a dask layer scaled from its metadata;
+    the 3D step learns from it and deblurs it (read in the worker), as from the same
+    stack in memory."""
+    pytest.importorskip("zarr", minversion="3")
+    from napari_psfspace._widgets._volume import DEBLURRED_3D, stack_of
+    from napari_psfspace.core.volume.deconvolve3d import STOP_FIT, richardson_lucy_3d
+    from napari_psfspace.ome_zarr import create_ome_zarr
+
+    stack, series = bead_stack
+    px = series.optics.pixel_size
+    arr = create_ome_zarr(tmp_path / "beads.zarr", stack.shape, dtype=stack.dtype,
+                          voxel_size=(0.2, px, px), chunk=128)
+    arr[:] = stack
+    v = make_napari_viewer(show=True)
+    v.window._qt_window.resize(1280, 800)
+    _, w = v.window.add_plugin_dock_widget(PLUGIN, "7. 3D PSF and 3D deblur")
+    [layer] = v.open(str(tmp_path / "beads.zarr"), plugin=PLUGIN)
+    assert type(layer.data).__module__.startswith("dask")  # lazy, not read whole
+    assert tuple(layer.scale) == pytest.approx((0.2, px, px))
+    assert not isinstance(stack_of(layer)[0], np.ndarray)  # the worker reads it
+    w.image.value = layer
+    w.radius.set_calibration(w.radius.pixel_size, float(int(series.psf_radius.max())))
+    w.learn.clicked()
+    wait_task(qtbot, w.learn_task, timeout=60_000)
+    assert w.operator is not None and w.operator.shape == stack.shape
+    w.iterations.value = 3
+    w.deblur.clicked()
+    wait_task(qtbot, w.deblur_task, timeout=60_000)
+    [out] = [x for x in v.layers if x.name.startswith(DEBLURRED_3D)]
+    same = richardson_lucy_3d(stack, w.operator, n_iter=3,
+                              stop=STOP_FIT if w.stop.value else None,
+                              accelerate=bool(w.accelerate.value)).volume
+    assert np.abs(np.asarray(out.data) - same).max() <= 1e-5 * same.max()

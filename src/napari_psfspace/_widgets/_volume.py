@@ -116,19 +116,33 @@ def on_stack_planes(volume: np.ndarray, plane: int, n_planes: int) -> np.ndarray
 
 
 def stack_of(layer) -> tuple[np.ndarray, tuple, tuple]:
-    """A z-stack layer's data (a copy for the worker), scale and translate (z, y, x);
-    ValueError naming the layer unless it is one."""
+    """A z-stack layer's data, scale and translate (z, y, x); ValueError naming the layer
+    unless it is one. An array in memory is copied for the worker; a lazy one (dask, a
+    Zarr store; the full resolution of a multiscale layer) is passed as it is, read by
+    the worker, not by the viewer's thread."""
     if layer is None:
         raise ValueError("image: open a z-stack (Z, Y, X) first")
-    if getattr(layer, "rgb", False) or np.ndim(layer.data) != 3:
-        raise ValueError(f"image: layer {layer.name!r} has shape {np.shape(layer.data)}; "
+    data = layer.data[0] if getattr(layer, "multiscale", False) else layer.data
+    if getattr(layer, "rgb", False) or len(np.shape(data)) != 3:
+        raise ValueError(f"image: layer {layer.name!r} has shape {np.shape(data)}; "
                          f"a z-stack (Z, Y, X) is expected")
-    return (np.array(layer.data, copy=True), tuple(float(s) for s in layer.scale),
+    if isinstance(data, np.ndarray):
+        data = np.array(data, copy=True)
+    return (data, tuple(float(s) for s in layer.scale),
             tuple(float(t) for t in layer.translate))
+
+
+def _in_memory(stack):
+    """The stack as an ndarray (a lazy layer's read here, in the worker)."""
+    if not isinstance(stack, np.ndarray):
+        yield Progress("read", 0.0, "reading the z-stack")
+        stack = np.asarray(stack)
+    return stack
 
 
 def _learn(stack, voxel, **kwargs):
     """Estimate, then the views (in the worker)."""
+    stack = yield from _in_memory(stack)
     est = yield from iter_estimate_operator_3d(stack, voxel_size=voxel, **kwargs)
     yield Progress("views", 1.0, "PSF grid and maps")
     grid = psf_grid_3d(est.operator, 5)
@@ -139,7 +153,7 @@ def _learn(stack, voxel, **kwargs):
     for name, unit in units.items():  # the panel's unit: µm
         if unit == "nm":
             values[name], units[name] = values[name] / 1000.0, "µm"
-    return est, grid, maps, (values, units)
+    return est, grid, maps, (values, units), stack  # the stack read, for the report
 
 
 def _report(est, stack, voxel, folder, na, wavelength_nm, name):
@@ -267,7 +281,7 @@ class Volume3DWidget(Container):
 
     def _stacks(self, _widget=None) -> list:
         return [(layer.name, layer) for layer in self._viewer.layers
-                if isinstance(layer, Image) and np.ndim(layer.data) == 3
+                if isinstance(layer, Image) and layer.ndim == 3
                 and not getattr(layer, "rgb", False)]
 
     def _fail(self, exc: Exception, task: CoreTask) -> None:
@@ -287,9 +301,9 @@ class Volume3DWidget(Container):
                      n_psf=int(self.n_psf.value) or None)
 
         def on_result(got) -> None:
-            est, (_, _, volume, sections, sections_y), (_, _, maps), (c, u) = got
+            est, (_, _, volume, sections, sections_y), (_, _, maps), (c, u), read = got
             self.operator = op = est.operator
-            self._learnt = (est, stack, voxel, self.image.value.name)
+            self._learnt = (est, read, voxel, self.image.value.name)
             self._show(op, volume, (sections, sections_y), maps, scale, translate,
                        stack.shape[0])
             meta = op.metadata

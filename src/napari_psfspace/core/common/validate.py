@@ -212,10 +212,10 @@ def check_shape(shape, name: str = "shape", *, minimum: int = 16) -> tuple[int, 
     return int(vals[0]), int(vals[1])
 
 
-def check_memory(nbytes: float, what: str) -> None:
+def check_memory(nbytes: float, what: str, *, hint: str = "Ask for less.") -> None:
     """ValueError before any allocation when ``what`` needs more than
-    :data:`MEMORY_SHARE` of the memory available, saying both."""
+    :data:`MEMORY_SHARE` of the memory available, saying both, and ``hint``."""
     avail = available_memory()
     if avail is not None and nbytes > MEMORY_SHARE * avail:
         raise ValueError(f"{what} needs about {nbytes / 2**30:.3g} GiB of memory; this "
-                         f"machine has {avail / 2**30:.3g} GiB available. Ask for less.")
+                         f"machine has {avail / 2**30:.3g} GiB available. {hint}")

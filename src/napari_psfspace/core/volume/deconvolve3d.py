@@ -24,7 +24,7 @@ import numpy as np
 from ..common.device import array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
-from ..common.validate import check_int
+from ..common.validate import check_int, check_memory
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .device_plan import plan_on_device
 from .operator3d import ProductConvolution3D
@@ -196,6 +196,14 @@ def iter_richardson_lucy_3d(
     if stop is not None and not (np.isfinite(stop) and stop >= 0):
         raise ValueError(f"`stop` must be a finite number >= 0 or None, got {stop!r}")
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
+    if not am.gpu:  # the data, H u or the ratio, H^T 1 and the iterate (+ 4 accelerated)
+        volumes = 8 if accelerate else 4
+        z, h, w = np.shape(stack)
+        check_memory(volumes * 4.0 * z * h * w,
+                     f"Richardson-Lucy in memory on {z} x {h} x {w} voxels ({volumes} "
+                     "float32 volumes)",
+                     hint="Deblur it in tiles from a memory budget: psfspace deblur3d "
+                          "--memory 4GB, or richardson_lucy_3d_exchange.")
     yield Progress("setup", 0.0, "statistics of the stack")
     b0, mean = stack_statistics(stack)
     b = b0 if background is None else float(background)
