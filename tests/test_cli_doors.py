@@ -137,8 +137,6 @@ CASES = [
     ("simulate -o {d}/x.tif --beads 0", "--beads", "x.tif"),
 ]
 # the GPU: named before any work; without CuPy or a device, the extra that installs it
-CASES.append(("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.tif --device gpu "
-              "--tile 64", "--device gpu runs on the whole stack", "x3.tif"))
 CASES.append(("deblur {d}/beads.tif --model {d}/model.npz -o {d}/x.tif --device cuda",
               "--device", "x.tif"))
 if not gpu_status()[0]:
@@ -147,6 +145,9 @@ if not gpu_status()[0]:
                       f"--device gpu --method {method}", "napari-psfspace[gpu]", "x3.tif"))
     CASES.append(("deblur {d}/beads.tif --model {d}/model.npz -o {d}/x.tif --device gpu",
                   "napari-psfspace[gpu]", "x.tif"))
+    # tiles on a GPU are run where there is one; without, the same line before any work
+    CASES.append(("deblur3d {d}/stack.tif --model {d}/model3d.npz -o {d}/x3.zarr --device "
+                  "gpu --tile 64", "napari-psfspace[gpu]", "x3.zarr"))
 
 
 @pytest.fixture

@@ -201,3 +201,23 @@ def test_a_damaged_ome_zarr_input_is_refused_before_any_work(files, capsys, dama
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and says in err, err
         assert not out.exists() and not (d / "o.zarr.iterates").exists()
+
+
+def test_a_disk_too_small_for_the_iterates_is_refused_before_any_work(files, capsys,
+                                                                      monkeypatch):
+    import shutil
+    from collections import namedtuple
+
+    from napari_psfspace import deblur_store
+
+    d, _, stack = files
+    usage = namedtuple("usage", "total used free")
+    need = deblur_store.DISK_VOLUMES * 4 * stack.size
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(need, 0, need - 1))
+    capsys.readouterr()
+    assert _cli(d, "-o", str(d / "out.zarr"), "--tile", "32") == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "6 float32 volumes" in err, err
+    assert not (d / "out.zarr").exists() and not (d / "out.zarr.iterates").exists()
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(need, 0, need))
+    assert _cli(d, "-o", str(d / "out.zarr"), "--tile", "32") == 0

@@ -274,3 +274,20 @@ def test_deblur_3d_on_the_device_path_is_the_cpus(on_device, monkeypatch):
     assert got.iterations == ref.iterations
     rel = np.linalg.norm(got.volume - ref.volume) / np.linalg.norm(ref.volume)
     assert rel <= got.iterations * 10 * U32, rel
+
+
+def test_exchanged_tiles_on_the_device_path_are_the_whole_volume():
+    """The tiles' blocks on the device path (NumPy standing in, every window moved there
+    whole, or, with no room, its blocks copied one by one): the whole volume's
+    Richardson-Lucy on the CPU, to float32 rounding (as on the CPU path)."""
+    from napari_psfspace.core.volume.exchange3d import richardson_lucy_3d_exchange
+
+    op = _operator(shape=(6, 96, 80))
+    rng = np.random.default_rng(2)
+    stack = rng.poisson(op.apply((rng.random(op.shape) < 0.01) * 300.0) + 5)
+    whole = richardson_lucy_3d(stack, op, n_iter=4, block=16, device="cpu").volume
+    for free in (1 << 40, 0):
+        tiled = richardson_lucy_3d_exchange(stack, op, n_iter=4, tile=32, block=16,
+                                            device=NumpyDevice("gpu", np, free=free))
+        assert tiled.dtype == np.float32
+        assert np.abs(tiled - whole).max() <= 1e-4 * whole.max()

@@ -48,7 +48,7 @@ def test_the_iterates_can_live_in_a_store(tmp_path):
         store=tmp_path))
     assert isinstance(lazy, da.Array)
     names = sorted(p.name for p in tmp_path.iterdir())
-    assert names == ["data", "norm", "ratio0", "ratio1", "state.json", "u0", "u1"]
+    assert names == ["data", "norm", "ratio", "state.json", "u0", "u1"]
     assert np.abs(lazy.compute() - whole).max() <= 1e-4 * whole.max()
 
 
@@ -168,3 +168,19 @@ def test_a_stack_thinner_than_the_kernel_is_deep():
     whole = richardson_lucy_3d(stack, op, n_iter=5, block=16).volume
     tiled = richardson_lucy_3d_exchange(stack, op, n_iter=5, tile=32, block=16)
     assert np.abs(tiled - whole).max() <= 1e-4 * whole.max()
+
+
+def test_in_memory_refuses_a_stack_over_the_memory_available(monkeypatch):
+    """Four float32 volumes (eight accelerated) against 80 % of the memory available:
+    one line naming the tiled path, before any allocation."""
+    from napari_psfspace.core.common import validate
+
+    op, stack = _problem(shape=(6, 64, 48))
+    need = 4 * 4 * stack.size
+    monkeypatch.setattr(validate, "available_memory", lambda: int(need / 0.8) + 1)
+    richardson_lucy_3d(stack, op, n_iter=1, block=16)  # fits
+    with pytest.raises(ValueError, match=r"8 float32 volumes.*psfspace deblur3d --memory"):
+        richardson_lucy_3d(stack, op, n_iter=1, block=16, accelerate=True)
+    monkeypatch.setattr(validate, "available_memory", lambda: int(need / 0.8) - 1)
+    with pytest.raises(ValueError, match=r"4 float32 volumes"):
+        richardson_lucy_3d(stack, op, n_iter=1, block=16)

@@ -27,13 +27,15 @@ from .core.volume.operator3d import ProductConvolution3D
 @dataclass
 class StoreRun:
     """What :func:`deblur_to_store` did: the tile size, the iterations, the output's
-    chunks written by this run (a resumed run writes only the missing ones)."""
+    chunks written by this run (a resumed run writes only the missing ones), the device
+    the tiles ran on (the local one's name)."""
 
     tile: int
     iterations: int
     chunks_written: int
     chunks_total: int
     background: float | None
+    device: str = "cpu"
 
 
 def is_zarr_path(path: str | os.PathLike) -> bool:
@@ -100,6 +102,11 @@ def stack_voxel_size(operator: ProductConvolution3D, info, *,
     return voxel
 
 
+#: float32 volumes a run writes beside its output: the stack, H^T 1, the ratio and two
+#: iterates in the work folder, and the output.
+DISK_VOLUMES = 6
+
+
 def _writable(path: str) -> bool:
     """Whether a file, or a folder and every folder and file in it, may be written."""
     from pathlib import Path
@@ -145,7 +152,8 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                          background: float | None = None, rtol: float = RTOL,
                          block: int = BLOCK, resume: bool = False, client=None,
                          workers: int | None = None,
-                         voxel_size: tuple[float, float, float] | None = None):
+                         voxel_size: tuple[float, float, float] | None = None,
+                         device="cpu"):
     """Generator form of :func:`deblur_to_store` (progress records; the
     :class:`StoreRun` as its value)."""
     from .io import read_stack, write_tiff
@@ -174,6 +182,9 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
             if os.path.exists(p) and (zarr_out or p == work):
                 raise ValueError(f"{p!r} exists: remove it, or give --resume to finish "
                                  "an interrupted run")
+    from .core.common.device import array_module
+
+    am = array_module(device)  # "gpu" without one: one line, before any work
     stack, info = read_stack(stack_path, lazy=True)
     if tuple(stack.shape[1:]) != tuple(operator.shape[1:]):
         raise ValueError(f"the stack has slices of {tuple(stack.shape[1:])}, the model acts "
@@ -195,10 +206,18 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                                                                           np.floating):
         raise ValueError(f"the stack {os.fspath(stack_path)!r} holds {stack.dtype} data; "
                          "expected intensities (integers or floats)")
+    if not resume:  # the iterates' arrays and the output, before anything is written
+        need = DISK_VOLUMES * 4.0 * float(np.prod(stack.shape))
+        free = shutil.disk_usage(parent).free
+        if need > free:
+            raise ValueError(f"cannot write {out}: the run needs about {need / 1e9:.3g} GB "
+                             f"on disk beside it ({DISK_VOLUMES} float32 volumes: the "
+                             f"iterates and the output), {free / 1e9:.3g} GB are free")
     os.makedirs(work, exist_ok=True)
     u = yield from iter_richardson_lucy_3d_exchange(
         stack, operator, n_iter=n_iter, background=background, tile=tile, block=block,
-        rtol=rtol, store=work, resume=resume, client=client, workers=workers)
+        rtol=rtol, store=work, resume=resume, client=client, workers=workers,
+        device=device)
     yield Progress("write", 1.0, f"writing {out}")
     written = total = 1
     if zarr_out:
@@ -233,7 +252,7 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                    z_spacing=None if voxel is None else voxel[0], metadata={"deblur3d": {
                        "method": "rl", "iterations": n_iter, "tile": tile}})
     shutil.rmtree(work, ignore_errors=True)
-    return StoreRun(tile, n_iter, written, total, background)
+    return StoreRun(tile, n_iter, written, total, background, am.name)
 
 
 def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
@@ -242,7 +261,7 @@ def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
                     block: int = BLOCK, resume: bool = False, client=None,
                     workers: int | None = None,
                     voxel_size: tuple[float, float, float] | None = None,
-                    progress=None) -> StoreRun:
+                    device="cpu", progress=None) -> StoreRun:
     """Deblur a z-stack file into an OME-Zarr (``.zarr``) or TIFF output, tile by tile.
 
     Parameters
@@ -272,6 +291,9 @@ def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
     voxel_size : (float, float, float), optional
         The stack's voxel size (dz, dy, dx), µm, where its file gives none or a wrong one;
         checked against the model's (:func:`stack_voxel_size`) and written with the output.
+    device : {"cpu", "gpu", "auto"} or ArrayModule
+        Where the tiles' blocks run (as
+        :func:`~napari_psfspace.core.volume.exchange3d.richardson_lucy_3d_exchange`).
     progress : callable, optional
         Called with each progress record.
 
@@ -282,7 +304,7 @@ def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
     return run_with_progress(iter_deblur_to_store(
         stack_path, operator, output, n_iter=n_iter, memory=memory, tile=tile,
         background=background, rtol=rtol, block=block, resume=resume, client=client,
-        workers=workers, voxel_size=voxel_size), progress)
+        workers=workers, voxel_size=voxel_size, device=device), progress)
 
 
 __all__ = ["VOXEL_RTOL", "StoreRun", "deblur_to_store", "is_zarr_path",

@@ -30,10 +30,7 @@ def run(args) -> int:
                          "--memory (e.g. --memory 4GB) or --tile")
     from ..core.common.device import array_module
 
-    if args.device == "gpu" and tiled:
-        raise ValueError("--device gpu runs on the whole stack (its blocks sized from the "
-                         "GPU's memory): drop --tile and --memory, or use --device cpu")
-    device = array_module("cpu" if tiled else args.device)
+    device = array_module(args.device)  # "gpu" without one: one line, before any work
     op = load_operator_3d(args.model)
     if tiled:
         return _run_tiled(args, op)
@@ -92,14 +89,15 @@ def _run_tiled(args, op) -> int:
                               background=args.background,
                               rtol=RTOL if args.rtol is None else args.rtol,
                               resume=args.resume, client=client,
-                              voxel_size=_given_voxel(args),
+                              voxel_size=_given_voxel(args), device=args.device,
                               progress=None if args.quiet else progress_printer())
     finally:
         if client is not None:
             client.close()
     print(f"wrote {args.output}: {run.iterations} Richardson-Lucy iterations on {run.tile} "
-          f"px tiles exchanging their margins ({run.chunks_written} of {run.chunks_total} "
-          f"chunks written by this run), {time.perf_counter() - t0:.1f} s")
+          f"px tiles on the {run.device.upper()} exchanging their margins "
+          f"({run.chunks_written} of {run.chunks_total} chunks written by this run), "
+          f"{time.perf_counter() - t0:.1f} s")
     return 0
 
 
@@ -168,6 +166,8 @@ def add_parser(sub) -> None:
                          "the tiles on")
     d3.add_argument("--device", choices=("auto", "cpu", "gpu"), default="auto",
                     help="where it runs; auto (default): the GPU when CuPy sees one "
-                         "(pip install 'napari-psfspace[gpu]'), else the CPU")
+                         "(pip install 'napari-psfspace[gpu]'), else the CPU; with "
+                         "--memory or --tile, each tile's blocks on it (with "
+                         "--scheduler, each worker's own device)")
     d3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
     d3.set_defaults(func=run)

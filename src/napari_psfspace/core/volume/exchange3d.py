@@ -32,6 +32,7 @@ import numpy as np
 import scipy.fft
 
 from ..common.atomic import atomic_write
+from ..common.device import ArrayModule, array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.validate import check_int
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
@@ -42,6 +43,9 @@ from .tiles3d import tile_sizes
 #: Default lateral tile size, pixels (a multiple of the default block: no tile cuts a
 #: block but at the field's edge).
 TILE = 4 * BLOCK
+#: Window volumes a device must hold free for a window to go there whole (the window, the
+#: product and a block's FFT buffers beside them); else its blocks are copied one by one.
+DEVICE_VOLUMES = 4
 
 
 def ring_width(operator: ProductConvolution3D) -> int:
@@ -159,18 +163,30 @@ class WindowTask:
     window's origin is its chunk's start less the ring (clipped at 0)."""
 
     def __init__(self, operator: ProductConvolution3D, kind: str, starts_y, starts_x,
-                 ring: int, block: int, rtol: float) -> None:
+                 ring: int, block: int, rtol: float,
+                 device: str | ArrayModule = "cpu") -> None:
         self.operator, self.kind, self.ring = operator, kind, int(ring)
         self.starts_y, self.starts_x = tuple(starts_y), tuple(starts_x)
         self.block, self.rtol = int(block), float(rtol)
+        # a name is resolved where the task runs: each worker process its own device
+        self.device = device
+        self._am: ArrayModule | None = None
         # for every window: the basis spectra by FFT shape, each field block's kernels
         self.spectra: dict = {}
         self.kernels: dict = {}
 
     def __getstate__(self) -> dict:
-        return {**self.__dict__, "spectra": {}, "kernels": {}}  # a worker forms its own
+        # a worker forms its own caches and finds its own device
+        return {**self.__dict__, "spectra": {}, "kernels": {}, "_am": None}
+
+    def module(self) -> ArrayModule:
+        """The array module the windows' blocks run on, found once a process."""
+        if self._am is None:
+            self._am = array_module(self.device)
+        return self._am
 
     def __call__(self, window: np.ndarray, block_info=None) -> np.ndarray:
+        am = self.module()
         _, iy, ix = block_info[0]["chunk-location"]
         y0 = max(self.starts_y[iy] - self.ring, 0)
         x0 = max(self.starts_x[ix] - self.ring, 0)
@@ -179,11 +195,13 @@ class WindowTask:
                                     cache_bytes=0, window=(y0, y0 + window.shape[1], x0,
                                                            x0 + window.shape[2]),
                                     basis_spectra=self.spectra,
-                                    block_kernels=self.kernels)
+                                    block_kernels=self.kernels, device=am)
         data = np.ascontiguousarray(window, dtype=np.float32)
-        if self.kind == "apply":
-            return blocked.apply(data, workers=1)
-        return blocked.adjoint(data, workers=1)
+        if am.gpu and am.free_bytes() > DEVICE_VOLUMES * data.nbytes:
+            data = am.asarray(data)  # the window on the device, its blocks read there
+        out = (blocked.apply(data, workers=1) if self.kind == "apply" else
+               blocked.adjoint(data, workers=1))
+        return out if isinstance(out, np.ndarray) else am.to_host(out)
 
 
 def iter_richardson_lucy_3d_exchange(
@@ -200,16 +218,19 @@ def iter_richardson_lucy_3d_exchange(
     resume: bool = False,
     client=None,
     workers: int | None = None,
+    device: str | ArrayModule = "cpu",
 ) -> Generator[Progress, None, object]:
     """Generator form of :func:`richardson_lucy_3d_exchange`: yields progress after
     every pass (two an iteration; stop it there to cancel), returns the volume.
 
     ``store``: a folder where the iterates are written between the passes (Zarr arrays
-    ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio0``, ``ratio1``, ``u0``,
-    ``u1``, and ``state.json``, the iterations
-    done, written after each); the result is then the last iterate there, a lazy dask
-    array. ``resume``: continue from the store's last finished iteration (its
-    settings must be these; from the start where it finished none)."""
+    ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio``, ``u0``, ``u1``, and
+    ``state.json``, the iterations done, written after each: ``u`` alternates between
+    two arrays so that the last finished iterate is whole while the next is written; the
+    ratio is made again from it on a resume, so one array holds it); the result is then
+    the last iterate there, a lazy dask array. ``resume``: continue from the store's last
+    finished iteration (its settings must be these; from the start where it finished
+    none)."""
     import dask
     import dask.array as da
 
@@ -221,6 +242,7 @@ def iter_richardson_lucy_3d_exchange(
         raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
     if resume and store is None:
         raise ValueError("`resume` needs the `store` of the interrupted run")
+    am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     z, h, w = stack.shape
     settings = {"shape": [z, h, w], "tile": tile, "block": block, "rtol": float(rtol)}
     state = read_state(store, settings) if resume else None
@@ -243,7 +265,10 @@ def iter_richardson_lucy_3d_exchange(
     starts_y = np.cumsum((0,) + rows)[:-1]
     starts_x = np.cumsum((0,) + cols)[:-1]
 
-    tasks = {kind: WindowTask(operator, kind, starts_y, starts_x, ring, block, rtol)
+    # a device named travels to the workers by name (each finds its own); an array
+    # module given as it is runs on the local threads
+    where = device if isinstance(device, ArrayModule) else am.name
+    tasks = {kind: WindowTask(operator, kind, starts_y, starts_x, ring, block, rtol, where)
              for kind in ("apply", "adjoint")}
     tasks["adjoint"].spectra = tasks["apply"].spectra  # one cache of each for both
     tasks["adjoint"].kernels = tasks["apply"].kernels
@@ -267,7 +292,8 @@ def iter_richardson_lucy_3d_exchange(
 
     config = ({"scheduler": client.get} if client is not None else
               {"scheduler": "threads",
-               "num_workers": dask_workers() if workers is None else int(workers)})
+               "num_workers": 1 if am.gpu else  # one device: its tiles one at a time
+               dask_workers() if workers is None else int(workers)})
     with dask.config.set(config):
         if store is not None:  # the data cut in tiles once: each pass reads its windows
             path = os.path.join(os.fspath(store), "data")
@@ -286,8 +312,7 @@ def iter_richardson_lucy_3d_exchange(
         norm = da.maximum(norm, np.float32(TINY * max(top, 1.0)))
         for k in range(done, n_iter):
             forward = product(u, "apply")
-            ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)),
-                         f"ratio{k % 2}")
+            ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)), "ratio")
             yield Progress("iteration", (k + 0.5) / n_iter,
                            f"iteration {k + 1} of {n_iter}: H u on every tile")
             u = hold(u * product(ratio, "adjoint") / norm, f"u{k % 2}")
@@ -302,7 +327,9 @@ def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter
                                 background: float | None = None,
                                 start: float | None = None, tile: int = TILE,
                                 block: int = BLOCK, rtol: float = RTOL, client=None,
-                                workers: int | None = None, progress=None) -> np.ndarray:
+                                workers: int | None = None,
+                                device: str | ArrayModule = "cpu",
+                                progress=None) -> np.ndarray:
     """Space-varying Richardson-Lucy on lateral tiles that exchange their margins at
     every iteration (the module's notes): the whole volume's result, tile by tile.
 
@@ -328,6 +355,10 @@ def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter
         Runs the tiles on this cluster, the iterates held in its memory.
     workers : int, optional
         Tiles at once on the local threads; default dask's (the cores).
+    device : {"cpu", "gpu", "auto"} or ArrayModule
+        Where each tile's blocks run (:mod:`~napari_psfspace.core.common.device`). On a
+        GPU the local threads run one tile at a time; on a cluster each worker process
+        finds its own device (one a worker: ``dask-cuda``'s ``LocalCUDACluster``).
     progress : callable, optional
         Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
 
@@ -341,9 +372,9 @@ def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter
         iter_richardson_lucy_3d_exchange(stack, operator, n_iter=n_iter,
                                          background=background, start=start, tile=tile,
                                          block=block, rtol=rtol, client=client,
-                                         workers=workers), progress)
+                                         workers=workers, device=device), progress)
 
 
-__all__ = ["BASE_BYTES", "TILE", "WindowTask", "iter_richardson_lucy_3d_exchange",
+__all__ = ["BASE_BYTES", "DEVICE_VOLUMES", "TILE", "WindowTask", "iter_richardson_lucy_3d_exchange",
            "read_state", "richardson_lucy_3d_exchange", "ring_width", "task_bytes",
            "plan_for_memory", "write_state"]
