@@ -371,11 +371,13 @@ def test_properties_and_readonly(rng):
 # --------------------------------------------------------------------------- I/O
 def test_save_load_roundtrip(tmp_path, rng):
     meta = {"residual": np.float64(0.125), "n_beads": np.int64(17), "sizes": np.arange(3)}
+    # files hold blurs (the loader checks it): positive kernels and weights
+    coarse = ProductConvolution(rng.random((3, 7, 7)), 0.1 + rng.random((3, 4, 3)),
+                                shape=(48, 37), grid=(np.linspace(-3.0, 50.0, 4),
+                                                      np.array([0.0, 13.7, 36.0])))
     for op in (
-        _coarse_model(rng),
-        ProductConvolution(
-            rng.standard_normal((2, 5, 5)), rng.standard_normal((2, 9, 8)), metadata=meta
-        ),
+        coarse,
+        ProductConvolution(rng.random((2, 5, 5)), 0.1 + rng.random((2, 9, 8)), metadata=meta),
     ):
         path = tmp_path / "model.npz"
         op.save(path)
@@ -393,6 +395,28 @@ def test_save_load_roundtrip(tmp_path, rng):
     assert header["software"].startswith("napari-psfspace ")
     # no temporary files left behind
     assert sorted(p.name for p in tmp_path.iterdir()) == ["model.npz"]
+
+
+@pytest.mark.parametrize("damage, says", [
+    ("negated", "sums to -"), ("zero weights", "sums to 0"), ("zero kernels", "sums to 0"),
+    ("shape", "does not match its grid"),
+])
+def test_a_model_file_that_is_no_blur_is_refused_by_the_loader(tmp_path, rng, damage, says):
+    """Every door loads a model through ``load_operator``: a file whose PSF sums to zero
+    or less at a node, or whose field is far larger than its grid, is refused there."""
+    basis, coef = rng.random((3, 7, 7)), 0.1 + rng.random((3, 4, 3))
+    shape, grid = (48, 37), (np.linspace(0, 47, 4), np.linspace(0, 36, 3))
+    if damage == "negated":
+        coef = -coef
+    elif damage == "zero weights":
+        coef = 0 * coef
+    elif damage == "zero kernels":
+        basis = 0 * basis
+    elif damage == "shape":
+        shape = (200000, 200000)
+    ProductConvolution(basis, coef, shape=shape, grid=grid).save(tmp_path / "m.npz")
+    with pytest.raises(ValueError, match=says):
+        load_operator(tmp_path / "m.npz")
 
 
 def _rewrite_header(src, dst, **changes):

@@ -20,6 +20,7 @@ import numpy as np
 
 from .core.common.progress import Progress, run_with_progress
 from .core.volume.blocks3d import BLOCK, RTOL
+from .core.volume.deconvolve3d import stack_statistics
 from .core.volume.exchange3d import iter_richardson_lucy_3d_exchange, plan_for_memory
 from .core.volume.operator3d import ProductConvolution3D
 
@@ -206,6 +207,8 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                                                                           np.floating):
         raise ValueError(f"the stack {os.fspath(stack_path)!r} holds {stack.dtype} data; "
                          "expected intensities (integers or floats)")
+    if not resume:  # the stack's range and the background, before anything is written
+        stack_statistics(stack, background)
     if not resume:  # the iterates' arrays and the output, before anything is written
         need = DISK_VOLUMES * 4.0 * float(np.prod(stack.shape))
         free = shutil.disk_usage(parent).free

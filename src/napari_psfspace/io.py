@@ -162,7 +162,11 @@ def _read_tiff(path, lazy: bool = False) -> tuple[np.ndarray, ImageInfo]:
     except (tifffile.TiffFileError, OSError, ValueError, EOFError) as exc:
         raise ValueError(f"{name!r} is not a readable TIFF file ({exc})") from exc
     with tif:
-        series = tif.series[0]
+        try:
+            series = tif.series[0]
+        except IndexError:  # a header and no image directory: cut short
+            raise ValueError(f"{name!r} is not a readable TIFF file (it holds no image: "
+                             "cut short after its header?)") from None
         if "S" in series.axes:
             raise ValueError(f"{name!r} is a colour image (axes {series.axes}, "
                              f"{series.shape}): export the bead channel as a grey-level "
@@ -439,6 +443,8 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     """Check, before any work, that a file can be written at ``path``: not a folder, in a
     folder that exists and is writable, not a read-only file. ``option`` names it in the
     message (e.g. ``-o``)."""
+    if not os.fspath(path).strip():
+        raise ValueError(f"{option}: an empty path; expected a file name")
     p = Path(path)
     if p.is_dir():
         raise ValueError(f"{option} {path}: is a folder, expected a file name")
@@ -452,8 +458,49 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     return p
 
 
+def _same_place(a: str, b: str) -> bool:
+    """Whether two paths name the same file or folder (links and ``..`` resolved; one
+    file under two hard-linked names too)."""
+    if os.path.realpath(a) == os.path.realpath(b):
+        return True
+    try:
+        return os.path.samefile(a, b)
+    except OSError:  # one does not exist yet
+        return False
+
+
+def check_distinct(outputs: dict[str, object], inputs: dict[str, object]) -> None:
+    """Check, before any work, that no output path is an input or another output.
+
+    Parameters
+    ----------
+    outputs, inputs : dict of {option: path or list of paths}
+        The paths, by the option that names them in the message (``-o``,
+        ``--truth-grid``, ``IMAGE``); None or "" entries are skipped.
+    """
+    def flat(named: dict[str, object]) -> list[tuple[str, str]]:
+        out = []
+        for option, value in named.items():
+            values = value if isinstance(value, (list, tuple)) else [value]
+            out += [(option, os.fspath(v)) for v in values if v not in (None, "")]
+        return out
+
+    outs, ins = flat(outputs), flat(inputs)
+    for i, (o_opt, o_path) in enumerate(outs):
+        for i_opt, i_path in ins:
+            if _same_place(o_path, i_path):
+                raise ValueError(f"{o_opt} {o_path} is the input {i_opt}: writing it would "
+                                 "overwrite what is read; give another path")
+        for o2_opt, o2_path in outs[i + 1:]:
+            if _same_place(o_path, o2_path):
+                raise ValueError(f"{o_opt} and {o2_opt} are the same path {o_path}: one "
+                                 "output would overwrite the other")
+
+
 def check_output_folder(path: str | os.PathLike, option: str) -> Path:
     """Check, before any work, that ``path`` is a writable folder or can be made one."""
+    if not os.fspath(path).strip():
+        raise ValueError(f"{option}: an empty path; expected a folder name")
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ValueError(f"{option} {path}: is a file, expected a folder")

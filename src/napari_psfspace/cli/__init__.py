@@ -44,6 +44,19 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _check_paths(args) -> None:
+    """No output path of the command is one of its inputs or another of its outputs
+    (each command names its path arguments: ``set_defaults(path_inputs=..., path_outputs=...)``,
+    ``{dest: option as the user reads it}``)."""
+    from ..io import check_distinct
+
+    def named(kind: str) -> dict:
+        return {option: getattr(args, dest, None)
+                for dest, option in (getattr(args, kind, None) or {}).items()}
+
+    check_distinct(named("path_outputs"), named("path_inputs"))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of ``psfspace``; returns the exit status."""
     parser = build_parser()
@@ -52,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
     except SystemExit as exc:  # --help, --version, or a bad option (said in one line)
         return exc.code if isinstance(exc.code, int) else 2
     try:
+        _check_paths(args)
         return args.func(args)
     except FileNotFoundError as exc:
         print(f"psfspace {args.command}: error: {exc.filename}: no such file", file=sys.stderr)

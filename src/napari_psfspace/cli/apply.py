@@ -36,4 +36,5 @@ def add_parser(sub) -> None:
     a.add_argument("-o", "--output", required=True, help="output TIFF (float32)")
     a.add_argument("--slice", type=INDEX, help="slice of a stack to use")
     a.add_argument("--adjoint", action="store_true", help="apply the adjoint H^T instead")
-    a.set_defaults(func=run)
+    a.set_defaults(func=run, path_inputs={"model": "MODEL", "image": "IMAGE"},
+                   path_outputs={"output": "-o"})

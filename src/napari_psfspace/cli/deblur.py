@@ -17,7 +17,7 @@ def run(args) -> int:
     from ..core.model.operator_file import archive_format
     from ..core.restore import identify_operator, iter_deblur
     from ..core.restore.identify import IdentificationWarning
-    from ..io import check_output_file, read_image, read_points_csv, write_tiff
+    from ..io import check_distinct, check_output_file, read_image, read_points_csv, write_tiff
 
     out = check_output_file(args.output, "-o")
     option = "--family"
@@ -28,9 +28,12 @@ def run(args) -> int:
               file=sys.stderr)
         args.family, option = args.subspace, "--subspace"
     if args.parts:
-        for name in ("sparse", "smooth"):
-            check_output_file(out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}"),
-                              "--parts")
+        parts = {f"--parts ({name})": out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}")
+                 for name in ("sparse", "smooth")}
+        for path in parts.values():
+            check_output_file(path, "--parts")
+        check_distinct(parts, {"IMAGE": args.image, "--family": args.family,
+                               "--model": args.model, "--beads": args.beads})
     if args.family is not None:
         existing(args.family, option)
     else:
@@ -119,4 +122,7 @@ def add_parser(sub) -> None:
                          "when CuPy sees one (pip install 'napari-psfspace[gpu]'), else "
                          "the CPU")
     db.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    db.set_defaults(func=run)
+    db.set_defaults(func=run, path_inputs={"image": "IMAGE", "family": "--family",
+                                      "subspace": "--subspace", "model": "--model",
+                                      "beads": "--beads"},
+                    path_outputs={"output": "-o"})

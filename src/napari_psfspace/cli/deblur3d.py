@@ -170,4 +170,5 @@ def add_parser(sub) -> None:
                          "--memory or --tile, each tile's blocks on it (with "
                          "--scheduler, each worker's own device)")
     d3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    d3.set_defaults(func=run)
+    d3.set_defaults(func=run, path_inputs={"stack": "STACK", "model": "--model"},
+                    path_outputs={"output": "-o"})

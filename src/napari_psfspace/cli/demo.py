@@ -29,4 +29,5 @@ def add_parser(sub) -> None:
     d.add_argument("--seed", type=INDEX, default=0)
     d.add_argument("--json", action="store_true", help="also print the errors as JSON")
     d.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    d.set_defaults(func=run)
+    d.set_defaults(func=run, path_inputs={},
+                   path_outputs={"out": "--out"})

@@ -76,4 +76,5 @@ def add_parser(sub) -> None:
                     "smoothing (default: chosen from the beads)")
     dg.add_argument("--model", metavar="OUT.npz", help="also save the refined model")
     dg.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    dg.set_defaults(func=run)
+    dg.set_defaults(func=run, path_inputs={"image": "IMAGE"},
+                    path_outputs={"report": "--report", "model": "--model"})

@@ -73,4 +73,5 @@ def add_parser(sub) -> None:
     e.add_argument("--holdout", type=number("float", low=0, high=0.5), default=0.2,
                    help="fraction of beads held out to measure the error (0 to skip)")
     e.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    e.set_defaults(func=run)
+    e.set_defaults(func=run, path_inputs={"image": "IMAGE"},
+                   path_outputs={"output": "-o"})

@@ -91,4 +91,5 @@ def add_parser(sub) -> None:
                     help="detection threshold in noise standard deviations (default 8)")
     e3.add_argument("--table", metavar="CSV", help="also write each bead's direct fits")
     e3.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    e3.set_defaults(func=run)
+    e3.set_defaults(func=run, path_inputs={"stack": "STACK"},
+                    path_outputs={"output": "-o", "table": "--table"})

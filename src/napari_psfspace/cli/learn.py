@@ -100,4 +100,5 @@ def add_parser(sub) -> None:
     ln.add_argument("--scheduler", metavar="ADDRESS",
                     help="run on this dask.distributed scheduler (default: this machine)")
     ln.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    ln.set_defaults(func=run)
+    ln.set_defaults(func=run, path_inputs={"inputs": "INPUT"},
+                    path_outputs={"output": "-o"})

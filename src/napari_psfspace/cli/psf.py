@@ -49,4 +49,5 @@ def add_parser(sub) -> None:
     f.add_argument("--image", type=INDEX, metavar="K", help="image K of a family")
     f.add_argument("--at", type=FINITE, nargs=2, required=True, metavar=("ROW", "COL"))
     f.add_argument("-o", "--output", required=True, help="output TIFF")
-    f.set_defaults(func=run)
+    f.set_defaults(func=run, path_inputs={"model": "MODEL"},
+                   path_outputs={"output": "-o"})

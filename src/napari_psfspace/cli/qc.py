@@ -81,4 +81,5 @@ def add_parser(sub) -> None:
     q.add_argument("--diagnose", action="store_true", help="also diagnose the best-focus "
                    "slice's 2-D model (its verdict and the effects it adds; slower)")
     q.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
-    q.set_defaults(func=run)
+    q.set_defaults(func=run, path_inputs={"stack": "STACK"},
+                   path_outputs={"output": "-o"})

@@ -65,4 +65,5 @@ def add_parser(sub) -> None:
     s.add_argument("--focus-series", type=number("int", low=2), metavar="N",
                    help="write a stack instead: the same beads at N foci from -0.6 to "
                         "0.6 um (a family of conditions for `psfspace learn`)")
-    s.set_defaults(func=run)
+    s.set_defaults(func=run, path_inputs={},
+                   path_outputs={"output": "-o", "truth_grid": "--truth-grid"})

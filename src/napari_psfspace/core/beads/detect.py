@@ -17,7 +17,7 @@ from scipy import ndimage as ndi
 from ..common import spacing
 from ..common.errors import NoBeadsError
 from ..common.progress import check_halt
-from ..common.validate import as_image, check_positive, check_psf_radius
+from ..common.validate import as_image, check_positive, check_psf_radius, check_saturation
 from .log import local_peaks, log_response
 from .overlap import NEIGHBOUR_SHARE, patch_shares
 from .saturation import saturated_cores
@@ -241,6 +241,7 @@ def detect_beads(
     sigma = spacing.centring_sigma(r) if sigma is None else check_positive(sigma, "sigma")
     if border is None:
         border = spacing.bead_border(r)
+    saturation = check_saturation(saturation)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
 

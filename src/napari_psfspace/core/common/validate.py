@@ -66,6 +66,63 @@ def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
     return out
 
 
+def check_signal(image: np.ndarray, name: str = "image") -> None:
+    """ValueError unless ``image`` (finite) can hold a fluorescence image: at least one
+    positive value (light is counted up from zero; a negated or empty image has none)
+    and not one value everywhere (no bead stands above its background)."""
+    lo, hi = float(np.min(image)), float(np.max(image))
+    if not hi > 0:
+        raise ValueError(f"`{name}` holds no positive value (largest {hi:g}); expected a "
+                         "fluorescence image, counts >= 0 with beads above the background")
+    if hi == lo:
+        raise ValueError(f"`{name}` is constant (every value {hi:g}); expected beads above "
+                         "a background")
+
+
+def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, np.dtype]:
+    """A camera's values: ``gain`` (ADU per electron) finite and positive, ``offset``
+    (ADU) finite and >= 0 and below the dtype's largest value, ``read_noise``
+    (electrons rms) finite and >= 0, ``dtype`` an unsigned integer (counts) or a float.
+    Returns them as ``(float, float, float, np.dtype)``."""
+    out = []
+    for name, value, low, strict in (("gain", gain, 0.0, True), ("offset", offset, 0.0, False),
+                                     ("read_noise", read_noise, 0.0, False)):
+        try:
+            v = float(value)
+        except (TypeError, ValueError):
+            raise ValueError(f"`{name}` must be a number, got {value!r}") from None
+        if not np.isfinite(v) or (v <= low if strict else v < low):
+            raise ValueError(f"`{name}` must be a finite number {'>' if strict else '>='} "
+                             f"{low:g}, got {value!r}")
+        out.append(v)
+    try:
+        dt = np.dtype(dtype)
+    except TypeError:
+        raise ValueError(f"`dtype` must be a NumPy dtype, got {dtype!r}") from None
+    if dt.kind not in "uf":
+        raise ValueError(f"`dtype` must be an unsigned integer (a camera's counts) or a "
+                         f"float, got {dt}")
+    if dt.kind == "u" and not out[1] < np.iinfo(dt).max:
+        raise ValueError(f"`offset` {out[1]:g} must be below the largest {dt} value "
+                         f"{np.iinfo(dt).max}")
+    return out[0], out[1], out[2], dt
+
+
+def check_background(background, top: float, name: str = "background") -> float:
+    """A constant background: finite and below ``top``, the data's largest value (at or
+    above it, every iteration would drive the estimate to zero)."""
+    try:
+        b = float(background)
+    except (TypeError, ValueError):
+        raise ValueError(f"`{name}` must be a number, got {background!r}") from None
+    if not np.isfinite(b):
+        raise ValueError(f"`{name}` must be finite, got {background!r}")
+    if not b < top:
+        raise ValueError(f"`{name}` {b:g} is at or above the data's largest value {top:g}: "
+                         "nothing would be left to deblur; give a background below it")
+    return b
+
+
 def check_positive(value, name: str, *, allow_zero: bool = False) -> float:
     """Return ``float(value)`` after checking it is finite and positive."""
     try:
@@ -155,16 +212,17 @@ def check_grid_step(grid_step, shape: tuple[int, ...], name: str = "grid_step", 
 
 
 def check_saturation(saturation, name: str = "saturation") -> float | None:
-    """None, or a finite level (image units)."""
+    """None, or a finite positive level (image units): no camera saturates at zero or
+    below, and a level there would mark every bead saturated."""
     if saturation is None:
         return None
     try:
         v = float(saturation)
     except (TypeError, ValueError):
         raise ValueError(f"`{name}` must be a number or None, got {saturation!r}.") from None
-    if not np.isfinite(v):
-        raise ValueError(f"`{name}` must be finite (or None: the dtype's maximum for "
-                         f"integer images), got {saturation!r}.")
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"`{name}` must be a positive level in image units (or None: the "
+                         f"dtype's maximum for integer images), got {saturation!r}.")
     return v
 
 

@@ -46,6 +46,7 @@ from ..beads.patches import R_EXT_FACTOR, Patches, patch_size
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress
 from ..common.threads import blas_threads, compute_first, compute_tasks
+from ..common.validate import check_grid_step, check_positive
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
@@ -359,12 +360,7 @@ def iter_estimate_family(
     if len(items) < 2:
         raise ValueError(f"`images` must hold at least 2 images to learn a family, got "
                          f"{len(items)}: learn one operator with estimate_operator instead")
-    try:
-        ok = np.isfinite(float(psf_radius)) and float(psf_radius) > 0
-    except (TypeError, ValueError):
-        ok = False
-    if not ok:
-        raise ValueError(f"`psf_radius` must be a positive number of pixels, got {psf_radius!r}")
+    check_positive(psf_radius, "psf_radius")  # pixels
     if client is not None and not (callable(getattr(client, "compute", None))
                                    and callable(getattr(client, "gather", None))):
         raise ValueError(f"`client` must be a dask.distributed Client (with compute and "
@@ -372,6 +368,7 @@ def iter_estimate_family(
     for name, v in (("n_psf", n_psf), ("n_space", n_space)):
         if v is not None and (int(v) != v or v < 1):
             raise ValueError(f"`{name}` must be a positive integer or None, got {v!r}")
+    grid_step = check_positive(grid_step, "grid_step")  # against the shape once read
     most = max_space(len(items), n_psf)
     if n_space is not None and most is not None and n_space > most:
         raise ValueError(f"`n_space` = {n_space} is more spatial maps than {len(items)} images "
@@ -398,6 +395,7 @@ def iter_estimate_family(
         odd = next(f for f in found if f.shape != first)
         raise ValueError(f"every image of `images` must have the same shape: image 0 is "
                          f"{first}, image {odd.index} is {odd.shape}")
+    check_grid_step(grid_step, found[0].shape)
     shape = found[0].shape
     used = [f for f in found if f.patches is not None]
     skipped = {f.index: f.summary for f in found if f.patches is None}

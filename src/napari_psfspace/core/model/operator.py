@@ -41,6 +41,7 @@ from scipy.sparse.linalg import LinearOperator
 
 from ..common.device import CPU, ArrayModule, DeviceCache, resolve
 from ..common.threads import by_rows, by_rows_many
+from .operator_checks import check_model_field
 from .operator_fft import (
     check_dc,
     computation_dtype,
@@ -399,6 +400,10 @@ class ProductConvolution(DeviceCache, PsfField):
                 )
         except ValueError as exc:
             raise ValueError(f"{os.fspath(path)!r}: inconsistent model file: {exc}") from exc
+        grid_y, grid_x = op.grid if op.grid is not None else (np.arange(shape_t[0]),
+                                                              np.arange(shape_t[1]))
+        check_model_field(op.basis, op.coefficients, shape_t, grid_y, grid_x,
+                          repr(os.fspath(path)))
         return op
 
 

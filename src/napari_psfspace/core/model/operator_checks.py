@@ -151,3 +151,32 @@ def validated_inputs(
                 shown = np.array2string(g, threshold=8)
                 raise ValueError(f"`{name}` must be strictly increasing, got {shown}")
     return basis, coefficients, shape, grid_y, grid_x
+
+
+def check_model_field(basis: np.ndarray, coefficients: np.ndarray, shape, grid_y, grid_x,
+                      where: str) -> None:
+    """ValueError naming ``where`` (a file) unless a stored model is a blur over its
+    field: the PSF at every node sums to a positive amount (each kernel's sum weighted
+    by its coefficients; a zero, negated or hand-edited file makes an operator whose
+    output is zero or negative), and the nodes span the field to within one node
+    spacing at each end (a ``shape`` far larger than its grid extrapolates the maps
+    beyond any bead).
+
+    ``basis`` (I, ...kernel) and ``coefficients`` (I, gy, gx); ``shape`` the field's
+    (..., H, W) in pixels; ``grid_y``, ``grid_x`` the nodes in pixels."""
+    sums = np.asarray(basis, float).reshape(len(basis), -1).sum(axis=1)
+    at_nodes = np.tensordot(sums, np.asarray(coefficients, float), axes=(0, 0))
+    if not np.all(np.isfinite(at_nodes)) or not np.all(at_nodes > 0):
+        iy, ix = np.unravel_index(int(np.nanargmin(np.where(np.isfinite(at_nodes),
+                                                             at_nodes, -np.inf))),
+                                  at_nodes.shape)
+        raise ValueError(f"{where}: the PSF at node ({grid_y[iy]:g}, {grid_x[ix]:g}) sums to "
+                         f"{at_nodes[iy, ix]:.3g}, expected a positive amount of light "
+                         "(a damaged or hand-edited model)")
+    for axis, nodes, n in (("rows", grid_y, shape[-2]), ("columns", grid_x, shape[-1])):
+        nodes = np.asarray(nodes, float)
+        spacing = float(np.max(np.diff(nodes))) if nodes.size > 1 else float(n)
+        if nodes[0] - 0 > spacing or (n - 1) - nodes[-1] > spacing:
+            raise ValueError(f"{where}: the field is {n} px along its {axis}, its nodes span "
+                             f"{nodes[0]:g} to {nodes[-1]:g} px (spacing {spacing:g}): the "
+                             "file's shape does not match its grid")

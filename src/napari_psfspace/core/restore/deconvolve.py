@@ -60,6 +60,7 @@ from ..common.validate import (
     check_instance,
     check_int,
     check_saturation,
+    check_signal,
 )
 from ..diagnosis.noise import background_variance
 from ..model.compress import compress_operator
@@ -219,6 +220,7 @@ def iter_deblur(
     if tuple(y.shape) != tuple(operator.shape):
         raise ValueError(f"`image` has shape {tuple(y.shape)}, but `operator` acts on "
                          f"images of shape {tuple(operator.shape)}")
+    check_signal(y)
     max_iter = check_int(max_iter, "max_iter", minimum=1)
     saturation = check_saturation(saturation)
     if not tol > 0:

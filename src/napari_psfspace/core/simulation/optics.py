@@ -331,8 +331,27 @@ def object_pad(
     return int(ceil(half)) + 1 if half > 0 else 0
 
 
+#: Highest Noll index a PSF takes: radial order 20, far beyond the aberrations a
+#: microscope's pupil holds (the pupil's sampling grows with the order).
+MAX_NOLL = 231
+
+
 def _split_zernike(zernike_coefs: Mapping[int, float] | None) -> tuple[tuple[int, ...], np.ndarray]:
-    items = sorted((int(j), float(c)) for j, c in (zernike_coefs or {}).items())
+    items = []
+    for j, c in (zernike_coefs or {}).items():
+        try:
+            jj, cc = int(j), float(c)
+        except (TypeError, ValueError):
+            raise ValueError(f"`zernike` must map Noll indices to waves rms, got "
+                             f"{j!r}: {c!r}") from None
+        if jj != j or not 1 <= jj <= MAX_NOLL:
+            raise ValueError(f"`zernike`: Noll index {j!r} must be a whole number from 1 to "
+                             f"{MAX_NOLL}")
+        if not np.isfinite(cc):
+            raise ValueError(f"`zernike`: the coefficient of Noll index {jj} must be finite, "
+                             f"got {c!r}")
+        items.append((jj, cc))
+    items.sort()
     return tuple(j for j, _ in items), np.array([c for _, c in items], float)
 
 

@@ -24,7 +24,7 @@ import numpy as np
 from ..common.device import array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
-from ..common.validate import check_int, check_memory
+from ..common.validate import check_background, check_int, check_memory, check_signal
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .device_plan import plan_on_device
 from .operator3d import ProductConvolution3D
@@ -148,18 +148,33 @@ def shift_invariant(operator: ProductConvolution3D, y: float | None = None,
                                 metadata={"shift_invariant_at": [y, x]})
 
 
-def stack_statistics(stack) -> tuple[float, float]:
+def stack_statistics(stack, background: float | None = None) -> tuple[float, float]:
     """``(background, mean)`` of a stack from a strided subsample of at most about
-    ``STATS_VOXELS`` voxels: the default constant background (1st percentile) and the
-    mean that starts the iteration. The same rule on every path (whole volume, blocks,
-    tiles, dask), so that their results agree; a dask stack is read once, subsampled."""
+    ``STATS_VOXELS`` voxels: the constant background (``background`` where given, else
+    the 1st percentile) and the mean that starts the iteration. The same rule on every
+    path (whole volume, blocks, tiles, dask), so that their results agree; a dask stack
+    is read once, subsampled.
+
+    Raises
+    ------
+    ValueError
+        NaN or infinite values; a stack with no positive value or one value everywhere
+        (the whole of an in-memory stack is checked where its sample fails); a
+        ``background`` that is not finite or not below the stack's largest value."""
     z, h, w = stack.shape
     step = max(1, int(np.ceil(np.sqrt(z * h * w / STATS_VOXELS))))
     sample = np.asarray(stack[:, ::step, ::step], dtype=np.float32)
     if not np.isfinite(sample).all():
         raise ValueError("`stack` contains NaN or infinite values")
+    top = float(sample.max())
+    if not (top > 0 and float(sample.min()) < top):  # sparse light the sample missed?
+        whole = stack if isinstance(stack, np.ndarray) else sample
+        check_signal(whole, "stack")
+        top = float(np.max(whole))
     sample = np.clip(sample, 0, None)
-    return float(np.percentile(sample, 1)), float(sample.mean())
+    b = (float(np.percentile(sample, 1)) if background is None else
+         check_background(background, top))
+    return b, float(sample.mean())
 
 
 def check_stack(stack, operator: ProductConvolution3D) -> None:
@@ -204,11 +219,8 @@ def iter_richardson_lucy_3d(
                      "float32 volumes)",
                      hint="Deblur it in tiles from a memory budget: psfspace deblur3d "
                           "--memory 4GB, or richardson_lucy_3d_exchange.")
-    yield Progress("setup", 0.0, "statistics of the stack")
-    b0, mean = stack_statistics(stack)
-    b = b0 if background is None else float(background)
-    if not np.isfinite(b):
-        raise ValueError(f"`background` must be finite, got {background!r}")
+    b, mean = stack_statistics(stack, background)  # its refusals before any progress
+    yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
     # always a copy, clipped in place: a view of the user's array (a memmap of their
     # file) is never written to
     data = np.array(stack, dtype=np.float32, copy=True)

@@ -250,11 +250,8 @@ def iter_richardson_lucy_3d_exchange(
     if state is not None:
         done, b, u0 = state["done"], state["background"], state["start"]
     else:
-        yield Progress("setup", 0.0, "statistics of the stack")
-        b0, mean = stack_statistics(stack)
-        b = b0 if background is None else float(background)
-        if not np.isfinite(b):
-            raise ValueError(f"`background` must be finite, got {background!r}")
+        b, mean = stack_statistics(stack, background)  # its refusals before any progress
+        yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
         u0 = max(mean - b, TINY) if start is None else float(start)
     ring = ring_width(operator)
     rows, cols = tile_sizes(h, tile, ring), tile_sizes(w, tile, ring)

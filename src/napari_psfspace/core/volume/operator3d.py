@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike
 
 from ..common.device import CPU, ArrayModule, DeviceCache, resolve
 from ..common.version import software_string
-from ..model.operator_checks import as_real_array, normalise_metadata
+from ..model.operator_checks import as_real_array, check_model_field, normalise_metadata
 from ..model.operator_fft import check_dc, computation_dtype
 from ..model.operator_file import read_archive, write_archive
 from ..model.psf_field import check_in_field, interp_matrix, interp_weights
@@ -396,13 +396,16 @@ class ProductConvolution3D(DeviceCache):
             raise ValueError(f"{os.fspath(path)!r}: corrupt 3D model file, 'shape' must be "
                              f"3 integers, got {shape!r}")
         try:
-            return cls(arr["basis"], arr["coefficients"], shape=tuple(int(n) for n in shape),
-                       grid=(arr["grid_y"], arr["grid_x"]), plane=header.get("plane", -1),
-                       voxel_size=header.get("voxel_size_um"),
-                       metadata=header.get("metadata", {}))
+            op = cls(arr["basis"], arr["coefficients"], shape=tuple(int(n) for n in shape),
+                     grid=(arr["grid_y"], arr["grid_x"]), plane=header.get("plane", -1),
+                     voxel_size=header.get("voxel_size_um"),
+                     metadata=header.get("metadata", {}))
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{os.fspath(path)!r}: inconsistent 3D model file: "
                              f"{exc}") from exc
+        check_model_field(op.basis, op.coefficients, op.shape, *op.grid,
+                          repr(os.fspath(path)))
+        return op
 
 
 def load_operator_3d(path: str | os.PathLike[str]) -> ProductConvolution3D:

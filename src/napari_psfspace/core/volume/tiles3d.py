@@ -130,10 +130,7 @@ def richardson_lucy_3d_tiled(
     halo = default_halo(operator) if halo is None else check_int(halo, "halo", minimum=0)
     if halo > tile:
         raise ValueError(f"`halo` must be at most `tile` ({tile} px), got {halo} px")
-    b0, mean = stack_statistics(stack)
-    b = b0 if background is None else float(background)
-    if not np.isfinite(b):
-        raise ValueError(f"`background` must be finite, got {background!r}")
+    b, mean = stack_statistics(stack, background)
     start = max(mean - b, 1e-6)
     kw = dict(n_iter=n_iter, background=b, start=start, block=block, rtol=rtol)
     z, h, w = stack.shape
