@@ -556,5 +556,14 @@ def test_a_killed_write_leaves_nothing_after_the_next(tmp_path):
     _atomic.atomic_write(target, lambda fh: fh.write(b"new"))
     assert target.read_bytes() == b"new"
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.npz", live.name])
+    # a dead writer of another file in the folder: removed by the next write there
+    proc = subprocess.Popen([sys.executable, "-c", code.replace("m.npz", "other.tif")],
+                            stdout=subprocess.PIPE)
+    assert proc.stdout.readline().strip() == b"in"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert any(p.name.startswith(".other.tif.") for p in tmp_path.iterdir())
+    _atomic.atomic_write(target, lambda fh: fh.write(b"newer"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["m.npz", live.name])
     with pytest.raises(FileNotFoundError, match="missing"):
         _atomic.atomic_write(tmp_path / "missing" / "x.npz", lambda fh: fh.write(b"x"))

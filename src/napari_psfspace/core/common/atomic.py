@@ -6,7 +6,7 @@ completely (and flushed to disk). If anything fails, the temporary file is
 removed and an existing file at the destination is left untouched, so users
 never end up with a half-written file. A writer killed outright (``kill -9``) cannot
 remove its temporary file: the name carries the writer's process id, and the next
-write to the same path removes those whose writer no longer runs.
+write into the same folder removes those whose writer no longer runs.
 
 Two entry points are provided:
 
@@ -60,15 +60,18 @@ def _alive(pid: int) -> bool:
 
 
 def _remove_stale(path: str) -> None:
-    """Remove the temporary files a killed writer of ``path`` left (its pid is in the
-    name and no longer runs); a live writer's, and files of other names, are kept."""
+    """Remove the temporary files killed writers left in ``path``'s folder, whatever
+    file they were writing (``.<name>.<pid>.<random>.tmp`` whose pid no longer runs); a
+    live writer's, and files of other names, are kept."""
     directory = os.path.dirname(os.path.abspath(path))
-    prefix = _prefix(path)
     with contextlib.suppress(OSError):
         for name in os.listdir(directory):
-            if not (name.startswith(prefix) and name.endswith(".tmp")):
+            if not (name.startswith(".") and name.endswith(".tmp")):
                 continue
-            pid = name[len(prefix):].split(".", 1)[0]
+            parts = name[1:-len(".tmp")].rsplit(".", 2)  # name, pid, random
+            if len(parts) != 3 or not parts[0]:
+                continue
+            pid = parts[1]
             if pid.isdigit() and int(pid) != os.getpid() and not _alive(int(pid)):
                 with contextlib.suppress(OSError):
                     os.unlink(os.path.join(directory, name))
