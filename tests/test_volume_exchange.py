@@ -63,9 +63,10 @@ def test_the_tiles_run_on_a_client():
     assert np.abs(remote - whole).max() <= 1e-4 * whole.max()
 
 
-def test_the_tiles_run_on_two_worker_processes():
+def test_the_tiles_run_on_two_worker_processes(tmp_path):
     """A real scheduler and two worker processes (``LocalCluster``): the tiles of a pass
-    are spread over both, and the result is the whole volume's. How much faster two
+    are spread over both, and the result is the whole volume's, with the iterates in the
+    cluster's memory or in a store the workers read and write. How much faster two
     workers are is the bench's figure (``deblur3d_scale --scaling``), not a test's."""
     distributed = pytest.importorskip("distributed")
     op, stack = _problem(shape=(6, 64, 128))  # 2 x 4 tiles of 32 px
@@ -76,8 +77,11 @@ def test_the_tiles_run_on_two_worker_processes():
           distributed.get_task_stream(client) as stream):
         remote = richardson_lucy_3d_exchange(stack, op, n_iter=3, tile=32, block=16,
                                              client=client)
+        stored = run_with_progress(iter_richardson_lucy_3d_exchange(
+            stack, op, n_iter=3, tile=32, block=16, client=client, store=tmp_path))
         workers = set(client.scheduler_info()["workers"])
     assert np.abs(remote - whole).max() <= 1e-4 * whole.max()
+    assert np.abs(np.asarray(stored) - whole).max() <= 1e-4 * whole.max()
     # the window products (each trimmed to its tile in the same task)
     used = {t["worker"] for t in stream.data if "_trim-" in str(t["key"])}
     assert used == workers and len(workers) == 2
@@ -137,8 +141,8 @@ def test_the_plan_fits_the_budget_and_says_when_nothing_does():
         assert BASE_BYTES + n * task_bytes(op, 64, tile, 256) <= m
         assert (-(-2048 // tile)) ** 2 >= n  # a tile for every thread
     # 1.2 GB: two tiles of a block at once do not fit; 4 GB: tiles of three blocks fit,
-    # and the field is cut in three tiles of 683 px a side
-    assert plans == [(256, 1), (256, 2), (683, 2)]
+    # and the field is cut in three tiles, 704 px a side (2048 / 3 in whole 64 px chunks)
+    assert plans == [(256, 1), (256, 2), (704, 2)]
     with pytest.raises(ValueError, match=r"`memory` must be at least 0\.90 GiB for one tile"):
         plan_for_memory(op, 64, 0.8e9, block=256)
 

@@ -37,6 +37,7 @@ from ..common.progress import Progress, run_with_progress
 from ..common.validate import check_int
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import TINY, check_stack, stack_statistics
+from .exchange_store import STORE_CHUNK
 from .operator3d import ProductConvolution3D
 from .tiles3d import tile_sizes
 
@@ -56,9 +57,9 @@ def ring_width(operator: ProductConvolution3D) -> int:
 def task_bytes(operator: ProductConvolution3D, depth: int, tile: int, block: int) -> int:
     """Memory one tile's pass holds at its peak, bytes (a bound: ``bench/run.py
     deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 2
-    ring)`` wide, six volumes of it in float32 (the window dask assembles from the
-    neighbouring chunks, the product, its trimmed copy, and the tile's data, forward
-    product and ratio in the elementwise step), the window's maps in float64 and
+    ring)`` wide, six volumes of it in float32 (the window read or assembled from the
+    neighbouring chunks, the product, its trimmed copy, and the tile's data, iterate and
+    norm in the elementwise step), the window's maps in float64 and
     float32, and spectra of a whole block's FFT shape: the basis's ``I`` twice over (the
     whole blocks' and those cut by the window's edge), a block's kernels (at most ``I``)
     and two buffers."""
@@ -122,9 +123,10 @@ def plan_for_memory(operator: ProductConvolution3D, depth: int, memory: float, *
         tile += block
     while tile > block and -(-h // tile) * -(-w // tile) < workers:
         tile -= block  # every thread a tile
-    # as few tiles as that size needs along each axis, of equal sizes: no thread is left
-    # with a sliver while the others wait
-    return max(-(-n // -(-n // tile)) for n in (h, w)), workers
+    # as few tiles as that size needs along each axis, of equal sizes (no thread is left
+    # with a sliver while the others wait), in whole store chunks
+    even = max(-(-n // -(-n // tile)) for n in (h, w))
+    return min(tile, -(-even // STORE_CHUNK) * STORE_CHUNK), workers
 
 
 def write_state(store, state: dict) -> None:
@@ -186,10 +188,14 @@ class WindowTask:
         return self._am
 
     def __call__(self, window: np.ndarray, block_info=None) -> np.ndarray:
-        am = self.module()
         _, iy, ix = block_info[0]["chunk-location"]
-        y0 = max(self.starts_y[iy] - self.ring, 0)
-        x0 = max(self.starts_x[ix] - self.ring, 0)
+        return self.product(window, max(self.starts_y[iy] - self.ring, 0),
+                            max(self.starts_x[ix] - self.ring, 0))
+
+    def product(self, window: np.ndarray, y0: int, x0: int) -> np.ndarray:
+        """The product on ``window`` (Z, h, w) whose top-left pixel is ``(y0, x0)`` of the
+        field; float32 on the host, the window's shape."""
+        am = self.module()
         # each block is used once a pass: no spectra kept beyond it
         blocked = BlockedOperator3D(self.operator, block=self.block, rtol=self.rtol,
                                     cache_bytes=0, window=(y0, y0 + window.shape[1], x0,
@@ -255,10 +261,6 @@ def iter_richardson_lucy_3d_exchange(
         u0 = max(mean - b, TINY) if start is None else float(start)
     ring = ring_width(operator)
     rows, cols = tile_sizes(h, tile, ring), tile_sizes(w, tile, ring)
-    chunks = ((z,), rows, cols)
-    lazy = isinstance(stack, da.Array)
-    y = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
-    y = da.clip(y.astype(np.float32), 0, None)
     starts_y = np.cumsum((0,) + rows)[:-1]
     starts_x = np.cumsum((0,) + cols)[:-1]
 
@@ -270,54 +272,90 @@ def iter_richardson_lucy_3d_exchange(
     tasks["adjoint"].spectra = tasks["apply"].spectra  # one cache of each for both
     tasks["adjoint"].kernels = tasks["apply"].kernels
 
-    def product(arr, kind):
-        return arr.map_overlap(tasks[kind], depth={0: 0, 1: ring, 2: ring}, boundary="none",
-                               dtype=np.float32, trim=True, allow_rechunk=False,
-                               meta=np.empty((0, 0, 0), np.float32))
-
-    def hold(arr, name):
-        """The array computed once and held: in memory (the scheduler's), or in the
-        store, read back lazily."""
-        if store is None:
-            return client.persist(arr) if client is not None else arr.persist()
-        path = os.path.join(os.fspath(store), name)
-        # uncompressed: an iterate's float32 noise does not compress, and is read once
-        arr.to_zarr(path, overwrite=True, compute=True, compressors=None)
-        return da.from_zarr(path)
-
     from ..common.threads import dask_workers
 
     config = ({"scheduler": client.get} if client is not None else
               {"scheduler": "threads",
                "num_workers": 1 if am.gpu else  # one device: its tiles one at a time
                dask_workers() if workers is None else int(workers)})
+    if store is not None:
+        return (yield from _iterate_in_store(
+            stack, tasks, store, rows, cols, settings, config, done=done, n_iter=n_iter,
+            background=b, start=u0))
+
+    def product(arr, kind):
+        return arr.map_overlap(tasks[kind], depth={0: 0, 1: ring, 2: ring}, boundary="none",
+                               dtype=np.float32, trim=True, allow_rechunk=False,
+                               meta=np.empty((0, 0, 0), np.float32))
+
+    def hold(arr):
+        """The array computed once and held in memory (the threads' or the cluster's)."""
+        return client.persist(arr) if client is not None else arr.persist()
+
+    chunks = ((z,), rows, cols)
+    lazy = isinstance(stack, da.Array)
+    y = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
+    y = da.clip(y.astype(np.float32), 0, None)
     with dask.config.set(config):
-        if store is not None:  # the data cut in tiles once: each pass reads its windows
-            path = os.path.join(os.fspath(store), "data")
-            if not (done and os.path.isdir(path)):
-                y.to_zarr(path, overwrite=True, compute=True, compressors=None)
-            y = da.from_zarr(path)
-        if done:
-            norm = da.from_zarr(os.path.join(os.fspath(store), "norm"))
-            u = da.from_zarr(os.path.join(os.fspath(store), f"u{(done - 1) % 2}"))
-        else:
-            yield Progress("setup", 0.0, "H^T 1")
-            norm = hold(product(da.ones((z, h, w), np.float32, chunks=chunks), "adjoint"),
-                        "norm")
-            u = da.full((z, h, w), np.float32(u0), dtype=np.float32, chunks=chunks)
+        yield Progress("setup", 0.0, "H^T 1")
+        norm = hold(product(da.ones((z, h, w), np.float32, chunks=chunks), "adjoint"))
+        u = da.full((z, h, w), np.float32(u0), dtype=np.float32, chunks=chunks)
         top = float(norm.max().compute())
         norm = da.maximum(norm, np.float32(TINY * max(top, 1.0)))
-        for k in range(done, n_iter):
+        for k in range(n_iter):
             forward = product(u, "apply")
-            ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)), "ratio")
+            ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)))
             yield Progress("iteration", (k + 0.5) / n_iter,
                            f"iteration {k + 1} of {n_iter}: H u on every tile")
-            u = hold(u * product(ratio, "adjoint") / norm, f"u{k % 2}")
-            if store is not None:
-                write_state(store, {**settings, "done": k + 1, "background": b,
-                                    "start": u0})
+            u = hold(u * product(ratio, "adjoint") / norm)
             yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
-        return np.asarray(u.compute()) if store is None else u
+        return np.asarray(u.compute())
+
+
+def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done, n_iter,
+                      background, start):
+    """The iterations with the arrays in the store, a task a tile reading its window
+    from it (:mod:`.exchange_store`); returns the last iterate, a lazy dask array."""
+    import dask.array as da
+
+    from .exchange_store import TilePass, open_array, run_pass, store_chunk, write_data
+
+    z, h, w = settings["shape"]
+    edges_y = [(int(a), int(a + n)) for a, n in zip(np.cumsum((0,) + rows)[:-1], rows,
+                                                    strict=True)]
+    edges_x = [(int(a), int(a + n)) for a, n in zip(np.cumsum((0,) + cols)[:-1], cols,
+                                                    strict=True)]
+    grid = (len(rows), len(cols))
+    folder = os.fspath(store)
+
+    def one_pass(kind, target, **kw):
+        task = TilePass(kind, tasks["apply" if kind == "ratio" else "adjoint"], folder,
+                        edges_y, edges_x, target=target, **kw)
+        run_pass(task, *grid, config)
+
+    if not done:
+        chunk = store_chunk(settings["tile"], max(h, w))
+        for name in ("data", "norm", "ratio", "u0", "u1"):
+            open_array(folder, name, (z, h, w), chunk, create=True)
+        yield Progress("setup", 0.0, "the stack into the store, a tile at a time")
+        write_data(stack, folder, edges_y, edges_x,
+                   workers=config.get("num_workers") or 1)
+        yield Progress("setup", 0.0, "H^T 1")
+        one_pass("norm", "norm")
+    top = float(da.from_zarr(os.path.join(folder, "norm")).max().compute(**config))
+    floor = TINY * max(top, 1.0)
+    for k in range(done, n_iter):
+        previous = None if k == 0 else f"u{(k - 1) % 2}"
+        one_pass("ratio", "ratio", source=previous, start=start, background=background)
+        yield Progress("iteration", (k + 0.5) / n_iter,
+                       f"iteration {k + 1} of {n_iter}: H u on every tile")
+        one_pass("update", f"u{k % 2}", source="ratio", factor=previous, start=start,
+                 floor=floor)
+        write_state(store, {**settings, "done": k + 1, "background": background,
+                            "start": start})
+        yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
+    last = da.from_zarr(os.path.join(folder, f"u{(n_iter - 1) % 2}"))
+    return last.rechunk(((z,), tuple(rows), tuple(cols)))
 
 
 def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter: int = 50,
