@@ -141,8 +141,8 @@ def test_the_plan_fits_the_budget_and_says_when_nothing_does():
         assert BASE_BYTES + n * task_bytes(op, 64, tile, 256) <= m
         assert (-(-2048 // tile)) ** 2 >= n  # a tile for every thread
     # 1.2 GB: two tiles of a block at once do not fit; 4 GB: tiles of three blocks fit,
-    # and the field is cut in three tiles, 704 px a side (2048 / 3 in whole 64 px chunks)
-    assert plans == [(256, 1), (256, 2), (704, 2)]
+    # and the field is cut in three tiles, 768 px a side (2048 / 3 in whole 128 px chunks)
+    assert plans == [(256, 1), (256, 2), (768, 2)]
     with pytest.raises(ValueError, match=r"`memory` must be at least 0\.90 GiB for one tile"):
         plan_for_memory(op, 64, 0.8e9, block=256)
 

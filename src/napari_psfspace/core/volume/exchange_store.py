@@ -24,8 +24,10 @@ import numpy as np
 from .deconvolve3d import TINY
 
 #: Lateral chunk of the store's arrays, pixels, where it divides the tile (else the
-#: tile): a window of a tile ``T`` reads at most ``(T + 2 ring + 2 C)²`` pixels.
-STORE_CHUNK = 64
+#: tile): a window of a tile ``T`` reads at most ``(T + 2 ring + 2 C)²`` pixels. Smaller
+#: chunks read less beyond the window but cost Zarr more calls a chunk; this size took
+#: the least time a pass on 64-plane stacks (``bench/run.py deblur3d_scale``).
+STORE_CHUNK = 128
 
 
 def store_chunk(tile: int, side: int) -> int:
