@@ -1,7 +1,7 @@
 """Deblurring volumes larger than memory: seconds per iteration, peak memory, the tiles'
 overhead and the cost against shift-invariant Richardson-Lucy (RedLionfish, scikit-image).
 
-    python bench/bench_deblur3d_scale.py [--sizes 32x768 35x2048 64x2048] [--iterations 5]
+    python bench/bench_deblur3d_scale.py [--sizes 32x768 64x1024 35x2048 64x2048] [--iterations 5]
                                          [--memory 4GB] [--large 128x4096 --large-memory 2GB]
 
 Each run is a fresh process (its peak resident memory, ``ru_maxrss``, is its own):
@@ -162,7 +162,7 @@ def main() -> None:
     from dask.utils import parse_bytes
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--sizes", nargs="*", default=["32x768", "35x2048", "64x2048"],
+    ap.add_argument("--sizes", nargs="*", default=["32x768", "64x1024", "35x2048", "64x2048"],
                     help="stacks DEPTHxSIDE (none: only --large)")
     ap.add_argument("--iterations", type=int, default=5)
     ap.add_argument("--memory", default="4GB", help="the tiled runs' budget")
