@@ -7,15 +7,16 @@ its own kernels (compressed from the block's own maps, so they depend on nothing
 own block's kernels; ``H^T v`` likewise reads ``v`` within ``P // 2``. So a tile gets
 exact values of both from a window of the tile and a ring of ``P // 2`` pixels, when the
 window's blocks are the field's blocks cut by the window, each with its whole block's
-kernels (``BlockedOperator3D(window=...)``). One iteration is two passes over the tiles
-(two ``dask.array.map_overlap`` calls whose overlap is the ring)::
+kernels (``BlockedOperator3D(window=...)``). One iteration is two passes over the tiles,
+each tile's window overlapping its neighbours by the ring::
 
     r = y / max(H u + b, tiny)                    u on each tile's window
     u = u * H^T r / max(H^T 1, tiny max(H^T 1))    r on each tile's window
 
 with ``u`` and ``r`` held between the passes in memory (``persist``: the threads' or a
-``dask.distributed`` cluster's) or written to a Zarr store (``store``: the volume larger
-than memory). Every voxel then follows the same arithmetic as
+``dask.distributed`` cluster's; ``dask.array.map_overlap`` assembles each window from the
+neighbouring chunks) or in a Zarr store (``store``: the volume larger than memory; each
+tile a task reading its window from the store, :mod:`.exchange_store`). Every voxel then follows the same arithmetic as
 :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d` on the whole volume
 with the same blocks, up to the order of float32 additions: the tiles leave no seam.
 Independent tiles with a fixed margin (:mod:`.tiles3d`) cannot: a bead's influence
