@@ -16,7 +16,8 @@ each tile's window overlapping its neighbours by the ring::
 with ``u`` and ``r`` held between the passes in memory (``persist``: the threads' or a
 ``dask.distributed`` cluster's; ``dask.array.map_overlap`` assembles each window from the
 neighbouring chunks) or in a Zarr store (``store``: the volume larger than memory; each
-tile a task reading its window from the store, :mod:`.exchange_store`). Every voxel then follows the same arithmetic as
+tile a task reading its window from the store, :mod:`.exchange_store`). Every voxel
+then follows the same arithmetic as
 :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d` on the whole volume
 with the same blocks, up to the order of float32 additions: the tiles leave no seam.
 Independent tiles with a fixed margin (:mod:`.tiles3d`) cannot: a bead's influence
