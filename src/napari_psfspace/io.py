@@ -376,7 +376,8 @@ def best_focus_index(stack: np.ndarray) -> int:
 
 
 def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float | None = None,
-               metadata: dict | None = None, z_spacing: float | None = None) -> None:
+               metadata: dict | None = None, z_spacing: float | None = None,
+               into=None) -> None:
     """Write an array as an ImageJ-compatible TIFF, atomically.
 
     Parameters
@@ -388,6 +389,8 @@ def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float |
         Pixel size in micrometres, stored as resolution tags.
     z_spacing : float, optional
         A stack's plane spacing in micrometres (ImageJ's ``spacing``).
+    into : file object, optional
+        Write the TIFF's bytes into this open file instead (a set's member).
     metadata : dict, optional
         Extra JSON-serialisable information, stored in the ImageJ "Info" field.
     """
@@ -404,8 +407,29 @@ def write_tiff(path: str | os.PathLike, data: np.ndarray, *, pixel_size: float |
         kwargs["resolution"] = (1.0 / pixel_size, 1.0 / pixel_size)
     buf = io.BytesIO()  # tifffile needs a named or in-memory file
     tifffile.imwrite(buf, arr, imagej=True, metadata=ij, **kwargs)
+    if into is not None:
+        into.write(buf.getbuffer())
+        return
     with atomic_open(path) as fh:
         fh.write(buf.getbuffer())
+
+
+def write_tiff_set(members: list[tuple[str | os.PathLike, np.ndarray, dict | None]], *,
+                   pixel_size: float | None = None) -> None:
+    """Write several TIFFs as one set (:func:`~.core.common.atomic.write_set`): never
+    files of one run beside files of another, the first (the main output) present only
+    once all are. Each member is ``(path, data, metadata)``; every file's ImageJ "Info"
+    names the set's files (``"set"``)."""
+    from .core.common.atomic import write_set
+
+    names = [os.path.basename(os.fspath(p)) for p, _, _ in members]
+
+    def writer(path, data, meta):
+        info = {**(meta or {}), "set": names}
+        return lambda fh: write_tiff(path, data, pixel_size=pixel_size, metadata=info,
+                                     into=fh)
+
+    write_set([(p, writer(p, d, m)) for p, d, m in members])
 
 
 def write_png(path: str | os.PathLike, image: np.ndarray) -> None:

@@ -17,7 +17,14 @@ def run(args) -> int:
     from ..core.model.operator_file import archive_format
     from ..core.restore import identify_operator, iter_deblur
     from ..core.restore.identify import IdentificationWarning
-    from ..io import check_distinct, check_output_file, read_image, read_points_csv, write_tiff
+    from ..io import (
+        check_distinct,
+        check_output_file,
+        read_image,
+        read_points_csv,
+        write_tiff,
+        write_tiff_set,
+    )
 
     out = check_output_file(args.output, "-o")
     option = "--family"
@@ -75,15 +82,16 @@ def run(args) -> int:
                       smooth_weight=args.smooth_weight, max_iter=args.max_iter,
                       debias=args.refit_amplitudes, device=device)
     res = run_with_progress(gen, None if args.quiet else progress_printer())
-    write_tiff(out, res.image, pixel_size=info.pixel_size,
-               metadata={"deblur": res.parameters, "iterations": res.iterations})
-    written = [str(out)]
+    meta = {"deblur": res.parameters, "iterations": res.iterations}
+    members = [(out, res.image, meta)]
+    if args.parts:  # the image and its parts as one set: never a mix of two runs
+        members += [(out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}"), part,
+                     None) for name, part in (("sparse", res.sparse), ("smooth", res.smooth))]
+        write_tiff_set(members, pixel_size=info.pixel_size)
+    else:
+        write_tiff(out, res.image, pixel_size=info.pixel_size, metadata=meta)
+    written = [str(m[0]) for m in members]
     p = res.parameters
-    if args.parts:
-        for name, part in (("sparse", res.sparse), ("smooth", res.smooth)):
-            path = out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}")
-            write_tiff(path, part, pixel_size=info.pixel_size)
-            written.append(str(path))
     print(f"wrote {', '.join(written)}: {res.iterations} iterations on the "
           f"{p['device'].upper()} "
           f"({'converged' if res.converged else 'max_iter reached'}), sparse weight "

@@ -29,7 +29,7 @@ import tempfile
 from collections.abc import Callable, Iterator
 from typing import IO, Any
 
-__all__ = ["atomic_open", "atomic_write"]
+__all__ = ["atomic_open", "atomic_write", "write_set"]
 
 
 def _read_umask() -> int:
@@ -159,3 +159,48 @@ def atomic_write(
     """
     with atomic_open(path, mode, **open_kwargs) as fh:
         writer_fn(fh)
+
+
+def write_set(members: list[tuple[str | os.PathLike[str], Callable[[IO[Any]], Any]]]) -> None:
+    """Write several files as one set: never some of one run beside some of another.
+
+    Every member is first written whole to its temporary file (as :func:`atomic_open`);
+    then the set's existing files are removed, and the new ones renamed into place, the
+    first member last. A writer killed before the removals leaves the old set whole; one
+    killed after leaves some of the new set and none of the old: never a mix, and the
+    first member (the main output) present only once the whole set is.
+
+    Parameters
+    ----------
+    members : list of (path, writer_fn)
+        Each path's writer, called once with the open temporary file; the first member is
+        the set's main file.
+    """
+    written: list[tuple[str, str]] = []
+    try:
+        for path, writer_fn in members:
+            path = os.fspath(path)
+            directory = os.path.dirname(os.path.abspath(path))
+            if not os.path.isdir(directory):
+                raise FileNotFoundError(errno.ENOENT, f"cannot write {path}: the folder "
+                                        f"{directory} does not exist", directory)
+            _remove_stale(path)
+            fd, tmp = tempfile.mkstemp(dir=directory, prefix=_prefix(path)
+                                       + f"{os.getpid()}.", suffix=".tmp")
+            written.append((path, tmp))
+            with os.fdopen(fd, "wb") as fh:
+                writer_fn(fh)
+                fh.flush()
+                os.fsync(fh.fileno())
+            with contextlib.suppress(OSError):
+                os.chmod(tmp, 0o666 & ~_UMASK)
+        for path, _ in written:  # the old set goes before any of the new arrives
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+        for path, tmp in written[1:] + written[:1]:
+            os.replace(tmp, path)
+    except BaseException:
+        for _, tmp in written:
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+        raise
