@@ -6,7 +6,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: demo test check install lint bench
+.PHONY: demo test check install lint bench fuzz
 
 $(BIN)/psfspace: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -27,6 +27,11 @@ test: install
 # the inner loop: the tests that take under a second (tests/slow_tests.txt lists the others)
 check: install
 	$(BIN)/python -m pytest -m "not slow" -q
+
+# the doors under a longer, random property-based run (tests/test_fuzz.py; hypothesis)
+fuzz: install
+	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest tests/test_fuzz.py -q -p no:randomly \
+		--hypothesis-show-statistics
 
 lint: install
 	$(BIN)/ruff check src tests bench docs

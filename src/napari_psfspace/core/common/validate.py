@@ -79,6 +79,12 @@ def check_signal(image: np.ndarray, name: str = "image") -> None:
                          "a background")
 
 
+#: Gains of real cameras, ADU per electron: from a deep-well CCD's (well below one) to
+#: an EMCCD's with its multiplication (thousands); outside, the image is one value or
+#: every bead saturates.
+GAIN_RANGE = (1e-3, 1e4)
+
+
 def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, np.dtype]:
     """A camera's values: ``gain`` (ADU per electron) finite and positive, ``offset``
     (ADU) finite and >= 0 and below the dtype's largest value, ``read_noise``
@@ -94,7 +100,10 @@ def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, 
         if not np.isfinite(v) or (v <= low if strict else v < low):
             raise ValueError(f"`{name}` must be a finite number {'>' if strict else '>='} "
                              f"{low:g}, got {value!r}")
-        out.append(v)
+        out.append(v + 0.0)  # -0.0 is 0
+    if not GAIN_RANGE[0] <= out[0] <= GAIN_RANGE[1]:
+        raise ValueError(f"`gain` must be a camera's, {GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g} "
+                         f"ADU per electron, got {gain!r}")
     try:
         dt = np.dtype(dtype)
     except TypeError:
@@ -102,9 +111,11 @@ def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, 
     if dt.kind not in "uf":
         raise ValueError(f"`dtype` must be an unsigned integer (a camera's counts) or a "
                          f"float, got {dt}")
-    if dt.kind == "u" and not out[1] < np.iinfo(dt).max:
-        raise ValueError(f"`offset` {out[1]:g} must be below the largest {dt} value "
-                         f"{np.iinfo(dt).max}")
+    # integers: the dtype's range; floats: the counts they hold exactly
+    top = np.iinfo(dt).max if dt.kind == "u" else 2.0 ** (np.finfo(dt).nmant + 1)
+    if not out[1] < top:
+        raise ValueError(f"`offset` {out[1]:g} must be below {top:g}, the largest count "
+                         f"{dt} holds exactly")
     return out[0], out[1], out[2], dt
 
 

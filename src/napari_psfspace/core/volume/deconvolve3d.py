@@ -31,6 +31,9 @@ from .operator3d import ProductConvolution3D
 
 #: Smallest denominator of the ratio ``y / (H u + b)`` (image units).
 TINY = 1e-6
+#: The least largest value of a stack the iterations take: a thousand times their floor,
+#: so that the floor is below the data's noise (a stack scaled far below is refused).
+SMALLEST_TOP = 1e3 * TINY
 #: Voxels read to set the default background and the starting value.
 STATS_VOXELS = 1 << 22
 #: The stopping rule's default: an iteration that improves the data fit (Poisson
@@ -171,6 +174,10 @@ def stack_statistics(stack, background: float | None = None) -> tuple[float, flo
         whole = stack if isinstance(stack, np.ndarray) else sample
         check_signal(whole, "stack")
         top = float(np.max(whole))
+    if top < SMALLEST_TOP:
+        raise ValueError(f"`stack`: its largest value {top:.3g} is too small for the "
+                         f"iterations' floor {TINY:g} (at least {SMALLEST_TOP:g}): scale "
+                         "it, e.g. to camera counts")
     sample = np.clip(sample, 0, None)
     b = (float(np.percentile(sample, 1)) if background is None else
          check_background(background, top))
@@ -310,6 +317,9 @@ def iter_richardson_lucy_3d(
             yield from _waves(op.iter_adjoint(buf, multiply_into=u, workers=workers),
                               "iteration", where[0] + where[1] / 2, where[1] / 2, where[2])
         u /= norm
+        # light is never negative: the blocks' compressed kernels and the FFTs' rounding
+        # can leave a voxel a little below zero, which the next update would amplify
+        xp.maximum(u, 0, out=u)
         if accelerate:  # this step's change from its prediction
             xp.subtract(u, g_new, out=g_new)
             g1, g2, g_new = g_new, g1, g2

@@ -11,7 +11,7 @@ kernels (``BlockedOperator3D(window=...)``). One iteration is two passes over th
 each tile's window overlapping its neighbours by the ring::
 
     r = y / max(H u + b, tiny)                    u on each tile's window
-    u = u * H^T r / max(H^T 1, tiny max(H^T 1))    r on each tile's window
+    u = max(u * H^T r / max(H^T 1, tiny max(H^T 1)), 0)    r on each tile's window
 
 with ``u`` and ``r`` held between the passes in memory (``persist``: the threads' or a
 ``dask.distributed`` cluster's; ``dask.array.map_overlap`` assembles each window from the
@@ -309,7 +309,7 @@ def iter_richardson_lucy_3d_exchange(
             ratio = hold(y / da.maximum(forward + np.float32(b), np.float32(TINY)))
             yield Progress("iteration", (k + 0.5) / n_iter,
                            f"iteration {k + 1} of {n_iter}: H u on every tile")
-            u = hold(u * product(ratio, "adjoint") / norm)
+            u = hold(da.maximum(u * product(ratio, "adjoint") / norm, np.float32(0)))
             yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
         return np.asarray(u.compute())
 

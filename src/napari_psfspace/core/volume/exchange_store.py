@@ -58,7 +58,7 @@ class TilePass:
 
     - "norm": ``H^T 1`` into ``target``;
     - "ratio": ``y / max(H u + b, tiny)`` into ``target``, ``u`` the array ``source``;
-    - "update": ``u H^T r / max(norm, floor)`` into ``target``, ``r`` the array
+    - "update": ``max(u H^T r / max(norm, floor), 0)`` into ``target``, ``r`` the array
       ``source`` and ``u`` the array ``factor``.
 
     An iterate named None is the constant ``start`` (the first iteration's)."""
@@ -107,6 +107,7 @@ class TilePass:
         elif self.kind == "update":
             out *= self._read(self.factor, tile)
             out /= np.maximum(self._read("norm", tile), np.float32(self.floor))
+            np.maximum(out, np.float32(0), out=out)
         self._open(self.target)[tile] = np.ascontiguousarray(out, dtype=np.float32)
 
 
