@@ -75,6 +75,13 @@ def compute_first(first, rest: list, client) -> list:
         return [head.result()[0], *tail]
 
 
+def blas_limit():
+    """A context in which BLAS runs on :data:`BLAS_THREADS` threads: where the work
+    already runs on threads of its own (blocks, tiles), OpenBLAS's threads would compete
+    with them for the cores."""
+    return _blas_limit()
+
+
 def _blas_limit():
     """A context in which BLAS runs on :data:`BLAS_THREADS` threads (threadpoolctl; a
     no-op where it is missing or no limit is asked)."""

@@ -33,7 +33,7 @@ import scipy.fft
 from numpy.typing import ArrayLike
 
 from ..common.device import ArrayModule, array_module
-from ..common.threads import default_workers
+from ..common.threads import blas_limit, default_workers
 from ..common.validate import check_int
 from ..model.compress import compressed_field
 from ..model.operator_fft import check_dc
@@ -293,7 +293,8 @@ class BlockedOperator3D:
                 fn(j)
                 yield (j + 1) / total
             return
-        with ThreadPoolExecutor(max_workers=n, thread_name_prefix="psfspace-block") as pool:
+        with (blas_limit(),  # the blocks' small products: no BLAS threads beside them
+              ThreadPoolExecutor(max_workers=n, thread_name_prefix="psfspace-block") as pool):
             try:
                 for start in range(0, total, n):
                     futures = [pool.submit(fn, j)

@@ -26,6 +26,7 @@ spreads by ``P // 2`` pixels every iteration.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 from collections.abc import Generator
@@ -239,8 +240,6 @@ def iter_richardson_lucy_3d_exchange(
     the last iterate there, a lazy dask array. ``resume``: continue from the store's last
     finished iteration (its settings must be these; from the start where it finished
     none)."""
-    import dask
-    import dask.array as da
 
     check_stack(stack, operator)
     n_iter = check_int(n_iter, "n_iter", minimum=1)
@@ -274,12 +273,28 @@ def iter_richardson_lucy_3d_exchange(
     tasks["adjoint"].spectra = tasks["apply"].spectra  # one cache of each for both
     tasks["adjoint"].kernels = tasks["apply"].kernels
 
-    from ..common.threads import dask_workers
+    from ..common.threads import blas_limit, dask_workers
 
     config = ({"scheduler": client.get} if client is not None else
               {"scheduler": "threads",
                "num_workers": 1 if am.gpu else  # one device: its tiles one at a time
                dask_workers() if workers is None else int(workers)})
+    # tiles on the local threads: no BLAS threads beside them
+    with blas_limit() if client is None else contextlib.nullcontext():
+        return (yield from _iterate(stack, tasks, store, rows, cols, settings, config,
+                                    client, done=done, n_iter=n_iter, background=b,
+                                    start=u0))
+
+
+def _iterate(stack, tasks, store, rows, cols, settings, config, client, *, done, n_iter,
+             background, start):
+    """The iterations, in the store or in memory (the passes' dask tasks)."""
+    import dask
+    import dask.array as da
+
+    z, h, w = settings["shape"]
+    ring = tasks["apply"].ring
+    b, u0 = background, start
     if store is not None:
         return (yield from _iterate_in_store(
             stack, tasks, store, rows, cols, settings, config, done=done, n_iter=n_iter,
