@@ -112,13 +112,13 @@ def _writable(path: str) -> bool:
     """Whether a file, or a folder and every folder and file in it, may be written."""
     from pathlib import Path
 
-    from .io import _file_writable, _folder_writable
+    from .io import file_writable, folder_writable
 
     if not os.path.isdir(path):
-        return _file_writable(Path(path))
+        return file_writable(Path(path))
     for folder, _, files in os.walk(path):
-        if not _folder_writable(Path(folder)) or not all(
-                _file_writable(Path(folder, f)) for f in files):
+        if not folder_writable(Path(folder)) or not all(
+                file_writable(Path(folder, f)) for f in files):
             return False
     return True
 
@@ -167,9 +167,9 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
         raise ValueError(f"cannot write {out}: the folder {parent} does not exist")
     from pathlib import Path
 
-    from .io import _folder_writable
+    from .io import folder_writable
 
-    if not _folder_writable(Path(parent)):
+    if not folder_writable(Path(parent)):
         raise ValueError(f"cannot write {out}: the folder {parent} is not writable")
     zarr_out = is_zarr_path(out)
     if resume and not os.path.isdir(work):

@@ -450,7 +450,7 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
         fh.write(data)
 
 
-def _folder_writable(folder: Path) -> bool:
+def folder_writable(folder: Path) -> bool:
     """Writable by its permission bits (os.access is always true for root, which would
     let a default land in a read-only data folder)."""
     import stat
@@ -475,9 +475,9 @@ def check_output_file(path: str | os.PathLike, option: str) -> Path:
     folder = p.parent if str(p.parent) else Path(".")
     if not folder.is_dir():
         raise ValueError(f"{option} {path}: folder {folder} does not exist")
-    if not _folder_writable(folder):
+    if not folder_writable(folder):
         raise ValueError(f"{option} {path}: folder {folder} is not writable")
-    if p.exists() and not _file_writable(p):
+    if p.exists() and not file_writable(p):
         raise ValueError(f"{option} {path}: the file exists and is read-only")
     return p
 
@@ -529,19 +529,19 @@ def check_output_folder(path: str | os.PathLike, option: str) -> Path:
     if p.exists() and not p.is_dir():
         raise ValueError(f"{option} {path}: is a file, expected a folder")
     if p.is_dir():
-        if not _folder_writable(p):
+        if not folder_writable(p):
             raise ValueError(f"{option} {path}: folder is not writable")
         return p
     parent = p.parent if str(p.parent) else Path(".")
     while not parent.exists() and parent != parent.parent:
         parent = parent.parent
-    if not parent.is_dir() or not _folder_writable(parent):
+    if not parent.is_dir() or not folder_writable(parent):
         raise ValueError(f"{option} {path}: cannot be created ({parent} is not a writable "
                          "folder)")
     return p
 
 
-def _file_writable(path: Path) -> bool:
+def file_writable(path: Path) -> bool:
     import stat
 
     try:
@@ -561,7 +561,7 @@ def default_model_path(image_path: str | os.PathLike | None, name: str = "image"
     if image_path:
         src = Path(image_path)
         folder, stem = src.parent, src.stem
-        if not _folder_writable(folder):
+        if not folder_writable(folder):
             folder = Path.cwd()
     else:
         folder, stem = Path.cwd(), name.replace(" ", "_")
