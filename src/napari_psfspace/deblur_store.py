@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .core.common.progress import Progress, run_with_progress
+from .core.common.threads import map_threads
 from .core.volume.blocks3d import BLOCK, RTOL
 from .core.volume.deconvolve3d import stack_statistics
 from .core.volume.exchange3d import iter_richardson_lucy_3d_exchange, plan_for_memory
@@ -239,15 +240,20 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
             by_tile.setdefault((tile_y, tile_x), []).append(idx)
         starts_y = np.cumsum((0,) + u.chunks[1])
         starts_x = np.cumsum((0,) + u.chunks[2])
-        for (ty, tx), chunks in by_tile.items():
+        def write_tile(item) -> None:
+            (ty, tx), chunks = item
             y0, y1 = int(starts_y[ty]), int(starts_y[ty + 1])
             x0, x1 = int(starts_x[tx]), int(starts_x[tx + 1])
-            part = np.asarray(u[:, y0:y1, x0:x1].compute(), np.float32)
+            part = np.asarray(u[:, y0:y1, x0:x1].compute(scheduler="sync"), np.float32)
             for iz, iy, ix in chunks:
                 ys = slice(iy * cy, min((iy + 1) * cy, arr.shape[1]))
                 xs = slice(ix * cx, min((ix + 1) * cx, arr.shape[2]))
                 arr[iz, ys, xs] = part[iz, ys.start - y0:ys.stop - y0,
                                        xs.start - x0:xs.stop - x0]
+
+        # a tile at a time on each thread (the budget's tiles at once): the iterations
+        # are over, their memory free
+        map_threads(write_tile, list(by_tile.items()), workers)
         written = len(todo)
     else:
         write_tiff(out, np.asarray(u.compute(), np.float32),

@@ -18,6 +18,7 @@ from ..common.validate import check_int
 from ..model.cone import Cone, project_onto_cone
 from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
+from ..model.operator_checks import check_model_field
 from ..model.psf_field import interp_weights
 from .choice import blend
 from .family_file import read_family, write_family
@@ -264,10 +265,17 @@ class OperatorFamily:
             except ValueError as exc:
                 raise ValueError(f"{os.fspath(path)!r}: inconsistent family file: image "
                                  f"{k}'s own operator: {exc}") from exc
-        return cls(arr["basis"], arr["space"], (arr["grid_y"], arr["grid_x"]), shape,
-                   arr["gammas"], Cone(arr["cone"]),
-                   grid_step=float(header.get("grid_step", 32.0)),
-                   metadata=header.get("metadata", {}), own=own, family_weights=weights)
+        family = cls(arr["basis"], arr["space"], (arr["grid_y"], arr["grid_x"]), shape,
+                     arr["gammas"], Cone(arr["cone"]),
+                     grid_step=float(header.get("grid_step", 32.0)),
+                     metadata=header.get("metadata", {}), own=own, family_weights=weights)
+        for k in range(family.n_images):  # each learnt image's operator is a blur
+            op = family.operator(k)
+            grid = op.grid if op.grid is not None else (np.arange(shape[0]),
+                                                        np.arange(shape[1]))
+            check_model_field(op.basis, op.coefficients, shape, *grid,
+                              f"{os.fspath(path)!r} (image {k}'s operator)")
+        return family
 
 
 def save_family(subspace: OperatorFamily, path) -> None:
