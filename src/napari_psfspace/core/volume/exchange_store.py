@@ -16,7 +16,6 @@ whole: Zarr writes it to a temporary file renamed into place).
 
 from __future__ import annotations
 
-import math
 import os
 
 import numpy as np
@@ -31,9 +30,14 @@ STORE_CHUNK = 128
 
 
 def store_chunk(tile: int, side: int) -> int:
-    """The store's lateral chunk for tiles of ``tile`` px on a field ``side`` px wide."""
-    c = math.gcd(int(tile), STORE_CHUNK)
-    return c if c == STORE_CHUNK else min(int(tile), int(side))
+    """The store's lateral chunk for tiles of ``tile`` px on a field ``side`` px wide:
+    :data:`STORE_CHUNK`, halved down to 16 px while it does not divide the tile or is
+    over a quarter of it (a window then reads at most half a tile beyond itself); the
+    tile itself where no such chunk divides it."""
+    c = STORE_CHUNK
+    while c > 16 and (tile % c or 4 * c > tile):
+        c //= 2
+    return c if tile % c == 0 else min(int(tile), int(side))
 
 
 def open_array(store, name: str, shape, chunk: int, *, create: bool):
