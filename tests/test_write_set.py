@@ -95,3 +95,50 @@ def test_deblur_parts_are_one_set_naming_each_other(tmp_path):
         with tifffile.TiffFile(tmp_path / name) as tif:
             info = json.loads(tif.imagej_metadata["Info"])
         assert info["set"] == list(NAMES)
+
+
+def test_deblur_parts_killed_at_any_time_leave_one_runs_set(tmp_path):
+    """``kill -9`` of ``psfspace deblur --parts`` at times spread over its end (where it
+    writes), eight times: the files there always come from one run (their ``set_run``),
+    the main file only with its whole set; the next run leaves its set whole and no
+    temporary file."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import napari_psfspace as ps
+
+    image, _ = ps.simulate_beads((128, 128), 4, seed=1)
+    tifffile.imwrite(tmp_path / "sim.tif", image)
+    rng = np.random.default_rng(0)
+    ps.ProductConvolution(rng.random((2, 9, 9)), 0.1 + rng.random((2, 3, 3)),
+                          shape=(128, 128), grid=(np.linspace(0, 127, 3),) * 2).save(
+        tmp_path / "m.npz")
+    cmd = [sys.executable, "-m", "napari_psfspace.cli", "deblur", str(tmp_path / "sim.tif"),
+           "--model", str(tmp_path / "m.npz"), "-o", str(tmp_path / "d.tif"), "--parts",
+           "-q", "--max-iter", "20"]
+
+    def runs():
+        found = {}
+        for name in NAMES:
+            if (tmp_path / name).exists():
+                with tifffile.TiffFile(tmp_path / name) as tif:
+                    found[name] = json.loads(tif.imagej_metadata["Info"])["set_run"]
+        return found
+
+    t0 = time.monotonic()
+    subprocess.run(cmd, check=True, capture_output=True)
+    whole = time.monotonic() - t0
+    for i in range(8):
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(whole * (0.6 + 0.5 * i / 8))  # around the writes, or after the end
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+        found = runs()
+        assert len(set(found.values())) <= 1, found  # never two runs' files together
+        assert "d.tif" not in found or len(found) == 3, found
+    subprocess.run(cmd, check=True, capture_output=True)
+    assert len(set(runs().values())) == 1 and len(runs()) == 3
+    assert not [p for p in os.listdir(tmp_path) if p.endswith(".tmp")]

@@ -419,13 +419,16 @@ def write_tiff_set(members: list[tuple[str | os.PathLike, np.ndarray, dict | Non
     """Write several TIFFs as one set (:func:`~.core.common.atomic.write_set`): never
     files of one run beside files of another, the first (the main output) present only
     once all are. Each member is ``(path, data, metadata)``; every file's ImageJ "Info"
-    names the set's files (``"set"``)."""
+    names the set's files (``"set"``) and the write they came from (``"set_run"``)."""
+    import uuid
+
     from .core.common.atomic import write_set
 
     names = [os.path.basename(os.fspath(p)) for p, _, _ in members]
+    run = uuid.uuid4().hex  # the same in every member of this write: a set is one run's
 
     def writer(path, data, meta):
-        info = {**(meta or {}), "set": names}
+        info = {**(meta or {}), "set": names, "set_run": run}
         return lambda fh: write_tiff(path, data, pixel_size=pixel_size, metadata=info,
                                      into=fh)
 
