@@ -87,7 +87,13 @@ def test_the_worst_command_lines_are_refused_in_one_line(folder, capsys, argv, s
     (lambda: ps.estimate_family([np.ones((64, 64))] * 2, psf_radius=5, grid_step=0),
      "`grid_step`"),
     (lambda: ps.simulate_psf({999: 1.0}), "Noll index 999"),
+    # memory before allocation: a PSF window no machine holds
+    (lambda: ps.simulate_psf(size=100001), "`size` 100001.*GiB of memory"),
 ])
-def test_the_worst_api_calls_name_their_argument(call, says):
+def test_the_worst_api_calls_name_their_argument(monkeypatch, call, says):
+    from napari_psfspace.core.common import validate
+
+    # the memory a machine of 16 GiB has free: the refusal does not depend on this one's
+    monkeypatch.setattr(validate, "available_memory", lambda: 16 * 2**30)
     with pytest.raises(ValueError, match=says):
         call()

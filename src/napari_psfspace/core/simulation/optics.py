@@ -35,6 +35,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from ..beads.sphere import sphere_transfer
+from ..common.validate import check_memory
 from .aberrations import FieldAberrations
 from .zernike import zernike
 
@@ -391,6 +392,11 @@ def simulate_psf(
         window much larger than the PSF is ~1.
     """
     size = check_size(size)
+    # the fine window (oversampled, with its margin): its complex amplitude, intensity,
+    # spectrum and the transforms' buffers, about four complex arrays of it
+    fine = optics.oversampling * (size + 2 * _WINDOW_MARGIN_PX)
+    check_memory(4 * 16.0 * fine * fine, f"`size` {size}: a PSF window of {size} px, "
+                 f"{fine} fine samples a side")
     noll, coefs = _split_zernike(zernike)
     try:
         sh = np.asarray(shift, dtype=float)
