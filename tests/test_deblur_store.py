@@ -221,3 +221,20 @@ def test_a_disk_too_small_for_the_iterates_is_refused_before_any_work(files, cap
     assert not (d / "out.zarr").exists() and not (d / "out.zarr.iterates").exists()
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(need, 0, need))
     assert _cli(d, "-o", str(d / "out.zarr"), "--tile", "32") == 0
+
+
+def test_the_stack_is_sampled_once(files, monkeypatch):
+    """The background and start, read from the stack before any work (its refusals),
+    are passed on: the tiles do not read the stack's sample again (a lazy file's whole
+    read, on a large stack)."""
+    from napari_psfspace.core.volume import exchange3d
+
+    d, op, _ = files
+    calls = []
+    real = exchange3d.stack_statistics
+    monkeypatch.setattr(exchange3d, "stack_statistics",
+                        lambda *a, **k: calls.append(1) or real(*a, **k))
+    from napari_psfspace.deblur_store import deblur_to_store
+
+    run = deblur_to_store(d / "in.tif", op, d / "once.zarr", n_iter=2, tile=32)
+    assert calls == [] and run.background is not None

@@ -21,7 +21,7 @@ import numpy as np
 from .core.common.progress import Progress, run_with_progress
 from .core.common.threads import map_threads
 from .core.volume.blocks3d import BLOCK, RTOL
-from .core.volume.deconvolve3d import stack_statistics
+from .core.volume.deconvolve3d import TINY, stack_statistics
 from .core.volume.exchange3d import iter_richardson_lucy_3d_exchange, plan_for_memory
 from .core.volume.operator3d import ProductConvolution3D
 
@@ -208,9 +208,11 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                                                                           np.floating):
         raise ValueError(f"the stack {os.fspath(stack_path)!r} holds {stack.dtype} data; "
                          "expected intensities (integers or floats)")
+    start = None  # a resumed run takes its background and start from its state
     if not resume:  # the stack's range and the background, before anything is written
-        stack_statistics(stack, background)
-    if not resume:  # the iterates' arrays and the output, before anything is written
+        background, mean = stack_statistics(stack, background)  # read once, passed on
+        start = max(mean - background, TINY)
+        # the iterates' arrays and the output
         need = DISK_VOLUMES * 4.0 * float(np.prod(stack.shape))
         free = shutil.disk_usage(parent).free
         if need > free:
@@ -219,7 +221,8 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                              f"iterates and the output), {free / 1e9:.3g} GB are free")
     os.makedirs(work, exist_ok=True)
     u = yield from iter_richardson_lucy_3d_exchange(
-        stack, operator, n_iter=n_iter, background=background, tile=tile, block=block,
+        stack, operator, n_iter=n_iter, background=background,
+        start=start, tile=tile, block=block,
         rtol=rtol, store=work, resume=resume, client=client, workers=workers,
         device=device)
     yield Progress("write", 1.0, f"writing {out}")

@@ -37,7 +37,7 @@ import scipy.fft
 from ..common.atomic import atomic_write
 from ..common.device import ArrayModule, array_module
 from ..common.progress import Progress, run_with_progress
-from ..common.validate import check_int
+from ..common.validate import check_background, check_int, check_positive
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import TINY, check_stack, stack_statistics
 from .exchange_store import STORE_CHUNK
@@ -256,6 +256,8 @@ def iter_richardson_lucy_3d_exchange(
     done = 0
     if state is not None:
         done, b, u0 = state["done"], state["background"], state["start"]
+    elif background is not None and start is not None:  # both given: no stack read
+        b, u0 = check_background(background, np.inf), check_positive(start, "start")
     else:
         b, mean = stack_statistics(stack, background)  # its refusals before any progress
         yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
