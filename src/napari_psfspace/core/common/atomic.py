@@ -77,6 +77,31 @@ def _remove_stale(path: str) -> None:
                     os.unlink(os.path.join(directory, name))
 
 
+def _temporary(path: str) -> tuple[int, str]:
+    """A new temporary file beside ``path`` (its folder must exist), after removing the
+    dead writers' ones there: ``(fd, name)``."""
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise FileNotFoundError(errno.ENOENT, f"cannot write {path}: the folder {directory} "
+                                "does not exist", directory)
+    _remove_stale(path)
+    return tempfile.mkstemp(dir=directory, prefix=_prefix(path) + f"{os.getpid()}.",
+                            suffix=".tmp")
+
+
+def _finish(fh, tmp_path: str, path: str) -> None:
+    """A temporary file written whole: flushed to disk, with the permissions of the file
+    it replaces, or the usual default (0666 & ~umask) for a new one (mkstemp makes 0600)."""
+    fh.flush()
+    os.fsync(fh.fileno())
+    try:
+        perms = os.stat(path).st_mode & 0o7777
+    except OSError:
+        perms = 0o666 & ~_UMASK
+    with contextlib.suppress(OSError):
+        os.chmod(tmp_path, perms)
+
+
 @contextlib.contextmanager
 def atomic_open(
     path: str | os.PathLike[str], mode: str = "wb", **open_kwargs: Any
@@ -108,27 +133,11 @@ def atomic_open(
     if mode not in ("wb", "w"):
         raise ValueError(f"`mode` must be 'wb' or 'w', got {mode!r}")
     path = os.fspath(path)
-    directory = os.path.dirname(os.path.abspath(path))
-    if not os.path.isdir(directory):
-        raise FileNotFoundError(errno.ENOENT, f"cannot write {path}: the folder {directory} "
-                                "does not exist", directory)
-    _remove_stale(path)
-    fd, tmp_path = tempfile.mkstemp(
-        dir=directory, prefix=_prefix(path) + f"{os.getpid()}.", suffix=".tmp"
-    )
+    fd, tmp_path = _temporary(path)
     try:
         with os.fdopen(fd, mode, **open_kwargs) as fh:
             yield fh
-            fh.flush()
-            os.fsync(fh.fileno())
-        # mkstemp creates files with mode 0600: keep the permissions of the file
-        # being replaced, or use the usual default (0666 & ~umask) for a new file.
-        try:
-            perms = os.stat(path).st_mode & 0o7777
-        except OSError:
-            perms = 0o666 & ~_UMASK
-        with contextlib.suppress(OSError):
-            os.chmod(tmp_path, perms)
+            _finish(fh, tmp_path, path)
         os.replace(tmp_path, path)
     except BaseException:
         with contextlib.suppress(OSError):
@@ -180,20 +189,11 @@ def write_set(members: list[tuple[str | os.PathLike[str], Callable[[IO[Any]], An
     try:
         for path, writer_fn in members:
             path = os.fspath(path)
-            directory = os.path.dirname(os.path.abspath(path))
-            if not os.path.isdir(directory):
-                raise FileNotFoundError(errno.ENOENT, f"cannot write {path}: the folder "
-                                        f"{directory} does not exist", directory)
-            _remove_stale(path)
-            fd, tmp = tempfile.mkstemp(dir=directory, prefix=_prefix(path)
-                                       + f"{os.getpid()}.", suffix=".tmp")
+            fd, tmp = _temporary(path)
             written.append((path, tmp))
             with os.fdopen(fd, "wb") as fh:
                 writer_fn(fh)
-                fh.flush()
-                os.fsync(fh.fileno())
-            with contextlib.suppress(OSError):
-                os.chmod(tmp, 0o666 & ~_UMASK)
+                _finish(fh, tmp, path)
         for path, _ in written:  # the old set goes before any of the new arrives
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(path)
