@@ -28,9 +28,11 @@ test: install
 check: install
 	$(BIN)/python -m pytest -m "not slow" -q
 
-# the doors under a longer, random property-based run (tests/test_fuzz.py; hypothesis)
+# the doors under a longer, random property-based run (hypothesis: tests/test_fuzz.py, and
+# damaged model and family files through every door that reads them)
 fuzz: install
-	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest tests/test_fuzz.py -q -p no:randomly \
+	HYPOTHESIS_PROFILE=fuzz $(BIN)/python -m pytest tests/test_fuzz.py tests/test_one_validator.py \
+		-q -p no:randomly \
 		--hypothesis-show-statistics
 
 lint: install

@@ -15,6 +15,25 @@ def shared_data() -> Path:
     return SHARED_DATA
 
 
+def _hypothesis_profiles() -> None:
+    """The property-based tests' two profiles, for every test file: ``fast`` (the suite's:
+    a few examples each, derandomised, so that every run is the same) and ``fuzz``
+    (``make fuzz``: ``FUZZ_EXAMPLES`` each, 100 by default, random).
+    ``HYPOTHESIS_PROFILE`` chooses."""
+    try:
+        from hypothesis import HealthCheck, settings
+    except ImportError:  # the tests that need it skip
+        return
+    settings.register_profile("fast", max_examples=12, derandomize=True, deadline=None,
+                              suppress_health_check=list(HealthCheck))
+    settings.register_profile("fuzz", max_examples=int(os.environ.get("FUZZ_EXAMPLES", 100)),
+                              deadline=None, suppress_health_check=list(HealthCheck))
+    settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "fast"))
+
+
+_hypothesis_profiles()
+
+
 #: Tests that took a second or more (``tests/update_slow.py`` writes the list from a
 #: run's durations): marked ``slow``, left out by ``make check``.
 SLOW_LIST = Path(__file__).with_name("slow_tests.txt")

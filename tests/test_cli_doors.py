@@ -44,7 +44,9 @@ def files(tmp_path_factory):
     gy, gx = op.grid
     space = np.ones((1, len(gy), len(gx))) / np.sqrt(len(gy) * len(gx))
     family = OperatorFamily(op.basis, space, op.grid, op.shape, np.ones((2, n_i, 1)),
-                              Cone(np.eye(n_i)), metadata={"psf_radius": truth.psf_radius})
+                              # its generators: the model's PSFs at its nodes
+                              Cone(op.coefficients.reshape(n_i, -1).T),
+                              metadata={"psf_radius": truth.psf_radius})
     family.save(d / "family.npz")
     raw = (d / "family.npz").read_bytes()
     (d / "family_trunc.npz").write_bytes(raw[: len(raw) - 100])

@@ -137,7 +137,7 @@ def test_gaps_between_absorbing_blobs_are_not_beads(shared_data):
 
 
 def test_focus_measure_names_its_errors():
-    with pytest.raises(ValueError, match="3-D"):
+    with pytest.raises(ValueError, match=r"`stack` must be a z-stack \(Z, H, W\)"):
         focus_measure(np.zeros((8, 8)))
     with pytest.raises(ValueError, match="constant"):
         focus_measure(np.ones((3, 16, 16)))

@@ -4,31 +4,25 @@ binary), either returns a result that passes its own sanity checks (finite, the 
 shape, non-negative where physics says so) or refuses with a ``ValueError`` or
 ``TypeError`` whose one line names the argument.
 
-Two profiles: ``fast`` (the suite's, a few examples each, seeded so that every run is
-the same) and ``fuzz`` (``make fuzz``: ``FUZZ_EXAMPLES`` each, 100 by default, five times
-as many through the command line, random). ``HYPOTHESIS_PROFILE`` chooses.
+Two profiles (``tests/conftest.py``): ``fast`` (the suite's, a few examples each, seeded
+so that every run is the same) and ``fuzz`` (``make fuzz``: ``FUZZ_EXAMPLES`` each, 100 by
+default, five times as many through the command line, random). ``HYPOTHESIS_PROFILE``
+chooses.
 """
 
 from __future__ import annotations
 
-import os
 import re
 
 import numpy as np
 import pytest
 
 hypothesis = pytest.importorskip("hypothesis")
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 import napari_psfspace as ps  # noqa: E402
 from napari_psfspace.cli import main  # noqa: E402
-
-settings.register_profile("fast", max_examples=12, derandomize=True, deadline=None,
-                          suppress_health_check=list(HealthCheck))
-settings.register_profile("fuzz", max_examples=int(os.environ.get("FUZZ_EXAMPLES", 100)),
-                          deadline=None, suppress_health_check=list(HealthCheck))
-settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "fast"))
 
 DTYPES = (np.uint8, np.uint16, np.int16, np.int32, np.float32, np.float64, np.bool_)
 # images with beads, of the model's shape, drawn more often: the doors that succeed are

@@ -343,7 +343,7 @@ def test_validation_messages(rng):
     u[2, 1] = np.nan
     with pytest.raises(ValueError, match="`u` contains NaN"):
         op0.apply(u)
-    with pytest.raises(ValueError, match="`u` must be a real image"):
+    with pytest.raises(ValueError, match="`u` must be real-valued"):
         op.apply(np.zeros((10, 12), dtype=complex))
 
 

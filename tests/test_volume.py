@@ -118,7 +118,8 @@ def test_bad_arguments_are_named():
     with pytest.raises(ValueError, match="`stack`"):
         estimate_operator_3d(np.zeros((40, 40)), psf_radius=5)
     with pytest.raises(ValueError, match="`bead_diameter`"):
-        estimate_operator_3d(np.zeros((5, 64, 64)), psf_radius=5, bead_diameter=2.0)
+        estimate_operator_3d(np.random.default_rng(0).poisson(10.0, (5, 64, 64)), psf_radius=5,
+                             bead_diameter=2.0)
 
 
 def test_the_pca_takes_3d_patches():

@@ -17,7 +17,7 @@ from scipy import ndimage as ndi
 from ..common import spacing
 from ..common.errors import NoBeadsError
 from ..common.progress import check_halt
-from ..common.validate import as_image, check_positive, check_psf_radius, check_saturation
+from ..common.validate import as_array, as_image, check_positive, check_psf_radius, check_saturation
 from .log import local_peaks, log_response
 from .overlap import NEIGHBOUR_SHARE, patch_shares
 from .saturation import saturated_cores
@@ -29,6 +29,9 @@ from .spikes import (
 )
 
 #: Status codes of a bead, in the order in which they are assigned.
+#: The float32 images of the image's size detection holds at once (the image, its
+#: filtered copies and masks), counted with a margin: its memory is checked first.
+DETECT_IMAGES = 8
 KEPT = "kept"
 SATURATED = "saturated"
 BORDER = "border"
@@ -232,8 +235,8 @@ def detect_beads(
         When nothing stands above the threshold; the message gives the strongest
         response found so that the user knows how far to lower ``threshold``.
     """
-    raw = np.asarray(image)
-    img = as_image(raw, dtype=np.float32)
+    raw = np.asarray(as_array(image, "image"))
+    img = as_image(raw, dtype=np.float32, copies=DETECT_IMAGES)
     r = check_psf_radius(psf_radius, img.shape)
     threshold = check_positive(threshold, "threshold")
     neighbour_ratio = check_positive(neighbour_ratio, "neighbour_ratio", allow_zero=True)

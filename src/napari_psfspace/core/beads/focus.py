@@ -16,6 +16,7 @@ import numpy as np
 from scipy import ndimage as ndi
 
 from ..common.errors import NoBeadsError, PsfSpaceError
+from ..common.validate import as_stack
 from .detect import detect_beads
 from .radius import suggest_psf_radius
 
@@ -27,18 +28,7 @@ MIN_PEAK_SHARE = 0.3
 
 
 def _stack(stack) -> np.ndarray:
-    arr = np.asarray(stack)
-    if arr.ndim != 3:
-        raise ValueError(f"`stack` must be 3-D (Z, Y, X), got shape {arr.shape}.")
-    if arr.shape[0] < 1 or min(arr.shape[1:]) < 8:
-        raise ValueError(f"`stack` must hold slices of at least 8 x 8 pixels, got shape "
-                         f"{arr.shape}.")
-    if arr.dtype.kind not in "biuf":
-        raise ValueError(f"`stack` must be a real array, got dtype {arr.dtype}.")
-    if arr.dtype.kind == "f" and not np.isfinite(arr).all():
-        raise ValueError(f"`stack` contains {int((~np.isfinite(arr)).sum())} NaN or infinite "
-                         "value(s); expected only finite values.")
-    return arr
+    return np.asarray(as_stack(stack, min_side=8))
 
 
 def bead_peaks(stack, centers, psf_radius: float) -> np.ndarray:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..common.validate import as_image
+from ..common.validate import as_array, as_image
 from .spikes import (
     QUANTISATION_VARIANCE,
     find_spikes,
@@ -307,7 +307,7 @@ def prepare(image) -> Prepared:
     memo = _reuse_for(image)
     if memo is not None and memo.prepared is not None:
         return memo.prepared
-    raw = np.asarray(image)
+    raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, dtype=np.float32)
     integer = is_integer_valued(raw)
     sd = pixel_noise_sd(raw, integer=integer)

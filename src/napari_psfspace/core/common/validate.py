@@ -8,8 +8,46 @@ from __future__ import annotations
 import numpy as np
 
 
-def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
+def as_array(value, name: str) -> np.ndarray:
+    """``value`` as an array without copying one that is already an array (NumPy, or a
+    lazy dask or Zarr array, whose ``shape`` and ``dtype`` are read without its data);
+    nested sequences of unequal lengths are refused naming ``name``."""
+    if hasattr(value, "shape") and hasattr(value, "dtype") and hasattr(value, "ndim"):
+        return value
+    try:
+        return np.asarray(value)
+    except (ValueError, TypeError):
+        raise ValueError(f"`{name}` must be an array of numbers, got a {type(value).__name__} "
+                         "that does not make one (rows of unequal lengths?)") from None
+
+
+def check_dtype(arr, name: str) -> None:
+    """ValueError naming ``name`` unless ``arr`` holds real numbers (bool, integer or
+    float): complex, text and object arrays are refused."""
+    kind = np.dtype(arr.dtype).kind
+    if kind == "c":
+        raise ValueError(f"`{name}` must be real-valued, got complex dtype {arr.dtype}.")
+    if kind not in "biuf":
+        raise ValueError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
+
+
+def check_finite(arr: np.ndarray, name: str) -> None:
+    """ValueError naming ``name`` and counting the NaN or infinite values of ``arr``."""
+    if arr.dtype.kind != "f":
+        return
+    finite = np.isfinite(arr)
+    if not finite.all():
+        n_bad = int(arr.size - np.count_nonzero(finite))
+        raise ValueError(
+            f"`{name}` contains {n_bad} NaN or infinite value(s); expected only finite "
+            "values. Mask or inpaint them first."
+        )
+
+
+def as_image(image, *, name: str = "image", dtype=None, copies: float = 0.0) -> np.ndarray:
     """Check a 2-D single-plane image and return it as a floating array.
+
+    The one validator of a 2-D image: every function that takes one calls it.
 
     Parameters
     ----------
@@ -20,6 +58,9 @@ def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
         Parameter name used in error messages.
     dtype : dtype, optional
         Force this floating dtype.
+    copies : float
+        The float32 images of this size the caller's computation holds at once: their
+        memory is checked (:func:`check_memory`) before the image is converted.
 
     Returns
     -------
@@ -28,14 +69,11 @@ def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
     Raises
     ------
     ValueError
-        Wrong number of dimensions (a 3-D stack gets a hint to pass one slice),
-        an empty image, complex values, NaN or infinite values.
+        Not an array of numbers, wrong number of dimensions (a 3-D stack gets a hint to
+        pass one slice), an empty image, complex values, NaN or infinite values.
     """
-    arr = np.asarray(image)
-    if arr.dtype.kind == "c":
-        raise ValueError(f"`{name}` must be real-valued, got complex dtype {arr.dtype}.")
-    if arr.dtype.kind not in "biuf":
-        raise ValueError(f"`{name}` must be a numeric array, got dtype {arr.dtype}.")
+    arr = np.asarray(as_array(image, name))
+    check_dtype(arr, name)
     if arr.ndim == 3:
         best = int(np.argmax(arr.reshape(arr.shape[0], -1).astype(np.float32).std(axis=1)))
         raise ValueError(
@@ -52,18 +90,69 @@ def as_image(image, *, name: str = "image", dtype=None) -> np.ndarray:
         )
     if arr.size == 0 or min(arr.shape) < 2:
         raise ValueError(f"`{name}` must be a non-empty 2-D image, got shape {arr.shape}.")
+    if copies:
+        check_memory(copies * 4.0 * arr.size, f"`{name}` of {arr.shape[0]} x {arr.shape[1]} "
+                     f"pixels ({copies:g} float32 images of its size at once)",
+                     hint="Crop it, or bin it.")
     if dtype is None:
         dtype = np.float64 if arr.dtype == np.float64 else np.float32
     out = arr.astype(dtype, copy=False)
-    if arr.dtype.kind == "f":
-        finite = np.isfinite(out)
-        if not finite.all():
-            n_bad = int(out.size - np.count_nonzero(finite))
-            raise ValueError(
-                f"`{name}` contains {n_bad} NaN or infinite pixel(s); expected only finite "
-                "values. Mask or inpaint them before estimating the PSF."
-            )
+    check_finite(out, name)
     return out
+
+
+def as_stack(stack, *, name: str = "stack", lateral: tuple[int, int] | None = None,
+             min_planes: int = 1, min_side: int = 2, finite: bool = True,
+             copies: float = 0.0):
+    """Check a z-stack (Z, H, W) and return it, unconverted (a lazy dask or Zarr stack
+    stays lazy).
+
+    The one validator of a 3-D stack: every function that takes one calls it.
+
+    Parameters
+    ----------
+    stack : array_like of shape (Z, H, W)
+        Any real dtype; NumPy, dask or Zarr.
+    name : str
+        Parameter name used in error messages.
+    lateral : (int, int), optional
+        The (H, W) the stack must have (an operator's field).
+    min_planes, min_side : int
+        The fewest planes, and the fewest pixels a plane's side may have.
+    finite : bool
+        Check every value is finite (in memory only: a lazy stack is checked where it
+        is read).
+    copies : float
+        The float32 volumes of this size the caller's computation holds in memory at
+        once: their memory is checked (:func:`check_memory`) before any is made.
+
+    Raises
+    ------
+    ValueError
+        Not an array of numbers, complex or text values, not three dimensions, too few
+        planes or pixels, another lateral shape, NaN or infinite values.
+    """
+    arr = as_array(stack, name)
+    check_dtype(arr, name)
+    shape = tuple(int(n) for n in arr.shape)
+    want = f"(Z, {lateral[0]}, {lateral[1]})" if lateral is not None else "(Z, H, W)"
+    if len(shape) != 3:
+        hint = (" (one image: pass it to the 2-D functions, or stack its planes)"
+                if len(shape) == 2 else "")
+        raise ValueError(f"`{name}` must be a z-stack {want}, got shape {shape}{hint}")
+    if lateral is not None and shape[1:] != tuple(lateral):
+        raise ValueError(f"`{name}` must be a z-stack {want}, got shape {shape}")
+    if shape[0] < min_planes or min(shape[1:]) < min_side:
+        raise ValueError(f"`{name}` must have at least {min_planes} plane(s) of at least "
+                         f"{min_side} x {min_side} pixels, got shape {shape}")
+    if copies:
+        check_memory(copies * 4.0 * shape[0] * shape[1] * shape[2],
+                     f"`{name}` of {shape[0]} x {shape[1]} x {shape[2]} voxels ({copies:g} "
+                     "float32 volumes of its size at once)",
+                     hint="Crop it, or deblur it in tiles: psfspace deblur3d --memory.")
+    if finite and isinstance(arr, np.ndarray):
+        check_finite(arr, name)
+    return arr
 
 
 def check_signal(image: np.ndarray, name: str = "image") -> None:
@@ -85,14 +174,20 @@ def check_signal(image: np.ndarray, name: str = "image") -> None:
 GAIN_RANGE = (1e-3, 1e4)
 
 
-def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, np.dtype]:
-    """A camera's values: ``gain`` (ADU per electron) finite and positive, ``offset``
-    (ADU) finite and >= 0 and below the dtype's largest value, ``read_noise``
-    (electrons rms) finite and >= 0, ``dtype`` an unsigned integer (counts) or a float.
-    Returns them as ``(float, float, float, np.dtype)``."""
-    out = []
+def check_camera(gain, offset, read_noise, dtype=None
+                 ) -> tuple[float | None, float | None, float | None, np.dtype | None]:
+    """The one validator of a camera's values: ``gain`` (ADU per electron) finite and
+    within :data:`GAIN_RANGE`, ``offset`` (ADU) finite and >= 0 (and below the largest
+    count of ``dtype``), ``read_noise`` (electrons rms) finite and >= 0, ``dtype`` an
+    unsigned integer (counts) or a float. A value given as None is not checked (a
+    measured one stands for it) and comes back None. Returns
+    ``(gain, offset, read_noise, dtype)`` as floats and a NumPy dtype."""
+    out: list[float | None] = []
     for name, value, low, strict in (("gain", gain, 0.0, True), ("offset", offset, 0.0, False),
                                      ("read_noise", read_noise, 0.0, False)):
+        if value is None:
+            out.append(None)
+            continue
         try:
             v = float(value)
         except (TypeError, ValueError):
@@ -101,9 +196,11 @@ def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, 
             raise ValueError(f"`{name}` must be a finite number {'>' if strict else '>='} "
                              f"{low:g}, got {value!r}")
         out.append(v + 0.0)  # -0.0 is 0
-    if not GAIN_RANGE[0] <= out[0] <= GAIN_RANGE[1]:
+    if out[0] is not None and not GAIN_RANGE[0] <= out[0] <= GAIN_RANGE[1]:
         raise ValueError(f"`gain` must be a camera's, {GAIN_RANGE[0]:g} to {GAIN_RANGE[1]:g} "
                          f"ADU per electron, got {gain!r}")
+    if dtype is None:
+        return out[0], out[1], out[2], None
     try:
         dt = np.dtype(dtype)
     except TypeError:
@@ -113,7 +210,7 @@ def check_camera(gain, offset, read_noise, dtype) -> tuple[float, float, float, 
                          f"float, got {dt}")
     # integers: the dtype's range; floats: the counts they hold exactly
     top = np.iinfo(dt).max if dt.kind == "u" else 2.0 ** (np.finfo(dt).nmant + 1)
-    if not out[1] < top:
+    if out[1] is not None and not out[1] < top:
         raise ValueError(f"`offset` {out[1]:g} must be below {top:g}, the largest count "
                          f"{dt} holds exactly")
     return out[0], out[1], out[2], dt

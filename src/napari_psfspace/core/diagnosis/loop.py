@@ -54,7 +54,7 @@ from ..beads.spikes import spike_mask
 from ..common.progress import Progress, check_halt, run_with_progress
 from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
-from ..common.validate import as_image, check_positive, check_psf_radius
+from ..common.validate import as_array, as_image, check_camera, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
 from .acceptance import (
@@ -77,6 +77,11 @@ from .photometry import (
     throughput_map,
 )
 from .steps import Step
+
+#: The float64 images of the image's size the diagnosis holds at once (its estimates on
+#: each fold, their model images and residuals), as float32 images with a margin: its
+#: memory is checked first.
+DIAGNOSE_IMAGES = 32
 
 #: Fewest usable beads a diagnosis runs on; below ``2 folds`` beads it holds out one bead
 #: at a time (leave-one-bead-out).
@@ -241,14 +246,6 @@ def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
                               grid=operator.grid, metadata=meta)
 
 
-def check_float(value, name: str) -> float:
-    """``float(value)``, or a ValueError naming ``name``."""
-    try:
-        return float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"`{name}` must be a number, got {value!r}") from None
-
-
 @blas_threads
 def iter_diagnose(
     image,
@@ -278,16 +275,11 @@ def iter_diagnose(
     that status and are not used); None detects them at ``threshold``.
     ``_baseline_only``: stop at the plain model's held-out error and return it
     (:func:`iter_heldout_error`: the one code path for that figure)."""
-    raw = np.asarray(image)
-    img = as_image(raw, dtype=np.float64)
+    raw = np.asarray(as_array(image, "image"))
+    img = as_image(raw, dtype=np.float64, copies=DIAGNOSE_IMAGES)
     r = check_psf_radius(psf_radius, img.shape)
     bead_diameter = check_bead_diameter(bead_diameter, r)
-    if gain is not None:
-        check_positive(gain, "gain")
-    if offset is not None and not np.isfinite(check_float(offset, "offset")):
-        raise ValueError(f"`offset` must be a finite number of ADU, got {offset!r}")
-    if read_noise is not None:
-        check_positive(read_noise, "read_noise", allow_zero=True)
+    gain, offset, read_noise, _ = check_camera(gain, offset, read_noise)
     if gain is None and (offset is not None or read_noise is not None):
         raise ValueError("`offset` and `read_noise` describe the camera with `gain`: give "
                          "`gain` too, or none of them (the noise model is then measured)")

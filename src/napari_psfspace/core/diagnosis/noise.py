@@ -21,7 +21,7 @@ from scipy import ndimage as ndi
 from ..beads.spikes import QUANTISATION_VARIANCE, is_integer_valued
 from ..common.errors import PsfSpaceError
 from ..common.progress import check_halt
-from ..common.validate import as_image
+from ..common.validate import as_array, as_image, check_camera
 
 
 @dataclass(frozen=True)
@@ -97,9 +97,7 @@ class NoiseModel:
     @classmethod
     def from_camera(cls, gain: float, offset: float, read_noise: float) -> NoiseModel:
         """The model of a camera of known gain (ADU/e-), offset (ADU), read noise (e-)."""
-        if gain <= 0 or read_noise < 0:
-            raise ValueError(f"`gain` must be > 0 and `read_noise` >= 0, got {gain}, "
-                             f"{read_noise}.")
+        gain, offset, read_noise, _ = check_camera(gain, offset, read_noise)
         return cls(gain, gain**2 * read_noise**2 - gain * offset, offset, read_noise)
 
 
@@ -263,7 +261,7 @@ def estimate_noise(
     NoiseModelError
         Too few usable pixels (e.g. a clipped background), or a failed check.
     """
-    raw = np.asarray(image)
+    raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, dtype=np.float64)
     integer = is_integer_valued(raw)
     if saturation is None and raw.dtype.kind in "ui":
@@ -396,7 +394,7 @@ def background_variance(image, *, mask=None) -> tuple[float, float, float]:
     clipped : float
         Fraction of the pixels at the image's minimum.
     """
-    raw = np.asarray(image)
+    raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, dtype=np.float64)
     integer = is_integer_valued(raw)
     level = float(np.median(img))
@@ -440,6 +438,7 @@ def noise_model(
     -------
     NoiseModel
     """
+    as_image(image)  # the images' validator, before any branch
     if gain is not None:
         if offset is None or read_noise is None:
             raise ValueError("Give the camera's `gain`, `offset` and `read_noise` together "

@@ -15,6 +15,7 @@ import os
 import numpy as np
 
 from ..common.version import software_string
+from ..model.operator_checks import as_real_array
 from ..model.operator_file import read_archive, write_archive
 
 #: Value of the ``"format"`` field of the JSON header of a saved subspace.
@@ -67,8 +68,15 @@ def _own_arrays(path: str, header: dict, n_images: int
     index, _ = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
                             entries=("own_images", "family_weights", "header"),
                             kind="family")
-    ks = [int(k) for k in np.atleast_1d(index["own_images"])]
-    weights = np.asarray(index["family_weights"], dtype=np.float64)
+    own_images = np.atleast_1d(index["own_images"])
+    if own_images.ndim != 1 or own_images.dtype.kind not in "iu":
+        raise ValueError(f"{path!r}: corrupt family file, 'own_images' must be image "
+                         f"indices, got {own_images!r}")
+    ks = [int(k) for k in own_images]
+    try:
+        weights = as_real_array(index["family_weights"], "family_weights")
+    except ValueError as exc:
+        raise ValueError(f"{path!r}: inconsistent family file: {exc}") from None
     bad = [k for k in ks if not 0 <= k < n_images]
     if (bad or weights.shape != (n_images,) or not np.all(np.isfinite(weights))
             or weights.min(initial=1.0) < 0 or weights.max(initial=0.0) > 1):
@@ -106,20 +114,30 @@ def read_family(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray | 
     path = os.fspath(path)
     arr, header = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
                                entries=(*_ARRAYS, "header"), kind="family")
+    shape = arr["shape"]
+    if shape.shape != (2,) or shape.dtype.kind not in "iu" or not shape.min() >= 1:
+        raise ValueError(f"{path!r}: corrupt family file, 'shape' must be 2 whole numbers of "
+                         f"pixels, got {shape!r}")
     basis, space, gammas = arr["basis"], arr["space"], arr["gammas"]
     ok = (basis.ndim == 3 and space.ndim == 3 and gammas.ndim == 3
           and gammas.shape[1:] == (basis.shape[0], space.shape[0])
           and space.shape[1:] == (arr["grid_y"].size, arr["grid_x"].size)
           and arr["shape"].shape == (2,) and arr["cone"].ndim == 2
-          and arr["cone"].shape[1] == basis.shape[0])
+          and arr["cone"].shape[1] == basis.shape[0]
+          and min(basis.shape + space.shape + gammas.shape + arr["cone"].shape) >= 1)
     if not ok:
         raise ValueError(f"{path!r}: inconsistent family file: basis {basis.shape}, space "
                          f"{space.shape}, gammas {gammas.shape}, grid "
                          f"({arr['grid_y'].size}, {arr['grid_x'].size}), cone "
                          f"{arr['cone'].shape}")
     own, weights = _own_arrays(path, header, gammas.shape[0])
-    arrays = {k: (np.asarray(v) if k == "shape" else np.asarray(v, np.float64))
-              for k, v in arr.items() if k in _ARRAYS}
+    arrays = {"shape": np.asarray(arr["shape"])}
+    for k in _ARRAYS:
+        if k != "shape":
+            try:  # the arrays' validator: real numbers, all finite (complex is not cast)
+                arrays[k] = as_real_array(arr[k], k)
+            except ValueError as exc:
+                raise ValueError(f"{path!r}: inconsistent family file: {exc}") from None
     return arrays, own, weights, header
 
 

@@ -18,7 +18,7 @@ from ..common.validate import check_int
 from ..model.cone import Cone, project_onto_cone
 from ..model.field import assemble_operator
 from ..model.operator import ProductConvolution
-from ..model.operator_checks import check_model_field
+from ..model.operator_checks import MAX_PSF_L1, check_model_field
 from ..model.psf_field import interp_weights
 from .choice import blend
 from .family_file import read_family, write_family
@@ -269,12 +269,33 @@ class OperatorFamily:
                      arr["gammas"], Cone(arr["cone"]),
                      grid_step=float(header.get("grid_step", 32.0)),
                      metadata=header.get("metadata", {}), own=own, family_weights=weights)
-        for k in range(family.n_images):  # each learnt image's operator is a blur
+        where = repr(os.fspath(path))
+        for name, nodes in zip(("grid_y", "grid_x"), family.grid, strict=True):
+            if nodes.ndim != 1 or nodes.size < 2 or not np.all(np.diff(nodes) > 0):
+                raise ValueError(f"{where}: inconsistent family file: `{name}` must be "
+                                 f"strictly increasing node positions, got {nodes}")
+        # the cone's generators are PSFs in the basis: each a blur of bounded light (a
+        # damaged cone would make every projection onto it fail)
+        flat = family.basis.reshape(family.n_psf, -1)
+        gens = np.asarray(arr["cone"], dtype=np.float64)
+        sums = gens @ flat.sum(axis=1)
+        l1 = np.abs(gens) @ np.abs(flat).sum(axis=1)
+        bad = np.flatnonzero(~((sums > 0) & (l1 <= MAX_PSF_L1)))
+        if bad.size:
+            raise ValueError(f"{where}: inconsistent family file: the cone's generator "
+                             f"{bad[0]} sums to {sums[bad[0]]:.3g} ({l1[bad[0]]:.3g} in "
+                             f"absolute value), expected a PSF: a positive sum, at most "
+                             f"{MAX_PSF_L1:g} in absolute value")
+        # the family's own maps, before any projection (identification reads them) and
+        # each learnt image's operator: blurs over the field
+        for k in range(family.n_images):
+            check_model_field(family.basis, family.maps(family.gammas[k]), shape,
+                              *family.grid, f"{where} (image {k} in the family's maps)")
             op = family.operator(k)
             grid = op.grid if op.grid is not None else (np.arange(shape[0]),
                                                         np.arange(shape[1]))
             check_model_field(op.basis, op.coefficients, shape, *grid,
-                              f"{os.fspath(path)!r} (image {k}'s operator)")
+                              f"{where} (image {k}'s operator)")
         return family
 
 

@@ -36,6 +36,7 @@ from ..common.progress import Progress, run_with_progress
 from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
 from ..common.validate import (
+    as_array,
     as_image,
     check_grid_step,
     check_n_psf,
@@ -53,6 +54,10 @@ from .motion import remove_motion as divide_motion
 from .operator import ProductConvolution
 from .patch_fit import fit_patches
 from .pca import PsfBasis, min_beads_for
+
+#: The float32 images of the image's size estimation holds at once (its detection's
+#: filtered copies, the background, the neighbours' model), with a margin: checked first.
+ESTIMATE_IMAGES = 10
 
 
 @dataclass
@@ -129,8 +134,8 @@ def iter_estimate(
     Estimation
         (as the generator's return value, ``StopIteration.value``)
     """
-    raw = np.asarray(image)
-    img = as_image(raw)
+    raw = np.asarray(as_array(image, "image"))
+    img = as_image(raw, copies=ESTIMATE_IMAGES)
     shape = img.shape
     r = check_psf_radius(psf_radius, shape)
     grid_step = check_grid_step(grid_step, np.shape(image)[-2:])

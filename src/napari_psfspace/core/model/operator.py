@@ -41,6 +41,7 @@ from scipy.sparse.linalg import LinearOperator
 
 from ..common.device import CPU, ArrayModule, DeviceCache, resolve
 from ..common.threads import by_rows, by_rows_many
+from ..common.validate import as_array, check_memory
 from .operator_checks import check_model_field
 from .operator_fft import (
     check_dc,
@@ -126,19 +127,35 @@ class ProductConvolution(DeviceCache, PsfField):
                 self._spectra_cache[key] = spectra
         return self._on_device(am, ("spectra", fshape, dt), spectra)
 
+    def working_bytes(self, dtype: DTypeLike = np.float32) -> float:
+        """Bytes an application holds at most in ``dtype``: the ``I`` full-resolution
+        coefficient maps and kernel spectra it keeps, and three spectra and three images
+        it works on."""
+        item = np.dtype(dtype).itemsize
+        (h, w), (fy, fx) = self._shape, self.padded_shape()
+        spectrum = fy * (fx // 2 + 1) * 2.0 * item
+        return self.n_psf * (h * w * item + spectrum) + 3 * spectrum + 3.0 * h * w * item
+
     def _maps_on(self, dt: np.dtype, am: ArrayModule):
         """The coefficient maps in ``dt``, on ``am``'s device (cached there)."""
         return self._on_device(am, ("maps", dt), self.coefficient_maps(dt))
 
     def _check_image(self, u: ArrayLike, name: str, am: ArrayModule = CPU
                      ) -> tuple[np.ndarray, np.dtype]:
-        arr = u if am.gpu and hasattr(u, "dtype") else np.asarray(u)
+        arr = u if am.gpu and hasattr(u, "dtype") else np.asarray(as_array(u, name))
         dt = computation_dtype(arr, name)
         if tuple(arr.shape) != self._shape:
             raise ValueError(
                 f"model was estimated for an image of shape {self._shape}, "
                 f"got `{name}` of shape {tuple(arr.shape)}"
             )
+        if (self.padded_shape(), dt) not in self._spectra_cache:  # before they are made
+            h, w = self._shape
+            check_memory(self.working_bytes(dt),
+                         f"`{name}` through the operator ({self.n_psf} kernels on {h} x {w} "
+                         f"pixels, {np.dtype(dt).name})",
+                         hint="Deblur it in parts (psfspace deblur --parts), or use a model "
+                              "with fewer kernels.")
         if am.gpu:  # on the device, in the computation's dtype (a copy from the host)
             arr = am.asarray(arr, dtype=dt)
         # NaN / inf are detected after the first FFT (see _check_dc), which saves a

@@ -10,25 +10,21 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from ..common.validate import as_array, check_dtype, check_finite
+
 
 def _shape_str(a: Any) -> str:
     return str(tuple(np.shape(a)))
 
 
 def as_real_array(value: Any, name: str) -> np.ndarray:
-    """Convert to a float64 array, rejecting complex, object and non-finite data."""
-    try:
-        arr = np.asarray(value)
-    except Exception as exc:  # pragma: no cover - exotic inputs
-        raise ValueError(f"`{name}` must be array-like, got {type(value).__name__}") from exc
-    if arr.dtype.kind not in "biuf":
-        raise ValueError(f"`{name}` must be a real numeric array, got dtype {arr.dtype}")
-    arr = arr.astype(np.float64)  # always a copy: the operator owns its data
-    if not np.isfinite(arr).all():
-        n_bad = int(np.size(arr) - np.count_nonzero(np.isfinite(arr)))
-        raise ValueError(f"`{name}` contains {n_bad} NaN or infinite value(s)")
+    """A float64 copy of ``value`` (the operator owns its data), checked by the arrays'
+    validators: real numbers, all finite."""
+    arr = np.asarray(as_array(value, name))
+    check_dtype(arr, name)
+    arr = arr.astype(np.float64)
+    check_finite(arr, name)
     return arr
-
 
 
 def normalise_metadata(metadata: Mapping[str, Any] | None) -> dict[str, Any]:
@@ -153,6 +149,12 @@ def validated_inputs(
     return basis, coefficients, shape, grid_y, grid_x
 
 
+#: The largest absolute sum a stored PSF may have. A blur passes about its light (a
+#: calibrated model's PSF sums to 1, with small negative lobes); this leaves room for any
+#: scaling a user gives while float32 images through it stay far from overflow.
+MAX_PSF_L1 = 1e6
+
+
 def check_model_field(basis: np.ndarray, coefficients: np.ndarray, shape, grid_y, grid_x,
                       where: str) -> None:
     """ValueError naming ``where`` (a file) unless a stored model is a blur over its
@@ -164,8 +166,16 @@ def check_model_field(basis: np.ndarray, coefficients: np.ndarray, shape, grid_y
 
     ``basis`` (I, ...kernel) and ``coefficients`` (I, gy, gx); ``shape`` the field's
     (..., H, W) in pixels; ``grid_y``, ``grid_x`` the nodes in pixels."""
-    sums = np.asarray(basis, float).reshape(len(basis), -1).sum(axis=1)
-    at_nodes = np.tensordot(sums, np.asarray(coefficients, float), axes=(0, 0))
+    flat = np.asarray(basis, float).reshape(len(basis), -1)
+    coefficients = np.asarray(coefficients, float)
+    at_nodes = np.tensordot(flat.sum(axis=1), coefficients, axes=(0, 0))
+    l1 = np.tensordot(np.abs(flat).sum(axis=1), np.abs(coefficients), axes=(0, 0))
+    if np.isfinite(l1).all() and l1.max() > MAX_PSF_L1:
+        iy, ix = np.unravel_index(int(np.argmax(l1)), l1.shape)
+        raise ValueError(f"{where}: the PSF at node ({grid_y[iy]:g}, {grid_x[ix]:g}) has "
+                         f"{l1[iy, ix]:.3g} in absolute value, expected at most "
+                         f"{MAX_PSF_L1:g} (a blur passes about its light, a sum near 1; "
+                         "a damaged or hand-edited model)")
     if not np.all(np.isfinite(at_nodes)) or not np.all(at_nodes > 0):
         iy, ix = np.unravel_index(int(np.nanargmin(np.where(np.isfinite(at_nodes),
                                                              at_nodes, -np.inf))),
@@ -176,7 +186,8 @@ def check_model_field(basis: np.ndarray, coefficients: np.ndarray, shape, grid_y
     for axis, nodes, n in (("rows", grid_y, shape[-2]), ("columns", grid_x, shape[-1])):
         nodes = np.asarray(nodes, float)
         spacing = float(np.max(np.diff(nodes))) if nodes.size > 1 else float(n)
-        if nodes[0] - 0 > spacing or (n - 1) - nodes[-1] > spacing:
+        if (abs(nodes[0] - 0) > spacing or abs((n - 1) - nodes[-1]) > spacing
+                or not spacing < 2 * n):
             raise ValueError(f"{where}: the field is {n} px along its {axis}, its nodes span "
                              f"{nodes[0]:g} to {nodes[-1]:g} px (spacing {spacing:g}): the "
                              "file's shape does not match its grid")

@@ -12,6 +12,7 @@ import numpy as np
 import scipy.fft
 
 from ..common.device import CPU, ArrayModule, namespace
+from ..common.validate import check_dtype
 
 
 def multiply_into(a, b, out) -> None:
@@ -70,12 +71,12 @@ def cropped_irfft2(spec, fshape: tuple[int, int], n_rows: int, workers: int,
 
 
 def computation_dtype(arr: np.ndarray, name: str) -> np.dtype:
-    kind = arr.dtype.kind
-    if kind == "f":
-        return np.dtype(np.float32) if arr.dtype.itemsize <= 4 else np.dtype(np.float64)
-    if kind in "biu":
-        return np.dtype(np.float32)
-    raise ValueError(f"`{name}` must be a real image, got dtype {arr.dtype}")
+    """float32 for integers, booleans and floats of 4 bytes or fewer, else float64; other
+    dtypes are refused by the images' validator (:func:`~..common.validate.check_dtype`)."""
+    check_dtype(arr, name)
+    if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:
+        return np.dtype(np.float64)
+    return np.dtype(np.float32)
 
 
 

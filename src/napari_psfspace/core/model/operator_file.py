@@ -180,10 +180,11 @@ def read_model(path: str | os.PathLike[str]) -> tuple[dict[str, np.ndarray], dic
     FileNotFoundError
         If ``path`` does not exist.
     """
+    path = os.fspath(path)
     arrays, header = read_archive(path, format_name=FORMAT_NAME, format_version=FORMAT_VERSION,
                                   entries=_REQUIRED_KEYS)
     shape = arrays["shape"]
-    if shape.shape != (2,) or shape.dtype.kind not in "iu":
+    if shape.shape != (2,) or shape.dtype.kind not in "iu" or not shape.min() >= 1:
         raise ValueError(
             f"{path!r}: corrupt model file, 'shape' must be 2 integers, got {shape!r}"
         )

@@ -55,10 +55,12 @@ from scipy import ndimage as ndi
 from ..common.device import ArrayModule, array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.validate import (
+    as_array,
     as_image,
     check_grid_step,
     check_instance,
     check_int,
+    check_memory,
     check_saturation,
     check_signal,
 )
@@ -73,6 +75,10 @@ from .smooth_grid import SmoothGrid
 
 #: ``gamma2 = SMOOTH_WEIGHT * grid_step**4`` by default.
 SMOOTH_WEIGHT = 0.05
+#: The float32 images of the image's size the deblurring holds beside its operator's
+#: maps and spectra: the data, the sparse and smooth parts and their accelerated
+#: copies, gradients, weights and the censored mask.
+DEBLUR_IMAGES = 12
 #: Iterations at most of the amplitudes' refit (``debias``).
 DEBIAS_MAX_ITER = 100
 #: ``c`` of the blocks' majorisation ``||H(u1 + U w)||^2 <= (1 + c) ||H u1||^2 +
@@ -215,11 +221,14 @@ def iter_deblur(
                    "A family (OperatorFamily) gives its operator for an image with "
                    "identify_operator(image, family).")
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
-    raw = np.asarray(image)
+    raw = np.asarray(as_array(image, "image"))
     y = as_image(image, dtype=np.float32)
     if tuple(y.shape) != tuple(operator.shape):
         raise ValueError(f"`image` has shape {tuple(y.shape)}, but `operator` acts on "
                          f"images of shape {tuple(operator.shape)}")
+    check_memory(operator.working_bytes(np.float32) + DEBLUR_IMAGES * y.nbytes,
+                 f"`image` of {y.shape[0]} x {y.shape[1]} pixels deblurred with "
+                 f"{operator.n_psf} kernels", hint="Deblur it in parts: psfspace deblur --parts.")
     check_signal(y)
     max_iter = check_int(max_iter, "max_iter", minimum=1)
     saturation = check_saturation(saturation)

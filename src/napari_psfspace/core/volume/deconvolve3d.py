@@ -24,7 +24,14 @@ import numpy as np
 from ..common.device import array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
-from ..common.validate import check_background, check_int, check_memory, check_signal
+from ..common.validate import (
+    as_stack,
+    check_background,
+    check_finite,
+    check_int,
+    check_memory,
+    check_signal,
+)
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .device_plan import plan_on_device
 from .operator3d import ProductConvolution3D
@@ -167,8 +174,7 @@ def stack_statistics(stack, background: float | None = None) -> tuple[float, flo
     z, h, w = stack.shape
     step = max(1, int(np.ceil(np.sqrt(z * h * w / STATS_VOXELS))))
     sample = np.asarray(stack[:, ::step, ::step], dtype=np.float32)
-    if not np.isfinite(sample).all():
-        raise ValueError("`stack` contains NaN or infinite values")
+    check_finite(sample, "stack")  # a lazy stack's sample; one in memory is checked whole
     top = float(sample.max())
     if not (top > 0 and float(sample.min()) < top):  # sparse light the sample missed?
         whole = stack if isinstance(stack, np.ndarray) else sample
@@ -190,10 +196,7 @@ def check_stack(stack, operator: ProductConvolution3D) -> None:
     if not isinstance(operator, ProductConvolution3D):
         raise TypeError(f"`operator` must be a ProductConvolution3D, got "
                         f"{type(operator).__name__}")
-    shape = tuple(np.shape(stack))
-    if len(shape) != 3 or shape[1:] != operator.shape[1:]:
-        raise ValueError(f"`stack` must be a volume (Z, {operator.shape[1]}, "
-                         f"{operator.shape[2]}), got shape {shape}")
+    as_stack(stack, lateral=operator.shape[1:])
 
 
 def iter_richardson_lucy_3d(

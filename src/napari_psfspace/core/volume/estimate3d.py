@@ -27,7 +27,13 @@ from ..beads.saturation import saturation_record
 from ..beads.window import radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress, within
 from ..common.threads import blas_threads
-from ..common.validate import check_grid_step, check_int, check_psf_radius
+from ..common.validate import (
+    as_stack,
+    check_grid_step,
+    check_int,
+    check_psf_radius,
+    check_signal,
+)
 from ..model.cone import Cone, reduce_cone
 from ..model.estimate import centre_beads, faint_beads
 from ..model.field import choose_constraint, coarse_grid, keep_in_cone
@@ -84,20 +90,12 @@ class Estimation3D:
     heldout: Heldout3D | None = None
 
 
-def as_stack(stack) -> np.ndarray:
-    """A bead z-stack as float32 (Z, H, W), checked: three dimensions, at least 3
-    planes, finite values."""
-    arr = np.asarray(stack)
-    if arr.ndim != 3:
-        raise ValueError(f"`stack` must be a z-stack (Z, H, W), got shape {arr.shape}")
-    if arr.shape[0] < 3:
-        raise ValueError(f"`stack` must have at least 3 planes, got {arr.shape[0]}")
-    if arr.dtype.kind not in "biuf":
-        raise ValueError(f"`stack` must hold real intensities, got dtype {arr.dtype}")
-    out = arr.astype(np.float32)
-    if not np.isfinite(out).all():
-        raise ValueError("`stack` contains NaN or infinite values; expected only finite ones")
-    return out
+def bead_stack(stack) -> np.ndarray:
+    """A bead z-stack as float32 (Z, H, W), checked by the stacks' validator: three
+    dimensions, at least 3 planes of at least 8 x 8 pixels, real and finite values."""
+    vol = np.asarray(as_stack(stack, min_planes=3, min_side=8, copies=6), dtype=np.float32)
+    check_signal(vol, "stack")
+    return vol
 
 
 @blas_threads
@@ -117,7 +115,7 @@ def iter_estimate_operator_3d(
 ) -> Generator[Progress, None, Estimation3D]:
     """Generator form of :func:`estimate_operator_3d`: yields progress, returns the
     :class:`Estimation3D`."""
-    vol = as_stack(stack)
+    vol = bead_stack(stack)
     depth, h, w = vol.shape
     r = check_psf_radius(psf_radius, (h, w))
     grid_step = check_grid_step(grid_step, (h, w))
@@ -340,4 +338,4 @@ def estimate_operator_3d(
         progress).operator
 
 
-__all__ = ["Estimation3D", "as_stack", "estimate_operator_3d", "iter_estimate_operator_3d"]
+__all__ = ["Estimation3D", "bead_stack", "estimate_operator_3d", "iter_estimate_operator_3d"]

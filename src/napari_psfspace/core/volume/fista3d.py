@@ -32,7 +32,7 @@ import numpy as np
 from ..common.device import ArrayModule, array_module, namespace
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
-from ..common.validate import check_int
+from ..common.validate import as_stack, check_finite, check_int, check_signal
 from ..diagnosis.noise import background_variance
 from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT
 from ..restore.fista import BlockFista
@@ -41,6 +41,11 @@ from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import check_stack
 from .device_plan import plan_on_device
 from .operator3d import ProductConvolution3D
+
+#: The float32 volumes of the stack's size the deblurring holds at once (the data, the
+#: sparse and smooth parts, their accelerated copies, gradients and the model's image):
+#: its memory is checked first.
+FISTA_VOLUMES = 10
 
 #: Largest eigenvalue of the nodes' 3D graph Laplacian (6 neighbours): at most 12.
 LAPLACIAN_NORM = 12.0
@@ -136,6 +141,7 @@ def iter_deblur_3d(
     it there to cancel), returns the :class:`Deblurred3D`."""
     t0 = time.perf_counter()
     check_stack(stack, operator)
+    as_stack(stack, lateral=operator.shape[1:], finite=False, copies=FISTA_VOLUMES)
     max_iter = check_int(max_iter, "max_iter", minimum=1)
     if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"`tol` must be a finite number >= 0, got {tol!r}")
@@ -143,8 +149,9 @@ def iter_deblur_3d(
         raise ValueError(f"`grid_step` must be at least 2 pixels, got {grid_step!r}")
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     y = np.asarray(stack, dtype=np.float32)
-    if not np.isfinite(y.sum(dtype=np.float64)):
-        raise ValueError("`stack` contains NaN or infinite values")
+    if not isinstance(stack, np.ndarray):  # a lazy stack: its values are read here
+        check_finite(y, "stack")
+    check_signal(y, "stack")  # no light (zeros, a negated stack): nothing to deblur
     z, h, w = y.shape
     xp = np  # the volumes' array module: the device's where they fit there
     if am.gpu:  # blocks as large as the device's memory allows (device_plan)

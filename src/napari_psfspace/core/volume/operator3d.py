@@ -28,6 +28,7 @@ import scipy.fft
 from numpy.typing import ArrayLike
 
 from ..common.device import CPU, ArrayModule, DeviceCache, resolve
+from ..common.validate import as_array
 from ..common.version import software_string
 from ..model.operator_checks import as_real_array, check_model_field, normalise_metadata
 from ..model.operator_fft import check_dc, computation_dtype
@@ -253,7 +254,7 @@ class ProductConvolution3D(DeviceCache):
 
     def _check_volume(self, u: ArrayLike, name: str, am: ArrayModule = CPU
                       ) -> tuple[np.ndarray, np.dtype]:
-        arr = u if am.gpu and hasattr(u, "dtype") else np.asarray(u)
+        arr = u if am.gpu and hasattr(u, "dtype") else np.asarray(as_array(u, name))
         if arr.ndim != 3 or tuple(arr.shape[1:]) != self._shape[1:]:
             raise ValueError(f"`{name}` must be a volume (Z, {self._shape[1]}, "
                              f"{self._shape[2]}), got shape {tuple(arr.shape)}")
