@@ -155,6 +155,13 @@ def labelled_figure(values: np.ndarray, *, title: str, unit: str,
     return np.asarray(canvas)
 
 
+def figure_png(values: np.ndarray, **kwargs) -> bytes:
+    """:func:`labelled_figure` as the bytes of a PNG file."""
+    from .io import png_bytes
+
+    return png_bytes(labelled_figure(values, **kwargs))
+
+
 def write_figure(path: str | os.PathLike, values: np.ndarray, **kwargs) -> None:
     """:func:`labelled_figure` written as a PNG, atomically."""
     from .io import write_png

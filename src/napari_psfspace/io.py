@@ -16,6 +16,7 @@ import numpy as np
 import tifffile
 
 from .core.common.atomic import atomic_open
+from .core.common.validate import check_memory
 
 
 @dataclass(frozen=True)
@@ -171,6 +172,11 @@ def _read_tiff(path, lazy: bool = False) -> tuple[np.ndarray, ImageInfo]:
             raise ValueError(f"{name!r} is a colour image (axes {series.axes}, "
                              f"{series.shape}): export the bead channel as a grey-level "
                              "image or stack")
+        if not lazy:  # its decoded size, before it is read
+            check_memory(float(np.prod(series.shape)) * np.dtype(series.dtype).itemsize,
+                         f"{name!r} ({' x '.join(map(str, series.shape))} "
+                         f"{np.dtype(series.dtype).name} values) read into memory",
+                         hint="Crop it, or read a 3-D stack as OME-Zarr with --memory.")
         try:
             data = _lazy_tiff(name, series) if lazy else series.asarray()
         except Exception as exc:  # a damaged strip: tifffile raises many kinds
@@ -440,6 +446,14 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
 
     Floating images are scaled from their [min, max] to [0, 255].
     """
+    data = png_bytes(image)
+    with atomic_open(path) as fh:
+        fh.write(data)
+
+
+def png_bytes(image: np.ndarray) -> bytes:
+    """The 8-bit PNG file of a 2-D (grey) or (M, N, 3) (RGB) array (floating images
+    scaled from their [min, max] to [0, 255])."""
     import imageio.v3 as iio
 
     arr = np.asarray(image)
@@ -448,9 +462,7 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
         lo, hi = float(np.nanmin(a)), float(np.nanmax(a))
         a = (a - lo) / (hi - lo) if hi > lo else np.zeros_like(a)
         arr = np.round(255 * np.clip(a, 0, 1)).astype(np.uint8)
-    data = iio.imwrite("<bytes>", arr, extension=".png")
-    with atomic_open(path) as fh:
-        fh.write(data)
+    return iio.imwrite("<bytes>", arr, extension=".png")
 
 
 def folder_writable(folder: Path) -> bool:

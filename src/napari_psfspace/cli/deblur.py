@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
 import warnings
@@ -82,11 +83,13 @@ def run(args) -> int:
                       smooth_weight=args.smooth_weight, max_iter=args.max_iter,
                       debias=args.refit_amplitudes, device=device)
     res = run_with_progress(gen, None if args.quiet else progress_printer())
-    meta = {"deblur": res.parameters, "iterations": res.iterations}
+    source = os.path.basename(os.fspath(args.image))  # each file says what it came from
+    meta = {"source": source, "deblur": res.parameters, "iterations": res.iterations}
     members = [(out, res.image, meta)]
     if args.parts:  # the image and its parts as one set: never a mix of two runs
         members += [(out.with_name(f"{out.stem}.{name}{out.suffix or '.tif'}"), part,
-                     None) for name, part in (("sparse", res.sparse), ("smooth", res.smooth))]
+                     {"source": source, "part": name})
+                    for name, part in (("sparse", res.sparse), ("smooth", res.smooth))]
         write_tiff_set(members, pixel_size=info.pixel_size)
     else:
         write_tiff(out, res.image, pixel_size=info.pixel_size, metadata=meta)

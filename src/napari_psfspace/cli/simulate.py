@@ -12,7 +12,7 @@ SERIES_HALF_RANGE_UM = 0.6
 
 def run(args) -> int:
     from ..core.simulation import simulate_beads
-    from ..io import check_output_file, write_tiff
+    from ..io import check_output_file, write_tiff, write_tiff_set
 
     check_output_file(args.output, "-o")
     if args.truth_grid:
@@ -26,12 +26,16 @@ def run(args) -> int:
                                   seed=args.seed)
     meta = {"psf_radius": truth.psf_radius, "n_beads": int(len(truth.positions)),
             "aberrations": args.aberrations, "seed": args.seed}
-    write_tiff(args.output, image, pixel_size=truth.optics.pixel_size, metadata=meta)
+    if args.truth_grid:  # the image and its true PSFs: one set, never two runs' files
+        ys, xs, psfs = truth.psf_grid(8, 8)
+        write_tiff_set([(args.output, image, meta),
+                        (args.truth_grid, psfs.reshape(-1, *psfs.shape[2:]), None)],
+                       pixel_size=truth.optics.pixel_size)
+    else:
+        write_tiff(args.output, image, pixel_size=truth.optics.pixel_size, metadata=meta)
     print(f"wrote {args.output}: {image.shape[0]}x{image.shape[1]} {image.dtype}, "
           f"{len(truth.positions)} beads, suggested --psf-radius {truth.psf_radius}")
     if args.truth_grid:
-        ys, xs, psfs = truth.psf_grid(8, 8)
-        write_tiff(args.truth_grid, psfs.reshape(-1, *psfs.shape[2:]))
         print(f"wrote {args.truth_grid}: true PSFs on an 8x8 grid")
     return 0
 

@@ -27,7 +27,7 @@ import json
 import os
 from pathlib import Path
 
-from ..core.common.atomic import atomic_write
+from ..core.common.atomic import write_set
 from .figures import (
     FIGURES,
     PATCH_LIMIT,
@@ -82,7 +82,7 @@ def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "im
     ValueError
         ``out_dir`` exists and is not a folder.
     """
-    from ..figure import write_figure
+    from ..figure import figure_png
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -91,25 +91,26 @@ def write_report(diagnosis, out_dir: str | os.PathLike, *, image_name: str = "im
     data = report_dict(diagnosis, image_name=image_name, pixel_size=pixel_size, extra=extra)
     fig = figure_arrays(diagnosis)
     px = pixel_size or diagnosis.operator.metadata.get("pixel_size_um")
+    files = {}
     for when, which in (("before", "plain"), ("after", "final")):
-        write_figure(out / f"residual_map_{when}.png", fig[f"map_{when}"],
-                     title=f"Held-out excess error, {which} model",
-                     unit="fraction of energy", limits=(0.0, fig["map_limit"]),
-                     pixel_size=px * fig["cell_size"] if px else None,
-                     note="each bead's error less its noise floor; grey: no bead")
-        write_figure(out / f"mean_residual_{when}.png", fig[f"mean_{when}"],
-                     title=f"Mean residual, {which} model", unit="noise sd",
-                     limits=(-fig["mean_limit"], fig["mean_limit"]), cmap="grey",
-                     pixel_size=px, size=256)
-        write_figure(out / f"residual_patches_{when}.png", fig[f"patches_{when}"],
-                     title=f"Residuals of the worst beads, {which} model",
-                     unit="noise sd", limits=(-PATCH_LIMIT, PATCH_LIMIT), cmap="grey")
-    text = json.dumps(data, indent=2, allow_nan=False)
-    atomic_write(out / "report.json", lambda fh: fh.write(text + "\n"), mode="w",
-                 encoding="utf-8")
-    md = report_markdown(diagnosis, data["run"], fig)
+        files[f"residual_map_{when}.png"] = figure_png(
+            fig[f"map_{when}"], title=f"Held-out excess error, {which} model",
+            unit="fraction of energy", limits=(0.0, fig["map_limit"]),
+            pixel_size=px * fig["cell_size"] if px else None,
+            note="each bead's error less its noise floor; grey: no bead")
+        files[f"mean_residual_{when}.png"] = figure_png(
+            fig[f"mean_{when}"], title=f"Mean residual, {which} model", unit="noise sd",
+            limits=(-fig["mean_limit"], fig["mean_limit"]), cmap="grey", pixel_size=px,
+            size=256)
+        files[f"residual_patches_{when}.png"] = figure_png(
+            fig[f"patches_{when}"], title=f"Residuals of the worst beads, {which} model",
+            unit="noise sd", limits=(-PATCH_LIMIT, PATCH_LIMIT), cmap="grey")
+    files["report.json"] = (json.dumps(data, indent=2, allow_nan=False) + "\n").encode()
     path = out / "report.md"
-    atomic_write(path, lambda fh: fh.write(md), mode="w", encoding="utf-8")
+    md = report_markdown(diagnosis, data["run"], fig).encode("utf-8")
+    # one set: report.md (the main file) only beside the figures and data of its run
+    write_set([(path, lambda fh, b=md: fh.write(b))]
+              + [(out / name, lambda fh, b=b: fh.write(b)) for name, b in files.items()])
     return path
 
 

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.common.atomic import atomic_write
+from ..core.common.atomic import write_set
 from ..figure import labelled_figure
 from .qc import average_psf
 
@@ -242,6 +242,11 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
     return "\n".join(lines)
 
 
+def _writer(data: bytes):
+    """A writer of ``data`` to an open binary file."""
+    return lambda fh: fh.write(data)
+
+
 def write_qc_report(record: dict, estimation, out_dir: str | os.PathLike,
                     voxel_size=None) -> dict[str, Path]:
     """Write ``qc.html``, ``qc_beads.csv`` (``record["per_bead"]``) and ``qc.json`` into
@@ -256,11 +261,10 @@ def write_qc_report(record: dict, estimation, out_dir: str | os.PathLike,
         w.writeheader()
         w.writerows(rows)
     paths = {"html": out / "qc.html", "csv": out / "qc_beads.csv", "json": out / "qc.json"}
-    atomic_write(paths["csv"], lambda fh: fh.write(buf.getvalue()), mode="w",
-                 encoding="utf-8", newline="")
-    atomic_write(paths["json"], lambda fh: json.dump(record, fh, indent=1, allow_nan=False),
-                 mode="w", encoding="utf-8")
-    atomic_write(paths["html"], lambda fh: fh.write(page), mode="w", encoding="utf-8")
+    content = {"html": page, "csv": buf.getvalue(),
+               "json": json.dumps(record, indent=1, allow_nan=False)}
+    # one set, the page (its main file) last in: never one run's table beside another's
+    write_set([(paths[k], _writer(content[k].encode("utf-8"))) for k in ("html", "csv", "json")])
     return paths
 
 
