@@ -153,7 +153,8 @@ def cli_calls(tmp: Path, f: dict) -> list[list[str]]:
             flag = action.option_strings[-1]
             n = action.nargs if isinstance(action.nargs, int) else 1
             values = ["abc", ""] if action.choices else BAD
-            if flag in ("-o", "--output", "--report", "--table", "--truth-grid"):
+            # an output (every command names its own: path_outputs) takes bad paths
+            if action.dest in (sp.get_default("path_outputs") or {}):
                 values = [str(tmp / "missing" / "x.tif"), str(tmp / "readonly" / "x.tif"),
                           str(tmp / "folder.tif"), ""]
             for v in values:
