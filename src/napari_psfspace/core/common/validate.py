@@ -216,6 +216,22 @@ def check_camera(gain, offset, read_noise, dtype=None
     return out[0], out[1], out[2], dt
 
 
+def check_exposure(gain: float, offset: float, background: float, dtype) -> None:
+    """ValueError unless a camera of ``gain`` (ADU per electron) and ``offset`` (ADU)
+    records a ``background`` (photo-electrons a pixel, the largest drawn) below the
+    largest count of an integer ``dtype``: at or above it, every pixel saturates and the
+    image holds one value."""
+    dt = np.dtype(dtype)
+    if dt.kind not in "ui":
+        return
+    level, top = offset + gain * background, float(np.iinfo(dt).max)
+    if not level < top:
+        raise ValueError(f"`gain` {gain:g} and `offset` {offset:g} put the background (up "
+                         f"to {background:g} photons) at {level:g} ADU, at or above {dt}'s "
+                         f"largest count {top:g}: every pixel would saturate; lower `gain` "
+                         "or `background`, or give a wider `dtype`")
+
+
 def check_background(background, top: float, name: str = "background") -> float:
     """A constant background: finite and below ``top``, the data's largest value (at or
     above it, every iteration would drive the estimate to zero)."""

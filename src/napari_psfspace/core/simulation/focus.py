@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..common.validate import check_camera, check_memory, check_shape
+from ..common.validate import check_camera, check_exposure, check_memory, check_shape
 from .aberrations import FieldAberrations, as_aberrations
 from .camera import as_range, camera
 from .optics import RENDER_RADIUS_FACTOR, Optics, field_psf_radius, psf_stack
@@ -226,6 +226,7 @@ def simulate_focus_series(
         raise ValueError(f"`z_um` must be focus positions in µm, got {z_um!r}") from None
     shape = check_shape(shape)
     gain, offset, read_noise, dtype = check_camera(gain, offset, read_noise, dtype)
+    check_exposure(gain, offset, as_range(background, "background")[1], dtype)
     if not 1 <= len(z) <= MAX_SLICES or not np.isfinite(z).all():
         raise ValueError(f"`z_um` must hold 1 to {MAX_SLICES} finite focus positions, got "
                          f"{len(z)}" + ("" if np.isfinite(z).all() else " with NaN"))

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..common.validate import check_camera, check_int, check_memory, check_shape
+from ..common.validate import check_camera, check_exposure, check_int, check_memory, check_shape
 from .aberrations import FieldAberrations, as_aberrations
 from .camera import as_range, camera, camera_adu, digitise
 from .effects import (
@@ -208,6 +208,7 @@ def simulate_beads(
     amp_range = as_range(amplitude, "amplitude")
     bg_range = as_range(background, "background")
     gain, offset, read_noise, dtype = check_camera(gain, offset, read_noise, dtype)
+    check_exposure(gain, offset, bg_range[1], dtype)
     effect_params = check_effects(effects, shape, dtype, offset)
     if not 0.0 < psf_energy < 1.0:
         raise ValueError(f"psf_energy must be in (0, 1), got {psf_energy!r}")
