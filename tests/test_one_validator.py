@@ -213,6 +213,15 @@ def _damaged_copy(src, dst, entry: str, how: str, *, fmt, version, entries, kind
     write_archive(dst, arrays, header)
 
 
+def _refusal(load) -> str | None:
+    """The loader's one line for a file it refuses; None for one it loads."""
+    try:
+        load()
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
 def _agree(outcomes: dict[str, tuple[int, str]], api: str | None) -> None:
     """Every door: exit 0, or exit 2 whose one line holds the loader's message (the
     command line prints it on one line: its runs of spaces are one)."""
@@ -239,14 +248,10 @@ def test_every_model_door_agrees_about_a_damaged_model_file(files, entry, how):
     _damaged_copy(d / "model.npz", path, entry, how, fmt=FORMAT_NAME, version=FORMAT_VERSION,
                   entries=("basis", "coefficients", "grid_y", "grid_x", "shape", "header"),
                   kind="model")
-    try:
-        ps.load_operator(path)
-        api = None
-    except ValueError as exc:
-        api = str(exc)
-    else:
+    api = _refusal(lambda: ps.load_operator(path))
+    if api is None:
         read_model(path)
-    if api is not None:
+    else:
         assert _message(lambda: read_model(path)) == api
     out = d / f"out_{entry}_{how}_{next(RUN)}"
     outcomes = {
@@ -275,11 +280,7 @@ def test_every_3d_model_door_agrees_about_a_damaged_file(files, entry, how):
         return
     _damaged_copy(d / "model3d.npz", path, entry, how, fmt=FORMAT_NAME,
                   version=FORMAT_VERSION, entries=entries, kind="3D model")
-    try:
-        ps.load_operator_3d(path)
-        api = None
-    except ValueError as exc:
-        api = str(exc)
+    api = _refusal(lambda: ps.load_operator_3d(path))
     out = d / f"out3_{entry}_{how}_{next(RUN)}.tif"
     _agree({"deblur3d": _cli(["deblur3d", d / "stack.tif", "--model", path, "-o", out,
                               "--iterations", 2, "-q"])}, api)
@@ -300,11 +301,7 @@ def test_every_family_door_agrees_about_a_damaged_family_file(files, how):
         path = d / f"f_{entry}_{how}.npz"
         _damaged_copy(d / "family.npz", path, entry, how, fmt=FORMAT_NAME,
                       version=FORMAT_VERSION, entries=entries, kind="family")
-        try:
-            ps.load_family(path)
-            api = None
-        except ValueError as exc:
-            api = str(exc)
+        api = _refusal(lambda path=path: ps.load_family(path))
         out = d / f"outf_{entry}_{how}_{next(RUN)}"
         _agree({"psf": _cli(["psf", path, "--image", 0, "--at", 60, 60, "-o",
                              f"{out}_p.tif"]),
