@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .core.common.atomic import atomic_write
+from .core.common.atomic import write_set
 from .core.common.mosaic import mosaic
 from .core.common.progress import Progress, run_with_progress
 from .core.diagnosis.loop import iter_heldout_error
@@ -33,7 +33,7 @@ from .core.diagnosis.metric import line as heldout_line
 from .core.model.estimate import iter_estimate
 from .core.simulation import simulate_beads
 from .core.simulation.metrics import evaluate_against_truth, grid_positions
-from .figure import write_figure
+from .figure import figure_png
 from .io import write_tiff
 
 #: Embedded default scenes: (shape, number of beads, aberration preset).
@@ -77,7 +77,6 @@ def run_demo(out_dir: str | os.PathLike = "demo-output", *, scene: str = "wide",
     report(Progress("simulate", 0.0, f"{shape[0]}x{shape[1]} image, {n_beads} beads, "
                     f"{preset} aberrations, PSF radius {truth.psf_radius} px"))
     pixel = truth.optics.pixel_size
-    write_tiff(out / "image.tif", image, pixel_size=pixel)
 
     t0 = time.perf_counter()
     est = run_with_progress(iter_estimate(image, psf_radius=truth.psf_radius), report)
@@ -85,35 +84,32 @@ def run_demo(out_dir: str | os.PathLike = "demo-output", *, scene: str = "wide",
     # the one accuracy figure every report gives (core/diagnosis/metric.py)
     held = run_with_progress(iter_heldout_error(image, psf_radius=truth.psf_radius), report)
     op = est.operator
-    op.save(out / "model.npz")
 
     errors = evaluate_against_truth(op, truth, 8)
     # the figures span the field edge to edge (half a patch from the border)
     ys, xs = grid_positions(shape, 8, layout="edges", margin=op.psf_size // 2)
     true = np.array([[truth.psf_at(y, x, op.psf_size) for x in xs] for y in ys])
     estim = np.array([[op.psf_at(y, x) for x in xs] for y in ys])
-    write_tiff(out / "psf_grid_true.tif", true.reshape(64, op.psf_size, op.psf_size))
-    write_tiff(out / "psf_grid_estimated.tif", estim.reshape(64, op.psf_size, op.psf_size))
     left = mosaic(true, gap=2, gamma=0.5)
     right = mosaic(estim.clip(0, None), gap=2, gamma=0.5)
     sep = np.full((left.shape[0], 12), np.nan)
     px = truth.optics.pixel_size
     tile = f"{op.psf_size * px:.2f} µm" if px else f"{op.psf_size} px"
-    write_figure(out / "psf_grid.png", np.hstack([left, sep, right]),
-                 title="PSF over the field: true (left), estimated (right)",
-                 unit="relative", limits=(0.0, 1.0), cmap="magma", size=900,
-                 note=f"8 x 8 field positions, tiles {tile}, each scaled to its peak, "
-                      f"gamma 0.5")
-    write_figure(out / "basis.png", mosaic(op.basis, gap=2, normalize="each", fill=np.nan),
-                 title=f"PSF basis h_0..h_{op.n_psf - 1}", unit="relative",
-                 limits=(-1.0, 1.0), cmap="diverging",
-                 note="each scaled to its largest magnitude, left to right, row by row")
+    pngs = {"psf_grid.png": figure_png(
+        np.hstack([left, sep, right]), title="PSF over the field: true (left), estimated "
+        "(right)", unit="relative", limits=(0.0, 1.0), cmap="magma", size=900,
+        note=f"8 x 8 field positions, tiles {tile}, each scaled to its peak, gamma 0.5")}
+    pngs["basis.png"] = figure_png(
+        mosaic(op.basis, gap=2, normalize="each", fill=np.nan),
+        title=f"PSF basis h_0..h_{op.n_psf - 1}", unit="relative", limits=(-1.0, 1.0),
+        cmap="diverging", note="each scaled to its largest magnitude, left to right, row by row")
     maps = op.coefficient_maps()[:, ::8, ::8]
     field = f"{shape[1] * px:.0f} µm" if px else f"{shape[1]} px"
-    write_figure(out / "coefficient_maps.png", mosaic(maps, gap=4, normalize="each", fill=np.nan),
-                 title=f"Coefficient maps alpha_0..alpha_{op.n_psf - 1}", unit="relative",
-                 limits=(-1.0, 1.0), cmap="diverging",
-                 note=f"each over the {field} field, scaled to its largest magnitude")
+    pngs["coefficient_maps.png"] = figure_png(
+        mosaic(maps, gap=4, normalize="each", fill=np.nan),
+        title=f"Coefficient maps alpha_0..alpha_{op.n_psf - 1}", unit="relative",
+        limits=(-1.0, 1.0), cmap="diverging",
+        note=f"each over the {field} field, scaled to its largest magnitude")
 
     result = {
         "scene": scene,
@@ -129,8 +125,25 @@ def run_demo(out_dir: str | os.PathLike = "demo-output", *, scene: str = "wide",
         "seconds_estimate": round(t_est, 2),
         "errors": errors,
     }
-    atomic_write(out / "errors.json", lambda fh: json.dump(result, fh, indent=2), mode="w")
+    size = op.psf_size
+    tiffs = {"image.tif": (image, pixel), "psf_grid_true.tif": (true.reshape(64, size, size),
+                                                                None),
+             "psf_grid_estimated.tif": (estim.reshape(64, size, size), None)}
+    text = json.dumps(result, indent=2).encode("utf-8")
+    # one set, errors.json (the summary) last in: never one run's figures beside another's
+    write_set([(out / "errors.json", lambda fh: fh.write(text)),
+               (out / "model.npz", lambda fh: op.save(out / "model.npz", into=fh))]
+              + [(out / n, _tiff_writer(out / n, a, p)) for n, (a, p) in tiffs.items()]
+              + [(out / n, _bytes_writer(b)) for n, b in pngs.items()])
     return result
+
+
+def _tiff_writer(path, data, pixel):
+    return lambda fh: write_tiff(path, data, pixel_size=pixel, into=fh)
+
+
+def _bytes_writer(data: bytes):
+    return lambda fh: fh.write(data)
 
 
 def format_table(result: dict) -> str:

@@ -357,7 +357,7 @@ class ProductConvolution(DeviceCache, PsfField):
         return LinearOperator((n, n), matvec=matvec, rmatvec=rmatvec, dtype=dt)
 
     # ------------------------------------------------------------------ I/O
-    def save(self, path: str | os.PathLike[str]) -> None:
+    def save(self, path: str | os.PathLike[str], *, into=None) -> None:
         """Save the model to a NumPy ``.npz`` file (atomically; no pickle).
 
         See ``docs/file-format.md`` for the layout. The file is written to a
@@ -368,6 +368,9 @@ class ProductConvolution(DeviceCache, PsfField):
         ----------
         path : str or os.PathLike
             Destination; used as given (no suffix is appended).
+        into : file object, optional
+            Write into this open binary file instead (one member of a set of files,
+            :func:`~..common.atomic.write_set`).
         """
         arrays = {
             "basis": self._basis,
@@ -376,7 +379,7 @@ class ProductConvolution(DeviceCache, PsfField):
             "grid_x": self._grid_x,
             "shape": np.asarray(self._shape, dtype=np.int64),
         }
-        write_model(path, arrays, self._full_res, self._metadata)
+        write_model(path, arrays, self._full_res, self._metadata, into=into)
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> ProductConvolution:

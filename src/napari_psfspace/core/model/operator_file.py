@@ -26,7 +26,7 @@ _REQUIRED_KEYS = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header"
 
 
 def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
-                full_resolution: bool, metadata: dict[str, Any]) -> None:
+                full_resolution: bool, metadata: dict[str, Any], *, into=None) -> None:
     """Write a model's arrays and header to ``path``, atomically.
 
     Parameters
@@ -40,6 +40,8 @@ def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
         Whether the coefficients are stored per pixel.
     metadata : dict
         JSON-ready metadata.
+    into : file object, optional
+        Write into this open binary file instead (one member of a set of files).
     """
     header = {
         "format": FORMAT_NAME,
@@ -48,14 +50,14 @@ def write_model(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
         "full_resolution": bool(full_resolution),
         "metadata": metadata,
     }
-    write_archive(path, arrays, header)
+    write_archive(path, arrays, header, into=into)
 
 
 def write_archive(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
-                  header: dict[str, Any]) -> None:
+                  header: dict[str, Any], *, into=None) -> None:
     """The file family's writer: ``arrays`` and the JSON ``header`` (entry ``header``, UTF-8
     bytes) in one compressed ``.npz``, written atomically (an existing file is replaced
-    only once the new one is complete).
+    only once the new one is complete), or into the open binary file ``into``.
 
     Raises
     ------
@@ -67,6 +69,9 @@ def write_archive(path: str | os.PathLike[str], arrays: dict[str, np.ndarray],
     except ValueError as err:
         raise ValueError(f"the header's metadata must be JSON-ready (no NaN): {err}") from err
     header_bytes = np.frombuffer(text.encode("utf-8"), dtype=np.uint8)
+    if into is not None:
+        np.savez_compressed(into, **arrays, header=header_bytes)
+        return
     with atomic_open(path, "wb") as fh:
         np.savez_compressed(fh, **arrays, header=header_bytes)
 
