@@ -46,6 +46,8 @@ DOORS = {
     "deblur_3d": (lambda: ps.deblur_3d(STACK, OP3, max_iter=1), "`stack` of 24 x 128 x 128"),
     "richardson_lucy_3d": (lambda: ps.richardson_lucy_3d(STACK, OP3, n_iter=1),
                            "on 24 x 128 x 128 voxels"),
+    "estimate_family": (lambda: ps.estimate_family([IMAGE, IMAGE], psf_radius=4),
+                        "`image` of 256 x 256"),
     "simulate_beads": (lambda: ps.simulate_beads((512, 512), 3), "`shape` (512, 512)"),
     "simulate_focus_series": (lambda: ps.simulate_focus_series((512, 512), 3),
                               "of 512 x 512"),

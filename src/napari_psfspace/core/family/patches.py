@@ -19,7 +19,7 @@ from ..beads.patches import Patches
 from ..common.spacing import bead_border, centring_sigma
 from ..common.validate import as_image
 from ..model.deblend import crowded, deblend
-from ..model.estimate import faint_beads, kept_patches
+from ..model.estimate import ESTIMATE_IMAGES, faint_beads, kept_patches
 from ..model.fewbeads import FEW_BEADS
 
 
@@ -98,7 +98,7 @@ def image_patches(image: np.ndarray | Callable[[], np.ndarray], psf_radius: floa
         With ``patches=None`` where no bead is usable (a named skip, not an error).
     """
     raw = image() if callable(image) else image
-    img = as_image(raw)
+    img = as_image(raw, copies=ESTIMATE_IMAGES)  # as one image's estimate holds
     r = float(psf_radius)
     try:
         beads = detect_beads(raw, r, threshold=threshold, saturation=saturation)

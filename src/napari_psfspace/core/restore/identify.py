@@ -45,6 +45,7 @@ from ..family.dimensions import family_fields, family_model
 from ..family.patches import image_patches
 from ..family.result import OperatorFamily, space_at
 from ..model.cone import Cone, reduce_cone
+from ..model.estimate import ESTIMATE_IMAGES
 from ..model.field import assemble_operator
 from ..model.heldout import (
     beyond_noise_each,
@@ -308,7 +309,7 @@ def identify_operator(
                    "Learn a family with estimate_family, or load one with "
                    "load_family; a single image's operator needs no identification.")
     max_iter = check_int(max_iter, "max_iter", minimum=1)
-    img = as_image(image)
+    img = as_image(image, copies=ESTIMATE_IMAGES)  # its beads found and cut as estimated
     if tuple(img.shape) != tuple(family.shape):
         raise ValueError(f"`image` has shape {tuple(img.shape)}, but the family was learnt "
                          f"on images of shape {tuple(family.shape)}: identify with a "
