@@ -28,10 +28,11 @@ from .spikes import (
     pixel_noise_sd,
 )
 
-#: Status codes of a bead, in the order in which they are assigned.
 #: The float32 images of the image's size detection holds at once (the image, its
 #: filtered copies and masks), counted with a margin: its memory is checked first.
 DETECT_IMAGES = 8
+
+#: Status codes of a bead, in the order in which they are assigned.
 KEPT = "kept"
 SATURATED = "saturated"
 BORDER = "border"

@@ -438,8 +438,8 @@ def noise_model(
     -------
     NoiseModel
     """
-    as_image(image)  # the images' validator, before any branch
     if gain is not None:
+        as_image(image)  # the other branches read it through the same validator
         if offset is None or read_noise is None:
             raise ValueError("Give the camera's `gain`, `offset` and `read_noise` together "
                              f"(got gain={gain}, offset={offset}, read_noise={read_noise}).")

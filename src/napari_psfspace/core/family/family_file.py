@@ -78,7 +78,7 @@ def _own_arrays(path: str, header: dict, n_images: int
     except ValueError as exc:
         raise ValueError(f"{path!r}: inconsistent family file: {exc}") from None
     bad = [k for k in ks if not 0 <= k < n_images]
-    if (bad or weights.shape != (n_images,) or not np.all(np.isfinite(weights))
+    if (bad or weights.shape != (n_images,)
             or weights.min(initial=1.0) < 0 or weights.max(initial=0.0) > 1):
         raise ValueError(f"{path!r}: inconsistent family file: own operators for images "
                          f"{ks} and family weights {weights.tolist()} for {n_images} images "
@@ -122,7 +122,7 @@ def read_family(path: str | os.PathLike[str]) -> tuple[dict, dict, np.ndarray | 
     ok = (basis.ndim == 3 and space.ndim == 3 and gammas.ndim == 3
           and gammas.shape[1:] == (basis.shape[0], space.shape[0])
           and space.shape[1:] == (arr["grid_y"].size, arr["grid_x"].size)
-          and arr["shape"].shape == (2,) and arr["cone"].ndim == 2
+          and arr["cone"].ndim == 2
           and arr["cone"].shape[1] == basis.shape[0]
           and min(basis.shape + space.shape + gammas.shape + arr["cone"].shape) >= 1)
     if not ok:

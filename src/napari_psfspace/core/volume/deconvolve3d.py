@@ -190,13 +190,14 @@ def stack_statistics(stack, background: float | None = None) -> tuple[float, flo
     return b, float(sample.mean())
 
 
-def check_stack(stack, operator: ProductConvolution3D) -> None:
+def check_stack(stack, operator: ProductConvolution3D, *, copies: float = 0.0) -> None:
     """Raise a clear error unless ``stack`` is a volume of the operator's lateral
-    shape."""
+    shape (the stacks' validator), and, where ``copies`` is given, unless that many
+    float32 volumes of its size fit in memory."""
     if not isinstance(operator, ProductConvolution3D):
         raise TypeError(f"`operator` must be a ProductConvolution3D, got "
                         f"{type(operator).__name__}")
-    as_stack(stack, lateral=operator.shape[1:])
+    as_stack(stack, lateral=operator.shape[1:], copies=copies)
 
 
 def iter_richardson_lucy_3d(

@@ -32,7 +32,7 @@ import numpy as np
 from ..common.device import ArrayModule, array_module, namespace
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
-from ..common.validate import as_stack, check_finite, check_int, check_signal
+from ..common.validate import check_finite, check_int, check_signal
 from ..diagnosis.noise import background_variance
 from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT
 from ..restore.fista import BlockFista
@@ -140,8 +140,7 @@ def iter_deblur_3d(
     """Generator form of :func:`deblur_3d`: yields progress after every iteration (stop
     it there to cancel), returns the :class:`Deblurred3D`."""
     t0 = time.perf_counter()
-    check_stack(stack, operator)
-    as_stack(stack, lateral=operator.shape[1:], finite=False, copies=FISTA_VOLUMES)
+    check_stack(stack, operator, copies=FISTA_VOLUMES)
     max_iter = check_int(max_iter, "max_iter", minimum=1)
     if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"`tol` must be a finite number >= 0, got {tol!r}")
