@@ -12,7 +12,10 @@ Two ways, both linear least squares:
   window's edge ``r_ext`` to :data:`RING_OUTER` radii, on the image's own pixels (no
   re-sampling), pixels far above the plane left out as another source's light, and the
   plane evaluated on the patch's sub-pixel grid. Farther out the wings are fainter, and a
-  plane cannot bend under the core.
+  plane cannot bend under the core. The bead's own wings still reach the ring (one to two
+  per cent of an in-focus PSF's light lies between 1.2 and 1.6 radii): they are fitted
+  with the plane, as a fall-off with the cube of the distance (the envelope of an
+  aperture's diffraction) scaled by the bead's light, its scale one for the image.
 """
 
 from __future__ import annotations
@@ -118,6 +121,13 @@ RING_CLIP = 3.0
 #: Fits of the plane after the first, each without the pixels :data:`RING_CLIP` leaves out.
 RING_PASSES = 2
 
+#: Fit the beads' own wings on their rings with the planes (:func:`_own_wings`).
+OWN_WINGS = True
+
+#: Power of the radial fall-off of a PSF's own light beyond its core (an aperture's
+#: diffraction: the Airy envelope falls as the cube of the distance).
+WING_POWER = 3.0
+
 
 def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: float,
                     size: int, *, outer: float | None = None, neighbours=None
@@ -139,6 +149,14 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
         ``RING_OUTER * r``, at least one pixel beyond the patch).
     neighbours : NeighbourLight, optional
         Other detections' modelled light, taken out of the ring first.
+
+    Notes
+    -----
+    Each bead's own light on its ring, ``c F_k (r_ext / rho)**3`` at distance ``rho`` (``F_k``
+    its light within ``r_ext`` above its plane), is fitted with the planes: one scale
+    ``c >= 0`` for the image, by least squares with the planes eliminated. A plane alone
+    takes the wings' mean level on the ring for background and removes it from every
+    pixel of the patch; a PSF without wings there gets ``c = 0``: the plane alone.
 
     Returns
     -------
@@ -167,8 +185,17 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
     coef = _planes(design, vals, use)
     seen_any = use.any(axis=1)
     step = value_step(image)
+    frac = centers - base
+    dist = np.hypot((d[None, :, None] - frac[:, :1, None]),
+                    (d[None, None, :] - frac[:, 1:, None])).reshape(len(centers), -1)
+    full = np.stack([np.ones(yy.size), xx.ravel(), yy.ravel()], axis=1)
+    wing = np.zeros_like(vals)
+    keep = use > 0
     for _ in range(RING_PASSES):  # fitted again without the pixels far from the plane
-        res = np.where(use > 0, vals - coef @ design.T, np.nan)
+        if OWN_WINGS:
+            wing = _own_wings(wins, seen, coef, full, ring, dist, vals, use * keep, r_ext)
+            coef = _planes(design, vals - wing, use * keep)
+        res = np.where(use > 0, vals - wing - coef @ design.T, np.nan)
         res[~seen_any] = 0.0
         med = np.nanmedian(res, axis=1, keepdims=True)
         # a quantised image's background can hold one level in most of its pixels:
@@ -176,13 +203,28 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
         scale = np.maximum(1.4826 * np.nanmedian(np.abs(res - med), axis=1, keepdims=True),
                            step)
         keep = np.abs(res - med) <= RING_CLIP * scale  # NaN (not seen): False
-        coef = _planes(design, vals, use * keep)
-    frac = centers - base
+        coef = _planes(design, vals - wing, use * keep)
     off = (np.arange(size, dtype=np.float64) - half)
     py = (off[None, :] + frac[:, :1]) / h  # (K, size)
     px = (off[None, :] + frac[:, 1:]) / h
     return (coef[:, 0, None, None] + coef[:, 1, None, None] * px[:, None, :]
             + coef[:, 2, None, None] * py[:, :, None])
+
+
+def _own_wings(wins, seen, coef, full, ring, dist, vals, use, r_ext):
+    """Each bead's own light on its ring (K, n): ``c F_k (r_ext / rho)**WING_POWER``, one
+    ``c >= 0`` for the image, fitted by least squares with each bead's plane (the planes
+    eliminated), ``F_k`` the bead's light within ``r_ext`` above its plane."""
+    inside = ~ring
+    flux = np.sum(np.where(seen[:, inside], wins[:, inside] - coef @ full[inside].T, 0.0),
+                  axis=1)
+    shape = np.maximum(flux, 0.0)[:, None] * (r_ext / dist[:, ring]) ** WING_POWER
+    design = full[ring]
+    a = shape - _planes(design, shape, use) @ design.T
+    b = vals - _planes(design, vals, use) @ design.T
+    den = float(np.sum(use * a * a))
+    c = max(float(np.sum(use * a * b)) / den, 0.0) if den > 0 else 0.0
+    return c * shape
 
 
 def value_step(image: np.ndarray, *, sample: int = 65536) -> float:
