@@ -26,18 +26,6 @@ def warn(old: str, new: str, *, stacklevel: int = 3) -> None:
     warnings.warn(message(old, new), FutureWarning, stacklevel=stacklevel)
 
 
-def deprecated_function(func: Callable, old: str) -> Callable:
-    """``func`` under its old name ``old``: the same call, with a warning."""
-    @functools.wraps(func)
-    def wrapper(*args, **kwargs):
-        warn(old, func.__name__)
-        return func(*args, **kwargs)
-
-    wrapper.__name__ = wrapper.__qualname__ = old
-    wrapper.__doc__ = f"Deprecated: {message(old, func.__name__)}\n"
-    return wrapper
-
-
 def renamed_keyword(old: str, new: str) -> Callable[[Callable], Callable]:
     """A decorator: the keyword argument ``old`` is accepted for ``new``, with a warning
     (both at once is an error)."""
@@ -69,5 +57,5 @@ def module_getattr(module_name: str, aliases: dict[str, tuple[str, Callable[[], 
     return __getattr__
 
 
-__all__ = ["UNTIL", "SINCE", "deprecated_function", "message", "module_getattr",
+__all__ = ["UNTIL", "SINCE", "message", "module_getattr",
            "renamed_keyword", "warn"]

@@ -22,21 +22,7 @@ from math import factorial
 
 import numpy as np
 
-__all__ = ["noll_to_nm", "zernike", "zernike_name"]
-
-_NAMES = {
-    1: "piston",
-    2: "tilt x",
-    3: "tilt y",
-    4: "defocus",
-    5: "oblique astigmatism",
-    6: "vertical astigmatism",
-    7: "vertical coma",
-    8: "horizontal coma",
-    9: "vertical trefoil",
-    10: "oblique trefoil",
-    11: "primary spherical",
-}
+__all__ = ["noll_to_nm", "zernike"]
 
 
 def noll_to_nm(j: int) -> tuple[int, int]:
@@ -71,11 +57,6 @@ def noll_to_nm(j: int) -> tuple[int, int]:
     if m != 0 and j % 2 == 1:
         m = -m
     return n, m
-
-
-def zernike_name(j: int) -> str:
-    """Conventional name of Noll mode ``j`` (``"Z<j>"`` beyond j = 11)."""
-    return _NAMES.get(int(j), f"Z{int(j)}")
 
 
 def _radial(n: int, m: int, rho: np.ndarray) -> np.ndarray:
