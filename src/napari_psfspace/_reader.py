@@ -54,7 +54,7 @@ def read_model(path) -> list[tuple]:
     it is known; the PSF-grid layer carries the operator, so saving that layer as
     ``.npz`` writes the model back.
     """
-    from ._widgets._layers import Frame, operator_layers
+    from ._layers import Frame, operator_layers
 
     p = _single_path(path)
     op = load_operator(p)

@@ -14,7 +14,7 @@ import os
 
 import numpy as np
 
-from ._widgets._layers import OPERATOR_KEY
+from ._layers import OPERATOR_KEY
 from .core.model.operator import ProductConvolution
 from .io import write_tiff
 

@@ -71,7 +71,7 @@ def assert_maps_read_with_overlays(v, made) -> None:
     brackets, its name and colour-bar overlays are on, its colour bar's limits are the
     map's own (napari draws them from the layer); no layer is a colour bar or a title
     drawn as data."""
-    from napari_psfspace._widgets._layers import OVERLAYS_KEY
+    from napari_psfspace._layers import OVERLAYS_KEY
 
     for name in made:
         layer = v.layers[name]

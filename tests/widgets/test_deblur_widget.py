@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import wait_task
+from napari_psfspace._layers import MORE_BEADS, SUBSPACE_KEY
 from napari_psfspace._widgets._deblur import (
     MOST_POINTS,
     POINT_SIZE,
@@ -14,7 +15,6 @@ from napari_psfspace._widgets._deblur import (
     SPARSE_POINTS,
     DeblurWidget,
 )
-from napari_psfspace._widgets._layers import MORE_BEADS, SUBSPACE_KEY
 from napari_psfspace.core.family import estimate_family
 from napari_psfspace.core.simulation.stacks import simulate_stack
 

@@ -7,7 +7,7 @@ import numpy as np
 
 
 def test_a_new_fit_forgets_the_last_fits_verdicts_only():
-    from napari_psfspace._widgets._layers import for_a_new_fit
+    from napari_psfspace._layers import for_a_new_fit
     from napari_psfspace.core.beads.detect import Beads
 
     status = np.array(["kept", "heldout", "outlier", "rejected", "saturated"])
@@ -27,7 +27,7 @@ def _box(data, kwargs):
 def test_a_result_lies_centred_on_the_field_at_its_scale():
     """A map on the image's pixels covers the field exactly; a mosaic fills the field
     along its tighter side, centred; a result larger than the field is shrunk to it."""
-    from napari_psfspace._widgets._layers import Frame, on_field
+    from napari_psfspace._layers import Frame, on_field
 
     frame = Frame((300, 400), (0.1, 0.1), (5.0, -3.0))
     field = (np.array([5.0, -3.0]) - 0.05, np.array([5.0, -3.0]) - 0.05 + [30.0, 40.0])
@@ -51,8 +51,8 @@ def test_a_map_is_dressed_by_napari_not_drawn_beside():
     and colour-bar overlays; dress turns them on, and leaves other layers alone."""
     from types import SimpleNamespace
 
-    from napari_psfspace._widgets._layers import OVERLAYS_KEY, Frame, dress, map_tuple
-    from napari_psfspace._widgets._layers.figure import BAR_CORNER, NAME_CORNER
+    from napari_psfspace._layers import OVERLAYS_KEY, Frame, dress, map_tuple
+    from napari_psfspace._layers.figure import BAR_CORNER, NAME_CORNER
 
     frame = Frame((30, 40), (0.1, 0.1), units="µm")
     out = map_tuple(np.zeros((30, 40), np.float32),
@@ -80,8 +80,8 @@ def test_a_deblurred_slice_lies_on_its_slice_on_the_field():
     only), named for it, on the stack's field."""
     from types import SimpleNamespace
 
+    from napari_psfspace._layers import Frame
     from napari_psfspace._widgets._deblur import SMOOTH, SPARSE, result_layers
-    from napari_psfspace._widgets._layers import Frame
 
     stack = SimpleNamespace(name="stack", scale=(0.3, 0.1, 0.1), translate=(1.0, 0.0, 0.0))
     res = SimpleNamespace(sparse=np.zeros((20, 30)), smooth=np.ones((20, 30)),
@@ -106,7 +106,7 @@ def test_a_deblurred_slice_lies_on_its_slice_on_the_field():
 
 
 def test_colour_limits_span_the_finite_values_and_are_never_empty():
-    from napari_psfspace._widgets._layers.figure import finite_limits
+    from napari_psfspace._layers.figure import finite_limits
 
     assert finite_limits([0.2, np.nan, 0.5]) == (0.2, 0.5)
     lo, hi = finite_limits([3.0, 3.0])  # a constant map: a range above its value

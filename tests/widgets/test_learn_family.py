@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from conftest import wait_task
-from napari_psfspace._widgets._layers import (
+from napari_psfspace._layers import (
     SUB_BASIS,
     SUB_GRID,
     SUB_SPACE,

@@ -5,7 +5,7 @@ import pytest
 
 from conftest import wait_task
 from napari_psfspace import load_operator
-from napari_psfspace._widgets._layers import (
+from napari_psfspace._layers import (
     BASIS,
     BEADS,
     HELDOUT_LAYER,
@@ -13,7 +13,7 @@ from napari_psfspace._widgets._layers import (
     PSF_GRID,
     WEIGHT,
 )
-from napari_psfspace._widgets._layers.results import SHOWN_WEIGHTS
+from napari_psfspace._layers.results import SHOWN_WEIGHTS
 from napari_psfspace._widgets._learn_operator import LearnOperatorWidget
 from napari_psfspace._widgets._pick_beads import PickBeadsWidget
 from napari_psfspace._widgets._review_patches import ReviewPatchesWidget
@@ -189,7 +189,7 @@ def test_four_beads_give_one_psf_and_each_beads_own_fwhm(make_napari_viewer, qtb
     µm, within a fifth of the truth's (the model's PSF at the centre, fitted alike)."""
     import napari_psfspace as ps
     from conftest import calibrated_viewer
-    from napari_psfspace._widgets._layers import BEAD_FWHM
+    from napari_psfspace._layers import BEAD_FWHM
     from napari_psfspace.core.common.measures import lateral_measures
     from napari_psfspace.core.model.fewbeads import TOO_FEW
 

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 
 from conftest import wait_task
-from napari_psfspace._widgets._layers import BEADS, find_layer
+from napari_psfspace._layers import BEADS, find_layer
 from napari_psfspace.core.diagnosis.metric import NAME
 
 PLUGIN = "napari-psfspace"

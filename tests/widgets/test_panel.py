@@ -219,7 +219,7 @@ def test_side_by_side_reads_at_the_panels_view_and_at_naparis_home(laptop, qtbot
     overlays' settings (grid, camera, fonts, bar size) put no text over another or over
     the data, at the panel's view and after napari's Home (napari 0.9: the canvas size is
     in its model). Leaving the view gives the user's grid, scale bar and layers back."""
-    from napari_psfspace._widgets._layers import OVERLAYS_KEY, group_layers
+    from napari_psfspace._layers import OVERLAYS_KEY, group_layers
     from napari_psfspace._widgets._view import collisions, grid_of, scale_bar_of
 
     v, dock, panel, cwd = laptop
@@ -316,7 +316,7 @@ def test_every_step_twice_the_same_layers_and_cancel(laptop, qtbot,
         if title == "Diagnose":  # a bead rejected by hand stays out of the diagnosis
             pts = v.layers["beads"]
             kept = np.flatnonzero(np.asarray(pts.features["status"]) == "kept")
-            from napari_psfspace._widgets._layers import set_statuses
+            from napari_psfspace._layers import set_statuses
             rejected_id = int(pts.features["id"].iloc[kept[0]])
             set_statuses(pts, [rejected_id], ["rejected"])
         names = statuses = None
@@ -397,7 +397,7 @@ def _check_groups(v, panel, titles):
     """Each step's layers are one group: each map named with its unit and shown with
     napari's name and colour bar, and removed together by the step's button, the other
     steps' layers and the data left alone."""
-    from napari_psfspace._widgets._layers import STEP_KEY, step_layers
+    from napari_psfspace._layers import STEP_KEY, step_layers
 
     groups = {t: {layer.name for layer in step_layers(v, t)} for t in titles}
     assert all(groups.values()), groups

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from conftest import wait_task
-from napari_psfspace._widgets._layers import BEADS, STATUS_COLORS
+from napari_psfspace._layers import BEADS, STATUS_COLORS
 from napari_psfspace._widgets._pick_beads import PickBeadsWidget
 
 
@@ -131,7 +131,7 @@ def test_bead_diameter_without_pixel_size_is_refused(make_napari_viewer, qtbot, 
 
 
 def test_hot_pixels_are_shown_beside_the_beads(make_napari_viewer, qtbot):
-    from napari_psfspace._widgets._layers import HOT_PIXELS
+    from napari_psfspace._layers import HOT_PIXELS
     from napari_psfspace.core.simulation import simulate_beads
 
     image, truth = simulate_beads((384, 384), 25, seed=3, effects={"hot_pixels": 20})

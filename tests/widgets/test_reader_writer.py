@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from napari_psfspace import estimate_operator, load_operator
+from napari_psfspace._layers import BASIS, OPERATOR_KEY, PSF_GRID, WEIGHT
 from napari_psfspace._reader import get_model_reader, get_ome_zarr_reader, get_tiff_reader
-from napari_psfspace._widgets._layers import BASIS, OPERATOR_KEY, PSF_GRID, WEIGHT
 from napari_psfspace._writer import write_model, write_psf_tiff
 from napari_psfspace.io import read_image, write_tiff
 

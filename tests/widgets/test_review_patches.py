@@ -3,7 +3,7 @@
 import numpy as np
 
 from conftest import wait_task
-from napari_psfspace._widgets._layers import (
+from napari_psfspace._layers import (
     BEADS,
     CURRENT,
     GALLERY,

@@ -105,7 +105,7 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     assert height <= stack.shape[1] * px * (1 + 1e-6)
     # the maps in µm (the stack is calibrated), their unit in their names
     assert all(f"{label} (µm)" in v.layers for _, label, _ in MAPS)
-    from napari_psfspace._widgets._layers import group_layers
+    from napari_psfspace._layers import group_layers
 
     made = group_layers(v, "3D")
     assert_maps_read_with_overlays(v, {layer.name for layer in made})
@@ -149,7 +149,7 @@ def test_learn_and_deblur_3d_twice_the_same_layers_and_cancel(make_napari_viewer
     # Cancel in every phase: within 2 s, nothing added. The iteration yields after each
     # wave of blocks (one a thread), the setup after each of its steps
     w.iterations.value = 10_000
-    from napari_psfspace._widgets._layers import group_layers, remove_step
+    from napari_psfspace._layers import group_layers, remove_step
 
     assert remove_step(v, "3D") >= 2 and not group_layers(v, "3D")
     assert [layer.name for layer in v.layers] == ["bead stack", "a 2-D image"]

@@ -1,6 +1,7 @@
 """napari dock widgets over the headless core: pick beads, review patches, learn.
 
-One module per dock widget; ``_layers`` converts between layers and core objects and
+One module per dock widget; ``napari_psfspace._layers`` converts between layers and core
+objects (the readers and writers use it too, without the widgets) and
 ``_worker`` runs core generators off the GUI thread. The manifest (``napari.yaml``)
 names the classes directly, so importing this package stays cheap.
 """

@@ -27,11 +27,7 @@ from magicgui.widgets import (
 from napari.layers import Points
 from napari.utils.notifications import show_error
 
-from ..core.common.device import array_module
-from ..core.common.progress import Progress
-from ..core.restore import identify_operator, iter_deblur
-from ..core.restore.identify import IdentificationWarning
-from ._layers import (
+from .._layers import (
     MADE_AS,
     OPERATOR_KEY,
     OVERLAYS_KEY,
@@ -47,6 +43,10 @@ from ._layers import (
     on_field,
     show_layers,
 )
+from ..core.common.device import array_module
+from ..core.common.progress import Progress
+from ..core.restore import identify_operator, iter_deblur
+from ..core.restore.identify import IdentificationWarning
 from ._view import show_step
 from ._worker import CoreTask, device_choice, image_choices, result_text
 

@@ -16,6 +16,15 @@ from magicgui.widgets import (
 )
 from napari.utils.notifications import show_info
 
+from .._layers import (
+    OPERATOR_KEY,
+    Frame,
+    LayerTuple,
+    map_tuple,
+    on_field,
+    show_layers,
+    user_beads,
+)
 from ..core.diagnosis.loop import iter_diagnose
 from ..report import (
     STEP_COLUMNS,
@@ -24,15 +33,6 @@ from ..report import (
     steps_table,
     summary_text,
     write_report,
-)
-from ._layers import (
-    OPERATOR_KEY,
-    Frame,
-    LayerTuple,
-    map_tuple,
-    on_field,
-    show_layers,
-    user_beads,
 )
 from ._view import show_step
 from ._worker import (

@@ -27,9 +27,9 @@ from magicgui.widgets import (
 )
 from napari.utils.notifications import show_error, show_info
 
+from .._layers import SUB_GRID, Frame, axis_unit, family_layers, find_layer, show_layers
 from ..core.common.progress import Progress
 from ..core.family import OperatorFamily, iter_estimate_family
-from ._layers import SUB_GRID, Frame, axis_unit, family_layers, find_layer, show_layers
 from ._view import show_step
 from ._worker import (
     CoreTask,

@@ -18,14 +18,7 @@ from magicgui.widgets import (
 )
 from napari.utils.notifications import show_info
 
-from ..core.common.measures import field_fwhm, fwhm_line, patch_fwhms
-from ..core.diagnosis.loop import iter_heldout_error
-from ..core.diagnosis.metric import line as heldout_line
-from ..core.model.estimate import iter_estimate
-from ..core.model.fewbeads import one_psf_note
-from ..core.model.operator import ProductConvolution
-from ..report import model_lines
-from ._layers import (
+from .._layers import (
     PSF_GRID,
     bead_fwhm_layer,
     beads_layer,
@@ -37,6 +30,13 @@ from ._layers import (
     show_layers,
     user_beads,
 )
+from ..core.common.measures import field_fwhm, fwhm_line, patch_fwhms
+from ..core.diagnosis.loop import iter_heldout_error
+from ..core.diagnosis.metric import line as heldout_line
+from ..core.model.estimate import iter_estimate
+from ..core.model.fewbeads import one_psf_note
+from ..core.model.operator import ProductConvolution
+from ..report import model_lines
 from ._view import show_step
 from ._worker import (
     CoreTask,

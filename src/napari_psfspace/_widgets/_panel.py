@@ -29,9 +29,7 @@ from qtpy.QtWidgets import (
     QWidget,
 )
 
-from ._deblur import DeblurWidget
-from ._diagnose import DiagnoseWidget
-from ._layers import (
+from .._layers import (
     BEADS,
     OPERATOR_KEY,
     SUBSPACE_KEY,
@@ -40,6 +38,8 @@ from ._layers import (
     is_input_image,
     remove_step,
 )
+from ._deblur import DeblurWidget
+from ._diagnose import DiagnoseWidget
 from ._learn_family import LearnFamilyWidget
 from ._learn_operator import LearnOperatorWidget
 from ._pick_beads import PickBeadsWidget

@@ -8,12 +8,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from magicgui.widgets import ComboBox, Container, FloatSpinBox, Label, PushButton
 
-from ..core.beads.steps import (
-    iter_detect_beads,
-    iter_suggest_psf_radius,
-    iter_suggest_slice_radius,
-)
-from ._layers import (
+from .._layers import (
     BEADS,
     HOT_PIXELS,
     STATUS_COLORS,
@@ -24,6 +19,11 @@ from ._layers import (
     hot_pixels_layer,
     image_plane,
     show_layers,
+)
+from ..core.beads.steps import (
+    iter_detect_beads,
+    iter_suggest_psf_radius,
+    iter_suggest_slice_radius,
 )
 from ._worker import CoreTask, RadiusEdit, image_choices, pixel_size_of
 

@@ -7,9 +7,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from magicgui.widgets import ComboBox, Container, PushButton, SpinBox
 
-from ..core.beads.detect import REJECTED
-from ..core.model.review import VIEWS, PatchReview, iter_patch_review
-from ._layers import (
+from .._layers import (
     CURRENT,
     GALLERY,
     STATUS_MEANING,
@@ -24,6 +22,8 @@ from ._layers import (
     set_statuses,
     show_layers,
 )
+from ..core.beads.detect import REJECTED
+from ..core.model.review import VIEWS, PatchReview, iter_patch_review
 from ._worker import (
     CoreTask,
     FollowsBeads,

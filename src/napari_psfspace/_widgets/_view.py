@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._layers import OVERLAYS_KEY, focus_on_step, group_layers
-from ._layers.figure import BAR_FONT, BAR_SIZE, NAME_FONT, bar_of
+from .._layers import OVERLAYS_KEY, focus_on_step, group_layers
+from .._layers.figure import BAR_FONT, BAR_SIZE, NAME_FONT, bar_of
 
 #: Steps shown side by side (their results are maps to read, not marks to click).
 SIDE_BY_SIDE_STEPS = ("Model", "Diagnose", "Family", "Deblur", "3D")

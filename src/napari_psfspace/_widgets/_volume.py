@@ -37,6 +37,7 @@ from magicgui.widgets import (
 from napari.layers import Image
 from napari.utils.notifications import show_error
 
+from .._layers import Frame, axis_unit, map_tuple, on_field, show_layers
 from ..core.common.measures import in_units, psf_measures
 from ..core.common.progress import Progress
 from ..core.volume import iter_estimate_operator_3d, load_operator_3d
@@ -47,7 +48,6 @@ from ..core.volume.deconvolve3d import (
 )
 from ..core.volume.measures import measure_maps
 from ..core.volume.views import psf_grid_3d
-from ._layers import Frame, axis_unit, map_tuple, on_field, show_layers
 from ._view import show_step
 from ._worker import CoreTask, RadiusEdit, device_choice, result_text
 

@@ -27,9 +27,9 @@ from magicgui.widgets import ComboBox, Container, Label, ProgressBar, PushButton
 from napari.qt.threading import GeneratorWorker, thread_worker
 from napari.utils.notifications import show_error
 
+from .._layers import input_images
 from ..core.common.device import DEVICES, gpu_status
 from ..core.common.progress import responsive
-from ._layers import input_images
 
 
 @dataclass(frozen=True)
@@ -344,7 +344,7 @@ class FollowsBeads:
         """The plane the beads were detected on, or None (the user is told why)."""
         from napari.utils.notifications import show_error
 
-        from ._layers import bead_plane
+        from .._layers import bead_plane
 
         if img is None:
             self.task.status.value = "Open a bead image first (or File > Open Sample)."

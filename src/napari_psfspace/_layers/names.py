@@ -7,7 +7,7 @@ writer agree.
 
 from __future__ import annotations
 
-from ...core.beads.detect import (
+from ..core.beads.detect import (
     COMPANION,
     HELDOUT,
     OFF_FOCUS,

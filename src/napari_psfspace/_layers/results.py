@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...core.common.mosaic import mosaic
+from ..core.common.mosaic import mosaic
 from .figure import OVERLAYS_KEY, finite_limits, map_tuple
 from .frame import Frame, LayerTuple, field_units, on_field
 from .names import (

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ...core.beads.detect import HELDOUT, KEPT, OUTLIER, Beads
+from ..core.beads.detect import HELDOUT, KEPT, OUTLIER, Beads
 from .bookkeeping import find_layer
 from .figure import OVERLAYS_KEY
 from .frame import Frame, LayerTuple, field_units
