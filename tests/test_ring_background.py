@@ -192,3 +192,25 @@ def test_beads_without_wings_keep_the_plane():
     # fitted from noise: 5 sd of it
     np.testing.assert_allclose(bg[:, size // 2, size // 2], plane[at[:, 0], at[:, 1]],
                                atol=0.25)
+
+
+def test_beads_that_disagree_on_their_wings_keep_the_plane(monkeypatch):
+    """Gaussian beads (no wings) on a background that curves up about half of them and
+    down about the others: each bead's ring reads a wing of its own sign, the beads'
+    scatter about their common scale is as large as the scale, and the plane alone is
+    kept, to the last digit."""
+    from napari_psfspace.core.beads import background
+
+    shape, r = (240, 240), 10.0
+    cy, cx = np.meshgrid(np.arange(45.0, 200.0, 30.0), np.arange(45.0, 200.0, 30.0),
+                         indexing="ij")
+    centers = np.stack([cy.ravel(), cx.ravel()], axis=1) + 0.3
+    y, x = np.indices(shape, dtype=np.float64)
+    image = 100.0 + 5.0 * np.cos(2 * np.pi * y / 60) * np.cos(2 * np.pi * x / 60)
+    for c in centers:
+        image += 4e4 / (8 * np.pi) * np.exp(-((y - c[0]) ** 2 + (x - c[1]) ** 2) / 8)
+    size = patch_size(r)
+    with_wings = ring_background(image, centers, r, 1.2 * r, size)
+    monkeypatch.setattr(background, "OWN_WINGS", False)
+    plane = ring_background(image, centers, r, 1.2 * r, size)
+    np.testing.assert_array_equal(with_wings, plane)

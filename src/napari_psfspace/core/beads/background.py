@@ -128,6 +128,10 @@ OWN_WINGS = True
 #: diffraction: the Airy envelope falls as the cube of the distance).
 WING_POWER = 3.0
 
+#: The wings' scale taken is its estimate less this many standard errors (at least 0): a
+#: lower confidence bound, so that an image whose beads disagree keeps the plane alone.
+WING_Z = 2.0
+
 
 def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: float,
                     size: int, *, outer: float | None = None, neighbours=None
@@ -154,9 +158,11 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
     -----
     Each bead's own light on its ring, ``c F_k (r_ext / rho)**3`` at distance ``rho`` (``F_k``
     its light within ``r_ext`` above its plane), is fitted with the planes: one scale
-    ``c >= 0`` for the image, by least squares with the planes eliminated. A plane alone
-    takes the wings' mean level on the ring for background and removes it from every
-    pixel of the patch; a PSF without wings there gets ``c = 0``: the plane alone.
+    ``c >= 0`` for the image, by least squares with the planes eliminated, less
+    :data:`WING_Z` standard errors from the beads' scatter. A plane alone takes the wings'
+    mean level on the ring for background and removes it from every pixel of the patch.
+    A PSF without wings there, or beads that disagree (a background that curves about
+    them reads as a wing of either sign), get ``c = 0``: the plane alone.
 
     Returns
     -------
@@ -214,16 +220,25 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
 def _own_wings(wins, seen, coef, full, ring, dist, vals, use, r_ext):
     """Each bead's own light on its ring (K, n): ``c F_k (r_ext / rho)**WING_POWER``, one
     ``c >= 0`` for the image, fitted by least squares with each bead's plane (the planes
-    eliminated), ``F_k`` the bead's light within ``r_ext`` above its plane."""
+    eliminated) less :data:`WING_Z` standard errors, ``F_k`` the bead's light within
+    ``r_ext`` above its plane."""
     inside = ~ring
     flux = np.sum(np.where(seen[:, inside], wins[:, inside] - coef @ full[inside].T, 0.0),
                   axis=1)
     shape = np.maximum(flux, 0.0)[:, None] * (r_ext / dist[:, ring]) ** WING_POWER
     design = full[ring]
-    a = shape - _planes(design, shape, use) @ design.T
-    b = vals - _planes(design, vals, use) @ design.T
-    den = float(np.sum(use * a * a))
-    c = max(float(np.sum(use * a * b)) / den, 0.0) if den > 0 else 0.0
+    a = use * (shape - _planes(design, shape, use) @ design.T)
+    b = use * (vals - _planes(design, vals, use) @ design.T)
+    aa, ab = np.sum(a * a, axis=1), np.sum(a * b, axis=1)
+    den = float(aa.sum())
+    if den <= 0 or np.count_nonzero(aa > 0) < 2:
+        return np.zeros_like(vals)
+    c = float(ab.sum()) / den
+    # the scale's standard error from the beads' scatter about it (each bead's residual
+    # times its regressor, a sandwich estimate): a background that curves about a bead
+    # reads as a wing of either sign there; only the scale the beads agree on is taken
+    se = float(np.sqrt(np.sum((ab - c * aa) ** 2))) / den
+    c = max(c - WING_Z * se, 0.0)
     return c * shape
 
 
