@@ -1,12 +1,10 @@
 """TIFF reading with the pixel size, and the default model path."""
 
-import os
-import stat
 
 import numpy as np
 import pytest
 
-from napari_psfspace.io import default_model_path, read_image, write_tiff
+from napari_psfspace.io import read_image, write_tiff
 
 
 def test_tiff_round_trip_keeps_pixel_size(tmp_path):
@@ -24,27 +22,6 @@ def test_stack_needs_a_slice(tmp_path):
     assert read_image(tmp_path / "s.tif", index=1)[0].shape == (8, 8)
     with pytest.raises(ValueError, match="out of range"):
         read_image(tmp_path / "s.tif", index=5)
-
-
-def test_default_model_path_never_replaces_a_model(tmp_path):
-    image = tmp_path / "beads.tif"
-    first = default_model_path(image)
-    assert first == tmp_path / "beads_psf_model.npz"
-    first.write_bytes(b"x")
-    assert default_model_path(image) == tmp_path / "beads_psf_model_2.npz"
-
-
-def test_default_model_path_avoids_read_only_folders(tmp_path, monkeypatch):
-    data = tmp_path / "data"
-    data.mkdir()
-    os.chmod(data, stat.S_IRUSR | stat.S_IXUSR)  # r-x, like ../shared/data
-    work = tmp_path / "work"
-    work.mkdir()
-    monkeypatch.chdir(work)
-    try:
-        assert default_model_path(data / "beads.tif") == work / "beads_psf_model.npz"
-    finally:
-        os.chmod(data, stat.S_IRWXU)
 
 
 def test_an_ome_tiff_gives_its_pixel_size_and_plane_spacing(tmp_path):
@@ -106,3 +83,25 @@ def test_an_ome_zarr_gives_its_stack_pixel_size_and_plane_spacing(tmp_path):
               (1, 0.2, 0.1, 0.1), (None, "micrometer", "micrometer", "micrometer"))
     with pytest.raises(ValueError, match="'c'"):
         read_stack(tmp_path / "c.zarr")
+
+
+def test_the_napari_reader_opens_a_stack_once_with_its_sampling(tmp_path, monkeypatch):
+    import tifffile
+
+    from napari_psfspace._reader import read_tiff
+
+    stack = np.arange(3 * 8 * 9, dtype=np.uint16).reshape(3, 8, 9)
+    write_tiff(tmp_path / "z.tif", stack, pixel_size=0.1, z_spacing=0.25)
+    opened = []
+    real = tifffile.TiffFile.__init__
+
+    def counting(self, *args, **kwargs):
+        opened.append(args[0] if args else kwargs)
+        real(self, *args, **kwargs)
+
+    monkeypatch.setattr(tifffile.TiffFile, "__init__", counting)
+    (data, kwargs, kind), = read_tiff(str(tmp_path / "z.tif"))
+    assert len(opened) == 1, opened
+    np.testing.assert_array_equal(data, stack)
+    assert kind == "image"
+    np.testing.assert_allclose(kwargs["scale"], (0.25, 0.1, 0.1))

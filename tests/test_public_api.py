@@ -41,13 +41,27 @@ def test_the_whole_method_is_public():
 
 
 def test_import_pulls_in_no_gui_and_no_dask():
+    # every public name resolved (the package imports each on first use)
     code = ("import sys, napari_psfspace\n"
+            "[getattr(napari_psfspace, n) for n in napari_psfspace.__all__]\n"
             "heavy = ('dask', 'distributed', 'napari', 'qtpy', 'PyQt5', 'PyQt6', 'PySide2',\n"
             "         'PySide6', 'magicgui', 'vispy')\n"
             "print(sorted({m.split('.')[0] for m in sys.modules} & set(heavy)))\n")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          timeout=120, check=True).stdout.strip()
     assert out == "[]", out
+
+
+def test_the_napari_readers_import_nothing_until_a_file_is_read():
+    """napari imports a plugin's reader and writer modules to ask them about each file: that
+    import loads neither the array libraries nor the method (they come with the file)."""
+    code = ("import sys, napari_psfspace._reader, napari_psfspace._writer\n"
+            "heavy = ('numpy', 'scipy', 'tifffile', 'zarr', 'skimage', 'dask', 'napari')\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & set(heavy)),\n"
+            "      sorted(m for m in sys.modules if m.startswith('napari_psfspace.core.')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout.strip()
+    assert out == "[] []", out
 
 
 def _blocks(text: str, lang: str) -> list[str]:

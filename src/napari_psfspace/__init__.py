@@ -21,38 +21,55 @@ deblurring with it (:func:`deblur`); from a bead z-stack, a space-varying 3D PSF
 (:func:`estimate_operator_3d`).
 """
 
-from .core.common.version import package_version
-
-__version__ = package_version()
-
-from .core.beads.detect import Beads, NoBeadsError, detect_beads
-from .core.beads.focus import best_focus_index
-from .core.beads.patches import Patches, extract_patches
-from .core.beads.radius import suggest_psf_radius
-from .core.beads.scale import spot_scale
-from .core.common.errors import PsfSpaceError
-from .core.common.progress import Progress, run_with_progress
-from .core.diagnosis.loop import Diagnosis, diagnose, iter_diagnose, iter_heldout_error
-from .core.family import OperatorFamily, estimate_family, iter_estimate_family
-from .core.family.result import load_family
-from .core.model.estimate import Estimation, estimate_operator, iter_estimate
-from .core.model.operator import ProductConvolution, load_operator
-from .core.restore import Deblurred, deblur, identify_operator, iter_deblur
-from .core.simulation import FieldAberrations, Optics, SimulationTruth, simulate_beads, simulate_psf
-from .core.simulation.focus import simulate_focus_series
-from .core.simulation.metrics import psf_error
-from .core.volume import (
-    ProductConvolution3D,
-    deblur_3d,
-    estimate_operator_3d,
-    iter_deblur_3d,
-    iter_estimate_operator_3d,
-    iter_richardson_lucy_3d,
-    load_operator_3d,
-    richardson_lucy_3d,
-    richardson_lucy_3d_exchange,
-    richardson_lucy_3d_tiled,
-)
+#: Where each public name lives: imported on first use (importing the package costs
+#: nothing; a napari reader that opens a file loads only what the file needs).
+_LAZY = {
+    "Beads": ".core.beads.detect",
+    "best_focus_index": ".core.beads.focus",
+    "deblur": ".core.restore",
+    "deblur_3d": ".core.volume",
+    "Deblurred": ".core.restore",
+    "detect_beads": ".core.beads.detect",
+    "diagnose": ".core.diagnosis.loop",
+    "Diagnosis": ".core.diagnosis.loop",
+    "estimate_family": ".core.family",
+    "estimate_operator": ".core.model.estimate",
+    "estimate_operator_3d": ".core.volume",
+    "Estimation": ".core.model.estimate",
+    "extract_patches": ".core.beads.patches",
+    "FieldAberrations": ".core.simulation",
+    "identify_operator": ".core.restore",
+    "iter_deblur": ".core.restore",
+    "iter_deblur_3d": ".core.volume",
+    "iter_diagnose": ".core.diagnosis.loop",
+    "iter_estimate": ".core.model.estimate",
+    "iter_estimate_family": ".core.family",
+    "iter_estimate_operator_3d": ".core.volume",
+    "iter_heldout_error": ".core.diagnosis.loop",
+    "iter_richardson_lucy_3d": ".core.volume",
+    "load_family": ".core.family.result",
+    "load_operator": ".core.model.operator",
+    "load_operator_3d": ".core.volume",
+    "NoBeadsError": ".core.beads.detect",
+    "OperatorFamily": ".core.family",
+    "Optics": ".core.simulation",
+    "Patches": ".core.beads.patches",
+    "ProductConvolution": ".core.model.operator",
+    "ProductConvolution3D": ".core.volume",
+    "Progress": ".core.common.progress",
+    "psf_error": ".core.simulation.metrics",
+    "PsfSpaceError": ".core.common.errors",
+    "richardson_lucy_3d": ".core.volume",
+    "richardson_lucy_3d_exchange": ".core.volume",
+    "richardson_lucy_3d_tiled": ".core.volume",
+    "run_with_progress": ".core.common.progress",
+    "simulate_beads": ".core.simulation",
+    "simulate_focus_series": ".core.simulation.focus",
+    "simulate_psf": ".core.simulation",
+    "SimulationTruth": ".core.simulation",
+    "spot_scale": ".core.beads.scale",
+    "suggest_psf_radius": ".core.beads.radius",
+}
 
 __all__ = [
     "Beads",
@@ -105,11 +122,28 @@ __all__ = [
 
 
 def __getattr__(name: str):
-    """The old names of the family of operators ("subspace"): deprecated, still there."""
+    """A public name, imported from its module on first use; the old names of the
+    family of operators ("subspace"): deprecated, still there."""
+    if name == "__version__":
+        from .core.common.version import package_version
+
+        globals()[name] = package_version()
+        return globals()[name]
+    if name in _LAZY:
+        from importlib import import_module
+
+        value = getattr(import_module(_LAZY[name], __name__), name)
+        globals()[name] = value
+        return value
     from .core.common.deprecate import module_getattr
 
     return module_getattr(__name__, {
-        "OperatorSubspace": ("OperatorFamily", lambda: OperatorFamily),
-        "estimate_subspace": ("estimate_family", lambda: estimate_family),
-        "iter_estimate_subspace": ("iter_estimate_family", lambda: iter_estimate_family),
-        "load_subspace": ("load_family", lambda: load_family)})(name)
+        "OperatorSubspace": ("OperatorFamily", lambda: __getattr__("OperatorFamily")),
+        "estimate_subspace": ("estimate_family", lambda: __getattr__("estimate_family")),
+        "iter_estimate_subspace": ("iter_estimate_family",
+                                   lambda: __getattr__("iter_estimate_family")),
+        "load_subspace": ("load_family", lambda: __getattr__("load_family"))})(name)
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

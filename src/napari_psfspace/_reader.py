@@ -10,11 +10,6 @@ import json
 import os
 from collections.abc import Callable
 
-import numpy as np
-
-from .core.model.operator import load_operator
-from .core.model.operator_file import FORMAT_NAME
-
 
 def _single_path(path) -> str | None:
     if isinstance(path, (list, tuple)):
@@ -26,6 +21,10 @@ def _single_path(path) -> str | None:
 
 def is_model_file(path: str | os.PathLike) -> bool:
     """True if ``path`` is a napari-psfspace model: an .npz whose header has our format."""
+    import numpy as np
+
+    from .core.model.operator_file import FORMAT_NAME
+
     try:
         with np.load(path, allow_pickle=False) as data:
             if "header" not in data.files:
@@ -55,6 +54,7 @@ def read_model(path) -> list[tuple]:
     ``.npz`` writes the model back.
     """
     from ._layers import Frame, operator_layers
+    from .core.model.operator import load_operator
 
     p = _single_path(path)
     op = load_operator(p)
@@ -82,15 +82,10 @@ def read_tiff(path) -> list[tuple]:
     napari's builtin reader ignores the pixel size; this one reads it from the ImageJ
     metadata or the resolution tags (see :func:`napari_psfspace.io.read_image`).
     """
-    import tifffile
-
-    from .io import read_image
+    from .io import read_array
 
     p = _single_path(path)
-    with tifffile.TiffFile(p) as tif:
-        data = tif.series[0].asarray()
-    data = np.squeeze(data) if data.ndim > 3 else data
-    _, info = read_image(p, index=0) if data.ndim == 3 else read_image(p)
+    data, info = read_array(p)
     px = info.pixel_size
     meta = {"pixel_size_um": px, "z_spacing_um": info.z_spacing}
     kwargs = {"name": os.path.splitext(os.path.basename(p))[0], "metadata": meta}

@@ -12,12 +12,6 @@ from __future__ import annotations
 
 import os
 
-import numpy as np
-
-from ._layers import OPERATOR_KEY
-from .core.model.operator import ProductConvolution
-from .io import write_tiff
-
 
 def write_model(path: str, data, attributes: dict) -> list[str]:
     """Save the operator held by an image layer's metadata as a model file.
@@ -27,6 +21,9 @@ def write_model(path: str, data, attributes: dict) -> list[str]:
     ValueError
         The layer holds no model (the message says which layer to choose).
     """
+    from ._layers import OPERATOR_KEY
+    from .core.model.operator import ProductConvolution
+
     op = (attributes.get("metadata") or {}).get(OPERATOR_KEY)
     if not isinstance(op, ProductConvolution):
         raise ValueError(
@@ -39,6 +36,10 @@ def write_model(path: str, data, attributes: dict) -> list[str]:
 
 def write_psf_tiff(path: str, data, attributes: dict) -> list[str]:
     """Write an image layer (e.g. the PSF at a position) as an ImageJ TIFF, atomically."""
+    import numpy as np
+
+    from .io import write_tiff
+
     meta = attributes.get("metadata") or {}
     info = {k: v for k, v in meta.items() if k in ("psf_row", "psf_column")}
     write_tiff(path, np.asarray(data), pixel_size=meta.get("pixel_size_um"),

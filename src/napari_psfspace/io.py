@@ -214,6 +214,23 @@ def _lazy_tiff(name: str, series):
         return da.from_array(series.asarray())
 
 
+def read_array(path: str | os.PathLike) -> tuple[np.ndarray, ImageInfo]:
+    """Read a TIFF's first series as it is (a 2-D image or a 3-D stack, squeezed beyond
+    three dimensions) and its sampling, in one pass over the file.
+
+    Returns
+    -------
+    data : ndarray of shape (M, N) or (Z, M, N)
+    info : ImageInfo
+
+    Raises
+    ------
+    ValueError
+        A colour or complex image, a file that is not a readable TIFF.
+    """
+    return _read_tiff(path)
+
+
 def read_stack(path: str | os.PathLike, *, lazy: bool = False):
     """Read a z-stack (Z, Y, X) and its sampling from a TIFF file (ImageJ or OME) or an
     OME-Zarr folder (:mod:`napari_psfspace.ome_zarr`).
@@ -564,25 +581,3 @@ def file_writable(path: Path) -> bool:
     except OSError:
         return False
     return bool(mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
-
-
-def default_model_path(image_path: str | os.PathLike | None, name: str = "image") -> Path:
-    """A default file name for the model of an image, never an existing file.
-
-    ``<image stem>_psf_model.npz`` next to the image when that folder is writable, else in
-    the current folder; ``_2``, ``_3``, ... is appended rather than replacing a model
-    that is already there.
-    """
-    if image_path:
-        src = Path(image_path)
-        folder, stem = src.parent, src.stem
-        if not folder_writable(folder):
-            folder = Path.cwd()
-    else:
-        folder, stem = Path.cwd(), name.replace(" ", "_")
-    path = folder / f"{stem}_psf_model.npz"
-    k = 2
-    while path.exists():
-        path = folder / f"{stem}_psf_model_{k}.npz"
-        k += 1
-    return path
