@@ -4,6 +4,7 @@ write ``bench/RESULTS.md`` from the results.
     python bench/run.py --list                 # every bench, with what it measures
     python bench/run.py NAME [ARGS...]         # run bench_NAME.py ARGS; save its result
     python bench/run.py NAME --as LABEL ARGS   # the same, kept under NAME.LABEL
+    python bench/run.py NAME --scratch ARGS    # run it, save nothing (a tree with changes)
     python bench/run.py --all [--missing]      # every run of bench/suite.txt
     python bench/run.py --render               # bench/RESULTS.md from bench/results/
 
@@ -106,11 +107,13 @@ def _which(cmd: str) -> bool:
     return which(cmd) is not None
 
 
-def run(name: str, args: list[str], label: str | None = None, table: int | None = None
-        ) -> Path:
+def run(name: str, args: list[str], label: str | None = None, table: int | None = None,
+        *, scratch: bool = False) -> Path | None:
     """Run ``bench_NAME.py ARGS`` from ``bench/`` (its output shown as it comes), save the
     result; returns the JSON file's path. A bench that fails saves nothing. ``table``:
-    the printed table RESULTS.md shows (1: the first; default: the last)."""
+    the printed table RESULTS.md shows (1: the first; default: the last). A result is
+    recorded only from a committed tree (the runner's own outputs aside): with changes,
+    the run is refused before it starts, unless ``scratch`` (run it, save nothing)."""
     script = HERE / f"bench_{name}.py"
     if not script.exists():
         raise SystemExit(f"run.py: no bench {name!r} (bench/bench_{name}.py); "
@@ -119,6 +122,10 @@ def run(name: str, args: list[str], label: str | None = None, table: int | None 
                         *(["--table", str(table)] if table is not None else []), *args])
     commit = _git("rev-parse", "HEAD")  # what runs: the tree as it is when the bench starts
     tree_changed = tree_changed_beside_results()
+    if tree_changed and not scratch:
+        raise SystemExit("run.py: tracked files differ from the commit (git status): a "
+                         "result is recorded only from a committed tree. Commit first, or "
+                         "give --scratch to run it without saving.")
     t0 = time.perf_counter()
     proc = subprocess.Popen([sys.executable, script.name, *args], cwd=HERE,
                             stdout=subprocess.PIPE, text=True)
@@ -132,6 +139,9 @@ def run(name: str, args: list[str], label: str | None = None, table: int | None 
     if code != 0:
         raise SystemExit(f"run.py: bench_{name}.py exited with status {code}: no result "
                          "saved")
+    if scratch:
+        print("\nrun.py: --scratch: no result saved", file=sys.stderr)
+        return None
     result = {"format": FORMAT, "version": FORMAT_VERSION, "bench": name, "label": label,
               "what": _first_line(script), "command": command, "args": args,
               "commit": commit, "tree_changed": tree_changed,
@@ -307,7 +317,8 @@ def render(results: list[dict], names: dict[str, str]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  usage="%(prog)s [--list | --render | --all [--missing] "
-                                       "[--timed only|no] | NAME [--as LABEL] [ARGS...]]")
+                                       "[--timed only|no] | NAME [--as LABEL] [--scratch] "
+                                       "[ARGS...]]")
     ap.add_argument("--list", action="store_true", help="name every bench")
     ap.add_argument("--render", action="store_true", help="write bench/RESULTS.md")
     ap.add_argument("--out", type=Path, default=RESULTS_MD,
@@ -323,6 +334,9 @@ def main() -> None:
     ap.add_argument("--table", type=int, help="the printed table RESULTS.md shows (1: the "
                     "first; default: the last)")
     ap.add_argument("--as", dest="label", help="keep the result under NAME.LABEL")
+    ap.add_argument("--scratch", action="store_true",
+                    help="run NAME and print its tables without saving a result (the only "
+                         "way to run it from a tree with changes)")
     ap.add_argument("name", nargs="?", help="the bench (bench_NAME.py)")
     args, rest = ap.parse_known_args()
     names = benches()
@@ -347,7 +361,7 @@ def main() -> None:
         return
     if not args.name:
         ap.error("give a bench's NAME, --list or --render")
-    run(args.name, rest, args.label, args.table)
+    run(args.name, rest, args.label, args.table, scratch=args.scratch)
 
 
 if __name__ == "__main__":

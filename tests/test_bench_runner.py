@@ -141,3 +141,29 @@ def test_a_result_saved_before_leaves_the_tree_unchanged():
         " M bench/results/identify.json\n M src/napari_psfspace/core/restore/identify.py\n")
     assert run.tree_changed_beside_results("R  bench/results/a.json -> bench/bench_a.py\n")
     assert run.tree_changed_beside_results(" M bench/run.py\n")
+
+
+def test_a_tree_with_changes_records_no_result(monkeypatch, tmp_path):
+    """A run from a tree with changes is refused before the bench starts; ``--scratch``
+    runs it and saves nothing."""
+    import pytest
+
+    run = _runner()
+    monkeypatch.setattr(run, "tree_changed_beside_results", lambda status=None: True)
+    monkeypatch.setattr(run, "RESULTS", tmp_path)
+    monkeypatch.setattr(run, "_git", lambda *args: "0" * 40)
+    started = []
+    monkeypatch.setattr(run.subprocess, "Popen", lambda *a, **k: started.append(a))
+    with pytest.raises(SystemExit, match="committed tree"):
+        run.run("accuracy", ["--quick"])
+    assert not started and not list(tmp_path.iterdir())
+
+    class Done:
+        stdout = iter(["a | b\n", "1 | 2\n"])
+
+        def wait(self):
+            return 0
+
+    monkeypatch.setattr(run.subprocess, "Popen", lambda *a, **k: Done())
+    assert run.run("accuracy", ["--quick"], scratch=True) is None
+    assert not list(tmp_path.iterdir())
