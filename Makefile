@@ -36,7 +36,7 @@ fuzz: install
 		--hypothesis-show-statistics
 
 lint: install
-	$(BIN)/ruff check src tests bench docs
+	$(BIN)/ruff check src tests bench benchmarks docs
 
 bench: install
 	$(BIN)/python bench/run.py accuracy
