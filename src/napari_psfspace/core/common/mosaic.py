@@ -1,8 +1,10 @@
-"""Arrange PSF patches and maps into single images for figures and napari layers."""
+"""Arrange PSF patches and maps into single images for figures and napari layers
+(normalised, then laid out by :func:`skimage.util.montage`)."""
 
 from __future__ import annotations
 
 import numpy as np
+from skimage.util import montage
 
 
 def mosaic(tiles: np.ndarray, *, gap: int = 1, normalize: str = "each", fill: float = 0.0,
@@ -50,10 +52,7 @@ def mosaic(tiles: np.ndarray, *, gap: int = 1, normalize: str = "each", fill: fl
         t = t / (peak if peak > 0 else 1.0)
     if gamma != 1.0:
         t = np.sign(t) * np.abs(t) ** gamma
-    out = np.full((r * (p + gap) - gap, c * (q + gap) - gap), fill)
-    for i in range(r):
-        for j in range(c):
-            tile = t[i, j]
-            out[i * (p + gap):i * (p + gap) + p, j * (q + gap):j * (q + gap) + q] = np.where(
-                np.isnan(tile), fill, tile)
-    return out
+    # scikit-image's montage pads the outer border too: cropped to gaps between tiles
+    flat = np.where(np.isnan(t), fill, t).reshape(r * c, p, q)
+    out = montage(flat, fill=fill, grid_shape=(r, c), padding_width=gap)
+    return out[gap:out.shape[0] - gap, gap:out.shape[1] - gap] if gap else out
