@@ -471,7 +471,7 @@ def write_png(path: str | os.PathLike, image: np.ndarray) -> None:
 def png_bytes(image: np.ndarray) -> bytes:
     """The 8-bit PNG file of a 2-D (grey) or (M, N, 3) (RGB) array (floating images
     scaled from their [min, max] to [0, 255])."""
-    import imageio.v3 as iio
+    from PIL import Image
 
     arr = np.asarray(image)
     if arr.dtype != np.uint8:
@@ -479,7 +479,9 @@ def png_bytes(image: np.ndarray) -> bytes:
         lo, hi = float(np.nanmin(a)), float(np.nanmax(a))
         a = (a - lo) / (hi - lo) if hi > lo else np.zeros_like(a)
         arr = np.round(255 * np.clip(a, 0, 1)).astype(np.uint8)
-    return iio.imwrite("<bytes>", arr, extension=".png")
+    buf = io.BytesIO()
+    Image.fromarray(arr).save(buf, format="PNG")
+    return buf.getvalue()
 
 
 def folder_writable(folder: Path) -> bool:

@@ -39,9 +39,9 @@ STYLE = ("body{font-family:sans-serif;max-width:1100px;margin:auto;color:#141414
 
 
 def _png(rgb: np.ndarray) -> str:
-    import imageio.v3 as iio
+    from ..io import png_bytes
 
-    data = iio.imwrite("<bytes>", np.asarray(rgb, np.uint8), extension=".png")
+    data = png_bytes(np.asarray(rgb, np.uint8))
     return "data:image/png;base64," + base64.b64encode(data).decode("ascii")
 
 
