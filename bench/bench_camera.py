@@ -29,8 +29,8 @@ import numpy as np
 
 from benchlib import add_generator_argument, optics_type, table
 from napari_psfspace.core.beads.detect import detect_beads
+from napari_psfspace.core.beads.noise import noise_model
 from napari_psfspace.core.common.progress import run_with_progress
-from napari_psfspace.core.diagnosis.noise import noise_model
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.simulation import FieldAberrations, Optics, simulate_beads
 from napari_psfspace.core.simulation.metrics import evaluate_against_truth

@@ -3,8 +3,8 @@ window structure, measured against the noise and the noise model's own uncertain
 
 import numpy as np
 
+from napari_psfspace.core.beads.noise import NoiseModel
 from napari_psfspace.core.diagnosis.background_tests import line_pattern, window_structure
-from napari_psfspace.core.diagnosis.noise import NoiseModel
 from napari_psfspace.core.diagnosis.statistics import FALLBACK_SCALE_ERROR, noise_scale_error
 
 

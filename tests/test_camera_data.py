@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 import napari_psfspace as ps
+from napari_psfspace.core.beads.noise import noise_model
 from napari_psfspace.core.common.progress import run_with_progress
 from napari_psfspace.core.diagnosis.loop import diagnose
-from napari_psfspace.core.diagnosis.noise import noise_model
 from napari_psfspace.core.model.estimate import iter_estimate
 from napari_psfspace.core.model.fewbeads import FEW_BEADS
 from napari_psfspace.core.simulation import FieldAberrations, Optics

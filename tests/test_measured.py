@@ -104,7 +104,7 @@ def test_noise_model_is_plausible_or_names_its_fallback(shared_data, name):
     """On every measured set the noise model is photon transfer with a physically
     plausible gain that passed its checks, or a fallback that says which and why (the
     issue saw a gain of 4.6e-22 ADU/e- and a chi-square of 1.4e6 on an 8-bit stack)."""
-    from napari_psfspace.core.diagnosis.noise import GAIN_BOUNDS, noise_model
+    from napari_psfspace.core.beads.noise import GAIN_BOUNDS, noise_model
 
     image, _, _ = _read(shared_data, name)
     m = noise_model(image)

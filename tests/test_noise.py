@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_psfspace import simulate_beads
-from napari_psfspace.core.diagnosis.noise import NoiseModel, estimate_noise
+from napari_psfspace.core.beads.noise import NoiseModel, estimate_noise
 
 
 @pytest.mark.parametrize(("gain", "offset", "read_noise", "background"), [
@@ -48,7 +48,7 @@ def test_the_noise_model_completes_or_names_its_failure_on_120_scenes():
     message: over 120 scenes of the family (8/12/16-bit, 3-60 beads), about 20 each
     plain, clipped, saturated, flat and constant. (A flat 8-bit background once raised numpy's
     "zero-size array" from inside the message meant to explain it.)"""
-    from napari_psfspace.core.diagnosis.noise import NoiseModelError, noise_model
+    from napari_psfspace.core.beads.noise import NoiseModelError, noise_model
     from napari_psfspace.core.simulation.damage import damaged
     from napari_psfspace.core.simulation.scene_set import random_scene
 

@@ -21,8 +21,8 @@ import tifffile
 
 import napari_psfspace as ps
 from napari_psfspace.cli import main
+from napari_psfspace.core.beads.noise import NoiseModel, noise_model
 from napari_psfspace.core.common.validate import as_image, as_stack, check_camera
-from napari_psfspace.core.diagnosis.noise import NoiseModel, noise_model
 from napari_psfspace.core.model.operator_file import read_archive, write_archive
 
 hypothesis = pytest.importorskip("hypothesis")

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from napari_psfspace import ProductConvolution, simulate_beads, simulate_psf
-from napari_psfspace.core.diagnosis.noise import NoiseModel, estimate_noise
+from napari_psfspace.core.beads.noise import NoiseModel, estimate_noise
 from napari_psfspace.core.diagnosis.residuals import fit_beads
 
 

@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..beads.noise import NoiseModel
 from ..beads.window import radial_distance
 from .background_tests import (
     bead_free_mask,
@@ -73,7 +74,6 @@ from .bead_tests import (
     round_beads,
     secondary_peaks,
 )
-from .noise import NoiseModel
 from .residuals import BeadResiduals
 from .statistics import chi2_to_z, noise_scale_error, radial_trend, spearman_z
 

@@ -12,9 +12,9 @@ from scipy import ndimage as ndi
 from scipy import stats
 
 from ..beads.background import monomials
+from ..beads.noise import NoiseModel
 from ..beads.spikes import find_spikes, pixel_noise_sd
 from ..common.progress import check_halt
-from .noise import NoiseModel
 from .statistics import LINE_CLIP, excess_z, trim_factor
 
 

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..beads.noise import NoiseModel
 from .crossfit import CrossFit
-from .noise import NoiseModel
 from .photometry import (
     crossfit_log_residuals,
     trend_p_value,

@@ -18,11 +18,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..beads.detect import COMPANION, HELDOUT, KEPT, Beads
+from ..beads.noise import NoiseModel
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import blas_threads
 from ..model.estimate import iter_estimate
 from ..model.heldout import morton_order
-from .noise import NoiseModel
 from .residuals import BeadResiduals, fit_beads
 
 

@@ -49,6 +49,7 @@ from ..beads.detect import (
     flag_unusable,
     require_kept,
 )
+from ..beads.noise import NoiseModel, noise_model
 from ..beads.saturation import saturation_record
 from ..beads.spikes import spike_mask
 from ..common.progress import Progress, check_halt, run_with_progress
@@ -71,7 +72,6 @@ from .corrections import hot_pixel_step, motion_step, spike_count
 from .crossfit import CrossFit, iter_crossfit
 from .effects import REGISTRY, Context, Effect
 from .metric import HeldoutError
-from .noise import NoiseModel, noise_model
 from .photometry import (
     fit_throughput,
     throughput_map,

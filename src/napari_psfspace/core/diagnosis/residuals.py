@@ -25,9 +25,9 @@ import numpy as np
 from scipy import fft as sfft
 
 from ..beads.centering import gather_windows
+from ..beads.noise import NoiseModel
 from ..beads.window import radial_distance
 from ..common.progress import check_halt
-from .noise import NoiseModel
 
 
 @dataclass

@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import stats
 
-from .noise import NoiseModel
+from ..beads.noise import NoiseModel
 from .photometry import radial_design, radial_to_monomials
 
 

@@ -20,7 +20,7 @@ iterations and then spends most of its time concentrating each source's cluster
 (``polish``).
 
 Defaults follow the image's noise (its background's standard deviation ``sigma``,
-:func:`~napari_psfspace.core.diagnosis.noise.background_variance`) and the operator's own
+:func:`~napari_psfspace.core.beads.noise.background_variance`) and the operator's own
 error:
 
 - ``gamma1(x) = ||h||_2 sqrt((kappa sigma)^2 + (eps e(x))^2)``, a weight per pixel:
@@ -52,6 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import ndimage as ndi
 
+from ..beads.noise import background_variance
 from ..common.device import ArrayModule, array_module
 from ..common.progress import Progress, run_with_progress
 from ..common.validate import (
@@ -64,7 +65,6 @@ from ..common.validate import (
     check_saturation,
     check_signal,
 )
-from ..diagnosis.noise import background_variance
 from ..model.compress import compress_operator
 from ..model.heldout import beyond_noise
 from ..model.operator import ProductConvolution

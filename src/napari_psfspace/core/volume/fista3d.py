@@ -15,7 +15,7 @@ gradient restarts over the two blocks (:class:`~napari_psfspace.core.restore.fis
 BlockFista`), the step from a power iteration on ``H^T H``.
 
 Default weights, as in 2D: ``gamma_1 = ||h|| kappa sigma`` with ``sigma`` the stack's
-pixel noise (:func:`~napari_psfspace.core.diagnosis.noise.background_variance` on its
+pixel noise (:func:`~napari_psfspace.core.beads.noise.background_variance` on its
 planes), ``||h||`` the l2 norm of the 3D PSF at the field's centre and ``kappa =
 sqrt(2 log(N / area))`` (a pure-noise voxel's correlation with the PSF stays below the
 threshold); ``gamma_2 = SMOOTH_WEIGHT grid_step^4``.
@@ -29,11 +29,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..beads.noise import background_variance
 from ..common.device import ArrayModule, array_module, namespace
 from ..common.progress import Progress, run_with_progress
 from ..common.threads import default_workers
 from ..common.validate import check_finite, check_int, check_signal
-from ..diagnosis.noise import background_variance
 from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT
 from ..restore.fista import BlockFista
 from ..restore.smooth_grid import SmoothGrid

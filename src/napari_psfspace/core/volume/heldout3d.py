@@ -11,7 +11,7 @@ bead's windowed 3D patch is compared with the model's PSF at its position, after
 its amplitude: ``min_c ||p - c m|| / ||p||``. Its noise floor is the value a perfect
 model would reach, ``sqrt(sum_v w_v^2 (s^2 + a c m_v^+)) / ||p||``: the patch's own
 background noise ``s`` and the bead's shot noise, ``a`` ADU per photo-electron from the
-stack's noise model (:func:`~napari_psfspace.core.diagnosis.noise.noise_model` on the
+stack's noise model (:func:`~napari_psfspace.core.beads.noise.noise_model` on the
 best-focus plane; 0 where it cannot be measured, and the floor is the background's
 alone). On bright beads the shot noise is most of it.
 
@@ -28,9 +28,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..beads.noise import noise_model
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, run_with_progress, wait_with_progress
-from ..diagnosis.noise import noise_model
 from ..model.field import keep_in_cone
 from ..model.heldout import morton_order
 from ..model.pca import learn_basis, min_beads_for

@@ -27,10 +27,10 @@ from scipy.spatial import cKDTree
 
 from ...beads.centering import gather_windows, refine_centers
 from ...beads.detect import BORDER, FAINT, KEPT, NEIGHBOUR, OUTLIER, STRUCTURE, Beads, flag_unusable
+from ...beads.noise import NoiseModel
 from ...beads.window import radial_distance
 from ...common.progress import check_halt
 from ...common.spacing import bead_border, centring_sigma
-from ..noise import NoiseModel
 from ..residuals import fourier_shift
 from .base import Context, Effect
 

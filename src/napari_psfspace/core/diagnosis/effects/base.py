@@ -17,8 +17,8 @@ from typing import Any, ClassVar
 import numpy as np
 
 from ...beads.detect import Beads
+from ...beads.noise import NoiseModel
 from ..analysis import Analysis
-from ..noise import NoiseModel
 
 REGISTRY: dict[str, type[Effect]] = {}
 
@@ -75,7 +75,7 @@ class Context:
         image (photon transfer sees uncorrected camera patterns as noise), else kept."""
         if not self.noise_from_image:
             return self.noise
-        from ..noise import NoiseModelError, estimate_noise
+        from ...beads.noise import NoiseModelError, estimate_noise
 
         if self.noise.kind != "photon transfer":  # a fallback stays the same fallback
             return self.noise

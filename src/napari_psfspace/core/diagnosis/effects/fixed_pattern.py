@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage as ndi
 
+from ...beads.noise import NoiseModel
 from ..background_tests import NEIGHBOURS, bead_free_mask, line_levels, smooth_background
-from ..noise import NoiseModel
 from .base import Context, Effect
 
 #: passes of the neighbour filter: the offsets are the line levels less their

@@ -18,10 +18,10 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage as ndi
 
-from ..beads.spikes import QUANTISATION_VARIANCE, is_integer_valued
 from ..common.errors import PsfSpaceError
 from ..common.progress import check_halt
 from ..common.validate import as_array, as_image, check_camera
+from .spikes import QUANTISATION_VARIANCE, is_integer_valued
 
 
 @dataclass(frozen=True)
