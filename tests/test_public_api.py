@@ -40,28 +40,30 @@ def test_the_whole_method_is_public():
     assert not [n for n in METHOD if n not in ps.__all__]
 
 
+def _loaded_after(statement: str) -> set[str]:
+    """The modules a fresh interpreter holds after ``statement``."""
+    code = f"import sys\n{statement}\nprint(' '.join(sorted(sys.modules)))\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=120, check=True).stdout.split()
+    return set(out)
+
+
 def test_import_pulls_in_no_gui_and_no_dask():
     # every public name resolved (the package imports each on first use)
-    code = ("import sys, napari_psfspace\n"
-            "[getattr(napari_psfspace, n) for n in napari_psfspace.__all__]\n"
-            "heavy = ('dask', 'distributed', 'napari', 'qtpy', 'PyQt5', 'PyQt6', 'PySide2',\n"
-            "         'PySide6', 'magicgui', 'vispy')\n"
-            "print(sorted({m.split('.')[0] for m in sys.modules} & set(heavy)))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=120, check=True).stdout.strip()
-    assert out == "[]", out
+    loaded = _loaded_after("import napari_psfspace as ps\n"
+                           "[getattr(ps, n) for n in ps.__all__]")
+    heavy = {"dask", "distributed", "napari", "qtpy", "PyQt5", "PyQt6", "PySide2", "PySide6",
+             "magicgui", "vispy"}
+    assert not {m.split(".")[0] for m in loaded} & heavy
 
 
 def test_the_napari_readers_import_nothing_until_a_file_is_read():
     """napari imports a plugin's reader and writer modules to ask them about each file: that
     import loads neither the array libraries nor the method (they come with the file)."""
-    code = ("import sys, napari_psfspace._reader, napari_psfspace._writer\n"
-            "heavy = ('numpy', 'scipy', 'tifffile', 'zarr', 'skimage', 'dask', 'napari')\n"
-            "print(sorted({m.split('.')[0] for m in sys.modules} & set(heavy)),\n"
-            "      sorted(m for m in sys.modules if m.startswith('napari_psfspace.core.')))\n")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         timeout=120, check=True).stdout.strip()
-    assert out == "[] []", out
+    loaded = _loaded_after("import napari_psfspace._reader, napari_psfspace._writer")
+    heavy = {"numpy", "scipy", "tifffile", "zarr", "skimage", "dask", "napari"}
+    assert not {m.split(".")[0] for m in loaded} & heavy
+    assert not [m for m in loaded if m.startswith("napari_psfspace.core.")]
 
 
 def _blocks(text: str, lang: str) -> list[str]:
