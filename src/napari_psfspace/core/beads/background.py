@@ -192,14 +192,16 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
     seen_any = use.any(axis=1)
     step = value_step(image)
     frac = centers - base
-    dist = np.hypot((d[None, :, None] - frac[:, :1, None]),
-                    (d[None, None, :] - frac[:, 1:, None])).reshape(len(centers), -1)
     full = np.stack([np.ones(yy.size), xx.ravel(), yy.ravel()], axis=1)
+    if OWN_WINGS:  # (r_ext / rho)**WING_POWER on each bead's ring, rho from its centre
+        dist = np.hypot((d[None, :, None] - frac[:, :1, None]),
+                        (d[None, None, :] - frac[:, 1:, None])).reshape(len(centers), -1)
+        falloff = (r_ext / dist[:, ring]) ** WING_POWER
     wing = np.zeros_like(vals)
     keep = use > 0
     for _ in range(RING_PASSES):  # fitted again without the pixels far from the plane
         if OWN_WINGS:
-            wing = _own_wings(wins, seen, coef, full, ring, dist, vals, use * keep, r_ext)
+            wing = _own_wings(wins, seen, coef, full, ring, falloff, vals, use * keep)
             coef = _planes(design, vals - wing, use * keep)
         res = np.where(use > 0, vals - wing - coef @ design.T, np.nan)
         res[~seen_any] = 0.0
@@ -217,7 +219,7 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
             + coef[:, 2, None, None] * py[:, :, None])
 
 
-def _own_wings(wins, seen, coef, full, ring, dist, vals, use, r_ext):
+def _own_wings(wins, seen, coef, full, ring, falloff, vals, use):
     """Each bead's own light on its ring (K, n): ``c F_k (r_ext / rho)**WING_POWER``, one
     ``c >= 0`` for the image, fitted by least squares with each bead's plane (the planes
     eliminated) less :data:`WING_Z` standard errors, ``F_k`` the bead's light within
@@ -225,7 +227,7 @@ def _own_wings(wins, seen, coef, full, ring, dist, vals, use, r_ext):
     inside = ~ring
     flux = np.sum(np.where(seen[:, inside], wins[:, inside] - coef @ full[inside].T, 0.0),
                   axis=1)
-    shape = np.maximum(flux, 0.0)[:, None] * (r_ext / dist[:, ring]) ** WING_POWER
+    shape = np.maximum(flux, 0.0)[:, None] * falloff
     design = full[ring]
     a = use * (shape - _planes(design, shape, use) @ design.T)
     b = use * (vals - _planes(design, vals, use) @ design.T)
@@ -262,8 +264,11 @@ def _planes(design: np.ndarray, vals: np.ndarray, use: np.ndarray) -> np.ndarray
     """Weighted least-squares planes (K, 3) of ``vals`` (K, n) on ``design`` (n, 3) with
     0/1 weights ``use`` (K, n); a bead with fewer than six pixels in use gets its median
     level (no slope)."""
-    gram = np.einsum("kn,ni,nj->kij", use, design, design)
-    rhs = np.einsum("kn,ni->ki", use * vals, design)
+    m = design.shape[1]
+    # one matrix product each (an einsum over three operands loops in C, slower by far)
+    gram = (use @ (design[:, :, None] * design[:, None, :]).reshape(len(design), m * m)
+            ).reshape(-1, m, m)
+    rhs = (use * vals) @ design
     enough = use.sum(axis=1) >= 2 * design.shape[1]
     coef = np.zeros((len(vals), design.shape[1]))
     if enough.any():
