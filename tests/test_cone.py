@@ -6,12 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls
 
-from napari_psfspace.core.model.cone import (
-    Cone,
-    nonnegative_weights,
-    project_onto_cone,
-    reduce_cone,
-)
+from napari_psfspace.core.model.cone import Cone, project_onto_cone, reduce_cone
 
 
 def _brute_projection(a, g):
@@ -51,34 +46,20 @@ def test_nnls_matches_brute_force():
     assert (resid @ g.T).max() < 1e-10
 
 
-def test_apg_matches_brute_force():
-    g, rng = _generators(1)
-    a = rng.standard_normal((40, 5))
-    proj = project_onto_cone(a, g, method="apg")
-    brute = np.array([_brute_projection(row, g) for row in a])
-    rel = np.linalg.norm(proj - brute, axis=1) / np.linalg.norm(a, axis=1)
-    # measured max 1.7e-7 relative on seed 1 (tol 1e-7); bound leaves 5x margin
-    assert rel.max() < 1e-6
-    lam = nonnegative_weights(a, g)
-    assert lam.shape == (40, 4) and lam.min() >= 0
-
-
-@pytest.mark.parametrize("method", ["nnls", "apg"])
-def test_points_inside_unchanged(method):
+def test_points_inside_unchanged():
     g, rng = _generators(2)
     inside = rng.uniform(0.1, 2.0, (30, len(g))) @ g
-    proj = project_onto_cone(inside, g, method=method)
-    # measured 6e-16 (nnls); 0 for apg (returns the input when within 10 tol)
+    proj = project_onto_cone(inside, g)
+    # measured 6e-16
     assert np.abs(proj - inside).max() < 1e-10 * np.abs(inside).max()
 
 
-@pytest.mark.parametrize("method", ["nnls", "apg"])
-def test_idempotent(method):
+def test_idempotent():
     g, rng = _generators(3)
     a = rng.standard_normal((30, 5))
-    once = project_onto_cone(a, g, method=method)
-    twice = project_onto_cone(once, g, method=method)
-    # measured 7e-16 (nnls) and 0 (apg: projections land inside within tolerance)
+    once = project_onto_cone(a, g)
+    twice = project_onto_cone(once, g)
+    # measured 7e-16
     assert np.abs(twice - once).max() < 1e-8
 
 
@@ -94,8 +75,6 @@ def test_invalid_arguments():
     g, _ = _generators(5)
     with pytest.raises(ValueError, match="`points`.*`generators`"):
         project_onto_cone(np.zeros((3, 4)), g)
-    with pytest.raises(ValueError, match="`method`"):
-        project_onto_cone(np.zeros((3, 5)), g, method="admm")
     with pytest.raises(ValueError, match="`coefficients`"):
         reduce_cone(np.zeros((0, 3)))
 

@@ -6,8 +6,8 @@ lobes far from the beads). Each interpolated vector ``a`` is projected onto the 
 hull of the observed coefficients, ``min_{lambda >= 0} 1/2 ||G^T lambda - a||^2``. The
 cone is first reduced to a few generators by a greedy algorithm (start from the mean,
 add the observed vector farthest in angle from the current cone, stop below an angle or
-at a maximum count). The projection is exact (active-set NNLS per point of the coarse
-grid); an accelerated projected gradient vectorised over points is available too.
+at a maximum count). The projection is exact: scipy's active-set NNLS per point of the
+coarse grid.
 """
 
 from __future__ import annotations
@@ -20,14 +20,7 @@ from scipy.optimize import nnls
 from ..common.progress import check_halt
 
 
-def project_onto_cone(
-    points: np.ndarray,
-    generators: np.ndarray,
-    *,
-    method: str = "nnls",
-    max_iter: int = 2000,
-    tol: float = 1e-7,
-) -> np.ndarray:
+def project_onto_cone(points: np.ndarray, generators: np.ndarray) -> np.ndarray:
     """Euclidean projection of each point onto ``cone(generators)``.
 
     Parameters
@@ -36,19 +29,14 @@ def project_onto_cone(
         Vectors to project.
     generators : ndarray of shape (k, I)
         Generators of the cone (rows).
-    method : {"nnls", "apg"}
-        "nnls": exact active-set solution per point (Lawson-Hanson,
-        ``scipy.optimize.nnls``, ~15 us per point for k = 20, I = 5): the default,
-        since the maps are projected on a coarse grid. "apg": accelerated projected
-        gradient vectorised over all points (paper), for very many points; with
-        rank-deficient generators it converges only sublinearly.
-    max_iter, tol : int, float
-        Iteration limit and relative tolerance of "apg".
 
     Returns
     -------
     ndarray of shape (N, I)
-        The projections.
+        The projections: ``lambda @ generators`` with ``lambda >= 0`` the exact
+        non-negative least-squares weights of each point (Lawson-Hanson,
+        :func:`scipy.optimize.nnls`; the maps are projected on a coarse grid, so one
+        solve per point costs little).
     """
     check_halt()
     a = np.asarray(points, dtype=np.float64)
@@ -57,53 +45,8 @@ def project_onto_cone(
         raise ValueError(
             f"`points` (N, I) and `generators` (k, I) must share I, got {a.shape} and {g.shape}."
         )
-    if method == "nnls":
-        gt = np.ascontiguousarray(g.T)
-        return np.array([nnls(gt, row)[0] for row in a]).reshape(len(a), len(g)) @ g
-    if method != "apg":
-        raise ValueError(f"`method` must be 'nnls' or 'apg', got {method!r}.")
-    lam = nonnegative_weights(a, g, max_iter=max_iter, tol=tol)
-    proj = lam @ g
-    scale = np.maximum(np.linalg.norm(a, axis=1), 1e-300)
-    inside = np.linalg.norm(proj - a, axis=1) <= 10 * tol * scale
-    proj[inside] = a[inside]
-    return proj
-
-
-def nonnegative_weights(a, g, *, max_iter: int = 2000, tol: float = 1e-7) -> np.ndarray:
-    """Solve ``min_{lambda >= 0} 1/2 ||lambda g - a||^2`` row-wise by FISTA with restart.
-
-    Parameters
-    ----------
-    a : ndarray of shape (N, I)
-    g : ndarray of shape (k, I)
-
-    Returns
-    -------
-    ndarray of shape (N, k), non-negative
-    """
-    ggt = g @ g.T
-    lip = float(np.linalg.eigvalsh(ggt).max())
-    if lip <= 0:
-        return np.zeros((len(a), len(g)))
-    agt = a @ g.T
-    lam = np.clip(a @ np.linalg.pinv(g), 0, None)  # warm start
-    y = lam.copy()
-    t = 1.0
-    scale = np.maximum(np.linalg.norm(a, axis=1), 1e-300) / np.sqrt(lip)
-    for _ in range(max_iter):
-        new = np.clip(y - (y @ ggt - agt) / lip, 0, None)
-        step = new - lam
-        t_new = 0.5 * (1 + np.sqrt(1 + 4 * t * t))
-        y = new + ((t - 1) / t_new) * step
-        # adaptive restart (O'Donoghue & Candes) where momentum points uphill
-        uphill = np.einsum("ij,ij->i", y - new, step) > 0
-        if uphill.any():
-            y[uphill] = new[uphill]
-        lam, t = new, (1.0 if uphill.all() else t_new)
-        if np.max(np.linalg.norm(step, axis=1) / scale) < tol:
-            break
-    return lam
+    gt = np.ascontiguousarray(g.T)
+    return np.array([nnls(gt, row)[0] for row in a]).reshape(len(a), len(g)) @ g
 
 
 #: Vectors whose angle :func:`reduce_cone` recomputes at once.

@@ -57,7 +57,7 @@ def fit_field(
     shape : tuple of int
         Image shape (rows, columns).
     smoothing : float or None
-        Thin-plate smoothing ``eta``; ``None`` chooses it per coefficient by GCV.
+        Thin-plate smoothing ``eta``; ``None`` chooses it per coefficient by leave-one-out.
     grid_step : float
         Spacing in pixels of the coarse grid on which the maps are evaluated (they are
         bilinear in between, which keeps them in the cone).

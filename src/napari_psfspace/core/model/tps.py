@@ -1,4 +1,4 @@
-"""Weighted smoothing thin-plate splines with generalised cross-validation.
+"""Weighted smoothing thin-plate splines, the smoothing chosen by leave-one-out.
 
 Paper, Appendix C, eq. (8): each PSF coefficient ``alpha_i`` is the minimiser of
 ``1/2 sum_m w_m |alpha(z_m) - beta_{i,m}|^2 + eta/2 |alpha|_{H^2}^2``, a thin-plate
@@ -10,9 +10,8 @@ coefficients are ``c = Q2 (Q2^T (K + eta D) Q2)^{-1} Q2^T y``. One generalised
 symmetric eigendecomposition ``Q2^T K Q2 V = Q2^T D Q2 V Lambda`` diagonalises the
 system for every ``eta`` at once: the residuals at the beads and the leverages
 ``S_mm`` cost one matrix product per candidate ``eta``, so the exact leave-one-out error
-``sum_m w_m (r_m / (1 - S_mm))^2`` (default) or the GCV score
-``M sum_m w_m r_m^2 / (sum_k eta / (Lambda_k + eta))^2`` is evaluated on a log grid.
-Each output column gets its own ``eta``.
+``sum_m w_m (r_m / (1 - S_mm))^2`` is evaluated on a log grid. Each output column gets
+its own ``eta``.
 
 The fitted function is the one :class:`scipy.interpolate.RBFInterpolator` gives with
 ``kernel="thin_plate_spline"``, ``degree=1`` and ``smoothing = eta / w_m`` in the scaled
@@ -78,7 +77,7 @@ SELECT_BLOCK = 1 << 20
 
 
 class ThinPlateSpline:
-    """Smoothing thin-plate spline in 2-D, vector-valued, weighted, GCV-tuned.
+    """Smoothing thin-plate spline in 2-D, vector-valued, weighted, tuned by leave-one-out.
 
     Parameters
     ----------
@@ -92,7 +91,8 @@ class ThinPlateSpline:
         ``eta`` is a slightly different model unless the weights are rescaled).
     smoothing : float, sequence of float, or None
         ``eta`` per column (or one for all), in the normalised units below; ``None``
-        picks each column's ``eta`` by ``criterion``.
+        picks each column's ``eta`` by the weighted leave-one-out error (each bead held
+        out in turn, exact closed form ``r_m / (1 - S_mm)``).
     scale : float, optional
         Length (pixels) that maps to 1 in the internal coordinates; default the half
         diagonal of the points' bounding box. ``eta`` is relative to this scale.
@@ -108,13 +108,6 @@ class ThinPlateSpline:
         must beat the constrained one by :data:`RICHER_Z` standard errors of the paired
         per-sample difference (:attr:`richer`). A field that interpolates its samples
         (as many dof as beads) follows their noise. None: no limit.
-    criterion : {"loo", "gcv"}
-        How ``eta`` is chosen when ``smoothing`` is None: "loo", the weighted
-        leave-one-out error (each bead held out in turn, exact closed form
-        ``r_m / (1 - S_mm)``); "gcv", generalised cross-validation. GCV's limit at
-        ``eta -> 0`` is governed by the smallest kernel eigenvalues, which are
-        numerically unreliable for hundreds of beads: it can choose interpolation
-        (all the dof) where the leave-one-out error is lowest at a fraction of them.
 
     Attributes
     ----------
@@ -132,10 +125,7 @@ class ThinPlateSpline:
     """
 
     def __init__(self, points, values, *, weights=None, smoothing=None, scale=None,
-                 criterion: str = "loo", max_nodes: int | None = 1000,
-                 max_dof: float | str | None = "half"):
-        if criterion not in ("loo", "gcv"):
-            raise ValueError(f"`criterion` must be 'loo' or 'gcv', got {criterion!r}.")
+                 max_nodes: int | None = 1000, max_dof: float | str | None = "half"):
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
         vals = np.asarray(values, dtype=np.float64)
         self._vector = vals.ndim == 2
@@ -179,10 +169,9 @@ class ThinPlateSpline:
         lam = np.maximum(lam, 1e-12 * max(float(lam.max()), 1e-300))
         self._factors = (q1, q2, rmat, kmat, dinv, w, lam, vec)
         self._binned = binned
-        self._fit(vals, smoothing, criterion)
+        self._fit(vals, smoothing)
 
-    def refit(self, values, *, smoothing=None, criterion: str = "loo"
-              ) -> ThinPlateSpline:
+    def refit(self, values, *, smoothing=None) -> ThinPlateSpline:
         """The spline of the same points, weights and scale fitted to other values.
 
         Reuses this spline's factorisation (kernel matrix and eigendecomposition): the
@@ -192,15 +181,13 @@ class ThinPlateSpline:
         ----------
         values : array_like of shape (M,) or (M, K)
             New sample values at this spline's points.
-        smoothing, criterion
+        smoothing
             As for :class:`ThinPlateSpline`.
 
         Returns
         -------
         ThinPlateSpline
         """
-        if criterion not in ("loo", "gcv"):
-            raise ValueError(f"`criterion` must be 'loo' or 'gcv', got {criterion!r}.")
         vals = np.asarray(values, dtype=np.float64)
         m = len(self._binned[0]) if self._binned is not None else self.n_nodes
         if vals.ndim not in (1, 2) or len(vals) != m:
@@ -216,10 +203,10 @@ class ThinPlateSpline:
             node_vals = _cell_means(vals, w0, cell, wsum)
             new._binned = (p0, vals, w0, nodes, node_vals, wsum, cell, share)
             vals = node_vals
-        new._fit(vals, smoothing, criterion)
+        new._fit(vals, smoothing)
         return new
 
-    def _fit(self, vals, smoothing, criterion) -> None:
+    def _fit(self, vals, smoothing) -> None:
         """Coefficients, residuals and leverages of ``vals`` (M, K) on the factors."""
         check_halt()
         q1, q2, rmat, kmat, dinv, w, lam, vec = self._factors
@@ -229,7 +216,7 @@ class ThinPlateSpline:
         self.richer = np.zeros(n_col, bool)
         self.loo_gain = np.zeros(n_col)
         if smoothing is None:
-            etas, scores = self._select(lam, vec, q2, proj, dinv, w, criterion)
+            etas, scores = self._select(lam, vec, q2, proj, dinv, w)
         else:
             etas = np.broadcast_to(np.asarray(smoothing, dtype=np.float64), (n_col,)).copy()
             if np.any(~np.isfinite(etas)) or np.any(etas < 0):
@@ -284,8 +271,8 @@ class ThinPlateSpline:
         out[ok] = self.residuals[ok] / denom[ok]
         return out if self._vector else out[:, 0]
 
-    def _select(self, lam, vec, q2, proj, dinv, w, criterion):
-        """Per-column eta minimising the weighted LOO or GCV score on a log grid, with
+    def _select(self, lam, vec, q2, proj, dinv, w):
+        """Per-column eta minimising the weighted leave-one-out error on a log grid, with
         at most :attr:`max_dof` effective degrees of freedom unless the held-out samples
         show that more predict better (:data:`RICHER_Z` standard errors of the paired
         per-sample difference of the LOO errors; ``self.richer`` records where)."""
@@ -297,7 +284,6 @@ class ThinPlateSpline:
         u2 = basis**2
         scores = np.empty((len(grid), n_col))
         # sum_k eta / (Lambda_k + eta) per value: m minus the effective degrees of freedom
-        # (the GCV score's denominator too)
         shrink = np.sum(grid[:, None] / (lam[None, :] + grid[:, None]), axis=1)
         dof = m - shrink
 
@@ -316,19 +302,14 @@ class ThinPlateSpline:
             scaled = (proj[:, None, :] * inv.T[:, :, None]).reshape(len(lam), -1)
             resid = (etas[:, None, None] * dinv[None, :, None]
                      * np.moveaxis((basis @ scaled).reshape(m, len(etas), n_col), 1, 0))
-            if criterion == "loo":
-                lev = etas[:, None] * dinv[None, :] * (inv @ u2.T)  # (B, M): diag(I - S)
-                loo = resid / np.maximum(lev, 1e-12)[:, :, None]
-                scores[start:start + step] = (w[None, :, None] * loo**2).sum(axis=1) / m
-            else:
-                denom = (shrink[start:start + step] / m) ** 2
-                scores[start:start + step] = ((w[None, :, None] * resid**2).sum(axis=1) / m
-                                              / denom[:, None])
+            lev = etas[:, None] * dinv[None, :] * (inv @ u2.T)  # (B, M): diag(I - S)
+            loo = resid / np.maximum(lev, 1e-12)[:, :, None]
+            scores[start:start + step] = (w[None, :, None] * loo**2).sum(axis=1) / m
         best = np.argmin(scores, axis=0)
         self.richer = np.zeros(n_col, bool)
         self.loo_gain = np.zeros(n_col)
         cap = self.max_dof
-        if cap is not None and criterion == "loo" and (dof <= cap).any():
+        if cap is not None and (dof <= cap).any():
             allowed = np.flatnonzero(dof <= cap)
             for j in range(n_col):
                 if dof[best[j]] <= cap:
