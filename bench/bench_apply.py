@@ -68,7 +68,7 @@ def main(argv: list[str] | None = None) -> None:
     rows = []
     for n_psf in args.n_psf:
         op = _model(n_psf, args.size, args.psf, rng)
-        fshape = op.padded_shape()
+        fshape = op.fft_shape()
         padded = np.zeros(fshape, dtype=np.float32)
         padded[: args.size, : args.size] = u
 

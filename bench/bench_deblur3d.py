@@ -108,7 +108,7 @@ def run(name: str, make, depth: int, n_iter: int, seed: int) -> list[dict]:
     cases = [(f"sv rtol {t:g}", op, dict(rtol=t)) for t in RTOLS]
     mean_kernel = np.mean([est.kernel_at(y, x) for y in est.grid[0] for x in est.grid[1]],
                           axis=0)
-    average = ProductConvolution3D(mean_kernel[None], np.ones((1, 1, 1)), shape=op.shape,
+    average = ProductConvolution3D(mean_kernel[None], np.ones((1, 1, 1)), shape=op.image_shape,
                                    grid=(np.array([0.0]), np.array([0.0])), plane=op.plane)
     cases += [("si_centre", shift_invariant(op), {}), ("si_average", average, {}),
               ("oracle", true_op, dict(rtol=0.0))]

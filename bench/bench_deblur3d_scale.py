@@ -70,12 +70,12 @@ elif kind == "tiles":
     out["tile"], out["workers"] = run.tile, extra.get("workers")
 elif kind == "redlionfish":
     from RedLionfishDeconv import doRLDeconvolutionFromNpArrays
-    psf = op.kernel_at((op.shape[1] - 1) / 2, (op.shape[2] - 1) / 2)
+    psf = op.kernel_at((op.image_shape[1] - 1) / 2, (op.image_shape[2] - 1) / 2)
     doRLDeconvolutionFromNpArrays(np.asarray(stack, np.float32), psf, niter=n_iter,
                                   method="cpu")
 elif kind == "skimage":
     from skimage.restoration import richardson_lucy
-    psf = op.kernel_at((op.shape[1] - 1) / 2, (op.shape[2] - 1) / 2)
+    psf = op.kernel_at((op.image_shape[1] - 1) / 2, (op.image_shape[2] - 1) / 2)
     richardson_lucy(np.asarray(stack, np.float32), psf / psf.sum(), num_iter=n_iter,
                     clip=False)
 out["seconds"] = time.perf_counter() - t0

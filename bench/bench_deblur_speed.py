@@ -46,7 +46,7 @@ def _model(n_psf: int, size: int, psf: int) -> ProductConvolution:
 
 def _scene(op: ProductConvolution, n_points: int, seed: int = 0) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    h, w = op.shape
+    h, w = op.image_shape
     truth = np.zeros((h, w), np.float32)
     pts = rng.integers(20, h - 20, (n_points, 2))
     truth[pts[:, 0], pts[:, 1]] = rng.uniform(500, 2000, n_points)
@@ -65,7 +65,7 @@ def main():
     args = ap.parse_args()
     op = _model(args.n_psf, args.size, args.psf)
     image = _scene(op, args.size * args.size // 4000)
-    fshape = op.padded_shape()
+    fshape = op.fft_shape()
     buf = np.random.default_rng(1).random(fshape).astype(np.float32)
     spec = scipy.fft.rfft2(buf, workers=args.workers)
 
@@ -78,7 +78,7 @@ def main():
     # own arrays and threads: per kernel, forward (map x image, spectrum x kernel
     # accumulated) and adjoint (kernel x spectrum, map x image accumulated)
     dt = np.dtype(np.float32)
-    h, w = op.shape
+    h, w = op.image_shape
     maps, kern = op.coefficient_maps(dt), op._kernel_spectra(fshape, dt)
     u, out = image.copy(), np.zeros((h, w), np.float32)
     acc, vhat, prod = spec.copy(), spec.copy(), spec.copy()

@@ -58,9 +58,9 @@ def operator(shape, kernel=(17, 45, 45), n=4, seed=0) -> ProductConvolution3D:
 
 def volume(op: ProductConvolution3D, seed=1) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    obj = np.zeros(op.shape, np.float32)
+    obj = np.zeros(op.image_shape, np.float32)
     n = obj.size // 2000
-    obj[tuple(rng.integers(0, s, n) for s in op.shape)] = rng.uniform(500, 5000, n)
+    obj[tuple(rng.integers(0, s, n) for s in op.image_shape)] = rng.uniform(500, 5000, n)
     return rng.poisson(np.clip(op.apply(obj), 0, None) + 20).astype(np.float32)
 
 
@@ -141,9 +141,9 @@ def operator_2d(size: int, n: int = 12, p: int = 41, seed=0) -> ProductConvoluti
 
 def image_2d(op: ProductConvolution, seed=1) -> np.ndarray:
     rng = np.random.default_rng(seed)
-    obj = np.zeros(op.shape, np.float32)
+    obj = np.zeros(op.image_shape, np.float32)
     n = obj.size // 2000
-    obj[tuple(rng.integers(0, s, n) for s in op.shape)] = rng.uniform(500, 5000, n)
+    obj[tuple(rng.integers(0, s, n) for s in op.image_shape)] = rng.uniform(500, 5000, n)
     return rng.poisson(np.clip(op.apply(obj), 0, None) + 20).astype(np.float32)
 
 
@@ -170,7 +170,7 @@ def deblur_rows(size2d: int, shape3d: tuple, n_iter: int, ok: bool) -> list[dict
     for name, fn, op, kw in (("deblur 2-D", deblur, operator_2d(size2d), {"polish": False}),
                              ("deblur_3d", deblur_3d, operator(shape3d), {})):
         data = image_2d(op) if fn is deblur else volume(op)
-        shape = "x".join(map(str, op.shape))
+        shape = "x".join(map(str, op.image_shape))
         cpu_t, cpu = timed_deblur(fn, data, op, "cpu", n_iter, **kw)
         row = {"what": name, "shape": shape, "its": cpu.iterations,
                "cpu_total_s": cpu_t["total_s"], "cpu_iter_s": cpu_t["iter_s"]}

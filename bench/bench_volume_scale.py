@@ -65,8 +65,8 @@ def stretched(path: str, depth: int, size: int):
     from napari_psfspace.core.volume.operator3d import ProductConvolution3D
 
     op = load_operator_3d(path)
-    gy = op.grid[0] * (size - 1) / max(op.shape[1] - 1, 1)
-    gx = op.grid[1] * (size - 1) / max(op.shape[2] - 1, 1)
+    gy = op.grid[0] * (size - 1) / max(op.image_shape[1] - 1, 1)
+    gx = op.grid[1] * (size - 1) / max(op.image_shape[2] - 1, 1)
     return ProductConvolution3D(op.basis, op.coefficients, shape=(depth, size, size),
                                 grid=(gy, gx), plane=depth // 2)
 

@@ -35,7 +35,7 @@ def test_estimate_psf_apply(workdir, capsys):
     out = capsys.readouterr().out
     assert "held-out error" in out and "noise floor" in out and "basis of" in out
     op = load_operator(d / "model.npz")
-    assert op.shape == (384, 384)
+    assert op.image_shape == (384, 384)
     assert op.metadata["pixel_size_um"] == pytest.approx(0.065, rel=1e-3)
 
     assert main(["psf", str(d / "model.npz"), "--at", "100", "200", "-o",

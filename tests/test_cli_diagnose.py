@@ -43,7 +43,7 @@ def test_diagnose_writes_report_and_model(hot_tiff, tmp_path, capsys):
     for name in report["added"]:
         assert name in cap.out
     op = load_operator(model)
-    assert op.shape == (384, 384)
+    assert op.image_shape == (384, 384)
     assert op.metadata["diagnosis"]["added"] == report["added"]
     assert op.metadata["pixel_size_um"] == pytest.approx(px, rel=1e-4)
     assert np.isclose(op.psf_at(100.0, 200.0).sum(), 1.0, atol=1e-3)

@@ -43,7 +43,7 @@ def files(tmp_path_factory):
     n_i = op.basis.shape[0]
     gy, gx = op.grid
     space = np.ones((1, len(gy), len(gx))) / np.sqrt(len(gy) * len(gx))
-    family = OperatorFamily(op.basis, space, op.grid, op.shape, np.ones((2, n_i, 1)),
+    family = OperatorFamily(op.basis, space, op.grid, op.image_shape, np.ones((2, n_i, 1)),
                               # its generators: the model's PSFs at its nodes
                               Cone(op.coefficients.reshape(n_i, -1).T),
                               metadata={"psf_radius": truth.psf_radius})

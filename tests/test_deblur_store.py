@@ -18,7 +18,7 @@ pytest.importorskip("zarr", minversion="3", reason="the OME-Zarr writer takes za
 def files(tmp_path):
     op = _operator(seed=5, shape=(6, 90, 80))
     rng = np.random.default_rng(3)
-    stack = rng.poisson(op.apply((rng.random(op.shape) < 0.01) * 300.0) + 5)
+    stack = rng.poisson(op.apply((rng.random(op.image_shape) < 0.01) * 300.0) + 5)
     stack = stack.astype(np.uint16)
     tifffile.imwrite(tmp_path / "in.tif", stack, imagej=True,
                      resolution=(1 / 0.1, 1 / 0.1), metadata={"spacing": 0.3, "unit": "um"})

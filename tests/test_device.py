@@ -84,7 +84,7 @@ def test_a_gpu_asked_for_without_one_stops_before_any_work():
         pytest.skip("a GPU is here")
     op = _operator()
     with pytest.raises(ValueError, match=r"napari-psfspace\[gpu\]"):
-        richardson_lucy_3d(np.ones(op.shape, np.float32), op, n_iter=1, device="gpu")
+        richardson_lucy_3d(np.ones(op.image_shape, np.float32), op, n_iter=1, device="gpu")
 
 
 def test_the_plan_takes_the_whole_field_when_it_fits_and_smaller_blocks_when_not():
@@ -118,11 +118,11 @@ def test_the_device_path_equals_the_cpu_path(on_device, monkeypatch):
 
     op = _operator()
     rng = np.random.default_rng(1)
-    stack = rng.poisson(op.apply(rng.random(op.shape) * 200) + 10).astype(np.float32)
+    stack = rng.poisson(op.apply(rng.random(op.image_shape) * 200) + 10).astype(np.float32)
     free = 1 << 40
     if not on_device:  # room for blocks of 48 px (the smallest tried here), not volumes
         monkeypatch.setattr(device_plan, "MIN_BLOCK", 48)
-        free = int(block_bytes(op, op.shape[0], 48) / MEMORY_FRACTION) + 1
+        free = int(block_bytes(op, op.image_shape[0], 48) / MEMORY_FRACTION) + 1
     dev = NumpyDevice("gpu", np, free=free)
     got = richardson_lucy_3d(stack, op, n_iter=6, rtol=0.0, device=dev, accelerate=True)
     ref = richardson_lucy_3d(stack, op, n_iter=6, rtol=0.0, device="cpu", accelerate=True)
@@ -155,8 +155,8 @@ def test_the_2d_operator_on_the_device_path_is_the_cpus():
     op = _operator_2d()
     dev = NumpyDevice("gpu", np)
     rng = np.random.default_rng(3)
-    u, v = rng.standard_normal((2, *op.shape))
-    cens = np.nonzero(rng.random(op.shape) < 0.05)
+    u, v = rng.standard_normal((2, *op.image_shape))
+    cens = np.nonzero(rng.random(op.image_shape) < 0.05)
     pairs = [(op.apply(u, device=dev), op.apply(u, workers=2)),
              (op.adjoint(v, device=dev), op.adjoint(v, workers=2))]
     for c in (None, cens):
@@ -180,7 +180,7 @@ def test_the_3d_operator_on_the_device_path_is_the_cpus():
     op = _operator(shape=(5, 40, 36))
     dev = NumpyDevice("gpu", np)
     rng = np.random.default_rng(4)
-    u, v = rng.standard_normal((2, *op.shape))
+    u, v = rng.standard_normal((2, *op.image_shape))
     for got, ref in ((op.apply(u, device=dev), op.apply(u)),
                      (op.adjoint(v, device=dev), op.adjoint(v))):
         assert np.linalg.norm(got - ref) <= 1e-12 * np.linalg.norm(ref)
@@ -199,7 +199,7 @@ def test_block_fista_on_whole_blocks_is_the_row_chunked_iteration(monkeypatch):
 
     op = _operator_2d(shape=(300, 64))
     rng = np.random.default_rng(5)
-    y = op.apply(rng.random(op.shape) * (rng.random(op.shape) < 0.01) * 100)
+    y = op.apply(rng.random(op.image_shape) * (rng.random(op.image_shape) < 0.01) * 100)
 
     def gradient(x):
         g, value = op.data_gradient(x[0], y, workers=1)
@@ -210,7 +210,7 @@ def test_block_fista_on_whole_blocks_is_the_row_chunked_iteration(monkeypatch):
                              [lambda v, t, rows: np.maximum(v - t * 0.1, 0, out=v)], [1.5],
                              penalty=[lambda v, rows: 0.1 * float(np.abs(v).sum())],
                              workers=2)
-        s.setup([np.zeros(op.shape)])
+        s.setup([np.zeros(op.image_shape)])
         list(s.run(15, 0.0))
         return s.finalize()[0], s.objective
 
@@ -225,8 +225,8 @@ def test_block_fista_on_whole_blocks_is_the_row_chunked_iteration(monkeypatch):
 
 def _deblur_scene(op, seed=6):
     rng = np.random.default_rng(seed)
-    truth = np.zeros(op.shape)
-    ys, xs = (rng.integers(10, n - 10, 30) for n in op.shape)
+    truth = np.zeros(op.image_shape)
+    ys, xs = (rng.integers(10, n - 10, 30) for n in op.image_shape)
     truth[ys, xs] = rng.uniform(200, 400, 30)
     return rng.poisson(np.clip(op.apply(truth), 0, None) + 20).astype(np.float32)
 
@@ -257,13 +257,13 @@ def test_deblur_3d_on_the_device_path_is_the_cpus(on_device, monkeypatch):
 
     op = _operator()
     rng = np.random.default_rng(7)
-    truth = (rng.random(op.shape) < 0.002) * rng.uniform(200, 400, op.shape)
+    truth = (rng.random(op.image_shape) < 0.002) * rng.uniform(200, 400, op.image_shape)
     stack = rng.poisson(op.apply(truth) + 10).astype(np.float32)
     free = 1 << 40
     if not on_device:  # room for blocks of 48 px, not for the volumes
         monkeypatch.setattr(device_plan, "MIN_BLOCK", 48)
-        free = int(block_bytes(op, op.shape[0], 48) / MEMORY_FRACTION) + 1
-        plan = plan_on_device(op, op.shape[0], free, volumes=FISTA_VOLUMES)
+        free = int(block_bytes(op, op.image_shape[0], 48) / MEMORY_FRACTION) + 1
+        plan = plan_on_device(op, op.image_shape[0], free, volumes=FISTA_VOLUMES)
         assert (plan.block, plan.volumes_on_device) == (48, False)
     dev = NumpyDevice("gpu", np, free=free)
     got = deblur_3d(stack, op, max_iter=10, rtol=0.0, grid_step=16, device=dev)
@@ -284,7 +284,7 @@ def test_exchanged_tiles_on_the_device_path_are_the_whole_volume():
 
     op = _operator(shape=(6, 96, 80))
     rng = np.random.default_rng(2)
-    stack = rng.poisson(op.apply((rng.random(op.shape) < 0.01) * 300.0) + 5)
+    stack = rng.poisson(op.apply((rng.random(op.image_shape) < 0.01) * 300.0) + 5)
     whole = richardson_lucy_3d(stack, op, n_iter=4, block=16, device="cpu").volume
     for free in (1 << 40, 0):
         tiled = richardson_lucy_3d_exchange(stack, op, n_iter=4, tile=32, block=16,

@@ -53,7 +53,7 @@ def test_aberration_free_field_is_nearly_shift_invariant():
 def test_estimation_records(moderate):
     image, truth, est = moderate
     op, meta = est.operator, est.operator.metadata
-    assert op.shape == image.shape
+    assert op.image_shape == image.shape
     assert op.psf_size == 2 * int(np.ceil(1.2 * truth.psf_radius)) + 1
     # no cap but the beads' support: half the inliers (pca.learn_basis)
     assert meta["n_psf"] == op.n_psf and 1 <= op.n_psf <= (meta["n_beads_used"] - 2) // 2

@@ -116,7 +116,7 @@ def test_estimate_operator(image, radius):
 @given(images)
 def test_deblur(model, image):
     def check(res):
-        assert res.image.shape == model.shape and _finite(res.image)
+        assert res.image.shape == model.image_shape and _finite(res.image)
         assert np.all(res.sparse >= 0)
 
     refused_or_sane(lambda: ps.deblur(image, model, max_iter=5), check)
@@ -125,7 +125,7 @@ def test_deblur(model, image):
 @given(images)
 def test_apply(model, image):
     def check(out):
-        assert out.shape == model.shape and _finite(out)
+        assert out.shape == model.image_shape and _finite(out)
 
     refused_or_sane(lambda: model.apply(image), check, names=("u",))
 

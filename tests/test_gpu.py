@@ -30,7 +30,7 @@ def test_the_blocked_operator_on_the_gpu_is_the_cpus():
 
     op = _operator()
     rng = np.random.default_rng(1)
-    u, v = rng.random((2, *op.shape)).astype(np.float32)
+    u, v = rng.random((2, *op.image_shape)).astype(np.float32)
     am = array_module("gpu")
     gpu = BlockedOperator3D(op, block=256, rtol=0.0, device=am)
     cpu = BlockedOperator3D(op, block=256, rtol=0.0)
@@ -48,7 +48,7 @@ def test_ten_iterations_on_the_gpu_are_the_cpus(accelerate):
 
     op = _operator()
     rng = np.random.default_rng(2)
-    stack = rng.poisson(op.apply(rng.random(op.shape) * 100) + 10).astype(np.float32)
+    stack = rng.poisson(op.apply(rng.random(op.image_shape) * 100) + 10).astype(np.float32)
     gpu = richardson_lucy_3d(stack, op, n_iter=10, device="gpu", accelerate=accelerate)
     cpu = richardson_lucy_3d(stack, op, n_iter=10, device="cpu", accelerate=accelerate)
     assert gpu.device == "gpu" and isinstance(gpu.volume, np.ndarray)
@@ -70,8 +70,8 @@ def test_the_2d_operator_on_the_gpu_is_the_cpus():
     op = _operator_2d()
     am = array_module("gpu")
     rng = np.random.default_rng(3)
-    u, v = rng.random((2, *op.shape)).astype(np.float32)
-    cens = np.nonzero(rng.random(op.shape) < 0.01)
+    u, v = rng.random((2, *op.image_shape)).astype(np.float32)
+    cens = np.nonzero(rng.random(op.image_shape) < 0.01)
     g, val = op.data_gradient(u, v, censored=cens, device=am)
     g0, val0 = op.data_gradient(u, v, censored=cens)
     for a, b in ((op.apply(am.asarray(u)), op.apply(u)),
@@ -89,7 +89,7 @@ def test_the_deblurs_on_the_gpu_are_the_cpus():
 
     op = _operator_2d()
     rng = np.random.default_rng(4)
-    truth = (rng.random(op.shape) < 0.002) * rng.uniform(200, 400, op.shape)
+    truth = (rng.random(op.image_shape) < 0.002) * rng.uniform(200, 400, op.image_shape)
     image = rng.poisson(op.apply(truth) + 20).astype(np.float32)
     kw = {"max_iter": 10, "tol": 1e-30, "polish": False}
     gpu, cpu = deblur(image, op, device="gpu", **kw), deblur(image, op, device="cpu", **kw)
@@ -112,7 +112,7 @@ def test_tiles_on_the_gpu_are_the_whole_volume_in_memory():
 
     op = _operator(shape=(64, 1024, 1024))
     rng = np.random.default_rng(3)
-    stack = rng.poisson(20.0, op.shape).astype(np.float32)
+    stack = rng.poisson(20.0, op.image_shape).astype(np.float32)
     whole = richardson_lucy_3d(stack, op, n_iter=3, device="cpu").volume
     tiled = richardson_lucy_3d_exchange(stack, op, n_iter=3, tile=512, device="gpu")
     assert np.abs(tiled - whole).max() <= 1e-4 * whole.max()

@@ -95,7 +95,7 @@ def inputs(tmp_path_factory):
                                   grid=(np.array([0.0, 63]), np.array([0.0, 63])))
     op3.save(d / "model3d.npz")
     for v, seed in (("a", 1), ("b", 2)):
-        stack = np.random.default_rng(seed).poisson(50, op3.shape).astype(np.float32)
+        stack = np.random.default_rng(seed).poisson(50, op3.image_shape).astype(np.float32)
         tifffile.imwrite(d / f"stack_{v}.tif", stack, imagej=True)
         assert main(["simulate", "--focus-series", "7", "-o", str(d / f"focus_{v}.tif"),
                      "--shape", "256", "256", "--beads", "8", "--seed", str(seed)]) == 0

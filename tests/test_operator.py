@@ -54,8 +54,8 @@ def _full_model(rng, shape=(41, 50), n_psf=3, size=9) -> ProductConvolution:
 @pytest.mark.parametrize("kind", ["full", "coarse"])
 def test_dot_test_float64(rng, kind):
     op = _full_model(rng) if kind == "full" else _coarse_model(rng)
-    u = rng.standard_normal(op.shape)
-    v = rng.standard_normal(op.shape)
+    u = rng.standard_normal(op.image_shape)
+    v = rng.standard_normal(op.image_shape)
     lhs = np.vdot(op.apply(u), v)
     rhs = np.vdot(u, op.adjoint(v))
     assert abs(lhs - rhs) / abs(lhs) < 1e-10
@@ -64,8 +64,8 @@ def test_dot_test_float64(rng, kind):
 @pytest.mark.parametrize("kind", ["full", "coarse"])
 def test_dot_test_float32(rng, kind):
     op = _full_model(rng) if kind == "full" else _coarse_model(rng)
-    u = rng.standard_normal(op.shape).astype(np.float32)
-    v = rng.standard_normal(op.shape).astype(np.float32)
+    u = rng.standard_normal(op.image_shape).astype(np.float32)
+    v = rng.standard_normal(op.image_shape).astype(np.float32)
     hu, htv = op.apply(u), op.adjoint(v)
     assert hu.dtype == np.float32 and htv.dtype == np.float32
     lhs = np.vdot(hu.astype(np.float64), v.astype(np.float64))
@@ -83,9 +83,9 @@ def test_dot_test_float32(rng, kind):
 def test_linear_operator_wraps_apply_and_adjoint(rng):
     op = _coarse_model(rng)
     lin = op.as_linear_operator()
-    n = op.shape[0] * op.shape[1]
+    n = op.image_shape[0] * op.image_shape[1]
     assert lin.shape == (n, n)
-    u = rng.standard_normal(op.shape)
+    u = rng.standard_normal(op.image_shape)
     err_mv = np.max(np.abs(lin.matvec(u.ravel()) - op.apply(u).ravel()))
     err_rmv = np.max(np.abs(lin.rmatvec(u.ravel()) - op.adjoint(u).ravel()))
     assert err_mv < 1e-14 * np.abs(op.apply(u)).max() + 1e-300
@@ -96,8 +96,8 @@ def test_linear_operator_wraps_apply_and_adjoint(rng):
 def test_data_gradient_is_the_adjoint_of_the_residual(rng, n_psf):
     # 300 rows: the element-wise steps run split over threads (by_rows: >= 256 rows)
     op = _full_model(rng, shape=(300, 270), n_psf=n_psf)
-    u = rng.standard_normal(op.shape)
-    y = rng.standard_normal(op.shape)
+    u = rng.standard_normal(op.image_shape)
+    y = rng.standard_normal(op.image_shape)
     r = op.apply(u, workers=1) - y
     g, value = op.data_gradient(u, y, workers=2)
     np.testing.assert_allclose(g, op.adjoint(r, workers=1), rtol=0,
@@ -106,7 +106,7 @@ def test_data_gradient_is_the_adjoint_of_the_residual(rng, n_psf):
     # threads change nothing (float64: the same products in the same order)
     np.testing.assert_array_equal(op.apply(u, workers=2), op.apply(u, workers=1))
     # censored pixels (saturated: y only a lower bound) count only where H u < y
-    cens = np.nonzero(rng.random(op.shape) < 0.05)
+    cens = np.nonzero(rng.random(op.image_shape) < 0.05)
     rc = r.copy()
     rc[cens] = np.minimum(rc[cens], 0)
     g, value = op.data_gradient(u, y, censored=cens, workers=2)
@@ -153,7 +153,7 @@ def test_stationary_limit_constant_full_maps(rng):
 
 def _dense_matrix(op: ProductConvolution) -> np.ndarray:
     """Explicit matrix: column z = PSF at z, sum_i alpha_i(z) h_i, placed centred at z."""
-    H, W = op.shape
+    H, W = op.image_shape
     P, c = op.psf_size, op.psf_size // 2
     maps = op.coefficient_maps(np.float64)
     mat = np.zeros((H * W, H * W))
@@ -192,18 +192,18 @@ def test_psf_larger_than_image(rng):
     """Padding must avoid wrap-around even when P > H, W (aliased kernel taps)."""
     basis = rng.standard_normal((2, 21, 21))
     op = ProductConvolution(basis, rng.standard_normal((2, 6, 5)))
-    assert op.padded_shape()[0] < op.psf_size  # the case being tested
+    assert op.fft_shape()[0] < op.psf_size  # the case being tested
     mat = _dense_matrix(op)
-    u = rng.standard_normal(op.shape)
-    ref = (mat @ u.ravel()).reshape(op.shape)
+    u = rng.standard_normal(op.image_shape)
+    ref = (mat @ u.ravel()).reshape(op.image_shape)
     assert np.abs(op.apply(u) - ref).max() / np.abs(ref).max() < 1e-12
-    ref_adj = (mat.T @ u.ravel()).reshape(op.shape)
+    ref_adj = (mat.T @ u.ravel()).reshape(op.image_shape)
     assert np.abs(op.adjoint(u) - ref_adj).max() / np.abs(ref_adj).max() < 1e-12
 
 
 def test_dtypes(rng):
     op = _coarse_model(rng)
-    u64 = rng.standard_normal(op.shape)
+    u64 = rng.standard_normal(op.image_shape)
     out32 = op.apply(u64.astype(np.float32))
     assert out32.dtype == np.float32
     assert op.adjoint(u64.astype(np.float32)).dtype == np.float32
@@ -213,7 +213,7 @@ def test_dtypes(rng):
     # max |error| <= ||error||_2, bounded from the sizes summed (float64's is negligible)
     bound = product_convolution_errors(op, u32, u32)[0]
     assert np.abs(out32 - ref).max() <= bound < 0.01 * np.abs(ref).max()
-    ui = rng.integers(0, 1000, op.shape).astype(np.uint16)
+    ui = rng.integers(0, 1000, op.image_shape).astype(np.uint16)
     out_i = op.apply(ui)
     assert out_i.dtype == np.float32
     ref_i = op.apply(ui.astype(np.float64))
@@ -225,7 +225,7 @@ def test_dtypes(rng):
 def test_coefficients_at_matches_maps(rng):
     op = _coarse_model(rng)
     maps = op.coefficient_maps(np.float64)
-    H, W = op.shape
+    H, W = op.image_shape
     yy, xx = np.mgrid[0:H, 0:W]
     got = op.coefficients_at(yy.ravel(), xx.ravel())  # (N, I)
     assert got.shape == (H * W, op.n_psf)
@@ -351,7 +351,7 @@ def test_copy_keeps_behaviour(rng):
     import copy
 
     op = _coarse_model(rng)
-    u = rng.standard_normal(op.shape)
+    u = rng.standard_normal(op.image_shape)
     out = op.apply(u)
     op2 = copy.deepcopy(op)
     assert np.array_equal(op2.apply(u), out)
@@ -359,7 +359,7 @@ def test_copy_keeps_behaviour(rng):
 
 def test_properties_and_readonly(rng):
     op = _coarse_model(rng)
-    assert op.n_psf == 3 and op.psf_size == 7 and op.shape == (48, 37)
+    assert op.n_psf == 3 and op.psf_size == 7 and op.image_shape == (48, 37)
     assert op.grid is not None and op.grid[0].shape == (4,)
     assert not op.basis.flags.writeable
     assert not op.coefficient_maps().flags.writeable
@@ -382,11 +382,11 @@ def test_save_load_roundtrip(tmp_path, rng):
         path = tmp_path / "model.npz"
         op.save(path)
         op2 = load_operator(path)
-        assert op2.shape == op.shape and op2.is_full_resolution == op.is_full_resolution
+        assert op2.image_shape == op.image_shape and op2.is_full_resolution == op.is_full_resolution
         assert np.array_equal(op2.basis, op.basis)
         assert np.array_equal(op2.coefficients, op.coefficients)
         assert op2.metadata == op.metadata
-        u = rng.standard_normal(op.shape)
+        u = rng.standard_normal(op.image_shape)
         assert np.array_equal(op2.apply(u), op.apply(u))
     assert op2.metadata == {"residual": 0.125, "n_beads": 17, "sizes": [0, 1, 2]}
     with np.load(path, allow_pickle=False) as data:

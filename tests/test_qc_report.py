@@ -51,7 +51,7 @@ def test_the_json_reads_back_against_the_model(report, series):
     stack, _ = series
     back = json.loads(paths["json"].read_text(encoding="utf-8"))
     assert back == rec
-    _, h, w = est.operator.shape
+    _, h, w = est.operator.image_shape
     m = model_measures(est.operator, np.array([[(h - 1) / 2, (w - 1) / 2]]))
     # the model's PSF at the centre, rounded to 0.001 nm in the file
     assert abs(back["centre"]["fwhm_lateral"]["model"] - m["fwhm_lateral"][0] * 65) <= 5e-4

@@ -492,7 +492,7 @@ def test_sparse_weight_allows_for_the_operators_error_near_bright_sources():
     assert wide[y, x] > 1.2 * plain[y, x]  # on a source its error adds (measured 1.25x)
     # where the error comes from: the identification, else a model's held-out beads
     assert model_error_of(op) == 0.0
-    meta = ProductConvolution(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+    meta = ProductConvolution(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                               metadata={"heldout": {"residual_mean": 0.05,
                                                     "noise_floor_mean": 0.03}})
     assert model_error_of(meta) == pytest.approx(0.04)

@@ -133,7 +133,7 @@ def test_a_psf_outside_the_field_is_refused_as_on_the_command_line():
     from napari_psfspace.core.simulation.optics import simulate_psf
 
     op = ps.estimate_operator(_beads_image(), psf_radius=8)
-    h, w = op.shape
+    h, w = op.image_shape
     assert op.psf_at(h - 1, 0).shape[0] == op.psf_size  # the field's corner is in it
     for y, x in ((1e9, 1e9), (-1, 0), (0, w - 0.5), (np.nan, 0)):
         with pytest.raises(ValueError, match=r"`y`, `x`.*outside the model's field"):

@@ -52,7 +52,7 @@ def test_the_adjoint_passes_the_dot_test():
 
 def test_constant_maps_are_a_plain_3d_convolution():
     op = _random_operator(constant=True)
-    u = np.random.default_rng(2).standard_normal(op.shape)
+    u = np.random.default_rng(2).standard_normal(op.image_shape)
     kernel = np.tensordot(op.coefficients[:, 0, 0], op.basis, axes=(0, 0))
     ref = ndi.convolve(u, kernel, mode="constant", cval=0.0)
     e_hu, _ = product_convolution_3d_errors(op, u, u, prec=U64)
@@ -68,7 +68,7 @@ def test_constant_maps_are_a_plain_3d_convolution():
 
 def test_float32_stays_float32():
     op = _random_operator()
-    u = np.random.default_rng(3).standard_normal(op.shape).astype(np.float32)
+    u = np.random.default_rng(3).standard_normal(op.image_shape).astype(np.float32)
     assert op.apply(u).dtype == np.float32 and op.adjoint(u).dtype == np.float32
 
 
@@ -83,7 +83,7 @@ def test_psf_at_samples_the_kernel_on_the_stacks_planes():
 
 def test_save_load_round_trip_and_bad_files(tmp_path):
     op = _random_operator()
-    op2 = ProductConvolution3D(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+    op2 = ProductConvolution3D(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                                plane=op.plane, voxel_size=(0.2, 0.065, 0.065),
                                metadata={"note": "test"})
     path = tmp_path / "m3.npz"
@@ -91,8 +91,8 @@ def test_save_load_round_trip_and_bad_files(tmp_path):
     back = load_operator_3d(path)
     np.testing.assert_array_equal(back.basis, op2.basis)
     np.testing.assert_array_equal(back.coefficients, op2.coefficients)
-    assert (back.shape, back.plane, back.voxel_size, back.metadata) == \
-        (op2.shape, op2.plane, (0.2, 0.065, 0.065), {"note": "test"})
+    assert (back.image_shape, back.plane, back.voxel_size, back.metadata) == \
+        (op2.image_shape, op2.plane, (0.2, 0.065, 0.065), {"note": "test"})
     raw = path.read_bytes()
     (tmp_path / "cut.npz").write_bytes(raw[: len(raw) // 2])
     with pytest.raises(ValueError, match="damaged 3D model file"):
@@ -108,10 +108,10 @@ def test_save_load_round_trip_and_bad_files(tmp_path):
 def test_bad_arguments_are_named():
     op = _random_operator()
     with pytest.raises(ValueError, match="`plane`"):
-        ProductConvolution3D(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+        ProductConvolution3D(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                              plane=6)
     with pytest.raises(ValueError, match="`basis`"):
-        ProductConvolution3D(op.basis[:, :4], op.coefficients, shape=op.shape, grid=op.grid,
+        ProductConvolution3D(op.basis[:, :4], op.coefficients, shape=op.image_shape, grid=op.grid,
                              plane=1)
     with pytest.raises(ValueError, match="`u`"):
         op.apply(np.zeros((6, 40, 35)))
@@ -161,7 +161,7 @@ def test_a_focus_series_gives_the_field_varying_3d_psf(estimated):
     assert order == ["detect", "centre", "patches", "basis", "fit", "held-out"]
     assert stages.count("held-out") >= FOLDS + 1
     op = est.operator
-    assert op.plane == series.focus_index and op.shape == stack.shape
+    assert op.plane == series.focus_index and op.image_shape == stack.shape
     truths = _truth_grid(series, op)
     single = np.mean(list(truths.values()), axis=0)
     err = np.mean([psf_error_3d(op.psf_at(y, x), t) for (y, x), t in truths.items()])
@@ -279,7 +279,7 @@ def _field_varying_blur(shape=(9, 96, 96)):
 def test_space_varying_rl_beats_one_psf_at_the_edges_and_is_level_in_the_centre():
     op = _field_varying_blur()
     rng = np.random.default_rng(5)
-    truth = np.zeros(op.shape, np.float32)
+    truth = np.zeros(op.image_shape, np.float32)
     idx = (rng.integers(2, 7, 120), rng.integers(4, 92, 120), rng.integers(4, 92, 120))
     truth[idx] = rng.uniform(500, 1500, 120)
     blurred = op.apply(truth) + 10.0
@@ -350,7 +350,7 @@ def test_a_compressed_field_keeps_its_psfs_within_the_bound():
     wide = ProductConvolution3D(np.concatenate([op.basis, extra]),
                                 np.concatenate([op.coefficients,
                                                 rng.random((3, *op.coefficients.shape[1:]))]),
-                                shape=op.shape, grid=op.grid, plane=op.plane)
+                                shape=op.image_shape, grid=op.grid, plane=op.plane)
     small = wide.compressed(0.02)
     assert small.n_psf < wide.n_psf and small.metadata["compressed"]["error"] <= 0.02
     for y in wide.grid[0]:
@@ -358,14 +358,14 @@ def test_a_compressed_field_keeps_its_psfs_within_the_bound():
             a, b = wide.kernel_at(y, x), small.kernel_at(y, x)
             assert np.linalg.norm(a - b) <= 0.02 * np.linalg.norm(a) * (1 + 1e-9)
     assert wide.compressed(0.0).n_psf <= wide.n_psf
-    stack = np.abs(rng.standard_normal(op.shape)).astype(np.float32) + 1
+    stack = np.abs(rng.standard_normal(op.image_shape)).astype(np.float32) + 1
     res = richardson_lucy_3d(stack, wide, n_iter=2, rtol=0.02)  # blocks, each compressed
     assert res.n_kernels <= small.n_psf
 
 
 def test_a_nan_in_the_volume_is_named():
     op = _random_operator()
-    u = np.zeros(op.shape)
+    u = np.zeros(op.image_shape)
     u[3, 10, 10] = np.nan
     with pytest.raises(ValueError, match="`u` contains NaN"):
         op.apply(u)
@@ -385,5 +385,5 @@ def test_single_bead_stacks_give_one_3d_psf_at_its_focus(shared_data):
         op = estimate_operator_3d(tifffile.imread(path), psf_radius=12)
         assert op.n_psf == 1 and op.metadata["field_model"] == "shift-invariant"
         assert "one 3D PSF" in op.metadata["field_model_reason"]
-        m = psf_measures(op.psf_at((op.shape[1] - 1) / 2, (op.shape[2] - 1) / 2))
+        m = psf_measures(op.psf_at((op.image_shape[1] - 1) / 2, (op.image_shape[2] - 1) / 2))
         assert abs(m["focal_plane"] - op.plane) <= 1.0, (path.name, m, op.plane)

@@ -23,7 +23,7 @@ def _operator(seed=0, shape=(6, 50, 44), kernel=(5, 7, 7), n=3):
 def test_exact_blocks_are_the_operator_and_pass_the_dot_test(block):
     op = _operator()
     rng = np.random.default_rng(1)
-    u, v = rng.standard_normal((2, *op.shape))
+    u, v = rng.standard_normal((2, *op.image_shape))
     blocked = BlockedOperator3D(op, block=block, rtol=0.0)
     # a block narrower than a grid cell may need fewer kernels, exactly (error 0)
     assert blocked.n_kernels <= op.n_psf and blocked.error == 0.0
@@ -38,7 +38,7 @@ def test_exact_blocks_are_the_operator_and_pass_the_dot_test(block):
     bound = np.linalg.norm(v) * e_hu + np.linalg.norm(u) * e_htv
     assert abs(np.vdot(hu.astype(float), v) - np.vdot(u, htv.astype(float))) <= bound
     # the Richardson-Lucy form: multiply_into
-    w = np.ones(op.shape, np.float32)
+    w = np.ones(op.image_shape, np.float32)
     assert np.array_equal(blocked.adjoint(v, multiply_into=w, workers=1),
                           blocked.adjoint(v, workers=1))
 
@@ -51,7 +51,7 @@ def test_compressed_blocks_keep_each_point_within_rtol():
     assert blocked.n_kernels < op.n_psf and blocked.error <= 0.05
     eps = 1e3 * U32  # float32 FFTs of a few thousand voxels
     for y, x in [(3, 3), (20, 30), (47, 8), (33, 41)]:
-        u = np.zeros(op.shape)
+        u = np.zeros(op.image_shape)
         u[2, y, x] = 1.0
         ref = op.apply(u)
         assert np.linalg.norm(blocked.apply(u) - ref) <= (0.05 + eps) * np.linalg.norm(ref)
@@ -72,7 +72,7 @@ def test_bad_blocks_are_named():
 def test_rl_on_exact_blocks_is_rl_on_the_whole_volume():
     op = _operator(seed=4)
     rng = np.random.default_rng(2)
-    truth = (rng.random(op.shape) < 0.02) * 200.0
+    truth = (rng.random(op.image_shape) < 0.02) * 200.0
     stack = rng.poisson(op.apply(truth) + 5).astype(np.float32)
     whole = richardson_lucy_3d(stack, op, n_iter=10, block=None).volume
     blocks = richardson_lucy_3d(stack, op, n_iter=10, block=16, rtol=0.0)
@@ -93,7 +93,7 @@ def test_dask_tiles_are_the_loop_over_tiles_and_near_the_whole_volume():
 
     op = _operator(seed=5, shape=(6, 90, 80))
     rng = np.random.default_rng(3)
-    truth = (rng.random(op.shape) < 0.01) * 300.0
+    truth = (rng.random(op.image_shape) < 0.01) * 300.0
     stack = rng.poisson(op.apply(truth) + 5).astype(np.float32)
     kw = dict(n_iter=15, tile=40, halo=14, block=None)
     loop = richardson_lucy_3d_tiled(stack, op, use_dask=False, **kw)
@@ -134,11 +134,11 @@ def test_sparse_smooth_3d_finds_the_points_and_takes_the_background():
 
     op = _field_varying_blur()
     rng = np.random.default_rng(5)
-    truth = np.zeros(op.shape, np.float32)
+    truth = np.zeros(op.image_shape, np.float32)
     n = 120
     truth[rng.integers(2, 7, n), rng.integers(4, 92, n), rng.integers(4, 92, n)] = \
         rng.uniform(500, 1500, n)
-    bg = np.broadcast_to(10 + 5 * np.linspace(0, 1, 96)[None, None, :], op.shape)
+    bg = np.broadcast_to(10 + 5 * np.linspace(0, 1, 96)[None, None, :], op.image_shape)
     stack = rng.poisson(op.apply(truth) + bg).astype(np.float32)
     res = deblur_3d(stack, op, grid_step=16, max_iter=150, block=32)
     assert res.sparse.dtype == np.float32 and np.all(res.sparse >= 0)
@@ -175,7 +175,7 @@ def test_the_dask_path_runs_on_a_client():
     give the loop's result."""
     distributed = pytest.importorskip("distributed")
     op = _operator(seed=7, shape=(6, 60, 60))
-    stack = np.random.default_rng(4).poisson(op.apply(np.ones(op.shape)) + 5)
+    stack = np.random.default_rng(4).poisson(op.apply(np.ones(op.image_shape)) + 5)
     stack = stack.astype(np.float32)
     kw = dict(n_iter=4, tile=30, halo=10, block=None)
     loop = richardson_lucy_3d_tiled(stack, op, use_dask=False, **kw)
@@ -188,7 +188,7 @@ def test_the_dask_path_runs_on_a_client():
 def _rl_problem(seed=4):
     op = _operator(seed=seed)
     rng = np.random.default_rng(2)
-    truth = (rng.random(op.shape) < 0.02) * 200.0
+    truth = (rng.random(op.image_shape) < 0.02) * 200.0
     return op, rng.poisson(op.apply(truth) + 5).astype(np.float32)
 
 

@@ -20,7 +20,7 @@ from test_volume_blocks import _operator
 def _problem(seed=5, shape=(6, 90, 80)):
     op = _operator(seed=seed, shape=shape)
     rng = np.random.default_rng(3)
-    truth = (rng.random(op.shape) < 0.01) * 300.0
+    truth = (rng.random(op.image_shape) < 0.01) * 300.0
     return op, rng.poisson(op.apply(truth) + 5).astype(np.float32)
 
 
@@ -160,7 +160,7 @@ def test_a_stack_thinner_than_the_kernel_is_deep():
     h = rng.random((5, 7, 7))
     flat = ProductConvolution3D(h[None], np.ones((1, 2, 2)), shape=(2, 40, 36),
                                 grid=(np.array([0.0, 39]), np.array([0.0, 35])), plane=1)
-    u = rng.random(flat.shape)
+    u = rng.random(flat.image_shape)
     plain = convolve(u, h, mode="same")
     assert np.allclose(flat.apply(u), plain, rtol=0, atol=1e-12 * plain.max())
     blocked = BlockedOperator3D(flat, block=16, rtol=0.0).apply(u)
@@ -168,7 +168,7 @@ def test_a_stack_thinner_than_the_kernel_is_deep():
     op = ProductConvolution3D(rng.random((3, 5, 7, 7)), rng.random((3, 5, 4)),
                               shape=(2, 64, 48), plane=1,
                               grid=(np.linspace(0, 63, 5), np.linspace(0, 47, 4)))
-    stack = rng.poisson(op.apply((rng.random(op.shape) < 0.01) * 300.0) + 5)
+    stack = rng.poisson(op.apply((rng.random(op.image_shape) < 0.01) * 300.0) + 5)
     whole = richardson_lucy_3d(stack, op, n_iter=5, block=16).volume
     tiled = richardson_lucy_3d_exchange(stack, op, n_iter=5, tile=32, block=16)
     assert np.abs(tiled - whole).max() <= 1e-4 * whole.max()

@@ -92,7 +92,7 @@ def test_deblur3d_refuses_a_stack_of_unknown_sampling_before_any_work(tmp_path, 
     model = _model((0.3, 0.1, 0.1))
     model.save(tmp_path / "m.npz")
     rng = np.random.default_rng(1)
-    stack = rng.poisson(20, model.shape).astype(np.uint16)
+    stack = rng.poisson(20, model.image_shape).astype(np.uint16)
     tifffile.imwrite(tmp_path / "bare.tif", stack)
     out = tmp_path / ("o.zarr" if tiled else "o.tif")
     extra = ["--tile", "32"] if tiled else []

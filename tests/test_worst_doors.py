@@ -30,7 +30,7 @@ def folder(tmp_path_factory):
                                shape=(4, 64, 64), plane=1,
                                grid=(np.array([0.0, 63]), np.array([0.0, 63])))
     op3.save(d / "m3.npz")
-    stack = rng.poisson(50, op3.shape).astype(np.float32)
+    stack = rng.poisson(50, op3.image_shape).astype(np.float32)
     tifffile.imwrite(d / "stack.tif", stack, imagej=True)
     tifffile.imwrite(d / "negstack.tif", -stack, imagej=True)
     return d

@@ -94,7 +94,7 @@ def product_convolution_errors(op, u: np.ndarray, v: np.ndarray) -> tuple[float,
     in the adjoint)."""
     maps = op.coefficient_maps(np.float64)
     l1 = np.abs(op.basis).sum(axis=(1, 2))
-    fy, fx = op.padded_shape()
+    fy, fx = op.fft_shape()
     kw = {"n_points": fy * fx, "kernel_size": op.psf_size}
     u = np.asarray(u, np.float64)
     err_hu = fft_convolution_error(l1, np.linalg.norm(maps * u, axis=(1, 2)), **kw)

@@ -59,7 +59,7 @@ def read_model(path) -> list[tuple]:
     p = _single_path(path)
     op = load_operator(p)
     px = op.metadata.get("pixel_size_um")
-    frame = Frame(op.shape, (px, px) if px else (1.0, 1.0), units="µm" if px else None)
+    frame = Frame(op.image_shape, (px, px) if px else (1.0, 1.0), units="µm" if px else None)
     name = os.path.splitext(os.path.basename(p))[0]
     out = []
     for data, kwargs, kind in operator_layers(op, frame):

@@ -18,8 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .core.common.progress import Progress, run_with_progress
+from .core.common.progress import Progress
 from .core.common.threads import map_threads
+from .core.common.twins import drained
 from .core.volume.blocks3d import BLOCK, RTOL
 from .core.volume.deconvolve3d import TINY, stack_statistics
 from .core.volume.exchange3d import iter_richardson_lucy_3d_exchange, plan_for_memory
@@ -156,8 +157,48 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                          workers: int | None = None,
                          voxel_size: tuple[float, float, float] | None = None,
                          device="cpu"):
-    """Generator form of :func:`deblur_to_store` (progress records; the
-    :class:`StoreRun` as its value)."""
+    """Deblur a z-stack file into an OME-Zarr (``.zarr``) or TIFF output, tile by tile.
+
+    Parameters
+    ----------
+    stack_path : str or PathLike
+        TIFF or OME-Zarr z-stack (Z, Y, X) of the model's lateral size; read lazily.
+    operator : ProductConvolution3D
+    output : str or PathLike
+        ``.zarr``: an OME-Zarr image (NGFF 0.4, float32, chunked by plane, the input's
+        voxel size); else a TIFF (the result must then fit in memory).
+    n_iter : int
+        Richardson-Lucy iterations.
+    memory : float, optional
+        Bytes the run may hold at once; the tile size follows
+        (:func:`~napari_psfspace.core.volume.exchange3d.plan_for_memory`: fewer tiles at
+        once where one each would not fit).
+    tile : int, optional
+        Lateral tile size, pixels, instead of ``memory`` (default four blocks).
+    background, rtol, block
+        As :func:`~napari_psfspace.core.volume.exchange3d.richardson_lucy_3d_exchange`.
+    resume : bool
+        Finish an interrupted run of the same output (its iterates beside it).
+    client : dask.distributed.Client, optional
+        Runs the tiles on this cluster.
+    workers : int, optional
+        Tiles at once (the memory budget's divisor); default the machine's cores.
+    voxel_size : (float, float, float), optional
+        The stack's voxel size (dz, dy, dx), µm, where its file gives none or a wrong one;
+        checked against the model's (:func:`stack_voxel_size`) and written with the output.
+    device : {"cpu", "gpu", "auto"} or ArrayModule
+        Where the tiles' blocks run (as
+        :func:`~napari_psfspace.core.volume.exchange3d.richardson_lucy_3d_exchange`).
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    StoreRun
+    """
     from .io import read_stack, write_tiff
     from .ome_zarr import create_ome_zarr, missing_chunks, open_ome_zarr_output
 
@@ -188,9 +229,9 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
 
     am = array_module(device)  # "gpu" without one: one line, before any work
     stack, info = read_stack(stack_path, lazy=True)
-    if tuple(stack.shape[1:]) != tuple(operator.shape[1:]):
+    if tuple(stack.shape[1:]) != tuple(operator.image_shape[1:]):
         raise ValueError(f"the stack has slices of {tuple(stack.shape[1:])}, the model acts "
-                         f"on {tuple(operator.shape[1:])}")
+                         f"on {tuple(operator.image_shape[1:])}")
     voxel = stack_voxel_size(operator, info, voxel_size=voxel_size,
                              name=f"the stack {os.fspath(stack_path)!r}")
     depth = int(stack.shape[0])
@@ -267,56 +308,7 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
     return StoreRun(tile, n_iter, written, total, background, am.name)
 
 
-def deblur_to_store(stack_path, operator: ProductConvolution3D, output, *,
-                    n_iter: int = 50, memory: float | None = None, tile: int | None = None,
-                    background: float | None = None, rtol: float = RTOL,
-                    block: int = BLOCK, resume: bool = False, client=None,
-                    workers: int | None = None,
-                    voxel_size: tuple[float, float, float] | None = None,
-                    device="cpu", progress=None) -> StoreRun:
-    """Deblur a z-stack file into an OME-Zarr (``.zarr``) or TIFF output, tile by tile.
-
-    Parameters
-    ----------
-    stack_path : str or PathLike
-        TIFF or OME-Zarr z-stack (Z, Y, X) of the model's lateral size; read lazily.
-    operator : ProductConvolution3D
-    output : str or PathLike
-        ``.zarr``: an OME-Zarr image (NGFF 0.4, float32, chunked by plane, the input's
-        voxel size); else a TIFF (the result must then fit in memory).
-    n_iter : int
-        Richardson-Lucy iterations.
-    memory : float, optional
-        Bytes the run may hold at once; the tile size follows
-        (:func:`~napari_psfspace.core.volume.exchange3d.plan_for_memory`: fewer tiles at
-        once where one each would not fit).
-    tile : int, optional
-        Lateral tile size, pixels, instead of ``memory`` (default four blocks).
-    background, rtol, block
-        As :func:`~napari_psfspace.core.volume.exchange3d.richardson_lucy_3d_exchange`.
-    resume : bool
-        Finish an interrupted run of the same output (its iterates beside it).
-    client : dask.distributed.Client, optional
-        Runs the tiles on this cluster.
-    workers : int, optional
-        Tiles at once (the memory budget's divisor); default the machine's cores.
-    voxel_size : (float, float, float), optional
-        The stack's voxel size (dz, dy, dx), µm, where its file gives none or a wrong one;
-        checked against the model's (:func:`stack_voxel_size`) and written with the output.
-    device : {"cpu", "gpu", "auto"} or ArrayModule
-        Where the tiles' blocks run (as
-        :func:`~napari_psfspace.core.volume.exchange3d.richardson_lucy_3d_exchange`).
-    progress : callable, optional
-        Called with each progress record.
-
-    Returns
-    -------
-    StoreRun
-    """
-    return run_with_progress(iter_deblur_to_store(
-        stack_path, operator, output, n_iter=n_iter, memory=memory, tile=tile,
-        background=background, rtol=rtol, block=block, resume=resume, client=client,
-        workers=workers, voxel_size=voxel_size, device=device), progress)
+deblur_to_store = drained(iter_deblur_to_store, "deblur_to_store")
 
 
 __all__ = ["VOXEL_RTOL", "StoreRun", "deblur_to_store", "is_zarr_path",

@@ -46,7 +46,7 @@ def test_detect_reject_learn_save(viewer, qtbot, tmp_path):
         assert name in viewer.layers, name
     op = load_operator(path)
     image = viewer.layers["beads image"]
-    assert op.shape == image.data.shape
+    assert op.image_shape == image.data.shape
     assert np.isclose(op.metadata["pixel_size_um"], image.scale[-1])
     # the basis a 2-D mosaic, a weight map a layer, each on the image's field: no axis
     # shared with the image

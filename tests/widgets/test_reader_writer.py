@@ -16,7 +16,7 @@ def model(bead_image, tmp_path_factory):
     op = estimate_operator(image, psf_radius=truth.psf_radius, holdout=None)
     from napari_psfspace.core.model.operator import ProductConvolution
 
-    op = ProductConvolution(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+    op = ProductConvolution(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                             metadata={**op.metadata, "pixel_size_um": 0.065})
     path = tmp_path_factory.mktemp("m") / "model.npz"
     op.save(path)
@@ -34,8 +34,8 @@ def test_model_reader_gives_grid_basis_and_scaled_maps(model):
     # one weight map a layer, covering the image's field in its units (um)
     assert kind == "image" and maps.ndim == 2 and kw["units"] == ("µm", "µm")
     height, width = (n * s for n, s in zip(maps.shape, kw["scale"], strict=True))
-    assert height == pytest.approx(op.shape[0] * 0.065)
-    assert width == pytest.approx(op.shape[1] * 0.065)
+    assert height == pytest.approx(op.image_shape[0] * 0.065)
+    assert width == pytest.approx(op.image_shape[1] * 0.065)
     assert isinstance(layers[PSF_GRID][1]["metadata"][OPERATOR_KEY], type(op))
 
 

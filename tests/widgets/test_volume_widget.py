@@ -238,7 +238,7 @@ def test_an_ome_zarr_opened_lazily_is_learnt_and_deblurred(make_napari_viewer, q
     w.radius.set_calibration(w.radius.pixel_size, float(int(series.psf_radius.max())))
     w.learn.clicked()
     wait_task(qtbot, w.learn_task, timeout=60_000)
-    assert w.operator is not None and w.operator.shape == stack.shape
+    assert w.operator is not None and w.operator.image_shape == stack.shape
     w.iterations.value = 3
     w.deblur.clicked()
     wait_task(qtbot, w.deblur_task, timeout=60_000)

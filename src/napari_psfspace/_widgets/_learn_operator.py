@@ -72,7 +72,7 @@ def _learn(plane, frame, source: str, **kwargs):
     op = est.operator
     meta = {**op.metadata, "pixel_size_um": frame.pixel_size, "image": source,
             "heldout_error": held if isinstance(held, str) else held.to_dict()}
-    est.operator = ProductConvolution(op.basis, op.coefficients, shape=op.shape,
+    est.operator = ProductConvolution(op.basis, op.coefficients, shape=op.image_shape,
                                       grid=op.grid, metadata=meta)
     if one_psf_note(meta):  # no field map: the beads' own FWHMs show the field instead
         est.info["bead_fwhm"] = (np.asarray(est.patches.centers, float),

@@ -147,7 +147,7 @@ def _learn(stack, voxel, **kwargs):
     yield Progress("views", 1.0, "PSF grid and maps")
     grid = psf_grid_3d(est.operator, 5)
     maps = measure_maps(est.operator, 8, 8)
-    _, h, w = est.operator.shape
+    _, h, w = est.operator.image_shape
     centre = psf_measures(est.operator.psf_at((h - 1) / 2, (w - 1) / 2))
     values, units = in_units(centre, voxel)
     for name, unit in units.items():  # the panel's unit: µm
@@ -352,7 +352,7 @@ class Volume3DWidget(Container):
     def _show(self, op, volume, sections, maps, scale, translate, n_planes) -> None:
         dz, dy, dx = scale
         tz, ty, tx = translate
-        _, h, w = op.shape
+        _, h, w = op.image_shape
         frame = Frame((h, w), (dy, dx), (ty, tx), units=axis_unit(self.image.value))
         voxel = None if np.allclose(scale, 1.0) else scale
         rel = "relative"
@@ -404,9 +404,9 @@ class Volume3DWidget(Container):
         try:
             stack, scale, translate = stack_of(layer)
             op = self.model()
-            if stack.shape[1:] != op.shape[1:]:
+            if stack.shape[1:] != op.image_shape[1:]:
                 raise ValueError(f"z-stack: slices of {stack.shape[1:]}, the model acts on "
-                                 f"{op.shape[1:]}")
+                                 f"{op.image_shape[1:]}")
         except (ValueError, OSError) as exc:
             self._fail(exc, self.deblur_task)
             return

@@ -17,9 +17,9 @@ def run(args) -> int:
     check_output_file(args.output, "-o")
     op = load_operator(args.model)
     image, info = read_image(args.image, index=args.slice)
-    if tuple(image.shape) != tuple(op.shape):
+    if tuple(image.shape) != tuple(op.image_shape):
         raise ValueError(f"IMAGE {args.image} has shape {tuple(image.shape)}, the model "
-                         f"{args.model} acts on images of shape {tuple(op.shape)}")
+                         f"{args.model} acts on images of shape {tuple(op.image_shape)}")
     t0 = time.perf_counter()
     out = op.adjoint(image.astype(np.float32)) if args.adjoint else op.apply(
         image.astype(np.float32))

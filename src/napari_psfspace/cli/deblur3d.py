@@ -35,9 +35,9 @@ def run(args) -> int:
     if tiled:
         return _run_tiled(args, op)
     stack, info = read_stack(args.stack)
-    if stack.shape[1:] != op.shape[1:]:
+    if stack.shape[1:] != op.image_shape[1:]:
         raise ValueError(f"STACK {args.stack} has slices of {stack.shape[1:]}, the model "
-                         f"{args.model} acts on {op.shape[1:]}")
+                         f"{args.model} acts on {op.image_shape[1:]}")
     voxel = stack_voxel_size(op, info, voxel_size=_given_voxel(args),
                              name=f"STACK {args.stack}")
     t0 = time.perf_counter()

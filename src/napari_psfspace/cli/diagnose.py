@@ -48,7 +48,7 @@ def run(args) -> int:
     print(f"wrote {path} with report.json and figures in {path.parent}/")
     if args.model:
         op = diag.operator
-        op = type(op)(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+        op = type(op)(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                       metadata={**op.metadata, "pixel_size_um": info.pixel_size, **extra})
         op.save(args.model)
         print(f"wrote {args.model}: refined model, basis of {op.n_psf} PSFs of "

@@ -42,7 +42,7 @@ def run(args) -> int:
     except ValueError as exc:  # e.g. too few beads to judge each by the others
         held = str(exc)
     op = est.operator
-    op = type(op)(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+    op = type(op)(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                   metadata={**op.metadata, "heldout_error": (
                       held if isinstance(held, str) else held.to_dict()),
                             **({"pixel_size_um": info.pixel_size, "source": str(args.image),

@@ -31,7 +31,7 @@ def run(args) -> int:
     from ..core.model.psf_field import check_in_field
 
     try:
-        check_in_field(y, x, op.shape)
+        check_in_field(y, x, op.image_shape)
     except ValueError as exc:
         raise ValueError(f"--at {y} {x}: {str(exc).split(' = ', 1)[-1]}") from None
     psf = op.psf_at(y, x)

@@ -184,7 +184,7 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
     tol = {**TOLERANCES, **(tolerances or {})}
     op = estimation.operator
     meta = op.metadata
-    depth, h, w = op.shape
+    depth, h, w = op.image_shape
     centre = (np.array([h, w], float) - 1) / 2
     model_px = {k: float(v[0]) for k, v in model_measures(op, centre[None]).items()}
     model_nm, units = in_units(model_px, voxel_size)

@@ -71,7 +71,7 @@ def report_dict(diagnosis, *, image_name: str = "image", pixel_size: float | Non
         "beads_after": d.crossfit_after.summary(),
         "effects": effect_descriptions(d),
         "model": {"n_psf": int(op.n_psf), "psf_size": int(op.psf_size),
-                  "shape": list(op.shape),
+                  "shape": list(op.image_shape),
                   "n_beads_used": op.metadata.get("n_beads_used"),
                   "field_model": op.metadata.get("field_model"),
                   "field_model_reason": op.metadata.get("field_model_reason"),

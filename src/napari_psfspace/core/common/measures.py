@@ -419,7 +419,7 @@ def field_fwhm(operator) -> dict[str, dict[str, float]]:
         Place (:data:`FIELD_POINTS`) -> :func:`lateral_measures` plus ``row``,
         ``col`` (the position, pixels); widths in pixels.
     """
-    h, w = operator.shape[-2:]
+    h, w = operator.image_shape[-2:]
     out = {}
     for name, fy, fx in FIELD_POINTS:
         y, x = fy * (h - 1), fx * (w - 1)

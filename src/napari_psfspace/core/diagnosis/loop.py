@@ -35,7 +35,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator, Sequence
+from collections.abc import Generator, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -52,9 +52,10 @@ from ..beads.detect import (
 from ..beads.noise import NoiseModel, noise_model
 from ..beads.saturation import saturation_record
 from ..beads.spikes import spike_mask
-from ..common.progress import Progress, check_halt, run_with_progress
+from ..common.progress import Progress, check_halt
 from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
+from ..common.twins import drained
 from ..common.validate import as_array, as_image, check_camera, check_psf_radius
 from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
 from ..model.operator import ProductConvolution
@@ -242,7 +243,7 @@ def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
         meta["throughput"] = {"model": "exp(polynomial of u, v)", "degree":
                               ctx.throughput_degree, "coefficients": tcoef.tolist(),
                               "normalisation": "mean over the field = 1"}
-    return ProductConvolution(operator.basis, coefficients, shape=operator.shape,
+    return ProductConvolution(operator.basis, coefficients, shape=operator.image_shape,
                               grid=operator.grid, metadata=meta)
 
 
@@ -267,14 +268,68 @@ def iter_diagnose(
     bead_diameter: float = 0.0,
     remove_motion: bool = False,
     beads: Beads | None = None,
-    _baseline_only: bool = False,
+    _baseline_only: bool = False,  # return the plain model's held-out error (iter_heldout_error)
 ) -> Generator[Progress, None, Diagnosis]:
-    """Generator form of :func:`diagnose`: yields progress, returns the Diagnosis.
+    """Fit, trace the held-out residual to what the model lacks, add it, report.
 
-    ``beads``: the user's bead table (e.g. edited in napari: beads rejected by hand keep
-    that status and are not used); None detects them at ``threshold``.
-    ``_baseline_only``: stop at the plain model's held-out error and return it
-    (:func:`iter_heldout_error`: the one code path for that figure)."""
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Raw bead image in ADU (not rescaled: the noise model is estimated from it).
+    psf_radius : float
+        PSF radius in pixels.
+    threshold : float
+        Detection threshold (noise sd of the filtered image).
+    gain, offset, read_noise : float, optional
+        Camera values (ADU/e-, ADU, e-); default: photon transfer on the image.
+    folds : int
+        Cross-fitting folds (5: each fold is a spatially spread 20 % hold-out). With
+        fewer than ``2 folds`` usable beads (but at least :data:`MIN_BEADS`), each bead
+        is held out on its own (leave-one-bead-out).
+    effects : sequence of str, optional
+        Effects to consider (default: all of
+        :data:`~napari_psfspace.core.diagnosis.effects.REGISTRY`).
+    max_steps : int
+        Most effects tried.
+    min_improvement : float
+        Smallest relative drop of the held-out error for an effect to be kept.
+    evident_improvement : float
+        The smallest drop instead, for an effect whose own residual test is significant
+        (evidence > 1; those tried only while exploring need ``min_improvement``).
+    max_p : float
+        Largest bootstrap probability that the error did not drop.
+    n_psf, smoothing : optional
+        The model to diagnose: basis size and thin-plate smoothing (default: chosen from
+        the beads, as :func:`~napari_psfspace.core.model.estimate.estimate_operator` does).
+    bead_diameter : float
+        The beads' diameter in pixels, when known (0: point sources). Beads are judged on
+        their own images; the refined operator has the sphere divided out (as
+        :func:`~napari_psfspace.core.model.estimate.estimate_operator` does), and the
+        bead-size effect takes it for the median bead's diameter.
+    remove_motion : bool
+        Motion blur is looked for in the final model and reported (``metadata["motion"]``;
+        it is common to every bead, so no held-out error can see it); True divides the
+        smear found out of the refined operator's PSFs
+        (:func:`~napari_psfspace.core.model.estimate.estimate_operator`).
+    explore : float
+        While a residual common to the beads is left (``mean_residual`` or
+        ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the
+        noise floor, effects with evidence above this fraction of their threshold are
+        tried too (kept only by the same rule); 0 tries significant evidence only.
+    beads : Beads, optional
+        The user's bead table (e.g. edited in napari: beads rejected by hand keep that
+        status and are not used); None detects them at ``threshold``.
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    Diagnosis
+        ``.steps``, ``.error_before``, ``.error_after``, ``.operator`` (refined model).
+    """
     raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, dtype=np.float64, copies=DIAGNOSE_IMAGES)
     r = check_psf_radius(psf_radius, img.shape)
@@ -476,88 +531,4 @@ def iter_heldout_error(image, *, psf_radius: float, **kwargs
                                      max_steps=0, _baseline_only=True, **kwargs))
 
 
-def diagnose(
-    image,
-    *,
-    psf_radius: float,
-    threshold: float = 8.0,
-    gain: float | None = None,
-    offset: float | None = None,
-    read_noise: float | None = None,
-    folds: int = 5,
-    effects: Sequence[str] | None = None,
-    max_steps: int = 8,
-    min_improvement: float = 0.05,
-    evident_improvement: float = 0.02,
-    max_p: float = 0.01,
-    explore: float = 0.5,
-    n_psf: int | None = None,
-    smoothing: float | None = None,
-    bead_diameter: float = 0.0,
-    remove_motion: bool = False,
-    beads: Beads | None = None,
-    progress: Callable[[Progress], None] | None = None,
-) -> Diagnosis:
-    """Fit, trace the held-out residual to what the model lacks, add it, report.
-
-    Parameters
-    ----------
-    image : array_like of shape (M, N)
-        Raw bead image in ADU (not rescaled: the noise model is estimated from it).
-    psf_radius : float
-        PSF radius in pixels.
-    threshold : float
-        Detection threshold (noise sd of the filtered image).
-    gain, offset, read_noise : float, optional
-        Camera values (ADU/e-, ADU, e-); default: photon transfer on the image.
-    folds : int
-        Cross-fitting folds (5: each fold is a spatially spread 20 % hold-out). With
-        fewer than ``2 folds`` usable beads (but at least :data:`MIN_BEADS`), each bead
-        is held out on its own (leave-one-bead-out).
-    effects : sequence of str, optional
-        Effects to consider (default: all of
-        :data:`~napari_psfspace.core.diagnosis.effects.REGISTRY`).
-    max_steps : int
-        Most effects tried.
-    min_improvement : float
-        Smallest relative drop of the held-out error for an effect to be kept.
-    evident_improvement : float
-        The smallest drop instead, for an effect whose own residual test is significant
-        (evidence > 1; those tried only while exploring need ``min_improvement``).
-    max_p : float
-        Largest bootstrap probability that the error did not drop.
-    n_psf, smoothing : optional
-        The model to diagnose: basis size and thin-plate smoothing (default: chosen from
-        the beads, as :func:`~napari_psfspace.core.model.estimate.estimate_operator` does).
-    bead_diameter : float
-        The beads' diameter in pixels, when known (0: point sources). Beads are judged on
-        their own images; the refined operator has the sphere divided out (as
-        :func:`~napari_psfspace.core.model.estimate.estimate_operator` does), and the
-        bead-size effect takes it for the median bead's diameter.
-    remove_motion : bool
-        Motion blur is looked for in the final model and reported (``metadata["motion"]``;
-        it is common to every bead, so no held-out error can see it); True divides the
-        smear found out of the refined operator's PSFs
-        (:func:`~napari_psfspace.core.model.estimate.estimate_operator`).
-    explore : float
-        While a residual common to the beads is left (``mean_residual`` or
-        ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the
-        noise floor, effects with evidence above this fraction of their threshold are
-        tried too (kept only by the same rule); 0 tries significant evidence only.
-    beads : Beads, optional
-        The user's bead table (e.g. edited in napari: beads rejected by hand keep that
-        status and are not used); None detects them at ``threshold``.
-    progress : callable, optional
-        Receives :class:`Progress` records.
-
-    Returns
-    -------
-    Diagnosis
-        ``.steps``, ``.error_before``, ``.error_after``, ``.operator`` (refined model).
-    """
-    return run_with_progress(iter_diagnose(
-        image, psf_radius=psf_radius, threshold=threshold, gain=gain, offset=offset,
-        read_noise=read_noise, folds=folds, effects=effects, max_steps=max_steps,
-        min_improvement=min_improvement, evident_improvement=evident_improvement,
-        max_p=max_p, explore=explore, n_psf=n_psf, smoothing=smoothing,
-        bead_diameter=bead_diameter, remove_motion=remove_motion, beads=beads), progress)
+diagnose = drained(iter_diagnose, "diagnose")

@@ -172,8 +172,8 @@ def _companion_models(operator, positions, base, size: int) -> list[np.ndarray]:
     """The model PSF at each companion position, on the patch centred at ``base``."""
     out = []
     for cy, cx in positions:
-        psf = operator.psf_at(float(np.clip(cy, 0, operator.shape[0] - 1)),
-                              float(np.clip(cx, 0, operator.shape[1] - 1)))
+        psf = operator.psf_at(float(np.clip(cy, 0, operator.image_shape[0] - 1)),
+                              float(np.clip(cx, 0, operator.image_shape[1] - 1)))
         shift = np.array([[cy - base[0], cx - base[1]]], dtype=np.float64)
         out.append(fourier_shift(psf[None], shift)[0])
     return out

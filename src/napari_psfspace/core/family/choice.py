@@ -134,7 +134,7 @@ def blend(family_operator: ProductConvolution, own_operator: ProductConvolution,
     if w == 1.0:
         return family_operator
     gf, go = family_operator.grid, own_operator.grid
-    if family_operator.shape != own_operator.shape or gf is None:
+    if family_operator.image_shape != own_operator.image_shape or gf is None:
         raise ValueError("the two operators must share the image shape, and the family's "
                          f"maps a coarse grid, got {family_operator.shape}, "
                          f"{own_operator.shape}")
@@ -150,7 +150,7 @@ def blend(family_operator: ProductConvolution, own_operator: ProductConvolution,
                              for y in gf[0]]).transpose(2, 0, 1)
     basis = np.concatenate([family_operator.basis, own_operator.basis])
     maps = np.concatenate([w * family_operator.coefficients, (1.0 - w) * own_maps])
-    return ProductConvolution(basis, maps, shape=family_operator.shape, grid=gf,
+    return ProductConvolution(basis, maps, shape=family_operator.image_shape, grid=gf,
                               metadata=metadata)
 
 

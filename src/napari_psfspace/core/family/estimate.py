@@ -44,8 +44,9 @@ import numpy as np
 
 from ..beads.patches import R_EXT_FACTOR, Patches, patch_size
 from ..beads.window import bump_window, radial_distance
-from ..common.progress import Progress, run_with_progress, wait_with_progress
+from ..common.progress import Progress, wait_with_progress
 from ..common.threads import blas_threads, compute_first, compute_tasks
+from ..common.twins import drained
 from ..common.validate import check_grid_step, check_positive
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
@@ -354,7 +355,47 @@ def iter_estimate_family(
     holdout: float | None = 0.2,
     chunk: int = 8,
 ) -> Generator[Progress, None, OperatorFamily]:
-    """Generator form of :func:`estimate_family`: yields progress, returns the result."""
+    """Learn the subspace of a microscope's operators from images of beads.
+
+    Parameters
+    ----------
+    images : list of ndarray (H, W) or of zero-argument loaders, or ndarray (K, H, W)
+        One image per condition, all of one shape. Loaders are called inside the tasks,
+        so that no process holds the whole stack.
+    psf_radius : float
+        PSF radius, pixels (one patch size for every image).
+    n_psf, n_space : int, optional
+        ``I`` and ``J``; default: the Gavish-Donoho rule on the patches whitened by their
+        noise (capped at 12) and on the maps (capped at 16).
+    client : dask.distributed.Client, optional
+        Run the per-image tasks on this cluster; default: dask's local threaded scheduler.
+    threshold : float
+        Detection threshold, noise standard deviations of the filtered image.
+    grid_step : float
+        Spacing (pixels) of the coarse grid the maps ``a_j`` live on.
+    refine : bool
+        Refit each ``Gamma_k`` to its own beads' coefficients through the ``a_j`` (step
+        8 of the module's notes) instead of projecting its maps.
+    denoise : bool
+        Learn the basis from Wiener-filtered patches and refit its images to the raw
+        patches (as :func:`~napari_psfspace.core.model.estimate.estimate_operator`).
+    holdout : float or None
+        Fraction of each image's beads held out: they measure each image's operator and
+        choose its blend with the image's own estimate
+        (:mod:`~napari_psfspace.core.family.choice`); None: the paper's model, the
+        family's operators alone, and no held-out figures.
+    chunk : int
+        Images per dask task.
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    OperatorFamily
+    """
     t0 = time.perf_counter()
     items = _items(images)
     if len(items) < 2:
@@ -530,63 +571,7 @@ def iter_estimate_family(
     return sub
 
 
-def estimate_family(
-    images: Sequence[np.ndarray | Callable[[], np.ndarray]] | np.ndarray,
-    *,
-    psf_radius: float,
-    n_psf: int | None = None,
-    n_space: int | None = None,
-    client=None,
-    threshold: float = 8.0,
-    grid_step: float = 32.0,
-    refine: bool = False,
-    denoise: bool = True,
-    holdout: float | None = 0.2,
-    chunk: int = 8,
-    progress: Callable[[Progress], None] | None = None,
-) -> OperatorFamily:
-    """Learn the subspace of a microscope's operators from images of beads.
-
-    Parameters
-    ----------
-    images : list of ndarray (H, W) or of zero-argument loaders, or ndarray (K, H, W)
-        One image per condition, all of one shape. Loaders are called inside the tasks,
-        so that no process holds the whole stack.
-    psf_radius : float
-        PSF radius, pixels (one patch size for every image).
-    n_psf, n_space : int, optional
-        ``I`` and ``J``; default: the Gavish-Donoho rule on the patches whitened by their
-        noise (capped at 12) and on the maps (capped at 16).
-    client : dask.distributed.Client, optional
-        Run the per-image tasks on this cluster; default: dask's local threaded scheduler.
-    threshold : float
-        Detection threshold, noise standard deviations of the filtered image.
-    grid_step : float
-        Spacing (pixels) of the coarse grid the maps ``a_j`` live on.
-    refine : bool
-        Refit each ``Gamma_k`` to its own beads' coefficients through the ``a_j`` (step
-        8 of the module's notes) instead of projecting its maps.
-    denoise : bool
-        Learn the basis from Wiener-filtered patches and refit its images to the raw
-        patches (as :func:`~napari_psfspace.core.model.estimate.estimate_operator`).
-    holdout : float or None
-        Fraction of each image's beads held out: they measure each image's operator and
-        choose its blend with the image's own estimate
-        (:mod:`~napari_psfspace.core.family.choice`); None: the paper's model, the
-        family's operators alone, and no held-out figures.
-    chunk : int
-        Images per dask task.
-    progress : callable, optional
-        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
-
-    Returns
-    -------
-    OperatorFamily
-    """
-    return run_with_progress(iter_estimate_family(
-        images, psf_radius=psf_radius, n_psf=n_psf, n_space=n_space, client=client,
-        threshold=threshold, grid_step=grid_step, refine=refine, denoise=denoise,
-        holdout=holdout, chunk=chunk), progress)
+estimate_family = drained(iter_estimate_family, "estimate_family")
 
 
 def __getattr__(name: str):

@@ -106,5 +106,5 @@ def compress_operator(operator: ProductConvolution, rtol: float) -> ProductConvo
     meta["compressed"] = {"from": int(n), "to": int(k), "rtol": float(rtol), "error": err}
     if operator.is_full_resolution:
         return ProductConvolution(new_basis, new_coef, metadata=meta)
-    return ProductConvolution(new_basis, new_coef, shape=operator.shape,
+    return ProductConvolution(new_basis, new_coef, shape=operator.image_shape,
                               grid=operator.grid, metadata=meta)

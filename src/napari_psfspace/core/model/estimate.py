@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Generator
 from dataclasses import dataclass, field
+from operator import attrgetter
 
 import numpy as np
 
@@ -32,9 +33,10 @@ from ..beads.saturation import saturation_record
 from ..beads.sphere import remove_sphere
 from ..beads.spikes import find_spikes
 from ..beads.window import bump_window, radial_distance
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress
 from ..common.spacing import bead_border, centring_sigma
 from ..common.threads import blas_threads
+from ..common.twins import drained
 from ..common.validate import (
     as_array,
     as_image,
@@ -113,26 +115,90 @@ def iter_estimate(
     remove_motion: bool = False,
     motion_test: bool = True,
 ) -> Generator[Progress, None, Estimation]:
-    """Generator form of :func:`estimate_operator`: yields progress, returns the result.
+    """Learn the space-varying PSF of a microscope from one image of beads.
 
-    Parameters are those of :func:`estimate_operator`, plus ``beads`` (a :class:`Beads`
-    table, e.g. edited by hand, used instead of detection: its ``kept`` beads are used)
-    and ``holdout`` (fraction of beads held out to measure the model's error, then
-    refitted on all beads; ``None`` or 0 skips it), and ``patch_filter``
-    (``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
-    (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
-    different sizes to one, :class:`~napari_psfspace.core.diagnosis.effects.bead_size.SizeFilter`).
-    ``motion_test`` (False: skip the motion-blur test, for models whose metadata nothing
-    reads, e.g. the folds of a cross-fit; ``metadata["motion"]`` is then None).
-    ``bead_diameter``, ``denoise`` and ``remove_motion`` are those of
-    :func:`estimate_operator`: with a
-    diameter, the returned operator's PSFs are point-source PSFs; the held-out residual
-    is measured with the uncorrected model (the beads' own images).
+    Parameters
+    ----------
+    image : array_like of shape (M, N)
+        Image of scattered sub-resolution beads, any real dtype. A 3-D stack is
+        refused with a hint to pass one slice.
+    psf_radius : float
+        Upper bound ``r`` of the PSF radius in pixels: beyond it the PSF is lost in
+        the noise. Beads closer than ``2 r`` to each other are not used.
+    n_psf : int, "heldout", "rule" or None
+        Size ``I`` of the PSF basis. Default (None, "heldout"): the size with the
+        lowest leave-one-bead-out error of the whole model. "rule": the
+        Gavish-Donoho threshold ``omega(beta) sigma_med`` on the singular values
+        (2.858 sigma_med for a square matrix, section 2.5 of the paper).
+    smoothing : float, optional
+        Thin-plate smoothing ``eta`` (coordinates scaled to the half-diagonal of the
+        image). Default: chosen per coefficient by leave-one-bead-out
+        cross-validation.
+    threshold : float
+        Detection threshold in noise standard deviations of the filtered image.
+    beads : Beads, optional
+        A bead table (e.g. edited by hand) used instead of detection: its ``kept``
+        beads are used.
+    holdout : float or None
+        Fraction of the beads held out to measure the model's residual (stored in
+        ``operator.metadata['heldout']``); the returned model is refitted on all beads.
+        ``None`` or 0 skips it.
+    grid_step : float
+        Spacing (pixels) of the grid on which the coefficient maps are stored.
+    saturation : float, optional
+        Pixel value at which the detector saturates (default: the dtype maximum for
+        integer images); beads touching it are not used.
+    z_threshold : float
+        The outlier test's threshold, standard deviations of a bead's basis
+        coefficients from the others' (:func:`~.pca.learn_basis`).
+    patch_filter : callable, optional
+        ``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
+        (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
+        different sizes to one
+        (:class:`~napari_psfspace.core.diagnosis.effects.bead_size.SizeFilter`).
+    bead_diameter : float
+        Diameter of the beads in pixels (from their data sheet: e.g. 200 nm beads at
+        100 nm pixels give 2.0). The learnt PSFs are corrected for the bead's projected
+        sphere (divided out in Fourier where the signal stands above the noise, so that
+        noise is not amplified; :func:`~napari_psfspace.core.beads.sphere.remove_sphere`) and
+        the correction is recorded in ``metadata["bead_correction"]``. 0: point sources.
+    denoise : bool
+        Use the beads by their information (:mod:`~napari_psfspace.core.model.denoise`): the
+        basis is learnt from patches filtered by one Wiener filter, each bead weighted
+        by ``1 / ||p||^2`` of its raw patch, and the basis images are then refitted to
+        the raw patches of all beads at once given the smooth field and shrunk by
+        their own noise. Recorded in ``metadata["denoise"]``. False: the paper's
+        plain PCA of l2-normalised patches.
+    remove_motion : bool
+        Motion blur (a smear common to all beads, :mod:`~napari_psfspace.core.model.motion`)
+        is always looked for and reported in ``metadata["motion"]``; the model keeps it
+        (it blurs a sample imaged in the same exposure just as much). True: divide the
+        smear found out of the PSFs, for a calibration of the optics alone, when the
+        sample was still. Nothing is removed when no smear is found (said in the record).
+        With a bead diameter, the returned operator's PSFs are point-source PSFs; the
+        held-out residual is measured with the uncorrected model (the beads' own images).
+    motion_test : bool
+        False: skip the motion-blur test, for models whose metadata nothing reads (the
+        folds of a cross-fit); ``metadata["motion"]`` is then None.
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
 
     Returns
     -------
     Estimation
-        (as the generator's return value, ``StopIteration.value``)
+        The operator (``H u = sum_i h_i * (alpha_i u)``; ``psf_at(y, x)`` gives the PSF
+        anywhere) with the beads, patches, basis, cone and held-out residuals it was
+        learnt from.
+
+    Raises
+    ------
+    ValueError
+        Bad input (wrong dimensions, NaN, parameters out of range), and
+        :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (a ValueError) when there are
+        no beads or too few usable beads for the basis size.
     """
     raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, copies=ESTIMATE_IMAGES)
@@ -512,89 +578,11 @@ def hot_pixel_record(pixels, limit: int = 10_000) -> dict:
     return {"count": int(len(pix)), "positions": pix[:limit].astype(int).tolist()}
 
 
-def estimate_operator(
-    image,
-    *,
-    psf_radius: float,
-    n_psf: int | str | None = None,
-    smoothing: float | None = None,
-    threshold: float = 8.0,
-    holdout: float | None = 0.2,
-    grid_step: float = 32.0,
-    saturation: float | None = None,
-    bead_diameter: float = 0.0,
-    denoise: bool = True,
-    remove_motion: bool = False,
-    progress: Callable[[Progress], None] | None = None,
-) -> ProductConvolution:
-    """Learn the space-varying PSF of a microscope from one image of beads.
-
-    Parameters
-    ----------
-    image : array_like of shape (M, N)
-        Image of scattered sub-resolution beads, any real dtype. A 3-D stack is
-        refused with a hint to pass one slice.
-    psf_radius : float
-        Upper bound ``r`` of the PSF radius in pixels: beyond it the PSF is lost in
-        the noise. Beads closer than ``2 r`` to each other are not used.
-    n_psf : int, "heldout", "rule" or None
-        Size ``I`` of the PSF basis. Default (None, "heldout"): the size with the
-        lowest leave-one-bead-out error of the whole model. "rule": the
-        Gavish-Donoho threshold ``omega(beta) sigma_med`` on the singular values
-        (2.858 sigma_med for a square matrix, section 2.5 of the paper).
-    smoothing : float, optional
-        Thin-plate smoothing ``eta`` (coordinates scaled to the half-diagonal of the
-        image). Default: chosen per coefficient by leave-one-bead-out
-        cross-validation.
-    threshold : float
-        Detection threshold in noise standard deviations of the filtered image.
-    holdout : float or None
-        Fraction of the beads held out to measure the model's residual (stored in
-        ``operator.metadata['heldout']``); the returned model is refitted on all beads.
-    grid_step : float
-        Spacing (pixels) of the grid on which the coefficient maps are stored.
-    saturation : float, optional
-        Pixel value at which the detector saturates (default: the dtype maximum for
-        integer images); beads touching it are not used.
-    bead_diameter : float
-        Diameter of the beads in pixels (from their data sheet: e.g. 200 nm beads at
-        100 nm pixels give 2.0). The learnt PSFs are corrected for the bead's projected
-        sphere (divided out in Fourier where the signal stands above the noise, so that
-        noise is not amplified; :func:`~napari_psfspace.core.beads.sphere.remove_sphere`) and
-        the correction is recorded in ``metadata["bead_correction"]``. 0: point sources.
-    denoise : bool
-        Use the beads by their information (:mod:`~napari_psfspace.core.model.denoise`): the
-        basis is learnt from patches filtered by one Wiener filter, each bead weighted
-        by ``1 / ||p||^2`` of its raw patch, and the basis images are then refitted to
-        the raw patches of all beads at once given the smooth field and shrunk by
-        their own noise. Recorded in ``metadata["denoise"]``. False: the paper's
-        plain PCA of l2-normalised patches.
-    remove_motion : bool
-        Motion blur (a smear common to all beads, :mod:`~napari_psfspace.core.model.motion`)
-        is always looked for and reported in ``metadata["motion"]``; the model keeps it
-        (it blurs a sample imaged in the same exposure just as much). True: divide the
-        smear found out of the PSFs, for a calibration of the optics alone, when the
-        sample was still. Nothing is removed when no smear is found (said in the record).
-    progress : callable, optional
-        Called with a :class:`Progress` record after each step.
-
-    Returns
-    -------
+estimate_operator = drained(iter_estimate, "estimate_operator", result=attrgetter("operator"),
+                              returns="""\
     ProductConvolution
         ``H u = sum_i h_i * (alpha_i u)``; ``psf_at(y, x)`` gives the PSF anywhere.
-
-    Raises
-    ------
-    ValueError
-        Bad input (wrong dimensions, NaN, parameters out of range), and
-        :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (a ValueError) when there are
-        no beads or too few usable beads for the basis size.
-    """
-    gen = iter_estimate(image, psf_radius=psf_radius, n_psf=n_psf, smoothing=smoothing,
-                        threshold=threshold, holdout=holdout, grid_step=grid_step,
-                        saturation=saturation, bead_diameter=bead_diameter,
-                        denoise=denoise, remove_motion=remove_motion)
-    return run_with_progress(gen, progress).operator
+""")
 
 
 __all__ = ["Estimation", "estimate_operator", "iter_estimate"]

@@ -40,6 +40,7 @@ from numpy.typing import ArrayLike, DTypeLike
 from scipy.sparse.linalg import LinearOperator
 
 from ..common.device import CPU, ArrayModule, DeviceCache, resolve
+from ..common.linear_operator import ImageOperator
 from ..common.threads import by_rows, by_rows_many
 from ..common.validate import as_array, check_memory
 from .operator_checks import check_model_field
@@ -62,7 +63,7 @@ from .psf_field import PsfField
 __all__ = ["FORMAT_NAME", "FORMAT_VERSION", "ProductConvolution", "load_operator"]
 
 
-class ProductConvolution(DeviceCache, PsfField):
+class ProductConvolution(DeviceCache, PsfField, ImageOperator):
     """Space-varying blur operator ``H u = sum_i h_i * (alpha_i . u)``.
 
     Parameters
@@ -105,7 +106,7 @@ class ProductConvolution(DeviceCache, PsfField):
     """
 
     # ------------------------------------------------------------------ FFT machinery
-    def padded_shape(self) -> tuple[int, int]:
+    def fft_shape(self) -> tuple[int, int]:
         """FFT shape ``(next_fast_len(H + P//2), next_fast_len(W + P//2))`` used internally."""
         c = self.psf_size // 2
         H, W = self._shape
@@ -132,7 +133,7 @@ class ProductConvolution(DeviceCache, PsfField):
         coefficient maps and kernel spectra it keeps, and three spectra and three images
         it works on."""
         item = np.dtype(dtype).itemsize
-        (h, w), (fy, fx) = self._shape, self.padded_shape()
+        (h, w), (fy, fx) = self._shape, self.fft_shape()
         spectrum = fy * (fx // 2 + 1) * 2.0 * item
         return self.n_psf * (h * w * item + spectrum) + 3 * spectrum + 3.0 * h * w * item
 
@@ -149,7 +150,7 @@ class ProductConvolution(DeviceCache, PsfField):
                 f"model was estimated for an image of shape {self._shape}, "
                 f"got `{name}` of shape {tuple(arr.shape)}"
             )
-        if (self.padded_shape(), dt) not in self._spectra_cache:  # before they are made
+        if (self.fft_shape(), dt) not in self._spectra_cache:  # before they are made
             h, w = self._shape
             check_memory(self.working_bytes(dt),
                          f"`{name}` through the operator ({self.n_psf} kernels on {h} x {w} "
@@ -194,18 +195,20 @@ class ProductConvolution(DeviceCache, PsfField):
         u, dt = self._check_image(u, "u", am)
         w = 1 if am.gpu else n_workers(workers)  # the device is parallel on its own
         H, W = self._shape
-        fshape = self.padded_shape()
+        fshape = self.fft_shape()
         full = cropped_irfft2(self._forward_spectrum(u, dt, w, am), fshape, H, w, am)
         out = am.xp.empty((H, W), dtype=full.dtype)
         by_rows(copy_into, (out, full[:, :W]), w)
         return out
 
-    def adjoint(self, v: ArrayLike, *, workers: int | None = None,
+    def adjoint(self, v: ArrayLike | None = None, *, workers: int | None = None,
                 device: str | ArrayModule | None = None) -> np.ndarray:
         """Apply the adjoint ``H^T v = sum_i alpha_i . (h_i correlated with v)``.
 
         Exact adjoint of :meth:`apply` (``<H u, v> = <u, H^T v>``): one forward
         FFT and ``I`` inverse FFTs with conjugated kernel spectra.
+        If ``v`` is omitted, the adjoint operator itself (``self.H``), as scipy's and
+        pylops' ``adjoint()`` give it.
 
         Parameters
         ----------
@@ -220,11 +223,13 @@ class ProductConvolution(DeviceCache, PsfField):
         -------
         ndarray, shape (H, W), float32 or float64
         """
+        if v is None:
+            return self.H
         am = resolve(device, v)
         v, dt = self._check_image(v, "v", am)
         w = 1 if am.gpu else n_workers(workers)
         H, W = self._shape
-        buf = am.xp.zeros(self.padded_shape(), dtype=dt)
+        buf = am.xp.zeros(self.fft_shape(), dtype=dt)
         buf[:H, :W] = v
         vhat = rfft2(buf, w, am)
         del buf
@@ -271,7 +276,7 @@ class ProductConvolution(DeviceCache, PsfField):
         y = am.asarray(y, dtype=dt) if am.gpu else np.asarray(y)
         w = 1 if am.gpu else n_workers(workers)
         H, W = self._shape
-        fshape = self.padded_shape()
+        fshape = self.fft_shape()
         full = cropped_irfft2(self._forward_spectrum(u, dt, w, am), fshape, H, w, am)
         buf = am.xp.zeros(fshape, dtype=dt)
         by_rows(subtract_into, (full[:, :W], y, buf[:H, :W]), w)
@@ -292,7 +297,7 @@ class ProductConvolution(DeviceCache, PsfField):
     def _forward_spectrum(self, u, dt: np.dtype, w: int, am: ArrayModule = CPU):
         """``sum_i K_i . rfft2(alpha_i . u)`` on the padded shape (complex)."""
         H, W = self._shape
-        fshape = self.padded_shape()
+        fshape = self.fft_shape()
         spectra = self._kernel_spectra(fshape, dt, am)
         maps = self._maps_on(dt, am)
         buf = am.xp.zeros(fshape, dtype=dt)  # zero padding written once, reused
@@ -312,7 +317,7 @@ class ProductConvolution(DeviceCache, PsfField):
     def _adjoint_of_spectrum(self, vhat, dt: np.dtype, w: int, am: ArrayModule = CPU):
         """``sum_i alpha_i . irfft2(conj(K_i) . vhat)`` cropped to the image."""
         H, W = self._shape
-        fshape = self.padded_shape()
+        fshape = self.fft_shape()
         spectra = self._kernel_spectra(fshape, dt, am)
         maps = self._maps_on(dt, am)
         out = am.xp.empty((H, W), dtype=dt)

@@ -146,9 +146,14 @@ class PsfField:
         return int(self._basis.shape[1])
 
     @property
-    def shape(self) -> tuple[int, int]:
+    def image_shape(self) -> tuple[int, int]:
         """Image shape ``(H, W)`` in pixels the operator acts on."""
         return self._shape
+
+    @property
+    def kernel_shape(self) -> tuple[int, int]:
+        """Basis patch shape ``(P, P)`` in pixels."""
+        return (self.psf_size, self.psf_size)
 
     @property
     def basis(self) -> np.ndarray:
@@ -187,7 +192,7 @@ class PsfField:
             coef = f"{self._grid_y.size}x{self._grid_x.size} grid"
         return (
             f"{type(self).__name__}(n_psf={self.n_psf}, psf_size={self.psf_size}, "
-            f"shape={self.shape}, coefficients={coef})"
+            f"image_shape={self._shape}, coefficients={coef})"
         )
 
     # ------------------------------------------------------------------ coefficients

@@ -54,7 +54,8 @@ from scipy import ndimage as ndi
 
 from ..beads.noise import background_variance
 from ..common.device import ArrayModule, array_module
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress
+from ..common.twins import drained
 from ..common.validate import (
     as_array,
     as_image,
@@ -179,7 +180,7 @@ def default_weights(image: np.ndarray, op: ProductConvolution, grid_step: float,
     docstring."""
     level, var, _ = background_variance(image)
     sigma = float(np.sqrt(var))
-    h, w = op.shape
+    h, w = op.image_shape
     psf = op.psf_at((h - 1) / 2, (w - 1) / 2)
     energy = float((psf ** 2).sum())
     area = 1.0 / max(energy, 1e-300)
@@ -214,8 +215,81 @@ def iter_deblur(
     workers: int | None = None,
     device: str | ArrayModule = "auto",
 ) -> Generator[Progress, None, Deblurred]:
-    """Generator form of :func:`deblur`: yields progress between iterations (stop it
-    there to cancel), returns the :class:`Deblurred`."""
+    """Deblur point sources on a smooth background with a known operator.
+
+    Parameters
+    ----------
+    image : ndarray of shape (H, W)
+        The blurred image (any real dtype; processed in float32).
+    operator : ProductConvolution
+        Its blur (learnt, identified from a family, or simulated).
+    sparse_weight : float, optional
+        ``gamma1``, one value for every pixel; default a map from the image's noise and
+        the operator's error (module docstring; its median is reported).
+    smooth_weight : float, optional
+        ``gamma2``; default ``0.05 * grid_step**4``.
+    grid_step : float, optional
+        Node spacing of the background, pixels; default twice the PSF size (finer, the
+        background forms a bump under each bright bead, taking its flux where the
+        operator's error raises the sparse weight).
+    model_error : float, optional
+        The operator's relative error beyond the noise; default from its metadata
+        (:func:`model_error_of`). 0: the noise alone sets ``gamma1``.
+    max_iter : int
+        Iterations at most.
+    tol : float
+        Stop when the objective falls by less than this (relatively) over 10 iterations.
+        At the default the points found no longer change; a looser tolerance keeps the
+        same points but leaves the beads wider and a clipped bead with less of its flux
+        (``bench/bench_deblur_tol.py``).
+    debias : bool
+        Then refit one scale per cluster of points (8-connected), by least squares with
+        the background free (at most ``DEBIAS_MAX_ITER`` iterations, same ``tol``). The
+        l1 term shrinks each amplitude by about ``gamma1 / ||h||^2``; the refit gives
+        it back (``bench/bench_deblur.py``). Off by default: the refit also raises every
+        spurious point the l1 term let through (noise that correlates with the PSF) to
+        about the detection level, so that amplitudes no longer tell them from real
+        points. For photometry of points known to be real; no point is added or removed.
+    saturation : float, optional
+        Pixels at or above it only bound ``H u`` from below in the data term (a
+        saturated bead is brighter than it looks; fitted as measured, its clipped top
+        pulls its flux down; ``tests/test_restore.py``). Default:
+        the dtype's maximum for integer images, none for floating ones. More than 1 % of
+        the image saturated is an error.
+    compression : float, optional
+        Run on the operator's PSF field compressed to this relative error
+        (:func:`~napari_psfspace.core.model.compress.compress_operator`: the fewest
+        kernels whose PSF is within it everywhere); default ``0.1 * model_error``, a tenth
+        of what the operator is known to miss by (none where that error is 0). An
+        operator identified from a family carries the family's kernels, more than one
+        image's field needs. 0: the operator as it is.
+    polish : bool
+        Run FISTA only until its support is found (``POLISH_AFTER``), then coordinate
+        descent on that support to ``tol`` (:mod:`.polish`), back to FISTA if a pixel
+        off it then wants in. Gradient steps spend most of their iterations
+        concentrating each source's cluster (neighbouring pixels are nearly the same
+        column of ``H``); one pixel at a time is exact there and reaches a lower
+        objective in less time, with sharper beads (``bench/bench_deblur_tol.py``).
+        Off: FISTA to ``tol``. Supports of more than ``POLISH_MAX_SUPPORT`` pixels are not
+        polished.
+    workers : int, optional
+        FFT threads.
+    device : {"auto", "cpu", "gpu"}
+        Where the operator's transforms run (:mod:`~napari_psfspace.core.common.device`):
+        "auto" is the GPU when CuPy imports and sees a device, else the CPU. The data
+        stay on the device; the iterate and the polish on the host.
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    Deblurred
+        Sparse and smooth parts (float32, the image's shape) and the objective history;
+        ``parameters["device"]`` says where the transforms ran.
+    """
     t0 = time.perf_counter()
     check_instance(operator, ProductConvolution, "operator",
                    "A family (OperatorFamily) gives its operator for an image with "
@@ -223,9 +297,9 @@ def iter_deblur(
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     raw = np.asarray(as_array(image, "image"))
     y = as_image(image, dtype=np.float32)
-    if tuple(y.shape) != tuple(operator.shape):
+    if tuple(y.shape) != tuple(operator.image_shape):
         raise ValueError(f"`image` has shape {tuple(y.shape)}, but `operator` acts on "
-                         f"images of shape {tuple(operator.shape)}")
+                         f"images of shape {tuple(operator.image_shape)}")
     check_memory(operator.working_bytes(np.float32) + DEBLUR_IMAGES * y.nbytes,
                  f"`image` of {y.shape[0]} x {y.shape[1]} pixels deblurred with "
                  f"{operator.n_psf} kernels", hint="Deblur it in parts: psfspace deblur --parts.")
@@ -461,98 +535,4 @@ def _iterate(solver: BlockFista, max_iter: int, tol: float, stage: str, *,
                        f"{stage} iteration {it}: {text}; iterate change {change:.1e}")
 
 
-def deblur(
-    image: np.ndarray,
-    operator: ProductConvolution,
-    *,
-    sparse_weight: float | None = None,
-    smooth_weight: float | None = None,
-    grid_step: float | None = None,
-    model_error: float | None = None,
-    max_iter: int = 500,
-    tol: float = 1e-4,
-    debias: bool = False,
-    saturation: float | None = None,
-    compression: float | None = None,
-    polish: bool = True,
-    workers: int | None = None,
-    device: str | ArrayModule = "auto",
-    progress: Callable[[Progress], None] | None = None,
-) -> Deblurred:
-    """Deblur point sources on a smooth background with a known operator.
-
-    Parameters
-    ----------
-    image : ndarray of shape (H, W)
-        The blurred image (any real dtype; processed in float32).
-    operator : ProductConvolution
-        Its blur (learnt, identified from a family, or simulated).
-    sparse_weight : float, optional
-        ``gamma1``, one value for every pixel; default a map from the image's noise and
-        the operator's error (module docstring; its median is reported).
-    smooth_weight : float, optional
-        ``gamma2``; default ``0.05 * grid_step**4``.
-    grid_step : float, optional
-        Node spacing of the background, pixels; default twice the PSF size (finer, the
-        background forms a bump under each bright bead, taking its flux where the
-        operator's error raises the sparse weight).
-    model_error : float, optional
-        The operator's relative error beyond the noise; default from its metadata
-        (:func:`model_error_of`). 0: the noise alone sets ``gamma1``.
-    max_iter : int
-        Iterations at most.
-    tol : float
-        Stop when the objective falls by less than this (relatively) over 10 iterations.
-        At the default the points found no longer change; a looser tolerance keeps the
-        same points but leaves the beads wider and a clipped bead with less of its flux
-        (``bench/bench_deblur_tol.py``).
-    debias : bool
-        Then refit one scale per cluster of points (8-connected), by least squares with
-        the background free (at most ``DEBIAS_MAX_ITER`` iterations, same ``tol``). The
-        l1 term shrinks each amplitude by about ``gamma1 / ||h||^2``; the refit gives
-        it back (``bench/bench_deblur.py``). Off by default: the refit also raises every
-        spurious point the l1 term let through (noise that correlates with the PSF) to
-        about the detection level, so that amplitudes no longer tell them from real
-        points. For photometry of points known to be real; no point is added or removed.
-    saturation : float, optional
-        Pixels at or above it only bound ``H u`` from below in the data term (a
-        saturated bead is brighter than it looks; fitted as measured, its clipped top
-        pulls its flux down; ``tests/test_restore.py``). Default:
-        the dtype's maximum for integer images, none for floating ones. More than 1 % of
-        the image saturated is an error.
-    compression : float, optional
-        Run on the operator's PSF field compressed to this relative error
-        (:func:`~napari_psfspace.core.model.compress.compress_operator`: the fewest
-        kernels whose PSF is within it everywhere); default ``0.1 * model_error``, a tenth
-        of what the operator is known to miss by (none where that error is 0). An
-        operator identified from a family carries the family's kernels, more than one
-        image's field needs. 0: the operator as it is.
-    polish : bool
-        Run FISTA only until its support is found (``POLISH_AFTER``), then coordinate
-        descent on that support to ``tol`` (:mod:`.polish`), back to FISTA if a pixel
-        off it then wants in. Gradient steps spend most of their iterations
-        concentrating each source's cluster (neighbouring pixels are nearly the same
-        column of ``H``); one pixel at a time is exact there and reaches a lower
-        objective in less time, with sharper beads (``bench/bench_deblur_tol.py``).
-        Off: FISTA to ``tol``. Supports of more than ``POLISH_MAX_SUPPORT`` pixels are not
-        polished.
-    workers : int, optional
-        FFT threads.
-    device : {"auto", "cpu", "gpu"}
-        Where the operator's transforms run (:mod:`~napari_psfspace.core.common.device`):
-        "auto" is the GPU when CuPy imports and sees a device, else the CPU. The data
-        stay on the device; the iterate and the polish on the host.
-    progress : callable, optional
-        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
-
-    Returns
-    -------
-    Deblurred
-        Sparse and smooth parts (float32, the image's shape) and the objective history;
-        ``parameters["device"]`` says where the transforms ran.
-    """
-    return run_with_progress(iter_deblur(
-        image, operator, sparse_weight=sparse_weight, smooth_weight=smooth_weight,
-        grid_step=grid_step, model_error=model_error, max_iter=max_iter, tol=tol,
-        debias=debias, saturation=saturation, compression=compression, polish=polish,
-        workers=workers, device=device), progress)
+deblur = drained(iter_deblur, "deblur")

@@ -385,5 +385,5 @@ def identify_operator(
             op = blend(op, own_op, choice.weight)
     if warning:
         warnings.warn(warning, IdentificationWarning, stacklevel=2)
-    return ProductConvolution(op.basis, op.coefficients, shape=op.shape, grid=op.grid,
+    return ProductConvolution(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
                               metadata=meta)

@@ -3,12 +3,12 @@ iterations."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator
+from collections.abc import Generator
 
 import numpy as np
 
 from ..common.device import CPU, ArrayModule, array_module
-from ..common.progress import Progress, run_with_progress
+from ..common.twins import drained
 from ..model.operator import ProductConvolution
 
 
@@ -16,12 +16,38 @@ def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float
                         seed: int = 0, workers: int | None = None,
                         device: str | ArrayModule = CPU
                         ) -> Generator[tuple[int, float], None, float]:
-    """Generator form of :func:`operator_norm2`: yields ``(iteration, value)`` after each
-    iteration (a point to cancel at: one application of ``H^T H`` apart), returns the
-    value."""
+    """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
+    below).
+
+    Parameters
+    ----------
+    op : ProductConvolution
+        The operator ``H``.
+    n_iter : int
+        Iterations at most.
+    rtol : float
+        Stop once an iteration raises the value by less than this, relatively.
+    seed : int
+        Seed of the random start.
+    workers : int, optional
+        FFT threads.
+    device : {"auto", "cpu", "gpu"} or ArrayModule
+        Where ``H`` runs (:mod:`~napari_psfspace.core.common.device`).
+
+    Yields
+    ------
+    (int, float)
+        The iteration and the value after it (a point to cancel at: one application
+        of ``H^T H`` apart).
+
+    Returns
+    -------
+    float
+        ``||H||^2``.
+    """
     device = array_module(device)
     rng = np.random.default_rng(seed)
-    x = rng.random(op.shape).astype(np.float32)
+    x = rng.random(op.image_shape).astype(np.float32)
     x /= np.linalg.norm(x)
     value = 0.0
     for it in range(int(n_iter)):
@@ -39,17 +65,7 @@ def iter_operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float
     return value
 
 
-def operator_norm2(op: ProductConvolution, *, n_iter: int = 40, rtol: float = 1e-3,
-                   seed: int = 0, workers: int | None = None,
-                   device: str | ArrayModule = CPU,
-                   progress: Callable[[Progress], None] | None = None) -> float:
-    """``||H||^2`` by power iteration on ``H^T H`` (a lower bound, converging from
-    below): at most ``n_iter`` iterations, stopping once an iteration raises the value
-    by less than ``rtol`` (relatively). ``device``: where ``H`` runs
-    (:mod:`~napari_psfspace.core.common.device`)."""
-    return float(run_with_progress(iter_operator_norm2(op, n_iter=n_iter, rtol=rtol,
-                                                       seed=seed, workers=workers,
-                                                       device=device), progress))
+operator_norm2 = drained(iter_operator_norm2, "operator_norm2", result=float)
 
 
 __all__ = ["iter_operator_norm2", "operator_norm2"]

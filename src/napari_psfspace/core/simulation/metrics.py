@@ -219,7 +219,7 @@ def grid_errors(operator, truth, n: int = 8, *, align: bool = True,
     -------
     ndarray of shape (n, n)
     """
-    ys, xs = grid_positions(operator.shape, n, layout=layout, margin=operator.psf_size // 2)
+    ys, xs = grid_positions(operator.image_shape, n, layout=layout, margin=operator.psf_size // 2)
     err = np.empty((n, n))
     for i, y in enumerate(ys):
         for j, x in enumerate(xs):
@@ -265,7 +265,7 @@ def evaluate_against_truth(operator, truth, n: int = 8) -> dict:
     """
     aligned = grid_errors(operator, truth, n)
     unaligned = grid_errors(operator, truth, n, align=False)
-    invariant = shift_invariant_errors(truth, operator.psf_size, operator.shape, n)
+    invariant = shift_invariant_errors(truth, operator.psf_size, operator.image_shape, n)
     edges = grid_errors(operator, truth, n, layout="edges")
 
     def stats(e):

@@ -33,6 +33,7 @@ import scipy.fft
 from numpy.typing import ArrayLike
 
 from ..common.device import ArrayModule, array_module
+from ..common.linear_operator import ImageOperator
 from ..common.threads import blas_limit, default_workers
 from ..common.validate import check_int
 from ..model.compress import compressed_field
@@ -91,7 +92,7 @@ def _local_kernels(basis: np.ndarray, maps: np.ndarray, rtol: float
     return mix, combo, float(err)
 
 
-class BlockedOperator3D:
+class BlockedOperator3D(ImageOperator):
     """A :class:`ProductConvolution3D` applied block by block (the module's notes).
 
     Parameters
@@ -140,7 +141,7 @@ class BlockedOperator3D:
         block = check_int(block, "block", minimum=p)
         if not (np.isfinite(rtol) and rtol >= 0):
             raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
-        _, h, w = operator.shape
+        _, h, w = operator.image_shape
         wy0, wy1, wx0, wx1 = (0, h, 0, w) if window is None else (int(v) for v in window)
         whole = (wy0, wy1, wx0, wx1) == (0, h, 0, w)
         self.operator = operator if whole else operator.cropped(wy0, wy1, wx0, wx1)
@@ -176,8 +177,12 @@ class BlockedOperator3D:
         self._lock = threading.Lock()
 
     @property
-    def shape(self) -> tuple[int, int, int]:
-        return self.operator.shape
+    def image_shape(self) -> tuple[int, int, int]:
+        """``(Z, H, W)`` of the stack the model was learnt on."""
+        return self.operator.image_shape
+
+    def _is_image(self, x) -> bool:
+        return self.operator._is_image(x)
 
     @property
     def n_kernels(self) -> float:
@@ -272,9 +277,9 @@ class BlockedOperator3D:
 
     def _check(self, u: ArrayLike, name: str) -> np.ndarray:
         arr = u if hasattr(u, "__cuda_array_interface__") else np.asarray(u)
-        if arr.ndim != 3 or arr.shape[1:] != self.shape[1:]:
-            raise ValueError(f"`{name}` must be a volume (Z, {self.shape[1]}, "
-                             f"{self.shape[2]}), got shape {arr.shape}")
+        if arr.ndim != 3 or arr.shape[1:] != self.image_shape[1:]:
+            raise ValueError(f"`{name}` must be a volume (Z, {self.image_shape[1]}, "
+                             f"{self.image_shape[2]}), got shape {arr.shape}")
         return arr
 
     def _iter_run(self, fn, workers: int | None, halt: threading.Event
@@ -371,9 +376,11 @@ class BlockedOperator3D:
         yield from self._iter_run(one, workers, halt)
         return out
 
-    def adjoint(self, v: ArrayLike, *, workers: int | None = None,
+    def adjoint(self, v: ArrayLike | None = None, *, workers: int | None = None,
                 multiply_into: np.ndarray | None = None) -> np.ndarray:
         """``H^T v`` (float32), block by block (overlap-save).
+        If ``v`` is omitted, the adjoint operator itself (``self.H``), as scipy's and
+        pylops' ``adjoint()`` give it.
 
         Parameters
         ----------
@@ -384,6 +391,8 @@ class BlockedOperator3D:
             When given, ``multiply_into *= H^T v`` in place (the Richardson-Lucy update)
             and it is returned; it must not be ``v``.
         """
+        if v is None:
+            return self.H
         return _drain(self.iter_adjoint(v, workers=workers, multiply_into=multiply_into))
 
     def iter_adjoint(self, v: ArrayLike, *, workers: int | None = None,

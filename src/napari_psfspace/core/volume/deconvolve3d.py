@@ -16,14 +16,15 @@ all beads), the baseline every space-varying result is compared with.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Generator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..common.device import array_module
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress
 from ..common.threads import default_workers
+from ..common.twins import drained
 from ..common.validate import (
     as_stack,
     check_background,
@@ -148,11 +149,11 @@ def shift_invariant(operator: ProductConvolution3D, y: float | None = None,
                     x: float | None = None) -> ProductConvolution3D:
     """The shift-invariant operator of one of ``operator``'s PSFs: at ``(y, x)``
     (default the field's centre), as a one-kernel operator with constant maps."""
-    _, h, w = operator.shape
+    _, h, w = operator.image_shape
     y = (h - 1) / 2 if y is None else float(y)
     x = (w - 1) / 2 if x is None else float(x)
     kernel = operator.kernel_at(y, x)[None]
-    return ProductConvolution3D(kernel, np.ones((1, 1, 1)), shape=operator.shape,
+    return ProductConvolution3D(kernel, np.ones((1, 1, 1)), shape=operator.image_shape,
                                 grid=(np.array([0.0]), np.array([0.0])),
                                 plane=operator.plane, voxel_size=operator.voxel_size,
                                 metadata={"shift_invariant_at": [y, x]})
@@ -197,7 +198,7 @@ def check_stack(stack, operator: ProductConvolution3D, *, copies: float = 0.0) -
     if not isinstance(operator, ProductConvolution3D):
         raise TypeError(f"`operator` must be a ProductConvolution3D, got "
                         f"{type(operator).__name__}")
-    as_stack(stack, lateral=operator.shape[1:], copies=copies)
+    as_stack(stack, lateral=operator.image_shape[1:], copies=copies)
 
 
 def iter_richardson_lucy_3d(
@@ -214,9 +215,60 @@ def iter_richardson_lucy_3d(
     accelerate: bool = False,
     device: str = "auto",
 ) -> Generator[Progress, None, Deconvolved3D]:
-    """Generator form of :func:`richardson_lucy_3d`: yields progress after every wave
-    of blocks (one block a thread; stop it there to cancel) and every iteration,
-    returns the :class:`Deconvolved3D`."""
+    """Space-varying Richardson-Lucy deconvolution of a z-stack, in float32.
+
+    Parameters
+    ----------
+    stack : array_like of shape (Z, H, W)
+        The blurred volume, image units (counts).
+    operator : ProductConvolution3D
+        Its blur (:func:`~napari_psfspace.core.volume.estimate3d.estimate_operator_3d`;
+        :func:`shift_invariant` for one PSF).
+    n_iter : int
+        Iterations.
+    background : float, optional
+        Constant background ``b``; default the stack's 1st percentile
+        (:func:`stack_statistics`).
+    block : int or None
+        Lateral block size of the operator
+        (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`): memory
+        bounded by four float32 volumes and the blocks' spectra, and each block on the
+        few kernels its PSFs need. None: the whole volume on all the model's kernels.
+    rtol : float
+        With blocks, the largest relative error of a block's PSF against the model's
+        (0: every block on all kernels, the exact operator).
+    workers : int, optional
+        Threads: over blocks, or the whole volume's FFTs; default the machine's cores.
+    start : float, optional
+        The constant value the iteration starts from; default the stack's mean less
+        the background (a tile of a larger stack is given the stack's).
+    accelerate : bool
+        Biggs and Andrews' vector extrapolation (Appl. Opt. 36, 1997): each step starts
+        from ``x_k + a (x_k - x_{k-1})``, ``a`` from the last two steps' agreement; the
+        same fixed point in fewer iterations, at four more volumes of memory.
+    stop : float, optional
+        The stopping rule: end when an iteration improves the fit to the data by less
+        than this, relative: the Poisson deviance of ``H u_k + b`` against the stack
+        lowered by less than ``stop`` times itself (after at least
+        :data:`MIN_ITERATIONS`; ``n_iter`` is then the most). The iterate returned is
+        ``u_k``. The estimate itself keeps moving long after (its change per iteration
+        is in ``changes``). None (default): ``n_iter`` iterations. :data:`STOP_FIT` is
+        the panel's.
+    device : {"auto", "cpu", "gpu"}
+        Where the iteration runs (:mod:`~napari_psfspace.core.common.device`): "auto" is
+        the GPU when CuPy imports and sees a device, else the CPU. On the GPU the blocks
+        are sized from the device's free memory (``block`` is then not used:
+        :mod:`~napari_psfspace.core.volume.device_plan`). The result is a NumPy array.
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    Deconvolved3D
+    """
     check_stack(stack, operator)
     n_iter = check_int(n_iter, "n_iter", minimum=1)
     if stop is not None and not (np.isfinite(stop) and stop >= 0):
@@ -398,76 +450,7 @@ def _waves(gen, stage: str, start: float, span: float, message: str):
         yield Progress(stage, start + span * done, message)
 
 
-def richardson_lucy_3d(
-    stack,
-    operator: ProductConvolution3D,
-    *,
-    n_iter: int = 50,
-    background: float | None = None,
-    block: int | None = BLOCK,
-    rtol: float = RTOL,
-    workers: int | None = None,
-    start: float | None = None,
-    stop: float | None = None,
-    accelerate: bool = False,
-    device: str = "auto",
-    progress: Callable[[Progress], None] | None = None,
-) -> Deconvolved3D:
-    """Space-varying Richardson-Lucy deconvolution of a z-stack, in float32.
-
-    Parameters
-    ----------
-    stack : array_like of shape (Z, H, W)
-        The blurred volume, image units (counts).
-    operator : ProductConvolution3D
-        Its blur (:func:`~napari_psfspace.core.volume.estimate3d.estimate_operator_3d`;
-        :func:`shift_invariant` for one PSF).
-    n_iter : int
-        Iterations.
-    background : float, optional
-        Constant background ``b``; default the stack's 1st percentile
-        (:func:`stack_statistics`).
-    block : int or None
-        Lateral block size of the operator
-        (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`): memory
-        bounded by four float32 volumes and the blocks' spectra, and each block on the
-        few kernels its PSFs need. None: the whole volume on all the model's kernels.
-    rtol : float
-        With blocks, the largest relative error of a block's PSF against the model's
-        (0: every block on all kernels, the exact operator).
-    workers : int, optional
-        Threads: over blocks, or the whole volume's FFTs; default the machine's cores.
-    start : float, optional
-        The constant value the iteration starts from; default the stack's mean less
-        the background (a tile of a larger stack is given the stack's).
-    accelerate : bool
-        Biggs and Andrews' vector extrapolation (Appl. Opt. 36, 1997): each step starts
-        from ``x_k + a (x_k - x_{k-1})``, ``a`` from the last two steps' agreement; the
-        same fixed point in fewer iterations, at four more volumes of memory.
-    stop : float, optional
-        The stopping rule: end when an iteration improves the fit to the data by less
-        than this, relative: the Poisson deviance of ``H u_k + b`` against the stack
-        lowered by less than ``stop`` times itself (after at least
-        :data:`MIN_ITERATIONS`; ``n_iter`` is then the most). The iterate returned is
-        ``u_k``. The estimate itself keeps moving long after (its change per iteration
-        is in ``changes``). None (default): ``n_iter`` iterations. :data:`STOP_FIT` is
-        the panel's.
-    device : {"auto", "cpu", "gpu"}
-        Where the iteration runs (:mod:`~napari_psfspace.core.common.device`): "auto" is
-        the GPU when CuPy imports and sees a device, else the CPU. On the GPU the blocks
-        are sized from the device's free memory (``block`` is then not used:
-        :mod:`~napari_psfspace.core.volume.device_plan`). The result is a NumPy array.
-    progress : callable, optional
-        Called after each wave of blocks and each iteration.
-
-    Returns
-    -------
-    Deconvolved3D
-    """
-    return run_with_progress(iter_richardson_lucy_3d(
-        stack, operator, n_iter=n_iter, background=background, block=block, rtol=rtol,
-        workers=workers, start=start, stop=stop, accelerate=accelerate, device=device),
-        progress)
+richardson_lucy_3d = drained(iter_richardson_lucy_3d, "richardson_lucy_3d")
 
 
 __all__ = ["MIN_ITERATIONS", "STOP_FIT", "Deconvolved3D", "check_stack",

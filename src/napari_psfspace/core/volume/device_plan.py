@@ -91,7 +91,7 @@ def plan_on_device(operator: ProductConvolution3D, depth: int, free_bytes: int, 
         When not even one block of the smallest size fits (the message gives both
         figures).
     """
-    _, h, w = operator.shape
+    _, h, w = operator.image_shape
     p = operator.kernel_shape[1]
     budget = MEMORY_FRACTION * float(free_bytes)
     count = volume_count(accelerate) if volumes is None else int(volumes)

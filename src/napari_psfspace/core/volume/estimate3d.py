@@ -16,8 +16,9 @@ focus) stays in the operator, which a deconvolution needs.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Generator
+from collections.abc import Generator
 from dataclasses import dataclass, field
+from operator import attrgetter
 
 import numpy as np
 
@@ -25,8 +26,9 @@ from ..beads.detect import FAINT, KEPT, OFF_FOCUS, OUTLIER, Beads, NoBeadsError,
 from ..beads.focus import bead_peaks, best_focus_index
 from ..beads.saturation import saturation_record
 from ..beads.window import radial_distance
-from ..common.progress import Progress, run_with_progress, wait_with_progress, within
+from ..common.progress import Progress, wait_with_progress, within
 from ..common.threads import blas_threads
+from ..common.twins import drained
 from ..common.validate import (
     as_stack,
     check_grid_step,
@@ -113,8 +115,54 @@ def iter_estimate_operator_3d(
     voxel_size: tuple[float, float, float] | None = None,
     holdout: bool = True,
 ) -> Generator[Progress, None, Estimation3D]:
-    """Generator form of :func:`estimate_operator_3d`: yields progress, returns the
-    :class:`Estimation3D`."""
+    """Learn the space-varying 3D PSF of a microscope from a z-stack of beads on a
+    coverslip.
+
+    Parameters
+    ----------
+    stack : array_like of shape (Z, H, W)
+        The same bead field at Z focus positions, any real dtype.
+    psf_radius : float
+        ``r``, pixels: the PSF's lateral radius on the widest plane used (beyond it,
+        background only).
+    z_radius : int, optional
+        Planes kept on each side of the bead plane; default all the stack's.
+    bead_diameter : float
+        Must be 0 (point sources): the bead's sphere is not divided out in 3D yet.
+    n_psf : int, "heldout", "rule" or None
+        Basis size, as in :func:`~napari_psfspace.core.model.estimate.estimate_operator`.
+    smoothing : float, optional
+        Thin-plate smoothing; default by leave-one-out.
+    threshold : float
+        Detection threshold on the best-focus slice, noise sd.
+    grid_step : float
+        Spacing of the maps' coarse grid, pixels.
+    z_threshold : float
+        Outlier rejection of the PCA, standard deviations.
+    voxel_size : (float, float, float), optional
+        ``(dz, dy, dx)``, µm (from the file: ``napari_psfspace.io``).
+    holdout : bool
+        Score the field on held-out beads against one 3D PSF
+        (:func:`~napari_psfspace.core.volume.heldout3d.heldout_error_3d`, with 10 beads or
+        more): ``metadata["heldout"]``; where one PSF does better, the model is that one
+        PSF (``field_model`` says so, and why).
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    Estimation3D
+        The operator, the beads, patches, basis, cone, foci and focal surface it was
+        learnt from.
+    Raises
+    ------
+    ValueError
+        A bad argument, or :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (too
+        few usable beads).
+    """
     vol = bead_stack(stack)
     depth, h, w = vol.shape
     r = check_psf_radius(psf_radius, (h, w))
@@ -270,72 +318,12 @@ def _one_psf(stack, vol, beads, patches, kept, foci, surface, plane, z_radius, r
                         surface)
 
 
-def estimate_operator_3d(
-    stack,
-    *,
-    psf_radius: float,
-    z_radius: int | None = None,
-    bead_diameter: float = 0.0,
-    n_psf: int | str | None = None,
-    smoothing: float | None = None,
-    threshold: float = 8.0,
-    grid_step: float = 32.0,
-    z_threshold: float = 3.0,
-    voxel_size: tuple[float, float, float] | None = None,
-    holdout: bool = True,
-    progress: Callable[[Progress], None] | None = None,
-) -> ProductConvolution3D:
-    """Learn the space-varying 3D PSF of a microscope from a z-stack of beads on a
-    coverslip.
-
-    Parameters
-    ----------
-    stack : array_like of shape (Z, H, W)
-        The same bead field at Z focus positions, any real dtype.
-    psf_radius : float
-        ``r``, pixels: the PSF's lateral radius on the widest plane used (beyond it,
-        background only).
-    z_radius : int, optional
-        Planes kept on each side of the bead plane; default all the stack's.
-    bead_diameter : float
-        Must be 0 (point sources): the bead's sphere is not divided out in 3D yet.
-    n_psf : int, "heldout", "rule" or None
-        Basis size, as in :func:`~napari_psfspace.core.model.estimate.estimate_operator`.
-    smoothing : float, optional
-        Thin-plate smoothing; default by leave-one-out.
-    threshold : float
-        Detection threshold on the best-focus slice, noise sd.
-    grid_step : float
-        Spacing of the maps' coarse grid, pixels.
-    z_threshold : float
-        Outlier rejection of the PCA, standard deviations.
-    voxel_size : (float, float, float), optional
-        ``(dz, dy, dx)``, µm (from the file: ``napari_psfspace.io``).
-    holdout : bool
-        Score the field on held-out beads against one 3D PSF
-        (:func:`~napari_psfspace.core.volume.heldout3d.heldout_error_3d`, with 10 beads or
-        more): ``metadata["heldout"]``; where one PSF does better, the model is that one
-        PSF (``field_model`` says so, and why).
-    progress : callable, optional
-        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
-
-    Returns
-    -------
+estimate_operator_3d = drained(iter_estimate_operator_3d, "estimate_operator_3d",
+                               result=attrgetter("operator"), returns="""\
     ProductConvolution3D
         ``psf_at(y, x)`` is a point on the bead plane at ``(y, x)`` seen on the stack's
         planes, shape (Z, P, P).
-
-    Raises
-    ------
-    ValueError
-        A bad argument, or :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (too
-        few usable beads).
-    """
-    return run_with_progress(iter_estimate_operator_3d(
-        stack, psf_radius=psf_radius, z_radius=z_radius, bead_diameter=bead_diameter,
-        n_psf=n_psf, smoothing=smoothing, threshold=threshold, grid_step=grid_step,
-        z_threshold=z_threshold, voxel_size=voxel_size, holdout=holdout),
-        progress).operator
+""")
 
 
 __all__ = ["Estimation3D", "bead_stack", "estimate_operator_3d", "iter_estimate_operator_3d"]

@@ -36,7 +36,8 @@ import scipy.fft
 
 from ..common.atomic import atomic_write
 from ..common.device import ArrayModule, array_module
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress
+from ..common.twins import drained
 from ..common.validate import check_background, check_int, check_positive
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import TINY, check_stack, stack_statistics
@@ -107,7 +108,7 @@ def plan_for_memory(operator: ProductConvolution3D, depth: int, memory: float, *
     from ..common.threads import default_workers
 
     workers = default_workers() if workers is None else max(1, int(workers))
-    _, h, w = operator.shape
+    _, h, w = operator.image_shape
 
     least = min(block, max(h, w))
 
@@ -229,17 +230,57 @@ def iter_richardson_lucy_3d_exchange(
     workers: int | None = None,
     device: str | ArrayModule = "cpu",
 ) -> Generator[Progress, None, object]:
-    """Generator form of :func:`richardson_lucy_3d_exchange`: yields progress after
-    every pass (two an iteration; stop it there to cancel), returns the volume.
+    """Space-varying Richardson-Lucy on lateral tiles that exchange their margins at
+    every iteration (the module's notes): the whole volume's result, tile by tile.
 
-    ``store``: a folder where the iterates are written between the passes (Zarr arrays
-    ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio``, ``u0``, ``u1``, and
-    ``state.json``, the iterations done, written after each: ``u`` alternates between
-    two arrays so that the last finished iterate is whole while the next is written; the
-    ratio is made again from it on a resume, so one array holds it); the result is then
-    the last iterate there, a lazy dask array. ``resume``: continue from the store's last
-    finished iteration (its settings must be these; from the start where it finished
-    none)."""
+    Parameters
+    ----------
+    stack : array_like or dask.array.Array of shape (Z, H, W)
+        The blurred volume, image units.
+    operator : ProductConvolution3D
+    n_iter : int
+        Iterations.
+    background : float, optional
+        Constant background, image units; default the stack's
+        (:func:`~napari_psfspace.core.volume.deconvolve3d.stack_statistics`).
+    start : float, optional
+        Starting value; default the stack's mean less the background.
+    tile : int
+        Lateral tile size, pixels (at least the kernel's; a multiple of ``block``
+        cuts no block but at the field's edge).
+    block, rtol
+        The blocked operator's block size and kernel tolerance
+        (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`).
+    store : str or os.PathLike, optional
+        A folder where the iterates are written between the passes (Zarr arrays
+        ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio``, ``u0``, ``u1``,
+        and ``state.json``, the iterations done, written after each: ``u`` alternates
+        between two arrays so that the last finished iterate is whole while the next is
+        written; the ratio is made again from it on a resume, so one array holds it);
+        the result is then the last iterate there, a lazy dask array.
+    resume : bool
+        Continue from the store's last finished iteration (its settings must be these;
+        from the start where it finished none).
+    client : dask.distributed.Client, optional
+        Runs the tiles on this cluster, the iterates held in its memory.
+    workers : int, optional
+        Tiles at once on the local threads; default dask's (the cores).
+    device : {"cpu", "gpu", "auto"} or ArrayModule
+        Where each tile's blocks run (:mod:`~napari_psfspace.core.common.device`). On a
+        GPU the local threads run one tile at a time; on a cluster each worker process
+        finds its own device (one a worker: ``dask-cuda``'s ``LocalCUDACluster``).
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    ndarray or dask.array.Array of shape (Z, H, W), float32
+        Equal to :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d`
+        with the same ``block``, ``rtol``, background and start, to float32 rounding.
+    """
 
     check_stack(stack, operator)
     n_iter = check_int(n_iter, "n_iter", minimum=1)
@@ -377,56 +418,8 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
     return last.rechunk(((z,), tuple(rows), tuple(cols)))
 
 
-def richardson_lucy_3d_exchange(stack, operator: ProductConvolution3D, *, n_iter: int = 50,
-                                background: float | None = None,
-                                start: float | None = None, tile: int = TILE,
-                                block: int = BLOCK, rtol: float = RTOL, client=None,
-                                workers: int | None = None,
-                                device: str | ArrayModule = "cpu",
-                                progress=None) -> np.ndarray:
-    """Space-varying Richardson-Lucy on lateral tiles that exchange their margins at
-    every iteration (the module's notes): the whole volume's result, tile by tile.
-
-    Parameters
-    ----------
-    stack : array_like or dask.array.Array of shape (Z, H, W)
-        The blurred volume, image units.
-    operator : ProductConvolution3D
-    n_iter : int
-        Iterations.
-    background : float, optional
-        Constant background, image units; default the stack's
-        (:func:`~napari_psfspace.core.volume.deconvolve3d.stack_statistics`).
-    start : float, optional
-        Starting value; default the stack's mean less the background.
-    tile : int
-        Lateral tile size, pixels (at least the kernel's; a multiple of ``block``
-        cuts no block but at the field's edge).
-    block, rtol
-        The blocked operator's block size and kernel tolerance
-        (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`).
-    client : dask.distributed.Client, optional
-        Runs the tiles on this cluster, the iterates held in its memory.
-    workers : int, optional
-        Tiles at once on the local threads; default dask's (the cores).
-    device : {"cpu", "gpu", "auto"} or ArrayModule
-        Where each tile's blocks run (:mod:`~napari_psfspace.core.common.device`). On a
-        GPU the local threads run one tile at a time; on a cluster each worker process
-        finds its own device (one a worker: ``dask-cuda``'s ``LocalCUDACluster``).
-    progress : callable, optional
-        Called with each :class:`~napari_psfspace.core.common.progress.Progress`.
-
-    Returns
-    -------
-    ndarray of shape (Z, H, W), float32
-        Equal to :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d`
-        with the same ``block``, ``rtol``, background and start, to float32 rounding.
-    """
-    return run_with_progress(
-        iter_richardson_lucy_3d_exchange(stack, operator, n_iter=n_iter,
-                                         background=background, start=start, tile=tile,
-                                         block=block, rtol=rtol, client=client,
-                                         workers=workers, device=device), progress)
+richardson_lucy_3d_exchange = drained(iter_richardson_lucy_3d_exchange,
+                                      "richardson_lucy_3d_exchange")
 
 
 __all__ = ["BASE_BYTES", "DEVICE_VOLUMES", "TILE", "WindowTask", "iter_richardson_lucy_3d_exchange",

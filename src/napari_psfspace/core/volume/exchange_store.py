@@ -80,7 +80,7 @@ class TilePass:
         return {**self.__dict__, "_arrays": {}}  # a worker opens its own
 
     def _read(self, name: str | None, region: tuple) -> np.ndarray:
-        z = self.task.operator.shape[0]
+        z = self.task.operator.image_shape[0]
         if name is None:  # the constant start, or the ones of H^T 1
             value = 1.0 if self.kind == "norm" else self.start
             return np.full((z, region[1].stop - region[1].start,
@@ -95,7 +95,7 @@ class TilePass:
 
     def __call__(self, iy: int, ix: int) -> None:
         (ty0, ty1), (tx0, tx1) = self.edges_y[iy], self.edges_x[ix]
-        _, h, w = self.task.operator.shape
+        _, h, w = self.task.operator.image_shape
         ring = self.task.ring
         wy0, wy1 = max(ty0 - ring, 0), min(ty1 + ring, h)
         wx0, wx1 = max(tx0 - ring, 0), min(tx1 + ring, w)

@@ -24,15 +24,16 @@ threshold); ``gamma_2 = SMOOTH_WEIGHT grid_step^4``.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Generator
+from collections.abc import Generator
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ..beads.noise import background_variance
 from ..common.device import ArrayModule, array_module, namespace
-from ..common.progress import Progress, run_with_progress
+from ..common.progress import Progress
 from ..common.threads import default_workers
+from ..common.twins import drained
 from ..common.validate import check_finite, check_int, check_signal
 from ..restore.deconvolve import BLOCK_SPLIT, NORM_MARGIN, SMOOTH_WEIGHT
 from ..restore.fista import BlockFista
@@ -137,8 +138,44 @@ def iter_deblur_3d(
     workers: int | None = None,
     device: str | ArrayModule = "auto",
 ) -> Generator[Progress, None, Deblurred3D]:
-    """Generator form of :func:`deblur_3d`: yields progress after every iteration (stop
-    it there to cancel), returns the :class:`Deblurred3D`."""
+    """Sparse + smooth deblurring of a z-stack with a space-varying 3D PSF.
+
+    Parameters
+    ----------
+    stack : array_like of shape (Z, H, W)
+        The blurred volume, image units (background included: the smooth part takes it).
+    operator : ProductConvolution3D
+    sparse_weight : float, optional
+        ``gamma_1`` (image units x PSF norm); default from the noise (module notes).
+    smooth_weight : float, optional
+        ``gamma_2``; default ``SMOOTH_WEIGHT grid_step^4``.
+    grid_step : float
+        Pixels between the smooth part's nodes on each plane.
+    max_iter : int
+    tol : float
+        Stop once the objective's running minimum falls by less than ``tol``
+        (relatively) over 10 iterations.
+    block, rtol
+        The operator on lateral blocks, as in
+        :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d`.
+    workers : int, optional
+    device : {"auto", "cpu", "gpu"}
+        Where the iteration runs (:mod:`~napari_psfspace.core.common.device`): "auto" is
+        the GPU when CuPy imports and sees a device, else the CPU. On the GPU the blocks
+        are sized from the device's free memory (``block`` is then not used), the
+        volumes stay there when the iteration's :data:`FISTA_VOLUMES` fit beside them,
+        else on the host (each block copied over and back). The result is NumPy.
+
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
+    Returns
+    -------
+    Deblurred3D
+        ``parameters["device"]`` says where it ran, ``parameters["block"]`` the block.
+    """
     t0 = time.perf_counter()
     check_stack(stack, operator, copies=FISTA_VOLUMES)
     max_iter = check_int(max_iter, "max_iter", minimum=1)
@@ -264,59 +301,7 @@ def iter_deblur_3d(
                        solver.iterations, converged, params, list(solver.objective))
 
 
-def deblur_3d(
-    stack,
-    operator: ProductConvolution3D,
-    *,
-    sparse_weight: float | None = None,
-    smooth_weight: float | None = None,
-    grid_step: float = 64.0,
-    max_iter: int = 300,
-    tol: float = 1e-4,
-    block: int | None = BLOCK,
-    rtol: float = RTOL,
-    workers: int | None = None,
-    device: str | ArrayModule = "auto",
-    progress: Callable[[Progress], None] | None = None,
-) -> Deblurred3D:
-    """Sparse + smooth deblurring of a z-stack with a space-varying 3D PSF.
-
-    Parameters
-    ----------
-    stack : array_like of shape (Z, H, W)
-        The blurred volume, image units (background included: the smooth part takes it).
-    operator : ProductConvolution3D
-    sparse_weight : float, optional
-        ``gamma_1`` (image units x PSF norm); default from the noise (module notes).
-    smooth_weight : float, optional
-        ``gamma_2``; default ``SMOOTH_WEIGHT grid_step^4``.
-    grid_step : float
-        Pixels between the smooth part's nodes on each plane.
-    max_iter : int
-    tol : float
-        Stop once the objective's running minimum falls by less than ``tol``
-        (relatively) over 10 iterations.
-    block, rtol
-        The operator on lateral blocks, as in
-        :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d`.
-    workers : int, optional
-    device : {"auto", "cpu", "gpu"}
-        Where the iteration runs (:mod:`~napari_psfspace.core.common.device`): "auto" is
-        the GPU when CuPy imports and sees a device, else the CPU. On the GPU the blocks
-        are sized from the device's free memory (``block`` is then not used), the
-        volumes stay there when the iteration's :data:`FISTA_VOLUMES` fit beside them,
-        else on the host (each block copied over and back). The result is NumPy.
-    progress : callable, optional
-
-    Returns
-    -------
-    Deblurred3D
-        ``parameters["device"]`` says where it ran, ``parameters["block"]`` the block.
-    """
-    return run_with_progress(iter_deblur_3d(
-        stack, operator, sparse_weight=sparse_weight, smooth_weight=smooth_weight,
-        grid_step=grid_step, max_iter=max_iter, tol=tol, block=block, rtol=rtol,
-        workers=workers, device=device), progress)
+deblur_3d = drained(iter_deblur_3d, "deblur_3d")
 
 
 __all__ = ["FISTA_VOLUMES", "LAPLACIAN_NORM", "POWER_ITER", "Deblurred3D", "deblur_3d",

@@ -30,7 +30,8 @@ import numpy as np
 
 from ..beads.noise import noise_model
 from ..beads.window import bump_window, radial_distance
-from ..common.progress import Progress, run_with_progress, wait_with_progress
+from ..common.progress import Progress, wait_with_progress
+from ..common.twins import drained
 from ..model.field import keep_in_cone
 from ..model.heldout import morton_order
 from ..model.pca import learn_basis, min_beads_for
@@ -86,8 +87,9 @@ def _fit(model: np.ndarray, p: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(p - c * model) / max(np.linalg.norm(p), 1e-300)), c
 
 
-def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
-                     smoothing: float | None = None) -> Heldout3D:
+def iter_heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
+                          smoothing: float | None = None
+                          ) -> Generator[Progress, None, Heldout3D]:
     """The held-out residuals of a 3D estimate (the module's notes).
 
     :func:`iter_heldout_error_3d` is its generator form (progress after each fold).
@@ -104,19 +106,15 @@ def heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     smoothing : float, optional
         The thin-plate smoothing (default: chosen from the data, as the estimate).
 
+    Yields
+    ------
+    Progress
+        A record after each step; stopping the generator there cancels the run.
+
     Returns
     -------
     Heldout3D
     """
-    return run_with_progress(iter_heldout_error_3d(estimation, stack, folds=folds,
-                                                   smoothing=smoothing))
-
-
-def iter_heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
-                          smoothing: float | None = None
-                          ) -> Generator[Progress, None, Heldout3D]:
-    """Generator form of :func:`heldout_error_3d`: yields after each fold (stop it
-    there to cancel), returns the :class:`Heldout3D`."""
     if int(folds) != folds or folds < 2:
         raise ValueError(f"`folds` must be an integer >= 2, got {folds!r}")
     patches = estimation.patches.subset(estimation.basis.inliers)
@@ -132,7 +130,7 @@ def iter_heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
     order = morton_order(patches.centers, (h, w))
     group = np.empty(n, int)
     group[order] = np.arange(n) % int(folds)
-    inside = patches.data_planes(estimation.operator.shape[0])
+    inside = patches.data_planes(estimation.operator.image_shape[0])
     support = inside[:, None, None] & (radial_distance(patches.size) < patches.r_ext)[None]
     win2 = np.broadcast_to(bump_window(patches.size, patches.r, patches.r_ext) ** 2,
                            patches.psf.shape[1:]) * inside[:, None, None]
@@ -173,6 +171,9 @@ def iter_heldout_error_3d(estimation, stack, *, folds: int = FOLDS,
             pos.append(patches.centers[j])
     return Heldout3D(np.asarray(pos).reshape(-1, 2), np.asarray(res), np.asarray(single),
                      np.asarray(floor), gain, str(nm.kind))
+
+
+heldout_error_3d = drained(iter_heldout_error_3d, "heldout_error_3d")
 
 
 __all__ = ["FOLDS", "Heldout3D", "heldout_error_3d", "iter_heldout_error_3d"]

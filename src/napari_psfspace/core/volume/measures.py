@@ -43,7 +43,7 @@ def measure_maps(operator, n_rows: int = 8, n_cols: int = 8
         pixels (:data:`~napari_psfspace.core.common.measures.UNITS_PX`);
         ``focal_plane`` on the stack's planes.
     """
-    _, h, w = operator.shape
+    _, h, w = operator.image_shape
     ys = (np.arange(n_rows) + 0.5) * h / n_rows - 0.5
     xs = (np.arange(n_cols) + 0.5) * w / n_cols - 0.5
     maps = {n: np.full((n_rows, n_cols), np.nan) for n in MEASURES}

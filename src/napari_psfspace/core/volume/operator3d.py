@@ -28,6 +28,7 @@ import scipy.fft
 from numpy.typing import ArrayLike
 
 from ..common.device import CPU, ArrayModule, DeviceCache, resolve
+from ..common.linear_operator import ImageOperator
 from ..common.validate import as_array
 from ..common.version import software_string
 from ..model.operator_checks import as_real_array, check_model_field, normalise_metadata
@@ -42,7 +43,7 @@ FORMAT_VERSION = 1
 _ENTRIES = ("basis", "coefficients", "grid_y", "grid_x", "shape", "header")
 
 
-class ProductConvolution3D(DeviceCache):
+class ProductConvolution3D(DeviceCache, ImageOperator):
     """Space-varying 3D blur learnt from a bead z-stack.
 
     Parameters
@@ -141,7 +142,7 @@ class ProductConvolution3D(DeviceCache):
         return self._grid
 
     @property
-    def shape(self) -> tuple[int, int, int]:
+    def image_shape(self) -> tuple[int, int, int]:
         """``(Z, H, W)`` of the stack the model was learnt on."""
         return self._shape
 
@@ -171,7 +172,7 @@ class ProductConvolution3D(DeviceCache):
     def __repr__(self) -> str:
         k, p, _ = self.kernel_shape
         return (f"ProductConvolution3D(I={self.n_psf}, kernel={k}x{p}x{p}, "
-                f"shape={self._shape}, plane={self._plane})")
+                f"image_shape={self._shape}, plane={self._plane})")
 
     # ------------------------------------------------------------------ PSFs
     def coefficients_at(self, y: float, x: float) -> np.ndarray:
@@ -222,6 +223,11 @@ class ProductConvolution3D(DeviceCache):
         return maps
 
     # ------------------------------------------------------------------ operator
+    def _is_image(self, x) -> bool:
+        """A volume of any depth with the model's lateral shape."""
+        shape = tuple(getattr(x, "shape", ()))
+        return len(shape) == 3 and shape[1:] == self._shape[1:]
+
     def fft_shape(self, depth: int) -> tuple[int, int, int]:
         """The padded FFT shape for a volume of ``depth`` planes: each axis padded by
         half the kernel, so that no wrap-around reaches the volume, and at least the
@@ -303,9 +309,11 @@ class ProductConvolution3D(DeviceCache):
         out = am.irfftn(acc, s=fshape, workers=workers, overwrite_x=True)
         return xp.ascontiguousarray(out[:z, :h, :w], dt)
 
-    def adjoint(self, v: ArrayLike, *, workers: int | None = None,
+    def adjoint(self, v: ArrayLike | None = None, *, workers: int | None = None,
                 device: str | ArrayModule | None = None) -> np.ndarray:
         """``H^T v``, the adjoint of :meth:`apply` (dot-tested).
+        If ``v`` is omitted, the adjoint operator itself (``self.H``), as scipy's and
+        pylops' ``adjoint()`` give it.
 
         Parameters
         ----------
@@ -318,6 +326,8 @@ class ProductConvolution3D(DeviceCache):
         -------
         ndarray of shape (Z', H, W)
         """
+        if v is None:
+            return self.H
         am = resolve(device, v)
         arr, dt = self._check_volume(v, "v", am)
         xp = am.xp
@@ -404,7 +414,7 @@ class ProductConvolution3D(DeviceCache):
         except (ValueError, TypeError) as exc:
             raise ValueError(f"{os.fspath(path)!r}: inconsistent 3D model file: "
                              f"{exc}") from exc
-        check_model_field(op.basis, op.coefficients, op.shape, *op.grid,
+        check_model_field(op.basis, op.coefficients, op.image_shape, *op.grid,
                           repr(os.fspath(path)))
         return op
 

@@ -40,7 +40,7 @@ def psf_grid_3d(operator: ProductConvolution3D, n: int = 5, *, gap: int = 2,
     n = int(n)
     if n < 1:
         raise ValueError(f"`n` must be a positive integer, got {n!r}")
-    _, h, w = operator.shape
+    _, h, w = operator.image_shape
     k, p, _ = operator.kernel_shape
     ys = (np.arange(n) + 0.5) * h / n - 0.5
     xs = (np.arange(n) + 0.5) * w / n - 0.5
