@@ -252,7 +252,7 @@ def test_a_ring_gets_its_radius_and_no_gaussian_fwhm(defocus_um):
         assert m["core_share"] >= SPOT_CORE and np.isfinite(m["fwhm_lateral"])
 
     class OnePsf:
-        shape = (256, 256)
+        image_shape = (256, 256)
 
         def psf_at(self, y, x):
             return _widefield(1.4, defocus_um)

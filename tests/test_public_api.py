@@ -124,8 +124,7 @@ def test_the_readme_quick_blocks_run_as_written(tmp_path):
 #: (function, its generator twin, the twin's parameters the function does not take:
 #: the generator's extra hooks for the panel and the diagnosis).
 TWINS = [
-    ("estimate_operator", "iter_estimate", {"beads", "z_threshold", "patch_filter",
-                                             "motion_test"}),
+    ("estimate_operator", "iter_estimate", set()),
     ("diagnose", "iter_diagnose", set()),
     ("estimate_family", "iter_estimate_family", set()),
     ("deblur", "iter_deblur", set()),

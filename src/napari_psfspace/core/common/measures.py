@@ -411,7 +411,7 @@ def field_fwhm(operator) -> dict[str, dict[str, float]]:
     Parameters
     ----------
     operator
-        Anything with ``shape`` (H, W) and ``psf_at(row, column)`` giving a 2-D PSF.
+        Anything with ``image_shape`` (H, W) and ``psf_at(row, column)`` giving a 2-D PSF.
 
     Returns
     -------

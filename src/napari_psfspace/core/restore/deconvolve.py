@@ -17,7 +17,18 @@ slower than the beads. On the coarse grid both blocks are well scaled (see
 iterations and then spends most of its time concentrating each source's cluster
 (neighbouring pixels are nearly the same column of ``H``); by default it stops at
 ``POLISH_AFTER`` and :mod:`.polish` finishes on the support, one pixel at a time
-(``polish``).
+(``polish``): one pixel at a time is exact there and reaches a lower objective in less
+time, with sharper beads (``bench/bench_deblur_tol.py``).
+
+**Refitting the amplitudes** (``debias``). The l1 term shrinks each amplitude by about
+``gamma1 / ||h||^2``; a least-squares refit of one scale per cluster of points
+(8-connected), with the background free (at most ``DEBIAS_MAX_ITER`` iterations), gives
+it back (``bench/bench_deblur.py``). It is off by default: the refit also raises every
+spurious point the l1 term let through (noise that correlates with the PSF) to about the
+detection level, so that amplitudes no longer tell them from real points.
+
+**Saturation.** A clipped bead, fitted as measured, has its flux pulled down by its
+clipped top; pixels at or above ``saturation`` only bound ``H u`` from below.
 
 Defaults follow the image's noise (its background's standard deviation ``sigma``,
 :func:`~napari_psfspace.core.beads.noise.background_variance`) and the operator's own
@@ -229,55 +240,37 @@ def iter_deblur(
     smooth_weight : float, optional
         ``gamma2``; default ``0.05 * grid_step**4``.
     grid_step : float, optional
-        Node spacing of the background, pixels; default twice the PSF size (finer, the
-        background forms a bump under each bright bead, taking its flux where the
-        operator's error raises the sparse weight).
+        Node spacing of the background, pixels; default twice the PSF size (finer, it
+        forms a bump under each bright bead and takes its flux).
     model_error : float, optional
         The operator's relative error beyond the noise; default from its metadata
         (:func:`model_error_of`). 0: the noise alone sets ``gamma1``.
     max_iter : int
         Iterations at most.
     tol : float
-        Stop when the objective falls by less than this (relatively) over 10 iterations.
-        At the default the points found no longer change; a looser tolerance keeps the
-        same points but leaves the beads wider and a clipped bead with less of its flux
-        (``bench/bench_deblur_tol.py``).
+        Stop when the objective falls by less than this (relatively) over 10 iterations;
+        looser, the beads stay wider (``bench/bench_deblur_tol.py``).
     debias : bool
-        Then refit one scale per cluster of points (8-connected), by least squares with
-        the background free (at most ``DEBIAS_MAX_ITER`` iterations, same ``tol``). The
-        l1 term shrinks each amplitude by about ``gamma1 / ||h||^2``; the refit gives
-        it back (``bench/bench_deblur.py``). Off by default: the refit also raises every
-        spurious point the l1 term let through (noise that correlates with the PSF) to
-        about the detection level, so that amplitudes no longer tell them from real
-        points. For photometry of points known to be real; no point is added or removed.
+        Then refit one scale per cluster of points (module docstring): for photometry
+        of points known to be real; no point is added or removed.
     saturation : float, optional
-        Pixels at or above it only bound ``H u`` from below in the data term (a
-        saturated bead is brighter than it looks; fitted as measured, its clipped top
-        pulls its flux down; ``tests/test_restore.py``). Default:
-        the dtype's maximum for integer images, none for floating ones. More than 1 % of
-        the image saturated is an error.
+        Pixels at or above it only bound ``H u`` from below in the data term (a clipped
+        bead is brighter than it looks). Default: the dtype's maximum for integer
+        images, none for floating ones. More than 1 % of the image saturated is an error.
     compression : float, optional
         Run on the operator's PSF field compressed to this relative error
         (:func:`~napari_psfspace.core.model.compress.compress_operator`: the fewest
-        kernels whose PSF is within it everywhere); default ``0.1 * model_error``, a tenth
-        of what the operator is known to miss by (none where that error is 0). An
-        operator identified from a family carries the family's kernels, more than one
-        image's field needs. 0: the operator as it is.
+        kernels whose PSF is within it everywhere); default ``0.1 * model_error`` (a
+        family's operator carries more kernels than one image needs). 0: as it is.
     polish : bool
-        Run FISTA only until its support is found (``POLISH_AFTER``), then coordinate
-        descent on that support to ``tol`` (:mod:`.polish`), back to FISTA if a pixel
-        off it then wants in. Gradient steps spend most of their iterations
-        concentrating each source's cluster (neighbouring pixels are nearly the same
-        column of ``H``); one pixel at a time is exact there and reaches a lower
-        objective in less time, with sharper beads (``bench/bench_deblur_tol.py``).
-        Off: FISTA to ``tol``. Supports of more than ``POLISH_MAX_SUPPORT`` pixels are not
-        polished.
+        FISTA until its support is found (``POLISH_AFTER``), then coordinate descent on
+        it (:mod:`.polish`), back to FISTA if a pixel off it wants in. Off, or over
+        ``POLISH_MAX_SUPPORT`` pixels in the support: FISTA to ``tol``.
     workers : int, optional
         FFT threads.
     device : {"auto", "cpu", "gpu"}
-        Where the operator's transforms run (:mod:`~napari_psfspace.core.common.device`):
-        "auto" is the GPU when CuPy imports and sees a device, else the CPU. The data
-        stay on the device; the iterate and the polish on the host.
+        Where the operator's transforms run (:mod:`~napari_psfspace.core.common.device`;
+        "auto": the GPU where CuPy sees one); the iterate and the polish stay on the host.
 
     Yields
     ------
@@ -291,6 +284,37 @@ def iter_deblur(
         ``parameters["device"]`` says where the transforms ran.
     """
     t0 = time.perf_counter()
+    am, y, max_iter, saturation, grid, censored, n_saturated, eps = _checked_inputs(
+            image, operator, grid_step, model_error, max_iter, tol, saturation, device)
+    sigma, g2, gmap, compression, n_kernels, operator, g1 = _weights(
+            operator, sparse_weight, smooth_weight, compression, y, grid, eps)
+    lips, search, active, solver, data_gradient, gradient, prox_smooth = yield from _solver(
+            operator, tol, polish, workers, am, y, grid, censored, eps, g2, gmap)
+    polish_info, converged, objective, iterations, w, u1 = yield from _polish_stage(
+            operator, max_iter, tol, polish, y, grid, censored, gmap, active, solver,
+            data_gradient)
+    params = _parameters(operator, max_iter, tol, debias, saturation, compression, am,
+                         grid, n_saturated, eps, sigma, g2, n_kernels, g1, lips, search,
+                         solver, polish_info)
+    if debias and u1.any():
+        u1, w = yield from _refit_amplitudes(u1, w, gradient, prox_smooth, lips, tol, min(
+            int(max_iter), DEBIAS_MAX_ITER), workers, params)
+    u2 = grid.synthesis(w)
+    if am.gpu:  # the kernels' spectra and maps go back to the device
+        operator.release()
+        search.release()
+    params["seconds"] = round(time.perf_counter() - t0, 3)
+    refit = params.get("debias_iterations")
+    yield Progress("deblur", 1.0, f"{iterations} iterations" + (
+        "" if refit is None else f" + {refit} to refit the amplitudes"))
+    return Deblurred(u1.astype(np.float32), u2.astype(np.float32), objective, iterations,
+                     converged, params)
+
+
+def _checked_inputs(image, operator, grid_step, model_error, max_iter, tol, saturation, device):
+    """The image in float32, the device, the background's grid, the saturated pixels and the model
+    error; one clear line for a bad value before any work.
+    """
     check_instance(operator, ProductConvolution, "operator",
                    "A family (OperatorFamily) gives its operator for an image with "
                    "identify_operator(image, family).")
@@ -325,6 +349,13 @@ def iter_deblur(
     eps = model_error_of(operator) if model_error is None else float(model_error)
     if not (np.isfinite(eps) and eps >= 0):
         raise ValueError(f"`model_error` must be >= 0, got {model_error!r}")
+    return am, y, max_iter, saturation, grid, censored, n_saturated, eps
+
+
+def _weights(operator, sparse_weight, smooth_weight, compression, y, grid, eps):
+    """The sparse weight map, its median, the smoothness weight and the operator compressed as
+    asked.
+    """
     gmap, g2, sigma = default_weights(y, operator, grid.step, model_error=eps)
     if compression is None:
         compression = COMPRESSION * eps
@@ -343,6 +374,13 @@ def iter_deblur(
         if not (np.isfinite(smooth_weight) and smooth_weight >= 0):
             raise ValueError(f"`smooth_weight` must be >= 0, got {smooth_weight!r}")
         g2 = float(smooth_weight)
+    return sigma, g2, gmap, compression, n_kernels, operator, g1
+
+
+def _norm_bound(operator, workers, am):
+    """``||H||^2`` by power iteration with the safety margin; one application of ``H^T H`` between
+    yields (cancellable).
+    """
     yield Progress("setup", 0.0, "estimating ||H||")
     norm = iter_operator_norm2(operator, workers=workers, device=am)
     while True:  # one application of H^T H between yields: cancellable
@@ -353,6 +391,13 @@ def iter_deblur(
             break
         yield Progress("setup", 0.0, f"estimating ||H||: power iteration {it}, "
                                      f"||H||^2 >= {value:.4g}")
+    return h2
+
+
+def _solver(operator, tol, polish, workers, am, y, grid, censored, eps, g2, gmap):
+    """The block FISTA over the sparse part and the background's grid, its steps from
+    ``||H||^2``; started with no source and the background at the image's median."""
+    h2 = yield from _norm_bound(operator, workers, am)
     pen = g2 / grid.step ** 2  # gamma2 ||Lap u2||^2 = pen ||L w||^2
     c = BLOCK_SPLIT  # ||H(a + b)||^2 <= (1 + c) ||H a||^2 + (1 + 1/c) ||H b||^2
     lips = [(1.0 + c) * h2, (1.0 + 1.0 / c) * h2 * grid.norm2() + 2.0 * pen * 64.0]
@@ -402,6 +447,14 @@ def iter_deblur(
     level = max(float(np.median(y)), 0.0)
     solver.setup([np.zeros(y.shape, np.float32),
                   np.full(grid.grid_shape, level, np.float32)])
+    return lips, search, active, solver, data_gradient, gradient, prox_smooth
+
+
+def _polish_stage(operator, max_iter, tol, polish, y, grid, censored, gmap, active, solver,
+                  data_gradient):
+    """With ``polish``: FISTA until the support is found, then coordinate descent on it; back to
+    FISTA to ``tol`` if pixels off the support want in.
+    """
     polish_info = None
     # with ``polish``: FISTA until the support is found, then coordinate descent on it
     converged = yield from _iterate(solver, max_iter, max(tol, POLISH_AFTER) if polish
@@ -436,6 +489,12 @@ def iter_deblur(
             iterations += solver.iterations
             objective += solver.objective
             u1, w = solver.finalize()
+    return polish_info, converged, objective, iterations, w, u1
+
+
+def _parameters(operator, max_iter, tol, debias, saturation, compression, am, grid, n_saturated,
+                eps, sigma, g2, n_kernels, g1, lips, search, solver, polish_info):
+    """The run's parameters as recorded in ``Deblurred.parameters``."""
     params = {"sparse_weight": g1, "model_error": eps, "smooth_weight": g2,
               "grid_step": grid.step,
               "noise_sd": sigma, "lipschitz": lips, "tol": float(tol),
@@ -447,20 +506,7 @@ def iter_deblur(
               "search_kernels": int(search.n_psf), "device": am.name}
     if polish_info is not None:
         params["polish"] = polish_info
-    if debias and u1.any():
-        u1, w = yield from _refit_amplitudes(u1, w, gradient, prox_smooth, lips, tol,
-                                             min(int(max_iter), DEBIAS_MAX_ITER), workers,
-                                             params)
-    u2 = grid.synthesis(w)
-    if am.gpu:  # the kernels' spectra and maps go back to the device
-        operator.release()
-        search.release()
-    params["seconds"] = round(time.perf_counter() - t0, 3)
-    yield Progress("deblur", 1.0, f"{iterations} iterations"
-                   + (f" + {params['debias_iterations']} to refit the amplitudes"
-                      if "debias_iterations" in params else ""))
-    return Deblurred(u1.astype(np.float32), u2.astype(np.float32), objective,
-                     iterations, converged, params)
+    return params
 
 
 def _refit_amplitudes(u1: np.ndarray, w: np.ndarray, gradient: Callable,
