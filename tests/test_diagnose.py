@@ -151,7 +151,7 @@ def test_assumed_noise_model_chi_square_does_not_decide(monkeypatch):
     -1.1 %, excess chi-square -7 %). Here the comparison is made to say exactly that
     (the excess chi-square drops by 30 %, p = 0, the error does not move): the effect is
     not kept under the fallback, and is kept when the camera's values are given."""
-    from napari_psfspace.core.diagnosis import loop
+    from napari_psfspace.core.diagnosis import rounds
     from napari_psfspace.core.diagnosis.effects import REGISTRY
     from napari_psfspace.core.diagnosis.effects.nonlinearity import Nonlinearity, _dark_level
     from napari_psfspace.core.simulation.scene_set import random_scene
@@ -167,14 +167,14 @@ def test_assumed_noise_model_chi_square_does_not_decide(monkeypatch):
             x_ref = float(np.max(ctx.image[~ctx.pixel_mask]) - offset)
             return {"c": -0.1, "x_ref_adu": x_ref, "offset_adu": offset}
 
-    real = loop.compare
+    real = rounds.compare
 
     def chi2_only(before, after, noise, **kw):
         out = real(before, after, noise, **kw)
         return {**out, "error_after": out["error_before"], "improvement": 0.0,
                 "p_no_drop": 1.0, "chi2_improvement": 0.3, "chi2_p_no_drop": 0.0}
 
-    monkeypatch.setattr(loop, "compare", chi2_only)
+    monkeypatch.setattr(rounds, "compare", chi2_only)
     REGISTRY["_test_nonlinearity"] = Forced
     try:
         image, truth, p = random_scene(5)

@@ -36,46 +36,37 @@
 from __future__ import annotations
 
 from collections.abc import Generator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
-from ..beads.centering import refine_centers
 from ..beads.detect import (
     DETECTION_ADVICE,
     GIVEN_ADVICE,
     Beads,
-    detect_beads,
-    flag_unusable,
     require_kept,
 )
-from ..beads.noise import NoiseModel, noise_model
 from ..beads.saturation import saturation_record
 from ..beads.spikes import spike_mask
-from ..common.progress import Progress, check_halt
-from ..common.spacing import bead_border, centring_sigma
+from ..common.progress import Progress
 from ..common.threads import blas_threads
 from ..common.twins import drained
 from ..common.validate import as_array, as_image, check_camera, check_psf_radius
-from ..model.estimate import check_bead_diameter, hot_pixel_record, iter_estimate
+from ..model.estimate import check_bead_diameter, hot_pixel_record
 from ..model.operator import ProductConvolution
-from .acceptance import (
-    accept_effect,
-    evident_tests,
-    kept_by_own_test,
-    next_effect,
-    own_statistic,
-)
-from .analysis import Analysis, analyse
-from .bead_tests import bead_flux
-from .comparison import compare, paired_errors
-from .corrections import hot_pixel_step, motion_step, spike_count
-from .crossfit import CrossFit, iter_crossfit
-from .effects import REGISTRY, Context, Effect
+from .analysis import Analysis
+from .crossfit import CrossFit
+from .effects import REGISTRY, Context
 from .metric import HeldoutError
-from .photometry import (
-    fit_throughput,
-    throughput_map,
+from .rounds import (
+    baseline_round,
+    effect_rounds,
+    evaluate,
+    final_round,
+    hot_pixel_round,
+    noise_model_with_source,
+    prepare_beads,
 )
 from .steps import Step
 
@@ -83,6 +74,11 @@ from .steps import Step
 #: each fold, their model images and residuals), as float32 images with a margin: its
 #: memory is checked first.
 DIAGNOSE_IMAGES = 32
+
+#: The figures of a diagnosis as a whole, from the first model's and the last one's
+#: held-out residuals on the same beads (:func:`~.comparison.paired_errors`).
+FIGURES = ("error_before", "error_after", "chi2_before", "chi2_after", "noise_floor",
+           "n_beads")
 
 #: Fewest usable beads a diagnosis runs on; below ``2 folds`` beads it holds out one bead
 #: at a time (leave-one-bead-out).
@@ -176,77 +172,6 @@ class Diagnosis:
         }
 
 
-def prepare_beads(image: np.ndarray, psf_radius: float, *, threshold: float = 8.0,
-                  beads: Beads | None = None) -> Beads:
-    """Detected beads (or a copy of ``beads``: the user's table, whose statuses, such as
-    the beads rejected by hand, are kept) with sub-pixel centres and their status (kept,
-    border, ...)."""
-    if beads is None:
-        beads = detect_beads(image, psf_radius, threshold=threshold)
-    else:
-        beads = Beads(np.array(beads.positions, float), np.array(beads.response, float),
-                      np.array(beads.status), np.array(beads.amplitude, float),
-                      None if beads.hot_pixels is None else np.array(beads.hot_pixels))
-    img = beads.clean_image(as_image(image))
-    kept = beads.kept
-    beads.positions[kept] = refine_centers(img, beads.positions[kept],
-                                           sigma=centring_sigma(psf_radius),
-                                           half=int(np.ceil(psf_radius)))
-    flag_unusable(beads, img, psf_radius, saturation=None,
-                  border=bead_border(psf_radius))
-    return beads
-
-
-def noise_model_with_source(image, gain, offset, read_noise, mask=None) -> tuple[NoiseModel, str]:
-    noise = noise_model(image, mask=mask, gain=gain, offset=offset, read_noise=read_noise)
-    source = {"camera": "camera values given", "photon transfer": "photon transfer on the image"
-              }.get(noise.kind, f"{noise.kind} (fallback: {noise.note})")
-    return noise, source
-
-
-def forward(gen, stage: str, fraction: float):
-    """Run a sub-generator, passing its messages on at ``fraction`` (each of its yields is
-    a point to cancel at); return its value."""
-    while True:
-        try:
-            p = next(gen)
-        except StopIteration as done:
-            return done.value
-        yield Progress(stage, fraction, p.message)
-
-
-def final_operator(operator: ProductConvolution, ctx: Context, cf: CrossFit,
-                   added: list[str], total: dict) -> ProductConvolution:
-    """The refined operator with the diagnosis in its metadata: the reference bead size
-    when the bead-size effect was kept, and the throughput (vignetting) fitted on the
-    last cross-fit's photometric beads folded into its maps."""
-    def finite(v):
-        return float(v) if np.isfinite(v) else None
-
-    shape = ctx.image.shape
-    meta = {**operator.metadata, "diagnosis": {"added": added,
-                                               "error_before": finite(total["error_before"]),
-                                               "error_after": finite(total["error_after"]),
-                                               "noise_floor": finite(total["noise_floor"]),
-                                               "n_beads": total["n_beads"]}}
-    coefficients = operator.coefficients
-    if "bead_size" in ctx.params:  # the PSFs are those of a bead of the reference size
-        meta["bead_size"] = {"d_ref_px": ctx.params["bead_size"].get("d_ref_px")}
-    if ctx.throughput_degree > 0:
-        res = cf.residuals
-        use = res.photometric
-        tcoef = fit_throughput(res.positions[use], res.amplitude[use], shape,
-                               degree=ctx.throughput_degree)
-        grid = operator.grid
-        gy, gx = grid if grid is not None else (np.arange(shape[0]), np.arange(shape[1]))
-        coefficients = coefficients * throughput_map(tcoef, gy, gx, shape)[None]
-        meta["throughput"] = {"model": "exp(polynomial of u, v)", "degree":
-                              ctx.throughput_degree, "coefficients": tcoef.tolist(),
-                              "normalisation": "mean over the field = 1"}
-    return ProductConvolution(operator.basis, coefficients, shape=operator.image_shape,
-                              grid=operator.grid, metadata=meta)
-
-
 @blas_threads
 def iter_diagnose(
     image,
@@ -283,39 +208,29 @@ def iter_diagnose(
     gain, offset, read_noise : float, optional
         Camera values (ADU/e-, ADU, e-); default: photon transfer on the image.
     folds : int
-        Cross-fitting folds (5: each fold is a spatially spread 20 % hold-out). With
-        fewer than ``2 folds`` usable beads (but at least :data:`MIN_BEADS`), each bead
-        is held out on its own (leave-one-bead-out).
+        Cross-fitting folds, each a spatially spread hold-out; below ``2 folds`` usable
+        beads (and at least :data:`MIN_BEADS`), one bead at a time (leave-one-bead-out).
     effects : sequence of str, optional
-        Effects to consider (default: all of
-        :data:`~napari_psfspace.core.diagnosis.effects.REGISTRY`).
+        Effects to consider (default: all of :data:`~.effects.REGISTRY`).
     max_steps : int
         Most effects tried.
     min_improvement : float
         Smallest relative drop of the held-out error for an effect to be kept.
     evident_improvement : float
-        The smallest drop instead, for an effect whose own residual test is significant
-        (evidence > 1; those tried only while exploring need ``min_improvement``).
+        The smallest drop instead for an effect whose own residual test is significant.
     max_p : float
         Largest bootstrap probability that the error did not drop.
     n_psf, smoothing : optional
-        The model to diagnose: basis size and thin-plate smoothing (default: chosen from
-        the beads, as :func:`~napari_psfspace.core.model.estimate.estimate_operator` does).
+        The model's basis size and thin-plate smoothing (default: chosen from the beads).
     bead_diameter : float
-        The beads' diameter in pixels, when known (0: point sources). Beads are judged on
-        their own images; the refined operator has the sphere divided out (as
-        :func:`~napari_psfspace.core.model.estimate.estimate_operator` does), and the
-        bead-size effect takes it for the median bead's diameter.
+        The beads' diameter in pixels when known (0: point sources); the refined operator
+        has the sphere divided out, the bead-size effect takes it for the median bead's.
     remove_motion : bool
-        Motion blur is looked for in the final model and reported (``metadata["motion"]``;
-        it is common to every bead, so no held-out error can see it); True divides the
-        smear found out of the refined operator's PSFs
-        (:func:`~napari_psfspace.core.model.estimate.estimate_operator`).
+        Divide the motion smear found in the final model out of its PSFs (it is reported
+        either way, ``metadata["motion"]``: no held-out error sees a smear every bead has).
     explore : float
-        While a residual common to the beads is left (``mean_residual`` or
-        ``coherent_residual`` significant) and the held-out error exceeds 1.5 times the
-        noise floor, effects with evidence above this fraction of their threshold are
-        tried too (kept only by the same rule); 0 tries significant evidence only.
+        While a residual common to the beads stays far above the noise, effects with
+        evidence above this fraction of their threshold are tried too (module docstring).
     beads : Beads, optional
         The user's bead table (e.g. edited in napari: beads rejected by hand keep that
         status and are not used); None detects them at ``threshold``.
@@ -333,7 +248,36 @@ def iter_diagnose(
     raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, dtype=np.float64, copies=DIAGNOSE_IMAGES)
     r = check_psf_radius(psf_radius, img.shape)
-    bead_diameter = check_bead_diameter(bead_diameter, r)
+    camera, names, candidates, bead_diameter = _checked(gain, offset, read_noise, folds,
+                                                        effects, bead_diameter, r)
+    ctx, beads, options, noise_source = _prepare(
+        raw, img, r, beads, folds, camera, names, threshold=threshold, n_psf=n_psf,
+        smoothing=smoothing, bead_diameter=bead_diameter, min_improvement=min_improvement,
+        evident_improvement=evident_improvement, max_p=max_p, explore=explore,
+        max_steps=max_steps, remove_motion=remove_motion)
+    yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
+    run = partial(evaluate, psf_radius=r, folds=options["folds"])
+    ctx, cf, an, held, steps, judge = yield from baseline_round(ctx, run, noise_source)
+    if _baseline_only:
+        return held
+    ctx, cf, an, masked = yield from hot_pixel_round(ctx, cf, an, raw, img, judge, steps, run)
+    first_cf, first_an = cf, an
+    ctx, cf, an = yield from effect_rounds(
+        ctx, cf, an, candidates, judge, steps, run, max_steps=max_steps, max_p=max_p,
+        min_improvement=min_improvement, evident_improvement=evident_improvement,
+        explore=explore)
+    total, op = yield from final_round(ctx, cf, first_cf, judge, steps,
+                                       bead_diameter=bead_diameter, remove_motion=remove_motion)
+    options["saturation"] = saturation_record(raw, beads, r, None)
+    return Diagnosis(steps=steps, **{k: total[k] for k in FIGURES}, operator=op, context=ctx,
+                     analysis_before=first_an, analysis_after=an, crossfit_before=first_cf,
+                     crossfit_after=cf, noise_source=noise_source, options=options,
+                     masked_pixels=masked, heldout=held)
+
+
+def _checked(gain, offset, read_noise, folds, effects, bead_diameter, r) -> tuple:
+    """The camera's gain, offset and read noise (all or none measured), the effects'
+    names and a fresh instance of each, the beads' diameter; ``folds`` checked."""
     gain, offset, read_noise, _ = check_camera(gain, offset, read_noise)
     if gain is None and (offset is not None or read_noise is not None):
         raise ValueError("`offset` and `read_noise` describe the camera with `gain`: give "
@@ -346,8 +290,15 @@ def iter_diagnose(
     unknown = [n for n in names if n not in REGISTRY]
     if unknown:
         raise ValueError(f"Unknown effect(s) {unknown}; known: {sorted(REGISTRY)}.")
-    candidates: list[Effect] = [REGISTRY[n]() for n in names]
+    return ((gain, offset, read_noise), names, [REGISTRY[n]() for n in names],
+            check_bead_diameter(bead_diameter, r))
 
+
+def _prepare(raw, img, r, beads, folds, camera, names, *, threshold, n_psf, smoothing,
+             bead_diameter, **settings):
+    """The context the loop starts from (the beads, detected or the user's table, their
+    hot pixels masked, the noise model), the beads and the options as run: the folds
+    (one bead at a time below ``2 folds`` beads) and ``settings`` in the record's order."""
     given = beads is not None
     beads = prepare_beads(raw, r, threshold=threshold, beads=beads)
     n_kept = int(np.count_nonzero(beads.kept))
@@ -357,154 +308,19 @@ def iter_diagnose(
                      advice=GIVEN_ADVICE if given else DETECTION_ADVICE)
         folds = n_kept
     hot = spike_mask(img.shape, beads.hot_pixels)
-    recorded = img
     img = beads.clean_image(img)
-    noise, noise_source = noise_model_with_source(raw, gain, offset, read_noise, mask=hot)
+    noise, noise_source = noise_model_with_source(raw, *camera, mask=hot)
     model = {k: v for k, v in (("n_psf", n_psf), ("smoothing", smoothing)) if v is not None}
     ctx = Context(image=img, pixel_mask=hot, beads=beads, noise=noise,
-                  psf_radius=r, noise_from_image=gain is None, estimate_kwargs=model,
+                  psf_radius=r, noise_from_image=camera[0] is None, estimate_kwargs=model,
                   bead_diameter=bead_diameter)
-    yield Progress("prepare", 0.05, f"{beads.summary()}; noise model: {noise_source}")
-
-    def evaluate(c: Context, stage: str, fraction: float):
-        cf = yield from forward(iter_crossfit(c.image, c.beads, c.noise, psf_radius=r,
-                                              folds=folds, estimate_kwargs=c.estimate_kwargs,
-                                              fit_kwargs={**c.fit_kwargs,
-                                                          "pixel_mask": c.pixel_mask}),
-                                stage, fraction)
-        check_halt()
-        an = analyse(cf.residuals, c.image, c.noise, psf_radius=r,
-                     all_positions=c.beads.positions)
-        for name in ("secondary_peaks", "elongated_beads"):
-            sp = an.tests.get(name)
-            if sp is not None:  # residual entries -> bead table indices
-                sp.detail["bead_index"] = cf.bead_index[
-                    np.asarray(sp.detail["beads"], int)].tolist()
-        return cf, an
-
-    cf, an = yield from evaluate(ctx, "baseline", 0.1)
-    ctx = ctx.with_effect("_model", cf.model_meta) if cf.model_meta else ctx
-    first_cf, first_an = cf, an
-    # every figure of the diagnosis is a mean over the plain model's informative beads
-    # (those each compared model judges too): the figures of successive steps chain
-    informative = bool(cf.residuals.informative.any())  # else every bead, as summary()
-    reference = cf.bead_index[cf.residuals.informative] if informative else cf.bead_index
-    base = paired_errors(cf, cf, noise, reference, informative=informative)
-    steps = [Step(effect=None, evidence=0.0, tests=[t.name for t in an.significant()],
-                  error_before=base["error_before"], error_after=base["error_before"],
-                  chi2_before=base["chi2_before"], chi2_after=base["chi2_before"],
-                  improvement=0.0, p_no_drop=1.0, accepted=True,
-                  params={"n_beads": base["n_beads"]})]
-    held = HeldoutError(base["error_before"], base["noise_floor"], base["chi2_before"],
-                        base["n_beads"], noise_source)
-    yield Progress("baseline", 0.2, f"{held.line()}; misfit / noise {held.chi2_dof:.3g}")
-    if _baseline_only:
-        return held
-    if hot.any():  # the masking at detection, as a step: the image as recorded before
-        raw_ctx = replace(ctx, image=recorded, pixel_mask=np.zeros_like(hot))
-        raw_cf, raw_an = yield from evaluate(raw_ctx, "hot pixels", 0.15)
-        step = hot_pixel_step(raw_cf, cf, noise, reference, informative=informative,
-                              spikes_before=len(beads.hot_pixels),
-                              spikes_after=spike_count(img, raw))
-        steps.append(step)
-        if not step.accepted:  # the recorded image it is
-            ctx, cf, an = raw_ctx, raw_cf, raw_an
-            first_cf, first_an = cf, an
-        yield Progress("hot pixels", 0.2, f"{step.params['count']} hot pixel(s): error "
-                       f"{step.error_before:.4g} -> {step.error_after:.4g}, "
-                       f"{'masked' if step.accepted else 'left'}")
-    tried: set[str] = set()
-    for k in range(max_steps):
-        chosen = next_effect(candidates, tried, ctx, cf, an, explore)
-        if chosen is None:
-            break
-        ev, eff = chosen
-        tried.add(eff.name)
-        try:
-            check_halt()
-            params = eff.fit(ctx, an)
-            check_halt()
-            new_ctx = eff.apply(ctx, params)
-            new_cf, new_an = yield from evaluate(new_ctx, "effect",
-                                                 min(0.9, 0.2 + 0.1 * k))
-        except ValueError as exc:  # e.g. too few beads left to learn from: not kept
-            s0 = paired_errors(cf, cf, ctx.noise, reference, informative=informative)
-            steps.append(Step(effect=eff.name, evidence=float(ev), tests=evident_tests(eff, an),
-                              error_before=s0["error_before"], error_after=s0["error_before"],
-                              chi2_before=s0["chi2_before"], chi2_after=s0["chi2_before"],
-                              improvement=float("nan"), p_no_drop=1.0, accepted=False,
-                              params={"_error": str(exc), "n_beads": s0["n_beads"]}))
-            yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
-                           f"{eff.name}: could not be applied ({exc}), rejected")
-            continue
-        throughput = (ctx.throughput_degree, new_ctx.throughput_degree)
-        flux = (bead_flux(new_ctx.image, new_cf.residuals.positions, r)
-                if throughput[0] != throughput[1] else None)
-        cmp = compare(cf, new_cf, new_ctx.noise, shape=img.shape, throughput=throughput,
-                       flux=flux, reference=reference, informative=informative)
-        ok = accept_effect(cmp, new_ctx.noise.kind, ev, min_improvement=min_improvement,
-                           evident_improvement=evident_improvement, max_p=max_p)
-        own = own_statistic(eff, an, new_an, new_ctx, new_cf)
-        by_own = not ok and kept_by_own_test(eff, own, cmp, new_ctx.noise.kind,
-                                             min_improvement=min_improvement)
-        ok = ok or by_own
-        # the step's figures are the decision's: the model before and after it on the
-        # same beads (the plain model's informative beads both judge), so that before,
-        # after and the drop are one quantity and each step starts where the last kept
-        # one ended
-        err0, err1 = cmp["error_before"], cmp["error_after"]
-        steps.append(Step(effect=eff.name, evidence=float(ev), tests=evident_tests(eff, an),
-                          error_before=err0, error_after=err1,
-                          chi2_before=cmp["chi2_before"], chi2_after=cmp["chi2_after"],
-                          improvement=float(cmp["improvement"]), p_no_drop=cmp["p_no_drop"],
-                          accepted=ok,
-                          params={**new_ctx.params.get(eff.name, params), "_comparison": cmp,
-                                  **({"_kept_by": "its own test"} if by_own else {})},
-                          statistic=own))
-        if ok:
-            ctx, cf, an = new_ctx, new_cf, new_an
-            if cf.model_meta:
-                ctx = ctx.with_effect("_model", cf.model_meta)
-        drop = ("not compared: " + cmp["note"].split(": ", 1)[-1] if "note" in cmp
-                else f"{-100 * cmp['improvement']:+.1f} %, excess chi2 "
-                     f"{-100 * cmp['chi2_improvement']:+.1f} %")
-        yield Progress("effect", min(0.9, 0.2 + 0.1 * (k + 1)),
-                       f"{eff.name}: error {err0:.4g} -> {err1:.4g} on {cmp['n_beads']} "
-                       f"beads ({drop}), {'kept' if ok else 'rejected'}")
-
-    # the final operator: a point source's PSFs when the beads' size is known (the
-    # nominal one, which the bead-size effect then takes for the median bead's); its
-    # held-out split, as the Model step's, measures its error for the deblur's weights
-    # and compression (without it a deblur took the model for exact)
-    est = yield from forward(iter_estimate(ctx.image, psf_radius=r, beads=ctx.beads,
-                                           holdout=0.2, bead_diameter=bead_diameter,
-                                           remove_motion=remove_motion,
-                                           **ctx.estimate_kwargs), "final", 0.95)
-    total = paired_errors(first_cf, cf, ctx.noise, reference, informative=informative)
-    motion = est.operator.metadata.get("motion") or {}
-    if motion.get("detected"):  # a smear common to every bead, as a step of its own
-        steps.append(motion_step(motion, bool(remove_motion), total["error_after"],
-                                 total["chi2_after"], total["n_beads"]))
-    added = [s.effect for s in steps if s.effect and s.accepted]
-    op = final_operator(est.operator, ctx, cf, added, total)
-    yield Progress("final", 1.0, f"added: {', '.join(added) or 'nothing'}")
-    masked = None if any(s.effect == "hot_pixels" and not s.accepted for s in steps) \
-        else beads.hot_pixels
     options = {"folds": folds, "leave_one_bead_out": folds == n_kept,
-               "min_improvement": min_improvement,
-               "evident_improvement": evident_improvement, "max_p": max_p,
-               "explore": explore, "n_psf": n_psf, "smoothing": smoothing,
-               "max_steps": max_steps, "threshold": threshold, "psf_radius": r,
-               "bead_diameter": bead_diameter, "remove_motion": remove_motion,
-               "effects": names,
-               "saturation": saturation_record(raw, beads, r, None)}
-    return Diagnosis(steps=steps, error_before=total["error_before"],
-                     error_after=total["error_after"], chi2_before=total["chi2_before"],
-                     chi2_after=total["chi2_after"], noise_floor=total["noise_floor"],
-                     operator=op, context=ctx, analysis_before=first_an, analysis_after=an,
-                     crossfit_before=first_cf, crossfit_after=cf, noise_source=noise_source,
-                     options=options, masked_pixels=masked,
-                     n_beads=total["n_beads"], heldout=held)
+               **{k: settings[k] for k in ("min_improvement", "evident_improvement", "max_p",
+                                           "explore")},
+               "n_psf": n_psf, "smoothing": smoothing, "max_steps": settings["max_steps"],
+               "threshold": threshold, "psf_radius": r, "bead_diameter": bead_diameter,
+               "remove_motion": settings["remove_motion"], "effects": names}
+    return ctx, beads, options, noise_source
 
 
 def iter_heldout_error(image, *, psf_radius: float, **kwargs
