@@ -233,7 +233,30 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
              f"{len(d.crossfit_before.residuals)} beads judged by models that did not see "
              "them (cross-fitting).", "", "## What was found", ""]
     v = d.verdict
-    lines += [f"**{v.headline}**", ""]
+    lines += _found(d, descr)
+    lines += model_lines(d.operator.metadata)
+    lines += ["", fwhm_line(field_fwhm(d.operator), px,
+                               one_psf=one_psf_note(d.operator.metadata)) + "."]
+    lines += _notes(d)
+    ratio = v.ratio
+    lines += ["", f"Noise alone would leave an error of {_num(d.noise_floor)} (the noise "
+                  f"floor): the final model's error is {_num(ratio, '.3g')} times the floor"
+                  + (" (it explains everything but the noise)." if v.level == "explained"
+                     else " (what is left above it is not explained by any candidate "
+                          "effect).")
+                  + floor_caveat(d.context.noise, ratio),
+              "", "## Residual tests", ""]
+    lines += _tests_section(d.analysis_before, "Plain model")
+    lines += _tests_section(d.analysis_after, "Final model")
+    lines += _steps_section(d)
+    lines += _appendix(fig, d)
+    return "\n".join(lines)
+
+
+def _found(d, descr):
+    """What was found: the verdict, its hints, and the effects added (or why none was)."""
+    v = d.verdict
+    lines = [f"**{v.headline}**", ""]
     if v.hints:
         lines += ["What to look at:", "", *[f"- {h}" for h in v.hints], ""]
     drop = (1 - d.error_after / d.error_before) if d.error_before else float("nan")
@@ -261,9 +284,12 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
         lines.append(f"{head}: {why}; the plain model is kept.")
         lines += ["", f"Held-out error {_num(d.error_after)} on {d.n_beads} beads; "
                       f"chi-square per degree of freedom {_num(d.chi2_after, '.3g')}."]
-    lines += model_lines(d.operator.metadata)
-    lines += ["", fwhm_line(field_fwhm(d.operator), px,
-                               one_psf=one_psf_note(d.operator.metadata)) + "."]
+    return lines
+
+
+def _notes(d):
+    """Motion blur, vignetting, leave-one-bead-out and hot pixels, where they apply."""
+    lines = []
     motion = d.operator.metadata.get("motion") or {}
     if motion and not motion.get("detected") and not motion.get("note"):
         lines += ["", "**Motion blur**: " + str(motion.get("reason", "not tested")) + "."]
@@ -288,16 +314,12 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
                       "(hot pixels, cosmic rays: a bright pixel, or two, on a dark "
                       "neighbourhood) were masked before anything was fitted; their "
                       "positions are in `report.json` (`hot_pixels`)."]
-    ratio = v.ratio
-    lines += ["", f"Noise alone would leave an error of {_num(d.noise_floor)} (the noise "
-                  f"floor): the final model's error is {_num(ratio, '.3g')} times the floor"
-                  + (" (it explains everything but the noise)." if v.level == "explained"
-                     else " (what is left above it is not explained by any candidate "
-                          "effect).")
-                  + floor_caveat(d.context.noise, ratio),
-              "", "## Residual tests", ""]
-    lines += _tests_section(d.analysis_before, "Plain model")
-    lines += _tests_section(d.analysis_after, "Final model")
+    return lines
+
+
+def _steps_section(d):
+    """How each step is judged, and the steps' table."""
+    lines = []
     lines += ["## Steps", "",
               "Each candidate effect, strongest evidence first, was added and the beads "
               "judged again; it is kept when the held-out error (or the excess chi-square "
@@ -311,6 +333,12 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "drop is that of the beads' chi2/dof - 1, each winsorised at the 95th "
               "percentile, against at least its own uncertainty.", "",
               *_md_table(STEP_COLUMNS, steps_table(d)), ""]
+    return lines
+
+
+def _appendix(fig, d):
+    """The noise model, the figures and the terms."""
+    lines = []
     lines += ["## Noise model", "", noise_text(d.context.noise), "",
               "## Figures", "",
               f"Residual maps: each bead's held-out excess error (relative residual energy "
@@ -342,7 +370,7 @@ def report_markdown(diagnosis, run: dict, fig: dict) -> str:
               "- *p*: bootstrap probability over beads that the error did not drop.", "",
               "Every number is in `report.json` (fields documented in napari-psfspace's "
               "`docs/report-format.md`).", ""]
-    return "\n".join(lines)
+    return lines
 
 
 __all__ = ["floor_caveat", "model_lines", "noise_text", "own_test_text", "report_markdown",

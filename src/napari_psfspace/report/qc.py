@@ -194,70 +194,18 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
     c_px = {k: centre_value(positions, direct[k], (h, w)) for k in model_px}
     c_nm, _ = in_units(c_px, voxel_size)
     ys, xs, maps = measure_maps(op, 8, 8)
-    lam = wavelength_nm / 1000.0 if wavelength_nm else None
-    index, index_from = immersion_index, "given"
-    if na and not index:
-        index, index_from = assumed_immersion(na), "assumed from the NA"
-    theory = None
-    if na and lam:
-        abbe = diffraction_limit(na, lam, refractive_index=index)
-        theory = {"abbe": {"lateral_nm": _f(abbe["lateral"] * 1000),
-                           "axial_nm": _f(abbe["axial"] * 1000)}}
-        if voxel_size is not None:
-            theory["pupil_psf"] = pupil_theory(na, lam, index, voxel_size)
+    lam, index_from, index, theory = _theory(voxel_size, na, wavelength_nm, immersion_index)
     patches = estimation.patches.subset(inl)
     surface = meta.get("focal_surface") or {}
-    checks = []
-    ref = (theory or {}).get("pupil_psf") or (theory or {}).get("abbe")
-    lat_nm = c_nm["fwhm_lateral"] if voxel_size is not None else None
-    ax_nm = c_nm["fwhm_axial"] if voxel_size is not None else None
-    if ref and lat_nm is not None:
-        checks.append(_check("lateral FWHM / theory", lat_nm / ref["lateral_nm"],
-                             tol["lateral_ratio"], "", "the PSF at the field's centre "
-                             "against the theoretical one"))
-        checks.append(_check("axial FWHM / theory", ax_nm / ref["axial_nm"],
-                             tol["axial_ratio"], "", "the same along the axis"))
-    checks.append(_check("ellipticity", c_px["ellipticity"], tol["ellipticity"], "",
-                         "1 - minor / major width at the field's centre"))
-    rise = surface_rise(estimation.surface)
-    if np.isfinite(c_px["fwhm_axial"]) and c_px["fwhm_axial"] > 0:
-        checks.append(_check("focal surface rise / axial FWHM", rise / c_px["fwhm_axial"],
-                             tol["field_flatness"], "", "how far focus moves over the "
-                             "field (peak to valley of the focal surface through the "
-                             "beads' foci) against the depth of focus"
-                             + ("" if np.isfinite(rise) else
-                                "; not judged: too few beads to fit a tilt")))
-    warnings = _nyquist(na, lam, index or 1.0, voxel_size, c_px)
-    warnings += _saturation(meta, meta.get("image_dtype", "float32"), float(np.max(stack)))
-    if meta.get("field_model") == "shift-invariant":
-        warnings.append("one PSF for the whole field: " + meta.get("field_model_reason", ""))
-    status = estimation.beads.status
-    refused = [{"row": _f(p[0], 2), "col": _f(p[1], 2), "status": str(s),
-                "reason": STATUS_MEANING.get(str(s), str(s))}
-               for p, s in zip(estimation.beads.positions, status, strict=True) if s != KEPT]
-    refused.sort(key=lambda x: (x["status"], x["row"] or 0.0, x["col"] or 0.0))
-    held = meta.get("heldout") or {}
-    if held.get("n_beads"):
-        verdict = (f"on {held['n_beads']} held-out beads the model's residual is "
-                   f"{held['residual_median']:.3f}, {held['over_floor']:.2f}x their noise "
-                   f"floor; one 3D PSF for the field leaves {held['single_median']:.3f}: "
-                   + ("the field model is kept" if held.get("field_wins")
-                      else "one PSF is kept"))
-    else:
-        verdict = "not scored on held-out beads (fewer than 10 beads)"
+    checks = _checks(estimation, voxel_size, tol, c_px, c_nm, theory)
+    warnings, status, refused = _warnings_and_refused(
+            estimation, stack, voxel_size, na, meta, c_px, lam, index)
+    held, verdict = _model_verdict(meta)
 
     def in_nm(name):
         return _f(c_nm[name]) if voxel_size is not None and units[name] == "nm" else None
 
-    field = {}
-    for name, arr in maps.items():
-        seen = arr[np.isfinite(arr)]  # none: a measure the field does not allow
-        vals, u = in_units({name: float(np.median(seen)) if seen.size else np.nan},
-                           voxel_size)
-        lo, _ = in_units({name: float(seen.min()) if seen.size else np.nan}, voxel_size)
-        hi, _ = in_units({name: float(seen.max()) if seen.size else np.nan}, voxel_size)
-        field[name] = {"median": _f(vals[name], 3), "min": _f(lo[name], 3),
-                       "max": _f(hi[name], 3), "unit": u[name]}
+    field = _field_summary(voxel_size, maps)
     return {
         "format": "napari-psfspace QC record", "version": QC_VERSION,
         "software": software_string(), "source": source,
@@ -291,6 +239,94 @@ def qc_record(estimation, stack, *, voxel_size=None, sampling_from: str = "unkno
         "diagnosis": None if diagnosis is None else diagnosis_record(
             diagnosis, int(meta.get("focus_slice", op.plane))),
     }
+
+
+def _theory(voxel_size, na, wavelength_nm, immersion_index):
+    """The immersion index (given, or assumed from the NA) and the widths theory gives (Abbe's, and
+    a pupil PSF's at this sampling), None without the NA and wavelength.
+    """
+    lam = wavelength_nm / 1000.0 if wavelength_nm else None
+    index, index_from = immersion_index, "given"
+    if na and not index:
+        index, index_from = assumed_immersion(na), "assumed from the NA"
+    theory = None
+    if na and lam:
+        abbe = diffraction_limit(na, lam, refractive_index=index)
+        theory = {"abbe": {"lateral_nm": _f(abbe["lateral"] * 1000),
+                           "axial_nm": _f(abbe["axial"] * 1000)}}
+        if voxel_size is not None:
+            theory["pupil_psf"] = pupil_theory(na, lam, index, voxel_size)
+    return lam, index_from, index, theory
+
+
+def _checks(estimation, voxel_size, tol, c_px, c_nm, theory):
+    """The pass/fail checks: the centre's widths against theory, its ellipticity and the focal
+    surface's rise against the depth of focus.
+    """
+    checks = []
+    ref = (theory or {}).get("pupil_psf") or (theory or {}).get("abbe")
+    lat_nm = c_nm["fwhm_lateral"] if voxel_size is not None else None
+    ax_nm = c_nm["fwhm_axial"] if voxel_size is not None else None
+    if ref and lat_nm is not None:
+        checks.append(_check("lateral FWHM / theory", lat_nm / ref["lateral_nm"],
+                             tol["lateral_ratio"], "", "the PSF at the field's centre "
+                             "against the theoretical one"))
+        checks.append(_check("axial FWHM / theory", ax_nm / ref["axial_nm"],
+                             tol["axial_ratio"], "", "the same along the axis"))
+    checks.append(_check("ellipticity", c_px["ellipticity"], tol["ellipticity"], "",
+                         "1 - minor / major width at the field's centre"))
+    rise = surface_rise(estimation.surface)
+    if np.isfinite(c_px["fwhm_axial"]) and c_px["fwhm_axial"] > 0:
+        checks.append(_check("focal surface rise / axial FWHM", rise / c_px["fwhm_axial"],
+                             tol["field_flatness"], "", "how far focus moves over the "
+                             "field (peak to valley of the focal surface through the "
+                             "beads' foci) against the depth of focus"
+                             + ("" if np.isfinite(rise) else
+                                "; not judged: too few beads to fit a tilt")))
+    return checks
+
+
+def _warnings_and_refused(estimation, stack, voxel_size, na, meta, c_px, lam, index):
+    """The warnings (sampling, saturation, one PSF for the field) and the beads refused, with why.
+    """
+    warnings = _nyquist(na, lam, index or 1.0, voxel_size, c_px)
+    warnings += _saturation(meta, meta.get("image_dtype", "float32"), float(np.max(stack)))
+    if meta.get("field_model") == "shift-invariant":
+        warnings.append("one PSF for the whole field: " + meta.get("field_model_reason", ""))
+    status = estimation.beads.status
+    refused = [{"row": _f(p[0], 2), "col": _f(p[1], 2), "status": str(s),
+                "reason": STATUS_MEANING.get(str(s), str(s))}
+               for p, s in zip(estimation.beads.positions, status, strict=True) if s != KEPT]
+    refused.sort(key=lambda x: (x["status"], x["row"] or 0.0, x["col"] or 0.0))
+    return warnings, status, refused
+
+
+def _model_verdict(meta):
+    """The model's own check in words: its held-out residual against one PSF's."""
+    held = meta.get("heldout") or {}
+    if held.get("n_beads"):
+        verdict = (f"on {held['n_beads']} held-out beads the model's residual is "
+                   f"{held['residual_median']:.3f}, {held['over_floor']:.2f}x their noise "
+                   f"floor; one 3D PSF for the field leaves {held['single_median']:.3f}: "
+                   + ("the field model is kept" if held.get("field_wins")
+                      else "one PSF is kept"))
+    else:
+        verdict = "not scored on held-out beads (fewer than 10 beads)"
+    return held, verdict
+
+
+def _field_summary(voxel_size, maps):
+    """Each map's median, least and greatest value over the field, in the record's units."""
+    field = {}
+    for name, arr in maps.items():
+        seen = arr[np.isfinite(arr)]  # none: a measure the field does not allow
+        vals, u = in_units({name: float(np.median(seen)) if seen.size else np.nan},
+                           voxel_size)
+        lo, _ = in_units({name: float(seen.min()) if seen.size else np.nan}, voxel_size)
+        hi, _ = in_units({name: float(seen.max()) if seen.size else np.nan}, voxel_size)
+        field[name] = {"median": _f(vals[name], 3), "min": _f(lo[name], 3),
+                       "max": _f(hi[name], 3), "unit": u[name]}
+    return field
 
 
 def diagnosis_record(diagnosis, focus_slice: int) -> dict:

@@ -160,6 +160,18 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
     if r["warnings"]:
         lines.append("<h2>Warnings</h2><ul>" + "".join(f"<li>{e(w)}</li>"
                                                     for w in r["warnings"]) + "</ul>")
+    th = _centre_section(r, lines)
+    _field_section(voxel_size, r, lines, th)
+    lines.append("<h2>Average PSF ± SD over the field</h2>")
+    lines.append(_average_figures(estimation, voxel_size))
+    _model_and_beads(r, lines)
+    lines.append("</body></html>")
+    return "\n".join(lines)
+
+
+def _centre_section(r, lines):
+    """The PSF at the field's centre: the beads' and the model's widths against theory."""
+    e = html.escape
     lines.append("<h2>The PSF at the field's centre</h2>")
     th = r["theory"] or {}
     crow = []
@@ -185,6 +197,12 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
                  "confocal's is narrower): Abbe's widths and an aberration-free scalar pupil "
                  "PSF at this sampling, measured the same way."
                  "</p>")
+    return th
+
+
+def _field_section(voxel_size, r, lines, th):
+    """The measures over the field against theory, their maps and the focal surface."""
+    e = html.escape
     lines.append("<h2>Over the field</h2>")
     ref = th.get("pupil_psf") or th.get("abbe") or {}
     ideal = {"fwhm_lateral": ref.get("lateral_nm"), "fwhm_row": ref.get("lateral_nm"),
@@ -212,8 +230,11 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
                      f" {unit} centre to corner, beads scattered "
                      f"{_v(fs.get('sd_um', fs.get('sd_planes')))} {unit} about it; "
                      f"{fs.get('n_off', 0)} bead(s) left out off it.</p>")
-    lines.append("<h2>Average PSF ± SD over the field</h2>")
-    lines.append(_average_figures(estimation, voxel_size))
+
+
+def _model_and_beads(r, lines):
+    """The model's own check, the diagnosis of the best-focus slice and the beads."""
+    e = html.escape
     lines.append("<h2>The model's own check</h2>")
     m = r["model"]
     lines.append(f"<p>{m['n_psf']} 3D PSF(s), {e(m['field_model'])}; {e(m['verdict'])}.</p>")
@@ -238,8 +259,6 @@ def qc_html(record: dict, estimation, voxel_size=None) -> str:
         lines.append(_table(["row (px)", "column (px)", "refused because"],
                             [[_v(x["row"], ".1f"), _v(x["col"], ".1f"), e(x["reason"])]
                              for x in b["refused"]]))
-    lines.append("</body></html>")
-    return "\n".join(lines)
 
 
 def _writer(data: bytes):

@@ -263,13 +263,11 @@ def choose_dimensions(fields: np.ndarray, beads: list[Beads | None], grid, shape
         are :func:`clearly_lower` than the curve's, then ``"lines"``); ``n_directions``
         (``L``) and ``n_planar`` (``M``: the first ``M`` directions' coordinates also
         vary as planes over the field, as a tilted slide makes the focus do; 1 and 1
-        for a curve); ``by`` (how they were chosen); ``table`` (each ``L`` and ``M``
-        tried, ``n`` and ``planar``, and the mean relative field error of the left-out
-        identifications, ``error``; the curve's row also holds ``curve``, its degree,
-        and ``degree_errors``, each degree's error);
-        ``curve`` (a curve's ``degree`` and its images' ``thetas``, K x 3; only where
-        chosen); ``band`` (:func:`spread_band`'s calibration, None without left-out
-        images).
+        for a curve); ``by`` (how they were chosen); ``table`` (each ``n`` and ``planar``
+        tried and the left-out identifications' mean relative field error, ``error``; the
+        curve's row also holds its degree, ``curve``, and each degree's ``degree_errors``);
+        ``curve`` (a chosen curve's ``degree`` and its images' ``thetas``, K x 3);
+        ``band`` (:func:`spread_band`'s calibration, None without left-out images).
     """
     k = len(fields)
     most = min(MAX_DIRECTIONS, k - 2)

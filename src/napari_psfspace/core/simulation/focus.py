@@ -203,8 +203,7 @@ def simulate_focus_series(
     gain, offset, read_noise : float
         Camera: ADU per electron, ADU, electrons rms.
     min_separation : float, optional
-        Least distance between beads, pixels; default 2.5 times the widest slice's PSF
-        radius, so that every bead is isolated on every slice.
+        Least distance between beads, pixels; default 2.5 widest PSF radii (isolated).
     dtype : dtype
     seed : int
         Seeds the layout (the same in every slice) and each slice's noise.
