@@ -385,13 +385,35 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
     NoBeadsError
         No maximum stands ``threshold`` noise sd out at any scale.
     """
-    from ..common.errors import NoBeadsError
-    from .log import local_peaks
-
     prepared = prepare(image)
     stabilised = prepared.stabilised
     h, w = prepared.image.shape
     smax = float(max_sigma) if max_sigma else max(2.0, min(h, w) / 16.0)
+    levels, cand = _candidates(prepared, threshold, max_candidates, smax)
+    table, sig, cand = _lasting(cand, levels, threshold, smax)
+    # its scale: where its amplitude-normalised response is largest, among the scales at
+    # which it is significant (at low signal the noise's own response dominates the
+    # smallest scales)
+    own = np.argmax(np.where(sig, table, -np.inf), axis=1)
+    sigmas = np.array([lv[0] for lv in levels])
+    unique = _one_vote_each(cand, own, sigmas)
+    sigma = float(np.exp(np.median(np.log(sigmas[own[unique]]))))
+    # snap to the ladder; the spots: those of about that scale, strongest first
+    best = int(np.argmin(np.abs(np.log(sigmas / sigma))))
+    sigma = float(sigmas[best])
+    near_scale = unique[np.abs(own[unique] - best) <= 1]
+    spots = cand[near_scale]
+    responses = {float(sv): float(np.median(table[unique, j]))
+                 for j, sv in enumerate(sigmas)}
+    return SpotScale(sigma, spots[:n_spots, :2], spots[:n_spots, 2], stabilised, responses,
+                     cand[unique, :2])
+
+
+def _candidates(prepared, threshold, max_candidates, smax):
+    """The scale ladder's levels and the candidate spots found on them, strongest first."""
+    from ..common.errors import NoBeadsError
+    from .log import local_peaks
+
     levels = []  # (sigma, binning, amplitude-normalised response, its median)
     candidates = []  # (row, column, strength)
     k = 0
@@ -418,6 +440,14 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
             f"{threshold:g} noise sd): no beads to measure. Check the image or the slice.")
     cand = np.array(candidates)
     cand = cand[np.argsort(-cand[:, 2], kind="stable")][:max_candidates]
+    return levels, cand
+
+
+def _lasting(cand, levels, threshold, smax):
+    """Each candidate's response at every scale and whether it is significant there;
+    only the candidates significant at ``PERSISTENCE`` neighbouring scales at least."""
+    from ..common.errors import NoBeadsError
+
     # each candidate's response at every scale (the largest within that scale of it):
     # amplitude-normalised (its scale) and noise-normalised (where it is significant)
     table = np.empty((len(cand), len(levels)))
@@ -443,11 +473,11 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
             f"{smax:.3g} px (threshold {threshold:g} noise sd): no beads to measure. Check "
             "the image or the slice.")
     cand, table, sig = cand[lasting], table[lasting], sig[lasting]
-    # its scale: where its amplitude-normalised response is largest, among the scales at
-    # which it is significant (at low signal the noise's own response dominates the
-    # smallest scales)
-    own = np.argmax(np.where(sig, table, -np.inf), axis=1)
-    sigmas = np.array([lv[0] for lv in levels])
+    return table, sig, cand
+
+
+def _one_vote_each(cand, own, sigmas):
+    """The candidates that count, one per spot."""
     # one spot, one vote: candidates at the same place with the same scale are one
     keyed = {}
     for i in range(len(cand)):
@@ -471,16 +501,7 @@ def spot_scale(image, *, threshold: float = 8.0, n_spots: int = 24,
             if other != i and sigmas[own[other]] < s_i:
                 claimed[other] = True
     unique = unique[~claimed[unique]]
-    sigma = float(np.exp(np.median(np.log(sigmas[own[unique]]))))
-    # snap to the ladder; the spots: those of about that scale, strongest first
-    best = int(np.argmin(np.abs(np.log(sigmas / sigma))))
-    sigma = float(sigmas[best])
-    near_scale = unique[np.abs(own[unique] - best) <= 1]
-    spots = cand[near_scale]
-    responses = {float(sv): float(np.median(table[unique, j]))
-                 for j, sv in enumerate(sigmas)}
-    return SpotScale(sigma, spots[:n_spots, :2], spots[:n_spots, 2], stabilised, responses,
-                     cand[unique, :2])
+    return unique
 
 
 __all__ = ["LOW_COUNT_SD", "Prepared", "SpotScale", "characteristic_scale",
