@@ -293,6 +293,22 @@ def iter_richardson_lucy_3d_exchange(
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     z, h, w = stack.shape
     settings = {"shape": [z, h, w], "tile": tile, "block": block, "rtol": float(rtol)}
+    done, u0, b = yield from _starting_point(stack, background, start, store, resume, settings)
+    rows, cols, tasks, config = _tasks(operator, (h, w), tile, block, rtol, client, workers,
+                                       device, am)
+    from ..common.threads import blas_limit
+
+    # tiles on the local threads: no BLAS threads beside them
+    with blas_limit() if client is None else contextlib.nullcontext():
+        return (yield from _iterate(stack, tasks, store, rows, cols, settings, config,
+                                    client, done=done, n_iter=n_iter, background=b,
+                                    start=u0))
+
+
+def _starting_point(stack, background, start, store, resume, settings):
+    """The iterations done, the background and the start: a resumed run's, the ones given,
+    or the stack's statistics.
+    """
     state = read_state(store, settings) if resume else None
     done = 0
     if state is not None:
@@ -303,6 +319,13 @@ def iter_richardson_lucy_3d_exchange(
         b, mean = stack_statistics(stack, background)  # its refusals before any progress
         yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
         u0 = max(mean - b, TINY) if start is None else float(start)
+    return done, u0, b
+
+
+def _tasks(operator, shape, tile, block, rtol, client, workers, device, am):
+    """The tiles' rows and columns, the apply and adjoint tasks over them and dask's
+    configuration."""
+    h, w = shape
     ring = ring_width(operator)
     rows, cols = tile_sizes(h, tile, ring), tile_sizes(w, tile, ring)
     starts_y = np.cumsum((0,) + rows)[:-1]
@@ -316,17 +339,13 @@ def iter_richardson_lucy_3d_exchange(
     tasks["adjoint"].spectra = tasks["apply"].spectra  # one cache of each for both
     tasks["adjoint"].kernels = tasks["apply"].kernels
 
-    from ..common.threads import blas_limit, dask_workers
+    from ..common.threads import dask_workers
 
     config = ({"scheduler": client.get} if client is not None else
               {"scheduler": "threads",
                "num_workers": 1 if am.gpu else  # one device: its tiles one at a time
                dask_workers() if workers is None else int(workers)})
-    # tiles on the local threads: no BLAS threads beside them
-    with blas_limit() if client is None else contextlib.nullcontext():
-        return (yield from _iterate(stack, tasks, store, rows, cols, settings, config,
-                                    client, done=done, n_iter=n_iter, background=b,
-                                    start=u0))
+    return rows, cols, tasks, config
 
 
 def _iterate(stack, tasks, store, rows, cols, settings, config, client, *, done, n_iter,
