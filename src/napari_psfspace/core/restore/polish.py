@@ -74,7 +74,6 @@ def polish_support(
     t0 = time.perf_counter()
     h, w = image.shape
     p = operator.psf_size
-    c = p // 2
     flat = np.flatnonzero(sparse > 0)
     ys, xs = np.divmod(flat, w)
     u = sparse.ravel()[flat].astype(np.float64)
@@ -83,38 +82,13 @@ def polish_support(
             "support_before": int(flat.size), "support_after": int(flat.size)}
     if flat.size == 0:
         return sparse.astype(np.float32), info
-    # the columns: the PSF at each pixel (unnormalised, as H applies it), cut to the image
-    alpha = operator.coefficients_at(ys.astype(float), xs.astype(float))  # (n, I)
-    cols = np.tensordot(alpha, operator.basis, axes=(-1, 0)).astype(np.float32)
-    inside = np.zeros((h + 2 * c, w + 2 * c), np.float32)
-    inside[c:c + h, c:c + w] = 1.0
-    for j in range(flat.size):
-        cols[j] *= inside[ys[j]:ys[j] + p, xs[j]:xs[j] + p]
-    norm2 = np.einsum("jab,jab->j", cols, cols).astype(np.float64)
-    residual = np.zeros_like(inside)
-    residual[c:c + h, c:c + w] = image - operator.apply(
-        (sparse + smooth).astype(np.float32))
-    lower = None
-    if censored is not None:
-        lower = np.zeros(inside.shape, bool)
-        lower[censored[0] + c, censored[1] + c] = True
+    cols, norm2, residual, lower = _columns(image, operator, sparse, smooth, censored, ys, xs)
     e0 = _effective(residual, lower)
     data = 0.5 * float(np.vdot(e0, e0))
     value = data + float(np.vdot(gam, u))
     history = [value]
-    # Python scalars and per-pixel views: the loop below is where the time goes
-    n = int(flat.size)
-    wins = [residual[y0:y0 + p, x0:x0 + p] for y0, x0 in zip(ys.tolist(), xs.tolist(),
-                                                              strict=True)]
-    bounds = [None] * n
-    if lower is not None:
-        for k, (y0, x0) in enumerate(zip(ys.tolist(), xs.tolist(), strict=True)):
-            box = lower[y0:y0 + p, x0:x0 + p]
-            bounds[k] = box if box.any() else None
-    col_list = list(cols)
-    gam_l, n2_l, u_l = gam.tolist(), norm2.tolist(), u.tolist()
-    everyone = list(range(n))
-    active, alive = everyone, [True] * n
+    n, wins, bounds, col_list, u_l, n2_l, gam_l, everyone, alive, active = _per_pixel(
+            p, flat, xs, ys, u, gam, cols, norm2, residual, lower)
     for sweep in range(int(max_sweeps)):
         full = len(active) == n
         change = 0.0
@@ -152,6 +126,48 @@ def polish_support(
     info["support_after"] = int((u > 0).sum())
     info["seconds"] = round(time.perf_counter() - t0, 3)
     return out.reshape(h, w), info
+
+
+def _columns(image, operator, sparse, smooth, censored, ys, xs):
+    """The support's columns (the PSF at each pixel, unnormalised as ``H`` applies it, cut
+    to the image) and their squared norms, the residual on the image padded by half a PSF,
+    and its censored pixels (None where none is)."""
+    h, w = image.shape
+    p = operator.psf_size
+    c = p // 2
+    alpha = operator.coefficients_at(ys.astype(float), xs.astype(float))  # (n, I)
+    cols = np.tensordot(alpha, operator.basis, axes=(-1, 0)).astype(np.float32)
+    inside = np.zeros((h + 2 * c, w + 2 * c), np.float32)
+    inside[c:c + h, c:c + w] = 1.0
+    for j in range(len(ys)):
+        cols[j] *= inside[ys[j]:ys[j] + p, xs[j]:xs[j] + p]
+    norm2 = np.einsum("jab,jab->j", cols, cols).astype(np.float64)
+    residual = np.zeros_like(inside)
+    residual[c:c + h, c:c + w] = image - operator.apply(
+        (sparse + smooth).astype(np.float32))
+    lower = None
+    if censored is not None:
+        lower = np.zeros(inside.shape, bool)
+        lower[censored[0] + c, censored[1] + c] = True
+    return cols, norm2, residual, lower
+
+
+def _per_pixel(p, flat, xs, ys, u, gam, cols, norm2, residual, lower):
+    """Python scalars and per-pixel views (each pixel's window of the residual, its censored
+    pixels, column, weight, squared norm and value): the sweeps are where the time goes."""
+    n = int(flat.size)
+    wins = [residual[y0:y0 + p, x0:x0 + p] for y0, x0 in zip(ys.tolist(), xs.tolist(),
+                                                              strict=True)]
+    bounds = [None] * n
+    if lower is not None:
+        for k, (y0, x0) in enumerate(zip(ys.tolist(), xs.tolist(), strict=True)):
+            box = lower[y0:y0 + p, x0:x0 + p]
+            bounds[k] = box if box.any() else None
+    col_list = list(cols)
+    gam_l, n2_l, u_l = gam.tolist(), norm2.tolist(), u.tolist()
+    everyone = list(range(n))
+    active, alive = everyone, [True] * n
+    return n, wins, bounds, col_list, u_l, n2_l, gam_l, everyone, alive, active
 
 
 def _effective(residual: np.ndarray, lower: np.ndarray | None) -> np.ndarray:
