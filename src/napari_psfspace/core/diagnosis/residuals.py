@@ -240,6 +240,33 @@ def fit_beads(
         fit_radius = float(operator.metadata.get("psf_radius", half))
     if background not in ("constant", "plane"):
         raise ValueError(f"`background` must be 'constant' or 'plane', got {background!r}.")
+    mask, base, models, data, excl = _windows(operator, fit_radius, pixel_mask, model_filter, img,
+                                              pos, p, half)
+    bgc, amp, fitted, var, dof, chi2, leverage = _fit_each(
+            operator, noise, background, companions, response, pos, p, mask, base, models, data,
+            excl)
+    fit_mask = mask[None] & ~excl
+    bg_level = bgc[:, None, None]
+    if response is not None:  # judge on the recorded pixels
+        data, fitted = response.forward(data), response.forward(fitted)
+        bg_level = response.forward(bg_level)
+        var = noise.variance(np.maximum(fitted, bg_level.min(axis=(1, 2), keepdims=True)))
+        chi2 = ((data - fitted) ** 2 / var * fit_mask).sum(axis=(1, 2))
+    # the bead's signal energy over the whole fit disk, masked pixels included: masking a
+    # saturated core must not make the same residual look relatively larger
+    sig = (fitted - bg_level) * mask[None]
+    sig2 = np.maximum((sig**2).sum(axis=(1, 2)), 1e-300)
+    rel = (((data - fitted) * fit_mask) ** 2).sum(axis=(1, 2)) / sig2
+    # what noise alone leaves after the same fit: each pixel's variance less the share
+    # the fit takes up (a perfect model's residual; without it the floor stood about 5 %
+    # above the held-out error of aberration-free scenes' exact models)
+    floor = (var * (1.0 - leverage) * fit_mask).sum(axis=(1, 2)) / sig2
+    return BeadResiduals(pos, amp, bgc, data, fitted, var, fit_mask, rel, chi2, dof, floor)
+
+
+def _windows(operator, fit_radius, pixel_mask, model_filter, img, pos, p, half):
+    """The model PSFs shifted to the beads' sub-pixel centres, the data windows, and the
+    pixels excluded (masked, or past the image's edge where a window repeats it)."""
     mask = radial_distance(p) <= fit_radius
     base = np.round(pos)
     psfs = np.array([operator.psf_at(y, x) for y, x in pos]) if len(pos) else np.zeros(
@@ -256,6 +283,14 @@ def fit_beads(
     past = ((rows < 0) | (rows > img.shape[0] - 1))[:, :, None] \
         | ((cols_ < 0) | (cols_ > img.shape[1] - 1))[:, None, :]  # a window repeats its edge
     excl = excl | past
+    return mask, base, models, data, excl
+
+
+def _fit_each(operator, noise, background, companions, response, pos, p, mask, base, models, data,
+              excl):
+    """Each bead's weighted least-squares fit on its fit disk (the model, a constant or
+    planar background and its companions), weighted by the data's level and then by the
+    fitted model's: the fitted windows, their variance and each pixel's leverage."""
     u = np.linspace(-1.0, 1.0, p)
     yy, xx = np.meshgrid(u, u, indexing="ij")
     n_bg = 1 if background == "constant" else 3
@@ -301,20 +336,4 @@ def fit_beads(
         amp[i], bgc[i] = coef[0], coef[1]
         chi2[i] = float(np.sum((d - mod) ** 2 / v))
         dof[i] = max(int(use.sum()) - design.shape[1], 1)
-    fit_mask = mask[None] & ~excl
-    bg_level = bgc[:, None, None]
-    if response is not None:  # judge on the recorded pixels
-        data, fitted = response.forward(data), response.forward(fitted)
-        bg_level = response.forward(bg_level)
-        var = noise.variance(np.maximum(fitted, bg_level.min(axis=(1, 2), keepdims=True)))
-        chi2 = ((data - fitted) ** 2 / var * fit_mask).sum(axis=(1, 2))
-    # the bead's signal energy over the whole fit disk, masked pixels included: masking a
-    # saturated core must not make the same residual look relatively larger
-    sig = (fitted - bg_level) * mask[None]
-    sig2 = np.maximum((sig**2).sum(axis=(1, 2)), 1e-300)
-    rel = (((data - fitted) * fit_mask) ** 2).sum(axis=(1, 2)) / sig2
-    # what noise alone leaves after the same fit: each pixel's variance less the share
-    # the fit takes up (a perfect model's residual; without it the floor stood about 5 %
-    # above the held-out error of aberration-free scenes' exact models)
-    floor = (var * (1.0 - leverage) * fit_mask).sum(axis=(1, 2)) / sig2
-    return BeadResiduals(pos, amp, bgc, data, fitted, var, fit_mask, rel, chi2, dof, floor)
+    return bgc, amp, fitted, var, dof, chi2, leverage
