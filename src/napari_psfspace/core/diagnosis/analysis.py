@@ -229,6 +229,28 @@ def analyse(
     tests["bead_width"] = TestResult("bead_width", z, th["bead_width"],
                                      {"rho": rho, "n_beads": int(ok.sum())})
 
+    _common_residual_tests(res, th, tests, k, nres)
+
+    out = pixel_outliers(img, noise)
+    tests["pixel_outliers"] = TestResult("pixel_outliers", float(out["count"]),
+                                         th["pixel_outliers"], out)
+
+    _background_tests(res, noise, psf_radius, all_positions, bead_mask, th, img, tests, p)
+
+    _amplitude_field_test(res, th, img, tests, k, flux)
+    d = secondary_peaks(res, psf_radius)
+    tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),
+                                          th["secondary_peaks"], d)
+    d = elongated_beads(res, psf_radius=psf_radius, scores=scores)
+    tests["elongated_beads"] = TestResult("elongated_beads", float(d["count"]),
+                                          th["elongated_beads"], d)
+    _saturation_test(res, psf_radius, all_positions, th, img, tests)
+    return Analysis(tests, res)
+
+
+def _common_residual_tests(res, th, tests, k, nres):
+    """A residual common to the beads: their mean normalised residual (chi-square), and its
+    coherent part (the top singular value against the Marchenko-Pastur edge)."""
     common = np.all(res.fit_mask, axis=0)
     flat = np.nan_to_num(nres[:, common])  # (K, n_pix)
     if k >= 5:
@@ -246,10 +268,10 @@ def analyse(
                                                 th["coherent_residual"],
                                                 {"s1_over_edge": float(s[0] / edge)})
 
-    out = pixel_outliers(img, noise)
-    tests["pixel_outliers"] = TestResult("pixel_outliers", float(out["count"]),
-                                         th["pixel_outliers"], out)
 
+def _background_tests(res, noise, psf_radius, all_positions, bead_mask, th, img, tests, p):
+    """Row and column patterns and structure of the bead-free background, each against the
+    noise's sampling error and the noise model's own uncertainty."""
     if bead_mask is None:
         ref = res.positions if all_positions is None else np.asarray(all_positions)
         free = bead_free_mask(img.shape, ref, psf_radius)
@@ -266,6 +288,11 @@ def analyse(
     tests["background_structure"] = TestResult("background_structure", d.pop("z"),
                                                th["background_structure"], d)
 
+
+def _amplitude_field_test(res, th, img, tests, k, flux):
+    """Vignetting, or an off-centre illumination spot: a paraboloid of revolution with a
+    free centre over the beads' amplitudes and their model-free fluxes; its z the smaller of
+    the two."""
     if k >= 5:
         ok = (res.amplitude > 0) & (flux > 0)
         if ok.sum() >= 12:
@@ -287,13 +314,11 @@ def analyse(
                  "z_flux": d_flux["z"], "F_flux": d_flux["F"],
                  "min_corner_loss": d_amp["min_corner_loss"],
                  "coefficients": d_amp["coefficients"]})
-    # row / column patterns and background structure use the bead-free background
-    d = secondary_peaks(res, psf_radius)
-    tests["secondary_peaks"] = TestResult("secondary_peaks", float(d["count"]),
-                                          th["secondary_peaks"], d)
-    d = elongated_beads(res, psf_radius=psf_radius, scores=scores)
-    tests["elongated_beads"] = TestResult("elongated_beads", float(d["count"]),
-                                          th["elongated_beads"], d)
+
+
+def _saturation_test(res, psf_radius, all_positions, th, img, tests):
+    """Pixels at the image's top in every detection's core: the beads left out as saturated
+    are the ones that show it."""
     top = float(img.max())
     cores = np.zeros(img.shape, bool)
     # every detection's core: the beads left out as saturated are the ones that show it
@@ -305,4 +330,3 @@ def analyse(
     n_top = int(np.count_nonzero((img >= top) & cores))
     tests["saturation"] = TestResult("saturation", float(n_top if n_top >= 2 else 0),
                                      th["saturation"], {"level": top, "pixels": n_top})
-    return Analysis(tests, res)
