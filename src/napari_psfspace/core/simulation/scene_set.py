@@ -135,18 +135,7 @@ def random_scene(
         raise ValueError(f"Unknown scene parameter(s) {unknown}; known: {sorted(RANGES)}.")
     spec = {**RANGES, **overrides}
     rng = np.random.default_rng(seed)
-    p: dict[str, Any] = {}
-    for name in ("pixel_size", "na", "wavelength", "aberrations", "random_strength",
-                 "n_beads", "spread", "background", "background_variation", "bits",
-                 "offset", "read_noise", "min_separation", "fill"):
-        p[name] = _draw(rng, name, spec[name])
-    p["n_beads"] = int(round(p["n_beads"]))
-    p["bits"] = int(p["bits"])
-    if p["bits"] not in (8, 12, 16):
-        raise ValueError(f"scene parameter `bits` must be 8, 12 or 16, got {p['bits']!r}.")
-    full = 2 ** p["bits"] - 1
-    if p["bits"] == 8:
-        p["offset"] = min(p["offset"], 10.0)
+    p, full = _draw_parameters(spec, rng)
     optics = optics_type(na=p["na"], wavelength=p["wavelength"], pixel_size=p["pixel_size"])
     if p["aberrations"] == "random":
         aberrations = FieldAberrations.random(p["random_strength"], seed=rng)
@@ -161,6 +150,52 @@ def random_scene(
     centre = aberrations.coefficients((shape[0] - 1) / 2, (shape[1] - 1) / 2, shape)
     peak_fraction = float(simulate_psf(centre, optics=optics, size=15).max())
 
+    photons = _bead_photons(spec, rng, p, full, peak_fraction)
+    dtype = np.uint8 if p["bits"] == 8 else np.uint16
+    r = field_psf_radius(layout, optics, shape, PSF_ENERGY_FRACTION)
+    # dart throwing fills about half of a hexagonal packing: never ask for more
+    sep = p["min_separation"] * r
+    room = (shape[0] - 2 * r) * (shape[1] - 2 * r) / (np.sqrt(3) / 2 * max(sep, 1.0) ** 2)
+    p["n_beads"] = int(min(p["n_beads"], max(1, 0.4 * room)))
+    photons = photons[:p["n_beads"]]
+    bg, var = p["background"], p["background_variation"]
+    image, truth = simulate_beads(
+        shape, p["n_beads"], aberrations=aberrations, optics=optics,
+        background=(bg * (1 - var), bg * (1 + var)), gain=p["gain"], offset=p["offset"],
+        read_noise=p["read_noise"], dtype=dtype, seed=rng,
+        min_separation=p["min_separation"] * r, border=r, bead_photons=photons,
+        effects=effects or None)
+    if p["bits"] == 12:
+        image = np.minimum(image, full).astype(dtype)
+    p.update(full_scale=full, psf_radius=int(truth.psf_radius), peak_fraction=peak_fraction,
+             aberrations=p["aberrations"] if isinstance(p["aberrations"], str) else "custom")
+    return image, truth, {k: (float(v) if isinstance(v, np.floating) else v)
+                          for k, v in p.items()}
+
+
+def _draw_parameters(spec, rng):
+    """The scene's optics, field, beads, background and camera drawn from ``spec`` in a
+    fixed order, and its full scale."""
+    p: dict[str, Any] = {}
+    for name in ("pixel_size", "na", "wavelength", "aberrations", "random_strength",
+                 "n_beads", "spread", "background", "background_variation", "bits",
+                 "offset", "read_noise", "min_separation", "fill"):
+        p[name] = _draw(rng, name, spec[name])
+    p["n_beads"] = int(round(p["n_beads"]))
+    p["bits"] = int(p["bits"])
+    if p["bits"] not in (8, 12, 16):
+        raise ValueError(f"scene parameter `bits` must be 8, 12 or 16, got {p['bits']!r}.")
+    full = 2 ** p["bits"] - 1
+    if p["bits"] == 8:
+        p["offset"] = min(p["offset"], 10.0)
+    return p, full
+
+
+def _bead_photons(spec, rng, p, full, peak_fraction):
+    """Each bead's photons and the camera's gain: the median peak drawn in photons or in ADU
+    (the gain then drawn too, else set so that the brightest beads fill ``fill`` of the full
+    scale), the beads' peaks log-normal about it (or each drawn from the range,
+    ``per_bead``); ``p`` is completed in place."""
     p["per_bead"] = bool(spec["per_bead"])
     if p["per_bead"]:
         p["spread"] = 0.0
@@ -187,26 +222,7 @@ def random_scene(
     else:
         peaks = p["peak_photons"] * np.exp(p["spread"] * rng.standard_normal(p["n_beads"]))
     photons = peaks / peak_fraction
-    dtype = np.uint8 if p["bits"] == 8 else np.uint16
-    r = field_psf_radius(layout, optics, shape, PSF_ENERGY_FRACTION)
-    # dart throwing fills about half of a hexagonal packing: never ask for more
-    sep = p["min_separation"] * r
-    room = (shape[0] - 2 * r) * (shape[1] - 2 * r) / (np.sqrt(3) / 2 * max(sep, 1.0) ** 2)
-    p["n_beads"] = int(min(p["n_beads"], max(1, 0.4 * room)))
-    photons = photons[:p["n_beads"]]
-    bg, var = p["background"], p["background_variation"]
-    image, truth = simulate_beads(
-        shape, p["n_beads"], aberrations=aberrations, optics=optics,
-        background=(bg * (1 - var), bg * (1 + var)), gain=p["gain"], offset=p["offset"],
-        read_noise=p["read_noise"], dtype=dtype, seed=rng,
-        min_separation=p["min_separation"] * r, border=r, bead_photons=photons,
-        effects=effects or None)
-    if p["bits"] == 12:
-        image = np.minimum(image, full).astype(dtype)
-    p.update(full_scale=full, psf_radius=int(truth.psf_radius), peak_fraction=peak_fraction,
-             aberrations=p["aberrations"] if isinstance(p["aberrations"], str) else "custom")
-    return image, truth, {k: (float(v) if isinstance(v, np.floating) else v)
-                          for k, v in p.items()}
+    return photons
 
 
 def _add_defocus_gradient(aberrations: FieldAberrations, spec, seed: int):
