@@ -37,6 +37,7 @@ from scipy import fft as sfft
 
 from .denoise import patch_noise
 from .motion_fit import fit_line, refine_line
+from .motion_spectrum import BeadSpectrum
 
 #: Fewest beads tested: two halves estimate the noise and four quarters must agree (with
 #: 10-12 beads of low signal, a quarter of 2-3 beads read a zero by chance: 1 false
@@ -80,13 +81,6 @@ MAX_EDGE_RATIO = 0.03
 #: the zero ``1 / L`` lies near where the ratio is lowest (0.9-1.3 times that frequency),
 #: and every quarter of the beads shows the ratio below MAX_CHECK_RATIO there.
 MAX_EDGE_RMS = 0.3
-#: The band where the beads' mean signal power exceeds this many standard errors ...
-BAND_Z = 5.0
-#: ... and this fraction of its zero-frequency value: beyond the optics' cutoff the mean
-#: power of windowed, re-sampled patches sits on a floor of ~1e-4 (interpolation, window
-#: leakage, background errors) that is measured precisely but is not the beads' signal;
-#: the knee where the spectrum meets it would read as a dip.
-BAND_FLOOR = 1e-4
 
 
 @dataclass(frozen=True)
@@ -152,34 +146,6 @@ def motion_transfer(fy, fx, length: float, angle_deg: float) -> np.ndarray:
     """
     a = np.deg2rad(angle_deg)
     return np.sinc(float(length) * (np.asarray(fy) * np.sin(a) + np.asarray(fx) * np.cos(a)))
-
-
-def _mean_powers(psf: np.ndarray, noise: np.ndarray, n: int, labels: np.ndarray,
-                 n_labels: int, chunk: int = 32) -> np.ndarray:
-    """Noise-weighted mean signal power ``|F p|^2 - N`` of the beads of each label, on
-    an ``n x n`` grid, shape (n_labels, n, n) (zero for a label without beads);
-    computed in chunks of beads, so that memory does not grow with their number."""
-    k, p, _ = psf.shape
-    w = 1.0 / np.maximum(noise, 1e-300)
-    n_lab = int(n_labels)
-    wsum = np.bincount(labels, weights=w, minlength=n_lab)
-    big = np.zeros((min(chunk, k), n, n))
-    tot = np.zeros((n_lab, n, n // 2 + 1))
-    for start in range(0, k, chunk):
-        m = min(chunk, k - start)
-        big[:m, :p, :p] = psf[start:start + m]  # the phase does not matter: powers only
-        power = np.abs(sfft.rfft2(big[:m], axes=(1, 2), workers=2)) ** 2
-        power -= noise[start:start + m, None, None]
-        power *= w[start:start + m, None, None]
-        for lab in np.unique(labels[start:start + m]):
-            tot[lab] += power[labels[start:start + m] == lab].sum(axis=0)
-    half = tot / np.maximum(wsum, 1e-300)[:, None, None]
-    # the power of a real image is even: P(-k) = P(k) fills the other half-plane
-    full = np.empty((n_lab, n, n))
-    full[:, :, :n // 2 + 1] = half
-    cols = np.arange(n // 2 + 1, n)
-    full[:, :, cols] = half[:, (-np.arange(n)) % n][:, :, n - cols]
-    return full
 
 
 def _dips(prof, var, cnt, centres, band):
@@ -309,140 +275,117 @@ def detect_motion(
                       f"not tested: {k} beads (at least {MIN_BEADS} are needed "
                       "to tell a zero line from the noise)")
     n = sfft.next_fast_len(max(4 * p, 64))  # fine bins: a zero line is narrow
-    if positions is not None:
-        pos = np.asarray(positions, dtype=np.float64).reshape(k, 2)
-        my, mx = np.median(pos, axis=0)
-        group = (pos[:, 0] > my).astype(int) * 2 + (pos[:, 1] > mx).astype(int)
-    else:
-        group = np.arange(k) * 4 // k
-    half = np.arange(k) % 2  # two halves estimate the noise of the mean power
-    # labels: quarter (0-3) x half (0-1); the groups' weighted means are combined below
-    parts = _mean_powers(psf, noise, n, group * 2 + half, 8)
-    wts = np.bincount(group * 2 + half, weights=1.0 / np.maximum(noise, 1e-300), minlength=8)
-
-    def combine(sel):
-        ws = wts[sel]
-        return np.einsum("g,gij->ij", ws, parts[sel]) / max(ws.sum(), 1e-300)
-    f = sfft.fftfreq(n)
-    fy, fx = f[:, None] * np.ones((1, n)), np.ones((n, 1)) * f[None, :]
-    rad = np.hypot(fy, fx)
-    s_all = combine(np.arange(8))
-    # standard error of the mean power, from two halves of the beads
-    diff = combine(np.arange(0, 8, 2)) - combine(np.arange(1, 8, 2))
-    ring = np.round(rad * n).astype(int)
-    ring_var = (np.bincount(ring.ravel(), weights=(diff**2 / 4).ravel())
-                / np.maximum(np.bincount(ring.ravel()), 1))
-    ring_mean = np.bincount(ring.ravel(), weights=s_all.ravel()) / np.maximum(
-        np.bincount(ring.ravel()), 1)
-    seen = ((ring_mean > BAND_Z * np.sqrt(ring_var / np.maximum(np.bincount(ring.ravel()), 1)))
-            & (ring_mean > BAND_FLOOR * ring_mean[0]))
-    seen[0] = True
-    last = int(np.argmin(seen)) - 1 if not seen.all() else len(seen) - 1
-    band = max(last, 1) / n
-    var_map = ring_var[ring]
-    inside = rad <= band
-    min_visible = 1.0 / band
-    none = Motion(False, None, None, 1.0, 0.0, {}, float(band), float(min_visible),
-                  f"no straight zero line in the beads' spectrum: no motion blur of "
-                  f"{min_visible:.2g} px or more (a shorter one cannot be told from the "
-                  f"optics, whose signal reaches {band:.3g} cycles/px here)")
+    spec = BeadSpectrum(psf, noise, _quarters(positions, k), n)
+    band, min_visible = spec.band, 1.0 / spec.band
     if band < 3.0 / n:
         return Motion(False, None, None, 1.0, 0.0, {}, float(band), float(min_visible),
                       f"not tested: the beads' signal reaches only {band:.3g} "
                       "cycles/px")
-    edges = (np.arange(int(np.ceil(band * n)) + 2) - 0.5) / n
-    centres = 0.5 * (edges[1:] + edges[:-1])
-    width = band / 3.0
     angles = np.arange(0.0, 180.0, ANGLE_STEP)
-    nb = len(centres)
-    # for every direction: the cells of the strip |k.u_perp| < width inside the band, and
-    # their bin of |k.u| (computed once, used for every spectrum)
-    flat_inside = np.flatnonzero(inside.ravel())
-    fyi, fxi = fy.ravel()[flat_inside], fx.ravel()[flat_inside]
-    geometry = []
-    for ang in angles:
-        a = np.deg2rad(ang)
-        t = np.abs(fyi * np.sin(a) + fxi * np.cos(a))
-        s_ = np.abs(-fyi * np.cos(a) + fxi * np.sin(a))
-        idx = np.digitize(t, edges) - 1
-        ok = (s_ < width) & (idx >= 0) & (idx < nb)
-        geometry.append((flat_inside[ok], idx[ok],
-                         np.bincount(idx[ok], minlength=nb).astype(float)))
+    spec.set_strips(angles, band / 3.0)
+    rel, ref = spec.profiles(spec.mean)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = spec.strip_profiles(spec.var_map) / np.maximum(spec.counts, 1) / ref**2
+    probed = {} if probe is None else {"probe": _probe_record(spec, rel, var, angles, probe)}
+    ratio, z, ang, t0, t_dip = _deepest_dip(spec, rel, var, angles)
+    if ang is None or ratio > MAX_DIP_RATIO:
+        return _edge_or_none(spec, rel, var, angles, probed, ratio, z)
+    checks, why = _line_checks(spec, rel, angles, ang, t0, t_dip, probed)
+    if why:
+        return Motion(False, None, None, ratio, z, checks, float(band), float(min_visible),
+                      f"a dip in the beads' spectrum at {t0:.3g} cycles/px, {ang:.0f} deg, "
+                      f"but {why}: not motion blur")
+    # the direction to a tenth of a degree (the line's lowest frequency is not the
+    # length: it moved off the truth on smears whose zero the aberrations shift), then
+    # the length from the sinc^2 over the whole band
+    ang_line = refine_line(spec.mean, spec.ring_mean, n, ang, t0, band / 3.0, band)[0]
+    ang, length = fit_line(spec.mean, spec.var_map, n, ang_line, t0, band)
+    checks.update(length_grid_px=float(1.0 / t0), angle_line_deg=float(ang_line))
+    return Motion(True, float(length), float(ang), ratio, z, checks, float(band),
+                  float(min_visible),
+                  f"every bead is smeared by {length:.2g} px along "
+                  f"{ang:.0f} deg from the columns (a straight zero line in their spectrum at "
+                  f"{t0:.3g} cycles/px, {ratio:.2f} of its flanks, z = {z:.0f}). "
+                  + ALTERNATIVE)
 
-    def strip_profiles(spec):
-        v = spec.ravel()
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.array([np.bincount(b_, weights=v[c_], minlength=nb) / n_
-                             for c_, b_, n_ in geometry])
 
-    def profiles(spec):
-        """Strip profile along every direction, over the mean of all directions: a lens's
-        fall towards its cutoff and the knee at the band's edge cancel; a smear's zero
-        line does not (shape (angles, bins))."""
-        prof = strip_profiles(spec)
-        finite = np.isfinite(prof)
-        ref = np.where(finite, prof, 0.0).sum(axis=0) / np.maximum(finite.sum(axis=0), 1)
-        ref[~finite.any(axis=0)] = np.nan
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return prof / ref, ref
+def _quarters(positions, k: int) -> np.ndarray:
+    """Each bead's quarter of the field, 0-3, by position (default: of the list)."""
+    if positions is None:
+        return np.arange(k) * 4 // k
+    pos = np.asarray(positions, dtype=np.float64).reshape(k, 2)
+    my, mx = np.median(pos, axis=0)
+    return (pos[:, 0] > my).astype(int) * 2 + (pos[:, 1] > mx).astype(int)
 
-    rel, ref = profiles(s_all)
-    cnt = geometry[0][2]
-    pv = strip_profiles(var_map)
-    probe_rec = None
-    if probe is not None:
-        plen, pang = float(probe[0]), float(probe[1]) % 180.0
-        ip = int(np.argmin(np.minimum(np.abs(angles - pang), 180 - np.abs(angles - pang))))
-        with np.errstate(invalid="ignore", divide="ignore"):
-            pvar = pv[ip] / np.maximum(cnt, 1) / ref**2
-        pr, pz = _dips(rel[ip], pvar, cnt, centres, band)
-        t_p = 1.0 / plen
-        # as the search reads it: a bin whose flanks are clear and whose reach (a third of
-        # its frequency) holds the zero
-        near = np.isfinite(pr) & (np.abs(centres - t_p) <= centres / 3.0)
-        ok_p = bool(t_p < band and near.any())
-        jp = int(np.flatnonzero(near)[np.argmin(pr[near])]) if ok_p else 0
-        probe_rec = {"testable": ok_p, "ratio": float(pr[jp]) if ok_p else None,
-                     "z": float(pz[jp]) if ok_p else None}
+
+def _probe_record(spec: BeadSpectrum, rel, var, angles, probe) -> dict:
+    """Whether the search could see a smear known from elsewhere (``probe`` of
+    :func:`detect_motion`), and the dip's ratio and z at its place."""
+    centres, band = spec.centres, spec.band
+    plen, pang = float(probe[0]), float(probe[1]) % 180.0
+    ip = int(np.argmin(np.minimum(np.abs(angles - pang), 180 - np.abs(angles - pang))))
+    pr, pz = _dips(rel[ip], var[ip], spec.counts, centres, band)
+    t_p = 1.0 / plen
+    # as the search reads it: a bin whose flanks are clear and whose reach (a third of
+    # its frequency) holds the zero
+    near = np.isfinite(pr) & (np.abs(centres - t_p) <= centres / 3.0)
+    ok_p = bool(t_p < band and near.any())
+    jp = int(np.flatnonzero(near)[np.argmin(pr[near])]) if ok_p else 0
+    return {"testable": ok_p, "ratio": float(pr[jp]) if ok_p else None,
+            "z": float(pz[jp]) if ok_p else None}
+
+
+def _deepest_dip(spec: BeadSpectrum, rel, var, angles) -> tuple:
+    """The deepest significant dip over every direction: its ratio to its flanks, its z,
+    direction, the zero's frequency (the deepest bin within the dip's reach: near the
+    band's edge the flanks cannot be tested at the zero, only just before it) and the
+    frequency where its flanks were tested; ``(inf, 0, None, None, None)`` for none."""
+    centres = spec.centres
     best = (np.inf, 0.0, None, None, None)
     for i, ang in enumerate(angles):
-        with np.errstate(invalid="ignore", divide="ignore"):
-            var = pv[i] / np.maximum(cnt, 1) / ref**2
-        ratio, z = _dips(rel[i], var, cnt, centres, band)
+        ratio, z = _dips(rel[i], var[i], spec.counts, centres, spec.band)
         ok = z >= MIN_DIP_Z
         if ok.any():
             j = int(np.flatnonzero(ok)[np.argmin(ratio[ok])])
             if ratio[j] < best[0]:
-                # the zero itself: the deepest bin within the dip's reach (near the band's
-                # edge the flanks cannot be tested at the zero, only just before it)
                 reach = np.abs(centres - centres[j]) <= centres[j] / 3.0
                 vals = np.where(reach & np.isfinite(rel[i]), rel[i], np.inf)
                 jz = int(np.argmin(vals))
                 best = (float(ratio[j]), float(z[j]), float(ang), float(centres[jz]),
                         float(centres[j]))
-    ratio, z, ang, t0, t_dip = best
-    probed = {} if probe_rec is None else {"probe": probe_rec}
-    if ang is None or ratio > MAX_DIP_RATIO:
-        def quarter_rel(g):
-            return profiles(combine(np.array([2 * g, 2 * g + 1])))[0]
-        edge = _edge_smear(rel, pv / np.maximum(cnt, 1) / ref**2, centres, band, angles,
-                           lambda: [quarter_rel(g) for g in range(4)
-                                    if np.count_nonzero(group == g) >= 2])
-        if edge is not None:
-            length, e_ang, e_ratio, e_rms, quarters = edge
-            return Motion(True, length, e_ang, e_ratio, float("nan"),
-                          {"route": "edge", "fit_rms": e_rms, "quarters": quarters,
-                           **probed}, float(band), float(min_visible),
-                          f"every bead is smeared by {length:.2g} px along {e_ang:.0f} deg "
-                          f"from the columns: along it the beads' power falls, against the "
-                          f"perpendicular direction, as the smear's sinc^2 to "
-                          f"{e_ratio:.3f} near its zero at {1 / length:.3g} cycles/px (the "
-                          "zero itself lies too near the optics' cutoff to be bracketed). "
-                          + ALTERNATIVE)
-        return Motion(False, None, None, float(min(ratio, 1.0)), float(z), probed, float(band),
-                      float(min_visible), none.reason)
-    # the zero is along one direction only (a ring, from defocus, dips along all of
-    # them) and common to every quarter of the beads
+    return best
+
+
+def _edge_or_none(spec: BeadSpectrum, rel, var, angles, probed, ratio, z) -> Motion:
+    """No zero line: a smear whose zero lies too near the cutoff to be bracketed
+    (:func:`_edge_smear`), or no motion blur."""
+    band, min_visible = spec.band, 1.0 / spec.band
+    edge = _edge_smear(rel, var, spec.centres, band, angles,
+                       lambda: [spec.quarter_profiles(g) for g in range(4)
+                                if np.count_nonzero(spec.group == g) >= 2])
+    if edge is None:
+        return Motion(False, None, None, float(min(ratio, 1.0)), float(z), probed,
+                      float(band), float(min_visible),
+                      f"no straight zero line in the beads' spectrum: no motion blur of "
+                      f"{min_visible:.2g} px or more (a shorter one cannot be told from the "
+                      f"optics, whose signal reaches {band:.3g} cycles/px here)")
+    length, e_ang, e_ratio, e_rms, quarters = edge
+    return Motion(True, length, e_ang, e_ratio, float("nan"),
+                  {"route": "edge", "fit_rms": e_rms, "quarters": quarters, **probed},
+                  float(band), float(min_visible),
+                  f"every bead is smeared by {length:.2g} px along {e_ang:.0f} deg "
+                  f"from the columns: along it the beads' power falls, against the "
+                  f"perpendicular direction, as the smear's sinc^2 to "
+                  f"{e_ratio:.3f} near its zero at {1 / length:.3g} cycles/px (the "
+                  "zero itself lies too near the optics' cutoff to be bracketed). "
+                  + ALTERNATIVE)
+
+
+def _line_checks(spec: BeadSpectrum, rel, angles, ang, t0, t_dip, probed) -> tuple[dict, str]:
+    """The checks that a dip is a smear's zero line: along one direction only (a ring,
+    from defocus, dips along all of them), and common to every quarter of the beads;
+    returns the checks and why the dip is not a line ("" where it is)."""
+    centres, cnt, band = spec.centres, spec.counts, spec.band
     j = int(np.argmin(np.abs(centres - t_dip)))  # where the flanks were tested
     i0 = int(np.argmin(np.abs(angles - ang)))
     across = angles.size // 2
@@ -451,8 +394,7 @@ def detect_motion(
     # common to every quarter: its own deepest dip near the same direction and frequency
     # (within QUARTER_ANGLE degrees and QUARTER_FREQUENCY of it). Its depth is not asked
     # to match: field-varying aberrations change how deep a smear's zero reads from one
-    # part of the field to another (0.12-0.50 over the quarters of one scene), not where
-    # it lies
+    # part of the field to another, not where it lies
     near_angles = [(i0 + d) % angles.size
                    for d in range(-int(QUARTER_ANGLE // ANGLE_STEP),
                                   int(QUARTER_ANGLE // ANGLE_STEP) + 1)]
@@ -460,8 +402,8 @@ def detect_motion(
                                                           1.01 * (centres[1] - centres[0])))
     quarters, places = [], []
     for g in range(4):
-        if np.count_nonzero(group == g) >= 2:
-            rq = profiles(combine(np.array([2 * g, 2 * g + 1])))[0]
+        if np.count_nonzero(spec.group == g) >= 2:
+            rq = spec.quarter_profiles(g)
             best_q = (np.inf, None)
             for ia in near_angles:
                 rr = _dips(rq[ia], np.zeros(len(centres)), cnt, centres, band)[0]
@@ -474,25 +416,11 @@ def detect_motion(
               "quarter_places": [p_ for p_ in places if p_ is not None], **probed}
     straight = np.isfinite(perp) and perp > MAX_CHECK_RATIO
     common = all(np.isfinite(q) and q <= MAX_QUARTER_RATIO for q in quarters)
-    if not (straight and common):
-        why = (f"the spectrum dips across it too (ratio {perp:.2f}): a ring, not a line"
-               if not straight else "it is not common to all beads (quarters: "
-               + ", ".join(f"{q:.2f}" for q in quarters) + ")")
-        return Motion(False, None, None, ratio, z, checks, float(band), float(min_visible),
-                      f"a dip in the beads' spectrum at {t0:.3g} cycles/px, {ang:.0f} deg, "
-                      f"but {why}: not motion blur")
-    # the direction to a tenth of a degree (the line's lowest frequency is not the
-    # length: it moved off the truth on smears whose zero the aberrations shift), then
-    # the length from the sinc^2 over the whole band
-    ang_line = refine_line(s_all, ring_mean[ring], n, ang, t0, width, band)[0]
-    ang, length = fit_line(s_all, var_map, n, ang_line, t0, band)
-    checks.update(length_grid_px=float(1.0 / t0), angle_line_deg=float(ang_line))
-    return Motion(True, float(length), float(ang), ratio, z, checks, float(band),
-                  float(min_visible),
-                  f"every bead is smeared by {length:.2g} px along "
-                  f"{ang:.0f} deg from the columns (a straight zero line in their spectrum at "
-                  f"{t0:.3g} cycles/px, {ratio:.2f} of its flanks, z = {z:.0f}). "
-                  + ALTERNATIVE)
+    if straight and common:
+        return checks, ""
+    return checks, (f"the spectrum dips across it too (ratio {perp:.2f}): a ring, not a "
+                    "line" if not straight else "it is not common to all beads (quarters: "
+                    + ", ".join(f"{q:.2f}" for q in quarters) + ")")
 
 
 def remove_motion(stack: np.ndarray, length: float, angle_deg: float, *,
