@@ -42,25 +42,24 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..beads.patches import R_EXT_FACTOR, Patches, patch_size
+from ..beads.patches import R_EXT_FACTOR, patch_size
 from ..beads.window import bump_window, radial_distance
 from ..common.progress import Progress, wait_with_progress
 from ..common.threads import blas_threads, compute_first, compute_tasks
 from ..common.twins import drained
-from ..common.validate import check_grid_step, check_positive
+from ..common.validate import check_positive
 from ..model.cone import Cone, reduce_cone
 from ..model.denoise import band_limit, refit_basis
 from ..model.field import coarse_grid
-from ..model.heldout import split_holdout
 from ..model.pca import learn_basis, min_beads_for, orient, rank_by_threshold
 from ..model.tps import ThinPlateSpline
 from ..model.voronoi import voronoi_areas
 from .choice import Choice, choose, own_estimate
 from .dimensions import Beads, choose_dimensions, family_fields, noise_factor
-from .patches import ImagePatches, image_patches
+from .patches import ImagePatches, extract_patches, hold_out, usable_images
 from .result import OperatorFamily, space_at
 from .shrink import Fields, shrunk_fields
-from .sizes import RULE_TRUSTED, confirmed_size, white_rank
+from .sizes import family_sizes
 
 #: Largest ``J`` the rule may choose.
 MAX_SPACE = 16
@@ -397,6 +396,47 @@ def iter_estimate_family(
     OperatorFamily
     """
     t0 = time.perf_counter()
+    items, grid_step, options = _checked(images, psf_radius, n_psf, n_space, client, grid_step,
+                                         refine, denoise)
+    found = yield from extract_patches(items, float(psf_radius), threshold=threshold,
+                                       client=client, chunk=chunk)
+    shape, used, skipped = usable_images(found, grid_step, n_psf)
+    # the error of each image's operator on beads of its own (about a fifth, spread over
+    # the field) that the family never saw; each judged image's own estimate from all its
+    # beads (blended in where the judgement says so) is started now, beside the size rule
+    held, train = hold_out(used, shape, holdout)
+    early_judged = sorted(held)
+    own_early = _start_own_estimates(used, early_judged, shape, grid_step, denoise, client)
+    n_psf, sizes_meta = family_sizes(used, n_psf, n_space, len(found), min_beads=MIN_BEADS_TPS)
+    options["n_psf"] = n_psf
+    heldout = None
+    choices: list[Choice] = []
+    # the family from every bead does not depend on the held-out judgement (only which
+    # images blend in their own estimate does): it is learnt beside the judgement's tasks
+    import dask
+
+    final = dask.delayed(_learn)(used, shape, dimensions=True, **options)
+    sub = None
+    own_all: dict = {}  # the images' own estimates from all their beads, by index
+    if holdout:
+        sub, choices, heldout, own_all = yield from _judge(
+            used, train, held, early_judged, own_early, final, shape, options, client)
+    sub = yield from _blend_own(sub, final, used, choices, own_all, shape, grid_step, denoise,
+                                client)
+    sub.metadata.update(sizes_meta)
+    sub.metadata.update({
+        "images": [f.index for f in used], "skipped": {str(k): v for k, v in skipped.items()},
+        "beads_per_image": [int(f.n_beads) for f in used], "psf_radius": float(psf_radius),
+        "heldout": heldout, "operator_choice": [c.to_dict() for c in choices] or None,
+        "seconds": round(time.perf_counter() - t0, 3)})
+    yield Progress("subspace", 1.0, f"I = {sub.n_psf}, J = {sub.n_space} from {len(used)} "
+                                    "images")
+    return sub
+
+
+def _checked(images, psf_radius, n_psf, n_space, client, grid_step, refine, denoise):
+    """The images as a list, and the options of the family; one clear line for a bad value
+    before any work."""
     items = _items(images)
     if len(items) < 2:
         raise ValueError(f"`images` must hold at least 2 images to learn a family, got "
@@ -416,131 +456,28 @@ def iter_estimate_family(
                          f"of {int(n_psf)} PSFs give: at most {most}")
     options = {"n_psf": n_psf, "n_space": n_space, "grid_step": grid_step, "refine": refine,
                "denoise": denoise}
+    return items, grid_step, options
+
+
+def _start_own_estimates(used, early_judged, shape, grid_step, denoise, client):
+    """The judged images' own estimates from all their beads, started now on a thread of
+    their own (blended in where the judgement says so)."""
     import dask
 
-    tasks = [dask.delayed(image_patches)(item, float(psf_radius), index=k, threshold=threshold)
-             for k, item in enumerate(items)]
-    found: list[ImagePatches] = []
-    step = max(1, int(chunk))
-    for start in range(0, len(tasks), step):
-        found += yield from wait_with_progress(
-            lambda part=tasks[start:start + step]: compute_tasks(part, client),
-            Progress("patches", 0.6 * len(found) / len(tasks),
-                     f"{len(found)} of {len(tasks)} images: beads being extracted"))
-        yield Progress("patches", 0.6 * len(found) / len(tasks),
-                       f"{len(found)} of {len(tasks)} images: "
-                       f"{sum(f.n_beads for f in found)} beads")
-    shapes = {f.shape for f in found}
-    if len(shapes) > 1:
-        first = found[0].shape
-        odd = next(f for f in found if f.shape != first)
-        raise ValueError(f"every image of `images` must have the same shape: image 0 is "
-                         f"{first}, image {odd.index} is {odd.shape}")
-    check_grid_step(grid_step, found[0].shape)
-    shape = found[0].shape
-    used = [f for f in found if f.patches is not None]
-    skipped = {f.index: f.summary for f in found if f.patches is None}
-    if len(used) < 2:
-        raise ValueError(f"at least 2 images with usable beads are needed, got {len(used)} "
-                         f"of {len(found)} (no usable bead in images {sorted(skipped)})")
-
-    n_total = sum(f.n_beads for f in used)
-    if n_total < min_beads_for(1):
-        raise ValueError(
-            f"a family needs at least {min_beads_for(1)} usable beads over all images, got "
-            f"{n_total} (beads per image with any: "
-            f"{ {f.index: int(f.n_beads) for f in used} }): use brighter or more bead images")
-    if n_psf is not None and n_total < min_beads_for(int(n_psf)):
-        raise ValueError(
-            f"`n_psf` = {n_psf} needs at least {min_beads_for(int(n_psf))} usable beads over "
-            f"all images, got {n_total}: lower `n_psf` or use more beads")
-
-    # the error of each image's operator on beads of its own (about a fifth, spread over
-    # the field) that the family never saw; each judged image's own estimate from all its
-    # beads (blended in where the judgement says so) is started now, beside the size rule
-    held: dict[int, Patches] = {}
-    train: list[ImagePatches] = []
-    for i, f in enumerate(used):
-        mask = (split_holdout(f.patches.centers, shape, holdout)
-                if holdout and f.n_beads >= 5 else np.zeros(f.n_beads, bool))
-        if mask.any() and (~mask).any():
-            held[i] = f.patches.subset(mask)
-            f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
-        train.append(f)
-    early_judged = sorted(held)
     early = ThreadPoolExecutor(1)
     own_early = early.submit(compute_tasks, [
         dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
                                    denoise=denoise) for i in early_judged], client)
     early.shutdown(wait=False)  # its thread ends with the task
-    # I: the rank rule on the patches whitened by their noise, bounded by what the beads
-    # support; beyond RULE_TRUSTED only as far as held-out beads confirm; J: the rule on the maps
-    sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
-    if n_psf is None:
-        first = used[0].patches
-        window = bump_window(first.size, first.r, first.r_ext)
-        n_psf = min(white_rank(np.concatenate([f.patches.psf for f in used]),
-                               np.concatenate([f.patches.noise / f.patches.flux for f in used]),
-                               window),
-                    max(1, (sum(f.n_beads for f in used) - 2) // 2))
-        sizes_meta["psf_size_by"] = "whitened rule"
-        if n_psf > RULE_TRUSTED:  # beyond it, as far as the held-out beads confirm
-            confirmed = confirmed_size([f.patches.psf for f in used],
-                                       [f.patches.centers for f in used],
-                                       radial_distance(first.size) < first.r_ext, n_psf,
-                                       min_beads=MIN_BEADS_TPS)
-            sizes_meta["psf_size_rule"] = int(n_psf)
-            n_psf = max(RULE_TRUSTED, min(n_psf, confirmed))
-            sizes_meta["psf_size_by"] = "whitened rule, beyond 12 as held-out beads confirm"
-        options["n_psf"] = n_psf
-        if n_space is not None and n_space > len(found) * n_psf:
-            raise ValueError(f"`n_space` = {n_space} is more spatial maps than {len(found)} "
-                             f"images of {n_psf} PSFs (chosen from the beads) give: at most "
-                             f"{len(found) * n_psf}")
-    if n_space is None:
-        sizes_meta["space_size_by"] = "rule"
-    heldout = None
-    choices: list[Choice] = []
-    # the family from every bead does not depend on the held-out judgement (only which
-    # images blend in their own estimate does): it is learnt beside the judgement's tasks
-    final = dask.delayed(_learn)(used, shape, dimensions=True, **options)
-    sub = None
-    own_all: dict = {}  # the images' own estimates from all their beads, by index
-    if holdout:
-        judged = list(early_judged)
-        if sum(f.n_beads for f in train) < min_beads_for(int(n_psf)):
-            # too few beads left to learn the family without the held-out ones: no
-            # judgement; every image keeps the family (the paper's model)
-            held, judged = {}, []
-        # the family without the held-out beads, each image's own estimate from the same
-        # beads and the judgement between them on the held-out beads: all beside the
-        # family's choice of dimensions (the longest task), as dask tasks (threads, or
-        # the cluster's workers)
-        trained = dask.delayed(_learn)(train, shape, **options)
-        # judged on their held-out beads only: the operators right there alone
-        own_train = {i: dask.delayed(own_estimate)(train[i].patches, shape,
-                                                   grid_step=grid_step, denoise=denoise,
-                                                   n_image=used[i].n_beads,
-                                                   at=held[i].centers)
-                     for i in judged}
-        tasks = [dask.delayed(choose)(trained, i, own_train.get(i), held.get(i))
-                 for i in range(len(used))]
-        if held:
-            sub, *choices = yield from wait_with_progress(
-                lambda: compute_first(final, tasks, client),
-                Progress("held-out", 0.6, "learning with and without the held-out beads"))
-            own_all = dict(zip(early_judged, (yield from wait_with_progress(
-                own_early.result, Progress("held-out", 0.7, "own estimates from all beads"))),
-                strict=True))
-        else:  # no judgement: every image keeps the family
-            choices = [choose(None, i, None, None) for i in range(len(used))]
-        yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
-                                        f"held-out beads of {len(held)} images")
-        heldout = [c.kept.summary() if c.kept is not None else {"n_beads": 0}
-                   for c in choices]
-        n_own = sum(c.weight < 1.0 for c in choices)
-        yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged; "
-                                        f"{n_own} blend in their own estimate")
+    return own_early
+
+
+def _blend_own(sub, final, used, choices, own_all, shape, grid_step, denoise, client):
+    """Each image the judgement blends its own estimate into gets it (from all its beads:
+    learnt early beside the judgement, or now, with the family from every bead where that
+    was not learnt yet) and its weight."""
+    import dask
+
     blended = [i for i, c in enumerate(choices) if c.weight < 1.0]
     missing = [i for i in blended if i not in own_all]
     tasks = [dask.delayed(own_estimate)(used[i].patches, shape, grid_step=grid_step,
@@ -560,15 +497,54 @@ def iter_estimate_family(
             sub.own[i] = own
             weights[i] = choices[i].weight
     sub.family_weights = weights
-    sub.metadata.update(sizes_meta)
-    sub.metadata.update({
-        "images": [f.index for f in used], "skipped": {str(k): v for k, v in skipped.items()},
-        "beads_per_image": [int(f.n_beads) for f in used], "psf_radius": float(psf_radius),
-        "heldout": heldout, "operator_choice": [c.to_dict() for c in choices] or None,
-        "seconds": round(time.perf_counter() - t0, 3)})
-    yield Progress("subspace", 1.0, f"I = {sub.n_psf}, J = {sub.n_space} from {len(used)} "
-                                    "images")
     return sub
+
+
+def _judge(used, train, held, early_judged, own_early, final, shape, options, client):
+    """The family without the held-out beads, each judged image's own estimate from the
+    same beads and the judgement between them on the held-out beads, all beside the
+    family's choice of dimensions (the longest task), as dask tasks (threads, or the
+    cluster's workers): the family from every bead where it was learnt beside them, each
+    image's choice, its held-out figures and the own estimates from all beads."""
+    import dask
+
+    grid_step, denoise, n_psf = options["grid_step"], options["denoise"], options["n_psf"]
+    sub, own_all = None, {}
+    judged = list(early_judged)
+    if sum(f.n_beads for f in train) < min_beads_for(int(n_psf)):
+        # too few beads left to learn the family without the held-out ones: no
+        # judgement; every image keeps the family (the paper's model)
+        held, judged = {}, []
+    # the family without the held-out beads, each image's own estimate from the same
+    # beads and the judgement between them on the held-out beads: all beside the
+    # family's choice of dimensions (the longest task), as dask tasks (threads, or
+    # the cluster's workers)
+    trained = dask.delayed(_learn)(train, shape, **options)
+    # judged on their held-out beads only: the operators right there alone
+    own_train = {i: dask.delayed(own_estimate)(train[i].patches, shape,
+                                               grid_step=grid_step, denoise=denoise,
+                                               n_image=used[i].n_beads,
+                                               at=held[i].centers)
+                 for i in judged}
+    tasks = [dask.delayed(choose)(trained, i, own_train.get(i), held.get(i))
+             for i in range(len(used))]
+    if held:
+        sub, *choices = yield from wait_with_progress(
+            lambda: compute_first(final, tasks, client),
+            Progress("held-out", 0.6, "learning with and without the held-out beads"))
+        own_all = dict(zip(early_judged, (yield from wait_with_progress(
+            own_early.result, Progress("held-out", 0.7, "own estimates from all beads"))),
+            strict=True))
+    else:  # no judgement: every image keeps the family
+        choices = [choose(None, i, None, None) for i in range(len(used))]
+    yield Progress("held-out", 0.7, f"family and own estimates learnt without the "
+                                    f"held-out beads of {len(held)} images")
+    heldout = [c.kept.summary() if c.kept is not None else {"n_beads": 0}
+               for c in choices]
+    n_own = sum(c.weight < 1.0 for c in choices)
+    yield Progress("held-out", 0.8, f"held-out beads of {len(held)} images judged; "
+                                    f"{n_own} blend in their own estimate")
+    return sub, choices, heldout, own_all
 
 
 estimate_family = drained(iter_estimate_family, "estimate_family")

@@ -8,7 +8,7 @@ images together. Runs as one dask task per image.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Generator
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,11 +16,15 @@ import numpy as np
 from ..beads.centering import refine_centers
 from ..beads.detect import Beads, NoBeadsError, detect_beads, flag_unusable
 from ..beads.patches import Patches
+from ..common.progress import Progress, wait_with_progress
 from ..common.spacing import bead_border, centring_sigma
-from ..common.validate import as_image
+from ..common.threads import compute_tasks
+from ..common.validate import as_image, check_grid_step
 from ..model.deblend import crowded, deblend
 from ..model.estimate import ESTIMATE_IMAGES, faint_beads, kept_patches
 from ..model.fewbeads import FEW_BEADS
+from ..model.heldout import split_holdout
+from ..model.pca import min_beads_for
 
 
 @dataclass
@@ -138,3 +142,71 @@ def _usable(patches: Patches, kept: np.ndarray) -> tuple[Patches | None, np.ndar
     faint, _ = faint_beads(patches.flux)
     usable = (patches.flux > 0) & ~faint
     return (patches.subset(usable) if usable.any() else None), kept[usable]
+
+
+def extract_patches(items: list, psf_radius: float, *, threshold: float, client,
+                    chunk: int) -> Generator[Progress, None, list[ImagePatches]]:
+    """Each image's beads and patches (:func:`image_patches`), as dask tasks of ``chunk``
+    images each (threads, or the cluster's workers); a record after each chunk."""
+    import dask
+
+    tasks = [dask.delayed(image_patches)(item, float(psf_radius), index=k, threshold=threshold)
+             for k, item in enumerate(items)]
+    found: list[ImagePatches] = []
+    step = max(1, int(chunk))
+    for start in range(0, len(tasks), step):
+        found += yield from wait_with_progress(
+            lambda part=tasks[start:start + step]: compute_tasks(part, client),
+            Progress("patches", 0.6 * len(found) / len(tasks),
+                     f"{len(found)} of {len(tasks)} images: beads being extracted"))
+        yield Progress("patches", 0.6 * len(found) / len(tasks),
+                       f"{len(found)} of {len(tasks)} images: "
+                       f"{sum(f.n_beads for f in found)} beads")
+    return found
+
+
+def usable_images(found: list[ImagePatches], grid_step: float, n_psf
+                  ) -> tuple[tuple[int, int], list[ImagePatches], dict]:
+    """The images' shape (one for all), the images with usable beads and the skipped
+    ones' summaries, by index; one clear line where they cannot make a family."""
+    shapes = {f.shape for f in found}
+    if len(shapes) > 1:
+        first = found[0].shape
+        odd = next(f for f in found if f.shape != first)
+        raise ValueError(f"every image of `images` must have the same shape: image 0 is "
+                         f"{first}, image {odd.index} is {odd.shape}")
+    check_grid_step(grid_step, found[0].shape)
+    shape = found[0].shape
+    used = [f for f in found if f.patches is not None]
+    skipped = {f.index: f.summary for f in found if f.patches is None}
+    if len(used) < 2:
+        raise ValueError(f"at least 2 images with usable beads are needed, got {len(used)} "
+                         f"of {len(found)} (no usable bead in images {sorted(skipped)})")
+    n_total = sum(f.n_beads for f in used)
+    if n_total < min_beads_for(1):
+        raise ValueError(
+            f"a family needs at least {min_beads_for(1)} usable beads over all images, got "
+            f"{n_total} (beads per image with any: "
+            f"{ {f.index: int(f.n_beads) for f in used} }): use brighter or more bead images")
+    if n_psf is not None and n_total < min_beads_for(int(n_psf)):
+        raise ValueError(
+            f"`n_psf` = {n_psf} needs at least {min_beads_for(int(n_psf))} usable beads over "
+            f"all images, got {n_total}: lower `n_psf` or use more beads")
+    return shape, used, skipped
+
+
+def hold_out(used: list[ImagePatches], shape: tuple[int, int], holdout: float | None
+             ) -> tuple[dict[int, Patches], list[ImagePatches]]:
+    """About ``holdout`` of each image's beads (spread over the field; none of an image
+    with fewer than 5) held out to judge its operator, by image; each image with the
+    rest of its beads."""
+    held: dict[int, Patches] = {}
+    train: list[ImagePatches] = []
+    for i, f in enumerate(used):
+        mask = (split_holdout(f.patches.centers, shape, holdout)
+                if holdout and f.n_beads >= 5 else np.zeros(f.n_beads, bool))
+        if mask.any() and (~mask).any():
+            held[i] = f.patches.subset(mask)
+            f = ImagePatches(f.index, f.shape, f.patches.subset(~mask), f.summary)
+        train.append(f)
+    return held, train

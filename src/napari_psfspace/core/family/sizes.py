@@ -117,3 +117,38 @@ def confirmed_size(psf: list[np.ndarray], centers: list[np.ndarray], support: np
         return int(n_max)
     curve = np.concatenate(errors).mean(axis=0)
     return int(np.flatnonzero(curve <= 1.01 * curve.min())[0]) + 1
+
+
+def family_sizes(used, n_psf: int | None, n_space: int | None, n_images: int, *,
+                 min_beads: int) -> tuple[int, dict]:
+    """The basis size ``I`` and how it was chosen: given, or the rank rule on the patches
+    whitened by their noise, bounded by what the beads support, and beyond
+    :data:`RULE_TRUSTED` only as far as held-out beads confirm (:func:`confirmed_size`,
+    each image's maps from at least ``min_beads`` beads); ``J`` is left to the rule on
+    the maps where not given."""
+    from ..beads.window import bump_window, radial_distance
+
+    sizes_meta: dict = {"psf_size_by": "fixed", "space_size_by": "fixed"}
+    if n_psf is None:
+        first = used[0].patches
+        window = bump_window(first.size, first.r, first.r_ext)
+        n_psf = min(white_rank(np.concatenate([f.patches.psf for f in used]),
+                               np.concatenate([f.patches.noise / f.patches.flux for f in used]),
+                               window),
+                    max(1, (sum(f.n_beads for f in used) - 2) // 2))
+        sizes_meta["psf_size_by"] = "whitened rule"
+        if n_psf > RULE_TRUSTED:  # beyond it, as far as the held-out beads confirm
+            confirmed = confirmed_size([f.patches.psf for f in used],
+                                       [f.patches.centers for f in used],
+                                       radial_distance(first.size) < first.r_ext, n_psf,
+                                       min_beads=min_beads)
+            sizes_meta["psf_size_rule"] = int(n_psf)
+            n_psf = max(RULE_TRUSTED, min(n_psf, confirmed))
+            sizes_meta["psf_size_by"] = "whitened rule, beyond 12 as held-out beads confirm"
+        if n_space is not None and n_space > n_images * n_psf:
+            raise ValueError(f"`n_space` = {n_space} is more spatial maps than {n_images} "
+                             f"images of {n_psf} PSFs (chosen from the beads) give: at most "
+                             f"{n_images * n_psf}")
+    if n_space is None:
+        sizes_meta["space_size_by"] = "rule"
+    return n_psf, sizes_meta
