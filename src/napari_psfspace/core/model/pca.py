@@ -16,7 +16,24 @@ thin-plate field learnt without the beads it predicts) is least
 Donoho's optimal hard threshold for an unknown noise level: keep the singular values
 above ``omega(beta) * sigma_med``, where ``omega(1) = 2.858`` is the value quoted in the
 paper (square matrices) and ``omega(beta)`` its published polynomial approximation for an
-aspect ratio ``beta``.
+aspect ratio ``beta``. Both are capped at what the number of beads supports; the rule,
+which no held-out bead checks, at :data:`RULE_CAP`. The paper capped the size at 12; on
+wide strongly aberrated fields the held-out error still falls beyond it
+(``bench/bench_caps.py``), hence :data:`HELDOUT_CAP`.
+
+**Outliers by position.** With field-dependent aberrations the paper's global z-test
+rejects the legitimately extreme beads at the field's edges and leaves the corners to
+extrapolation; with positions each bead is judged by one statistic, its held-out error
+against the others.
+
+**A family's images** (``groups``): the beads of a family's images under other conditions
+are not a bead's neighbours. Tested against the pooled patches, the beads of a condition at
+the edge of those learnt are all outliers, and the family loses that condition where it
+differs most (a corner of a tilted field). Each patch is instead tested against the
+thin-plate fit of its own image's beads: its in-sample residual over ``sqrt(1 - S_mm)``
+(the spline's standardized residual: its leverage, large where the field is extrapolated
+at the rim, does not inflate it as the leave-one-out residual's ``1 / (1 - S_mm)`` does),
+scaled by ``1.4826`` times the image's median absolute deviation.
 """
 
 from __future__ import annotations
@@ -209,24 +226,16 @@ def learn_basis(
         Background-free PSF patches, each summing to 1 (a 3D patch: its own
         normalisation; the basis has the patches' shape).
     n_psf : int, "heldout", "rule" or None
-        Basis size ``I``. "heldout" (the default when ``positions`` are given): the
-        ``I`` with the lowest cross-validated error of the whole model (basis and
-        thin-plate interpolation learnt without the beads predicted), see
-        :func:`~napari_psfspace.core.model.outliers.crossvalidated_basis_errors` and
-        :func:`~napari_psfspace.core.model.outliers.size_by_heldout`. "rule" (the
-        default without positions): the Gavish-Donoho threshold. Both are capped at what the number
-        of beads supports and at ``max_psf``; the rule, which no held-out bead checks,
-        at :data:`RULE_CAP` by default.
+        Basis size ``I``. "heldout" (the default when ``positions`` are given): where the
+        whole model's cross-validated error is least
+        (:func:`~napari_psfspace.core.model.outliers.size_by_heldout`); "rule" (the
+        default without): the Gavish-Donoho threshold (module docstring).
     support : ndarray of the patches' shape, bool, optional
         Pixels where the windowed patches can be non-zero (the window support). Only
         these enter the rank rule's aspect ratio and median. Default: all pixels.
     positions : ndarray of shape (K, 2), optional
-        Bead positions (row, column). When given, each patch is judged by one
-        statistic, its held-out error against the others
-        (:func:`~napari_psfspace.core.model.outliers.judge_outliers`),
-        rather than by z-scores of its coefficients: with field-dependent aberrations
-        the paper's global test rejects the legitimately extreme beads at the field
-        edges and leaves the corners to extrapolation.
+        Bead positions (row, column): each patch is then judged by its held-out error
+        against the others (:func:`~napari_psfspace.core.model.outliers.judge_outliers`).
     z_threshold : float, optional
         Patches with a coefficient more than ``z_threshold`` standard deviations from
         the mean are rejected. Default 3 (the paper's); with ``positions``, the robust
@@ -237,33 +246,20 @@ def learn_basis(
         and ``n_psf`` is given; "gram" the eigendecomposition of the Gram matrix (the
         family's pooled patches: faster, as precise in the leading components).
     max_psf : int, optional
-        Upper bound of the automatic basis size. Default: :data:`HELDOUT_CAP` for the
-        held-out choice (and what the beads support, ``(K - 2) // 2`` inliers' worth),
-        :data:`RULE_CAP` for the rule. The paper capped it at 12; on wide strongly
-        aberrated fields the held-out error still fell beyond it
-        (``bench/bench_caps.py``).
+        Upper bound of the automatic basis size, besides the ``(K - 2) // 2`` that the
+        inliers support. Default: :data:`HELDOUT_CAP`, or :data:`RULE_CAP` for the rule.
     weights : ndarray of shape (K,), optional
         Weight of each patch in the SVD (its row is scaled by ``sqrt(weights)``).
-        Default ``1 / ||p_m||^2`` (every patch l2-normalised, so each bead weighs the
-        same): with denoised patches, pass the inverse of each raw patch's squared norm,
-        so that a faint bead's noise still lowers its weight.
+        Default ``1 / ||p_m||^2`` (each bead weighs the same); for denoised patches, the
+        raw patches' (a faint bead's noise still lowers its weight).
     components : int
         Also return the first ``components`` principal directions of the inliers
         (:attr:`PsfBasis.components`; 0: none).
     groups : ndarray of shape (K,), optional
         The image each patch comes from, with ``positions`` on each image's own field:
-        the z-score test then takes each patch's leave-one-out residual about the
-        thin-plate fit of its own image's beads, standardized within that image. The
-        beads of a family's images under other conditions are not its neighbours: tested
-        against the pooled patches, the beads of a condition at the edge of those
-        learnt are all outliers, and the family loses that condition where it differs
-        most (a corner of a tilted field). Each residual is the in-sample one over
-        ``sqrt(1 - S_mm)`` (the spline's standardized residual: its leverage, large
-        where the field is extrapolated at the rim, does not inflate it as the
-        leave-one-out residual's ``1 / (1 - S_mm)`` does), scaled by ``1.4826`` times
-        the image's median absolute deviation; images of fewer than
-        :data:`GROUP_MIN_BEADS` beads are not tested. Needs an integer ``n_psf`` or
-        "rule".
+        each patch is tested against the thin-plate fit of its own image's beads (module
+        docstring); images of fewer than :data:`GROUP_MIN_BEADS` beads are not tested.
+        Needs an integer ``n_psf`` or "rule".
 
     Returns
     -------
@@ -276,10 +272,48 @@ def learn_basis(
     """
     check_halt()
     psfs = np.asarray(psfs, dtype=np.float64)
+    k, patch_shape = psfs.shape[0], psfs.shape[1:]
+    n_psf, select = _size_rule(psfs, n_psf, positions, svd)
+    pos, groups, mask, xn = _normalised(psfs, support, positions, weights, groups, patch_shape, k,
+                                        select)
+    method = svd
+    if svd == "auto":
+        method = "randomized" if (min(xn.shape) > 2000 and n_psf is not None) else "full"
+    # First PCA, z-score test on the coefficients (at most 5: doublets and debris show
+    # in the leading components; more tests only add false alarms).
+    s, vt = _svd(xn, n_psf, method)
+    n_first = n_psf if n_psf is not None else min(5, _n_from_rule(s, xn.shape, k, max_psf)[2])
+    coef = xn @ vt[:n_first].T
+    inliers, zmax = _inliers(n_psf, z_threshold, groups, k, pos, xn, vt, n_first, coef)
+    # Second PCA on the inliers.
+    n_in = int(np.count_nonzero(inliers))
+    s, vt = _svd(xn[inliers], n_psf, method)
+    rule, tau, capped = _n_from_rule(s, xn[inliers].shape, n_in, max_psf)
+    heldout_errors, n_final = _final_size(psfs, n_psf, max_psf, select, pos, mask, xn, vt, inliers,
+                                          n_in, capped)
+    more = vt[:int(components)].copy() if components else None
+    vt = orient(vt[:n_final])
+    basis = np.zeros((n_final, *patch_shape))
+    basis[:, mask] = vt
+    beta = psfs[inliers][:, mask] @ vt.T
+    return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors, more)
+
+
+def _n_from_rule(s, shape, count, max_psf):
+    """The rule's size, its threshold, and the size capped at what ``count`` beads
+    support and at ``max_psf`` (default :data:`RULE_CAP`)."""
+    rule, tau = rank_by_threshold(s, shape)
+    cap = max(1, (count - 2) // 2)
+    return rule, tau, min(rule, cap, RULE_CAP if max_psf is None else max_psf)
+
+
+def _size_rule(psfs, n_psf, positions, svd):
+    """How the basis size is chosen (``select``: "heldout", "rule" or None for a given size)
+    and the size given, checked against the beads there are."""
     if psfs.ndim not in (3, 4) or psfs.shape[-1] != psfs.shape[-2]:
         raise ValueError(f"`psfs` must have shape (K, P, P) or (K, Z, P, P), got "
                          f"{psfs.shape}.")
-    k, patch_shape = psfs.shape[0], psfs.shape[1:]
+    k = psfs.shape[0]
     if svd not in ("auto", "full", "randomized", "gram"):
         raise ValueError(f"`svd` must be 'auto', 'full', 'randomized' or 'gram', got {svd!r}.")
     if n_psf is None:
@@ -306,6 +340,12 @@ def learn_basis(
             f"Too few beads for a basis of `n_psf` = {n_psf}: need at least "
             f"{min_beads_for(n_psf)} usable beads, got {k}. Lower `n_psf` or use more beads."
         )
+    return n_psf, select
+
+
+def _normalised(psfs, support, positions, weights, groups, patch_shape, k, select):
+    """The patches' pixels on the support, each normalised (to unit norm, or by its weight),
+    the beads' positions and groups checked."""
     pos = None if positions is None else np.asarray(positions, dtype=np.float64).reshape(k, 2)
     if groups is not None:
         groups = np.asarray(groups).reshape(-1)
@@ -328,20 +368,14 @@ def learn_basis(
         if weights.shape != (k,) or np.any(~np.isfinite(weights)) or np.any(weights <= 0):
             raise ValueError(f"`weights` must be {k} positive finite numbers.")
         xn = x * np.sqrt(weights / np.mean(weights * norms**2))[:, None]
-    method = svd
-    if svd == "auto":
-        method = "randomized" if (min(xn.shape) > 2000 and n_psf is not None) else "full"
+    return pos, groups, mask, xn
 
-    def n_from_rule(s, shape, count):
-        rule, tau = rank_by_threshold(s, shape)
-        cap = max(1, (count - 2) // 2)
-        return rule, tau, min(rule, cap, RULE_CAP if max_psf is None else max_psf)
 
-    # First PCA, z-score test on the coefficients (at most 5: doublets and debris show
-    # in the leading components; more tests only add false alarms).
-    s, vt = _svd(xn, n_psf, method)
-    n_first = n_psf if n_psf is not None else min(5, n_from_rule(s, xn.shape, k)[2])
-    coef = xn @ vt[:n_first].T
+def _inliers(n_psf, z_threshold, groups, k, pos, xn, vt, n_first, coef):
+    """The outlier test on the first coefficients: per group of beads against a spline of
+    the group's coefficients, a plain z-score without positions, or against what the beads'
+    neighbours predict (:func:`judge_outliers`); every bead kept where too few would be
+    left."""
     if groups is not None:
         zmax = np.zeros(k)
         for g in np.unique(groups):
@@ -362,10 +396,12 @@ def learn_basis(
                                        min_keep=min_beads_for(n_psf or 1))
     if np.count_nonzero(inliers) < min_beads_for(n_psf or 1):
         inliers[:] = True  # too few left: keep everything rather than fail
-    # Second PCA on the inliers.
-    n_in = int(np.count_nonzero(inliers))
-    s, vt = _svd(xn[inliers], n_psf, method)
-    rule, tau, capped = n_from_rule(s, xn[inliers].shape, n_in)
+    return inliers, zmax
+
+
+def _final_size(psfs, n_psf, max_psf, select, pos, mask, xn, vt, inliers, n_in, capped):
+    """The basis size: given, by the rule (capped), or where the beads' held-out error stops
+    falling (with the mean held-out error of each size)."""
     heldout_errors = None
     if n_psf is not None:
         n_final = n_psf
@@ -378,12 +414,7 @@ def learn_basis(
                                                pos[inliers], n_max)
         heldout_errors = per_bead.mean(axis=0)
         n_final = size_by_heldout(per_bead)
-    more = vt[:int(components)].copy() if components else None
-    vt = orient(vt[:n_final])
-    basis = np.zeros((n_final, *patch_shape))
-    basis[:, mask] = vt
-    beta = psfs[inliers][:, mask] @ vt.T
-    return PsfBasis(basis, beta, inliers, zmax, s, tau, rule, heldout_errors, more)
+    return heldout_errors, n_final
 
 
 def _robust_zmax(values: np.ndarray) -> np.ndarray:
