@@ -269,6 +269,43 @@ def iter_richardson_lucy_3d(
     -------
     Deconvolved3D
     """
+    n_iter, am = _checked(stack, operator, n_iter, stop, accelerate, device)
+    b, mean = stack_statistics(stack, background)  # its refusals before any progress
+    yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
+    v = _Volumes()  # the volumes, held once: each freed as soon as it is no longer needed
+    v.data = yield from _float32_copy(stack)
+    yield Progress("setup", 0.0, "blocks and their kernels")
+    op, block, xp = _blocked(operator, v, am, block, rtol, accelerate)
+    workers = default_workers() if workers is None else workers  # FFT threads or blocks
+    n_kernels = float(op.n_kernels) if block is not None else float(operator.n_psf)
+    estimate = yield from _normalisation(op, v, xp, n_iter, workers, accelerate, am,
+                                         blocked=block is not None)
+    yield Progress("setup", 0.0, "the starting estimate")
+    v.u = xp.full_like(v.data, max(mean - b, TINY) if start is None else float(start))
+    changes, deviances = yield from _iterations(op, v, b, xp, n_iter=n_iter, stop=stop,
+                                                accelerate=accelerate, workers=workers,
+                                                blocked=block is not None)
+    u = v.u
+    del v
+    stopped = len(changes) < n_iter
+    volume = am.to_host(u) if xp is not np else u
+    del u
+    if isinstance(op, BlockedOperator3D) and am.gpu:
+        op.release()  # its spectra and plans go back to the device
+    return Deconvolved3D(volume, len(changes), b, n_kernels, changes, stopped, estimate,
+                         deviances, am.name, block)
+
+
+class _Volumes:
+    """The iteration's volumes: the data, a buffer (``H u`` or the ratio), ``H^T 1`` and
+    the iterate, referenced from here alone so that each is freed when dropped."""
+
+    data = buf = norm = u = None
+
+
+def _checked(stack, operator, n_iter, stop, accelerate, device):
+    """``n_iter`` and the array module, checked, and the memory the volumes need on the
+    CPU; one clear line for a bad value before any work."""
     check_stack(stack, operator)
     n_iter = check_int(n_iter, "n_iter", minimum=1)
     if stop is not None and not (np.isfinite(stop) and stop >= 0):
@@ -282,56 +319,70 @@ def iter_richardson_lucy_3d(
                      "float32 volumes)",
                      hint="Deblur it in tiles from a memory budget: psfspace deblur3d "
                           "--memory 4GB, or richardson_lucy_3d_exchange.")
-    b, mean = stack_statistics(stack, background)  # its refusals before any progress
-    yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
-    # always a copy, clipped in place: a view of the user's array (a memmap of their
-    # file) is never written to
+    return n_iter, am
+
+
+def _float32_copy(stack) -> Generator[Progress, None, np.ndarray]:
+    """The stack as a float32 copy clipped at 0 in place: a view of the user's array (a
+    memmap of their file) is never written to."""
     data = np.array(stack, dtype=np.float32, copy=True)
     yield Progress("setup", 0.0, "a float32 copy of the stack")
     np.clip(data, 0, None, out=data)
     if not np.isfinite(data.sum(dtype=np.float64)):
         raise ValueError("`stack` contains NaN or infinite values")
-    yield Progress("setup", 0.0, "blocks and their kernels")
-    xp = np  # the volumes' array module: the device's where they fit there
-    if am.gpu:  # blocks as large as the device's memory allows (device_plan)
-        plan = plan_on_device(operator, data.shape[0], am.free_bytes(),
+    return data
+
+
+def _blocked(operator, v: _Volumes, am, block, rtol, accelerate):
+    """The operator in blocks (on a GPU, blocks as large as the device's memory allows,
+    :mod:`.device_plan`, with the data moved there where the volumes fit), the block
+    size and the volumes' array module."""
+    xp = np
+    if am.gpu:
+        plan = plan_on_device(operator, v.data.shape[0], am.free_bytes(),
                               accelerate=accelerate)
         block = plan.block
         if plan.volumes_on_device:
             xp = am.xp
-            data = am.asarray(data)
-        op = BlockedOperator3D(operator, block=block, rtol=rtol, device=am)
-    else:
-        op = operator if block is None else BlockedOperator3D(operator, block=block,
-                                                              rtol=rtol)
-    workers = default_workers() if workers is None else workers  # FFT threads or blocks
-    blocked = block is not None
-    n_kernels = float(op.n_kernels) if blocked else float(operator.n_psf)
+            v.data = am.asarray(v.data)
+        return BlockedOperator3D(operator, block=block, rtol=rtol, device=am), block, xp
+    op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    return op, block, xp
+
+
+def _normalisation(op, v: _Volumes, xp, n_iter, workers, accelerate, am, *, blocked):
+    """``H^T 1`` (floored at a tiny fraction of its top) into ``v.norm``, the buffer into
+    ``v.buf``; with blocks, the estimated time of the run first."""
     estimate = None
-    buf = xp.empty_like(data)
-    buf.fill(1.0)
+    v.buf = xp.empty_like(v.data)
+    v.buf.fill(1.0)
     if blocked:
         yield Progress("setup", 0.0, "timing one FFT of a block")
-        estimate = estimate_seconds(op, buf, n_iter, workers, accelerate=accelerate)
+        estimate = estimate_seconds(op, v.buf, n_iter, workers, accelerate=accelerate)
         yield Progress("estimate", 0.0, f"about {_duration(estimate)} for {n_iter} "
                                         f"iterations at most"
                                         + (" on the GPU" if am.gpu else ""))
-        buf.fill(1.0)
+        v.buf.fill(1.0)
     if not blocked:
-        norm = op.adjoint(buf, workers=workers)
+        v.norm = op.adjoint(v.buf, workers=workers)
     else:
-        norm = yield from _waves(op.iter_adjoint(buf, workers=workers), "setup", 0.0,
-                                 0.0, "H^T 1")
-    xp.maximum(norm, TINY * max(float(norm.max()), 1.0), out=norm)
-    yield Progress("setup", 0.0, "the starting estimate")
-    u = xp.full_like(data, max(mean - b, TINY) if start is None else float(start))
-    # the change of each iteration, read on a strided subsample (a sixteenth of a
-    # 1024 x 1024 stack): no fifth volume in memory
+        v.norm = yield from _waves(op.iter_adjoint(v.buf, workers=workers), "setup", 0.0,
+                                   0.0, "H^T 1")
+    xp.maximum(v.norm, TINY * max(float(v.norm.max()), 1.0), out=v.norm)
+    return estimate
+
+
+def _iterations(op, v: _Volumes, b, xp, *, n_iter, stop, accelerate, workers, blocked):
+    """The Richardson-Lucy iterations on ``v.u`` (Biggs-Andrews accelerated on request),
+    to ``n_iter`` or the stopping rule; the change of each iteration and the data fit
+    of each iterate (Poisson deviance per voxel), both read on a strided subsample (a
+    sixteenth of a 1024 x 1024 stack: no fifth volume in memory). ``v.buf``, ``v.norm``
+    and ``v.data`` are dropped at the end."""
+    u, data = v.u, v.data
     z, h, w = u.shape
     step = max(1, int(np.ceil(np.sqrt(z * h * w / (4 * STATS_VOXELS)))))
     prev = xp.empty_like(u[:, ::step, ::step])
     changes: list[float] = []
-    # the data fit of each iterate (Poisson deviance per voxel), on the same subsample
     fit = _DevianceOnSample(data[:, ::step, ::step], xp)
     deviances: list[float] = []
     if accelerate:  # Biggs-Andrews: x_{k-1}, the last two steps g, the prediction y
@@ -352,27 +403,27 @@ def iter_richardson_lucy_3d(
             left = f", {_duration(per * (n_iter - k))} left at most"
         where = (k / n_iter, 1 / n_iter, f"iteration {k + 1} of {n_iter}{left}")
         if not blocked:
-            buf = op.apply(u, workers=workers)
+            v.buf = op.apply(u, workers=workers)
         else:
             yield Progress("iteration", where[0], where[2])  # after the extrapolation
-            yield from _waves(op.iter_apply(u, out=buf, workers=workers), "iteration",
+            yield from _waves(op.iter_apply(u, out=v.buf, workers=workers), "iteration",
                               where[0], where[1] / 2, where[2])
-        buf += b
-        xp.maximum(buf, TINY, out=buf)
-        deviances.append(fit(buf[:, ::step, ::step]))
+        v.buf += b
+        xp.maximum(v.buf, TINY, out=v.buf)
+        deviances.append(fit(v.buf[:, ::step, ::step]))
         if (stop is not None and k >= MIN_ITERATIONS
                 and deviances[-2] - deviances[-1] < stop * deviances[-1]):
             if accelerate:  # the iterate, not its extrapolation
                 xp.copyto(u, x_prev)
             break  # u_k fits the data as well as u_{k-1}, to ``stop``: it is the result
-        xp.divide(data, buf, out=buf)
+        xp.divide(data, v.buf, out=v.buf)
         if not blocked:
-            u *= op.adjoint(buf, workers=workers)
+            u *= op.adjoint(v.buf, workers=workers)
         else:
             yield Progress("iteration", where[0] + where[1] / 2, where[2])
-            yield from _waves(op.iter_adjoint(buf, multiply_into=u, workers=workers),
+            yield from _waves(op.iter_adjoint(v.buf, multiply_into=u, workers=workers),
                               "iteration", where[0] + where[1] / 2, where[1] / 2, where[2])
-        u /= norm
+        u /= v.norm
         # light is never negative: the blocks' compressed kernels and the FFTs' rounding
         # can leave a voxel a little below zero, which the next update would amplify
         xp.maximum(u, 0, out=u)
@@ -384,16 +435,8 @@ def iter_richardson_lucy_3d(
         changes.append(float(xp.linalg.norm(prev) / max(xp.linalg.norm(now), TINY)))
         yield Progress("iteration", (k + 1) / n_iter,
                        f"iteration {k + 1} of {n_iter}, change {changes[-1]:.2g}")
-    del prev, buf, norm, data
-    if accelerate:
-        del x_prev, g1, g2, g_new
-    stopped = len(changes) < n_iter
-    volume = am.to_host(u) if xp is not np else u
-    del u
-    if isinstance(op, BlockedOperator3D) and am.gpu:
-        op.release()  # its spectra and plans go back to the device
-    return Deconvolved3D(volume, len(changes), b, n_kernels, changes, stopped, estimate,
-                         deviances, am.name, block)
+    v.buf = v.norm = v.data = None
+    return changes, deviances
 
 
 class _DevianceOnSample:
