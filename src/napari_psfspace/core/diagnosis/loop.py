@@ -53,7 +53,8 @@ from ..common.progress import Progress
 from ..common.threads import blas_threads
 from ..common.twins import drained
 from ..common.validate import as_array, as_image, check_camera, check_psf_radius
-from ..model.estimate import check_bead_diameter, hot_pixel_record
+from ..model.estimate import check_bead_diameter
+from ..model.estimate_record import hot_pixel_record
 from ..model.operator import ProductConvolution
 from .analysis import Analysis
 from .crossfit import CrossFit

@@ -7,6 +7,22 @@ projection -> :class:`~napari_psfspace.core.model.operator.ProductConvolution`.
 The work is a generator (:func:`iter_estimate`) that yields :class:`Progress` records and
 returns an :class:`Estimation`; :func:`estimate_operator` drains it and returns the
 operator. A GUI runs the generator in a worker thread and can stop between steps.
+
+**Denoising** (``denoise``, :mod:`~napari_psfspace.core.model.denoise`): the basis is
+learnt from patches filtered by one Wiener filter, each bead weighted by ``1 / ||p||^2``
+of its raw patch, and the basis images are then refitted to the raw patches of all beads
+at once given the smooth field and shrunk by their own noise. Off: the paper's plain PCA
+of l2-normalised patches.
+
+**Point-source PSFs.** With the beads' diameter (from their data sheet: 200 nm beads at
+100 nm pixels give 2.0), the learnt PSFs are corrected for the bead's projected sphere,
+divided out in Fourier where the signal stands above the noise so that noise is not
+amplified (:func:`~napari_psfspace.core.beads.sphere.remove_sphere`). Motion blur (a smear
+common to all beads, :mod:`~napari_psfspace.core.model.motion`) is always looked for and
+reported; the model keeps it, as it blurs a sample imaged in the same exposure just as
+much, unless ``remove_motion`` asks for a calibration of the optics alone (the sample was
+still). The held-out residual is measured with the uncorrected model: it judges the beads'
+own images.
 """
 
 from __future__ import annotations
@@ -49,6 +65,7 @@ from ..common.validate import (
 )
 from .cone import Cone
 from .deblend import crowded, deblend
+from .estimate_record import basis_record, hot_pixel_record, left_out_record
 from .fewbeads import FEW_BEADS, fit_few_beads
 from .heldout import HeldoutResiduals, heldout_residuals, split_holdout
 from .motion import detect_motion
@@ -120,66 +137,44 @@ def iter_estimate(
     Parameters
     ----------
     image : array_like of shape (M, N)
-        Image of scattered sub-resolution beads, any real dtype. A 3-D stack is
-        refused with a hint to pass one slice.
+        Image of scattered sub-resolution beads, any real dtype (a stack is refused).
     psf_radius : float
-        Upper bound ``r`` of the PSF radius in pixels: beyond it the PSF is lost in
-        the noise. Beads closer than ``2 r`` to each other are not used.
+        Upper bound ``r`` of the PSF radius in pixels (beyond it the PSF is lost in the
+        noise); beads closer than ``2 r`` to each other are not used.
     n_psf : int, "heldout", "rule" or None
-        Size ``I`` of the PSF basis. Default (None, "heldout"): the size with the
-        lowest leave-one-bead-out error of the whole model. "rule": the
-        Gavish-Donoho threshold ``omega(beta) sigma_med`` on the singular values
-        (2.858 sigma_med for a square matrix, section 2.5 of the paper).
+        Size ``I`` of the PSF basis. Default (None, "heldout"): the lowest
+        leave-one-bead-out error of the whole model; "rule": the Gavish-Donoho threshold.
     smoothing : float, optional
-        Thin-plate smoothing ``eta`` (coordinates scaled to the half-diagonal of the
-        image). Default: chosen per coefficient by leave-one-bead-out
-        cross-validation.
+        Thin-plate smoothing ``eta`` (coordinates scaled to the image's half-diagonal);
+        default: chosen per coefficient by leave-one-bead-out cross-validation.
     threshold : float
         Detection threshold in noise standard deviations of the filtered image.
     beads : Beads, optional
-        A bead table (e.g. edited by hand) used instead of detection: its ``kept``
-        beads are used.
+        A bead table (e.g. edited by hand) whose ``kept`` beads are used, not detected.
     holdout : float or None
-        Fraction of the beads held out to measure the model's residual (stored in
-        ``operator.metadata['heldout']``); the returned model is refitted on all beads.
-        ``None`` or 0 skips it.
+        Fraction of the beads held out to measure the model's residual
+        (``metadata['heldout']``; the model is then refitted on all beads). None/0: none.
     grid_step : float
         Spacing (pixels) of the grid on which the coefficient maps are stored.
     saturation : float, optional
         Pixel value at which the detector saturates (default: the dtype maximum for
         integer images); beads touching it are not used.
     z_threshold : float
-        The outlier test's threshold, standard deviations of a bead's basis
-        coefficients from the others' (:func:`~.pca.learn_basis`).
+        The outlier test's threshold, robust standard deviations (:func:`~.pca.learn_basis`).
     patch_filter : callable, optional
-        ``patch_filter(psf, centers) -> psf``: applied to the normalised patches, shape
-        (K, P, P), given their centres (K, 2), before the PCA; e.g. bringing beads of
-        different sizes to one
-        (:class:`~napari_psfspace.core.diagnosis.effects.bead_size.SizeFilter`).
+        ``patch_filter(psf, centers) -> psf`` on the normalised patches (K, P, P) before
+        the PCA (e.g. :class:`~napari_psfspace.core.diagnosis.effects.bead_size.SizeFilter`).
     bead_diameter : float
-        Diameter of the beads in pixels (from their data sheet: e.g. 200 nm beads at
-        100 nm pixels give 2.0). The learnt PSFs are corrected for the bead's projected
-        sphere (divided out in Fourier where the signal stands above the noise, so that
-        noise is not amplified; :func:`~napari_psfspace.core.beads.sphere.remove_sphere`) and
-        the correction is recorded in ``metadata["bead_correction"]``. 0: point sources.
+        The beads' diameter in pixels, divided out of the learnt PSFs (module docstring;
+        ``metadata["bead_correction"]``). 0: point sources.
     denoise : bool
-        Use the beads by their information (:mod:`~napari_psfspace.core.model.denoise`): the
-        basis is learnt from patches filtered by one Wiener filter, each bead weighted
-        by ``1 / ||p||^2`` of its raw patch, and the basis images are then refitted to
-        the raw patches of all beads at once given the smooth field and shrunk by
-        their own noise. Recorded in ``metadata["denoise"]``. False: the paper's
-        plain PCA of l2-normalised patches.
+        Use the beads by their information (module docstring; ``metadata["denoise"]``).
+        False: the paper's plain PCA of l2-normalised patches.
     remove_motion : bool
-        Motion blur (a smear common to all beads, :mod:`~napari_psfspace.core.model.motion`)
-        is always looked for and reported in ``metadata["motion"]``; the model keeps it
-        (it blurs a sample imaged in the same exposure just as much). True: divide the
-        smear found out of the PSFs, for a calibration of the optics alone, when the
-        sample was still. Nothing is removed when no smear is found (said in the record).
-        With a bead diameter, the returned operator's PSFs are point-source PSFs; the
-        held-out residual is measured with the uncorrected model (the beads' own images).
+        Divide a motion smear found out of the PSFs, for a calibration of the optics
+        alone (module docstring); it is reported either way (``metadata["motion"]``).
     motion_test : bool
-        False: skip the motion-blur test, for models whose metadata nothing reads (the
-        folds of a cross-fit); ``metadata["motion"]`` is then None.
+        False: no motion-blur test (``metadata["motion"]`` None), for a cross-fit's folds.
 
     Yields
     ------
@@ -196,10 +191,30 @@ def iter_estimate(
     Raises
     ------
     ValueError
-        Bad input (wrong dimensions, NaN, parameters out of range), and
-        :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (a ValueError) when there are
-        no beads or too few usable beads for the basis size.
+        Bad input, and :class:`~napari_psfspace.core.beads.detect.NoBeadsError` (a
+        ValueError) when there are too few usable beads for the basis size.
     """
+    raw, img, shape, r, grid_step, saturation, z_threshold, fixed_n, bead_diameter = _checked(
+            image, psf_radius, n_psf, smoothing, grid_step, saturation, z_threshold, bead_diameter)
+    beads, kept, reasons, patches = yield from _patches(
+            threshold, beads, saturation, patch_filter, raw, img, r)
+    motion, removers, spline, heldout, few, denoised, cone, op, basis = yield from _fit(
+            n_psf, smoothing, beads, holdout, grid_step, z_threshold, bead_diameter, denoise,
+            remove_motion, motion_test, shape, fixed_n, kept, patches)
+    meta = _metadata(n_psf, smoothing, threshold, beads, grid_step, saturation, z_threshold,
+                     remove_motion, raw, shape, r, reasons, patches, motion, removers, spline,
+                     heldout, few, denoised, cone, op, basis)
+    op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
+    yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads"
+                   + ("" if few is None or few.field_model != "shift-invariant"
+                      else " (one PSF for the whole field)"))
+    return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+
+
+def _checked(image, psf_radius, n_psf, smoothing, grid_step, saturation, z_threshold,
+             bead_diameter):
+    """The image as recorded and as float64, and the settings checked; one clear line for a
+    bad value before any work."""
     raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, copies=ESTIMATE_IMAGES)
     shape = img.shape
@@ -211,7 +226,12 @@ def iter_estimate(
     if smoothing is not None:
         check_positive(smoothing, "smoothing", allow_zero=True)
     bead_diameter = check_bead_diameter(bead_diameter, r)
+    return raw, img, shape, r, grid_step, saturation, z_threshold, fixed_n, bead_diameter
 
+
+def _patches(threshold, beads, saturation, patch_filter, raw, img, r):
+    """The usable beads, centred, and their patches; in a crowded field, the neighbours'
+    light taken out with the model's PSFs."""
     beads, img = find_usable_beads(raw, img, r, beads=beads, threshold=threshold,
                                    saturation=saturation)
     yield Progress("detect", 0.15, beads.summary())
@@ -228,7 +248,14 @@ def iter_estimate(
 
         kept, patches = deblend(patches, kept, img, beads, r, cut)
         yield Progress("patches", 0.5, "neighbours' light taken out with the model's PSFs")
+    return beads, kept, reasons, patches
 
+
+def _fit(n_psf, smoothing, beads, holdout, grid_step, z_threshold, bead_diameter, denoise,
+         remove_motion, motion_test, shape, fixed_n, kept, patches):
+    """The basis, the field and the cone: from a handful of beads, the richest model they
+    support; else fitted on all beads after a fit without the held-out ones measures the
+    model's residual on them. Beads the outlier test rejects get that status."""
     motion = (motion_of(patches) if motion_test or remove_motion else None)
     removers = PointSource(bead_diameter, motion if remove_motion else None)
     support = radial_distance(patches.size) < patches.r_ext
@@ -260,6 +287,14 @@ def iter_estimate(
                                f"on {int(held.sum())} beads")
         basis, op, cone, spline = fit(patches, final=True)
         beads.status[kept[~basis.inliers]] = OUTLIER
+    return motion, removers, spline, heldout, few, denoised, cone, op, basis
+
+
+def _metadata(n_psf, smoothing, threshold, beads, grid_step, saturation, z_threshold,
+              remove_motion, raw, shape, r, reasons, patches, motion, removers, spline, heldout,
+              few, denoised, cone, op, basis):
+    """The operator's metadata: the settings, the beads used and left out, the basis and the
+    field chosen, the held-out residual and the corrections."""
     meta = {
         "psf_radius": r,
         "r_ext": patches.r_ext,
@@ -282,11 +317,7 @@ def iter_estimate(
                      "basis_noise": denoised.get("noise_rel")} if denoised else None),
         **removers.records(motion, remove_motion),
     }
-    op = ProductConvolution(op.basis, op.coefficients, shape=shape, grid=op.grid, metadata=meta)
-    yield Progress("fit", 1.0, f"basis of {basis.n_psf} PSFs from {meta['n_beads_used']} beads"
-                   + ("" if few is None or few.field_model != "shift-invariant"
-                      else " (one PSF for the whole field)"))
-    return Estimation(op, beads, patches, kept, basis, cone, heldout, meta)
+    return meta
 
 
 def find_usable_beads(raw: np.ndarray, img: np.ndarray, r: float, *, beads: Beads | None,
@@ -439,25 +470,6 @@ class PointSource:
         }
 
 
-def basis_record(basis: PsfBasis, n_psf, spline, smoothing, few) -> dict:
-    """The metadata of the basis and the field: sizes asked and chosen, smoothing, degrees
-    of freedom, and the few-bead model when there is one."""
-    return {
-        "n_psf": basis.n_psf,
-        "n_psf_rule": basis.n_psf_rule,
-        "n_psf_requested": n_psf,
-        "heldout_error_by_n_psf": (None if basis.heldout_errors is None
-                                   else [float(v) for v in basis.heldout_errors]),
-        "smoothing": None if spline is None else [float(s) for s in spline.smoothing],
-        "smoothing_requested": smoothing,
-        "effective_dof": None if spline is None else [float(d) for d in spline.effective_dof],
-        "field_dof": None if spline is None else field_dof_record(spline),
-        "field_model": "thin-plate" if few is None else few.field_model,
-        "field_model_reason": None if few is None else few.reason,
-        "few_beads_loo_errors": None if few is None else few.metadata()["loo_errors"],
-    }
-
-
 #: A detection whose flux is below this fraction of the median kept bead's carries too
 #: little of the PSF to shape it (a noise spot, a speck of dust): it is left out as faint.
 #: A bead two and a half sd below the median of a log-normal brightness spread of sd 1 (the
@@ -465,36 +477,6 @@ def basis_record(basis: PsfBasis, n_psf, spline, smoothing, few) -> dict:
 FAINT_RATIO = 0.05
 #: Take the other detections' modelled light out of each patch.
 SUBTRACT_NEIGHBOURS = True
-
-#: Why a detection of each status is not used, for :func:`left_out_record`.
-STATUS_REASONS = {
-    "saturated": "saturated pixels in its core",
-    "border": "too close to the image border for its patch",
-    "neighbour": "another detection within 2 PSF radii",
-    "faint": "too faint to shape the PSF",
-    "outlier": "its shape is unlike what its neighbours predict (held-out error)",
-    "rejected": "rejected by the user",
-    "companion": "a companion inside its patch",
-    "structure": "background structure, not a bead",
-}
-
-
-def field_dof_record(spline) -> dict:
-    """JSON-ready record of how rich the thin-plate field is, and why (see
-    :class:`~napari_psfspace.core.model.tps.ThinPlateSpline`'s ``max_dof``)."""
-    dof = [float(d) for d in spline.effective_dof]
-    richer = [int(i) for i in np.flatnonzero(spline.richer)]
-    rec = {"limit": None if spline.max_dof is None else float(spline.max_dof),
-           "samples": int(spline.n_nodes), "max": float(max(dof)) if dof else 0.0,
-           "richer": richer}
-    if richer:
-        gain = ", ".join(f"{100 * spline.loo_gain[i]:.0f} %" for i in richer)
-        rec["note"] = (f"the field of {len(richer)} basis coefficient(s) uses more than half "
-                       f"as many degrees of freedom as beads ({rec['max']:.1f} for "
-                       f"{rec['samples']}): held-out beads show the richer field predicts "
-                       f"them better (leave-one-out error {gain} lower, at least "
-                       "2 standard errors)")
-    return rec
 
 
 def faint_beads(flux: np.ndarray, ratio: float = FAINT_RATIO) -> tuple[np.ndarray, np.ndarray]:
@@ -518,24 +500,6 @@ def faint_beads(flux: np.ndarray, ratio: float = FAINT_RATIO) -> tuple[np.ndarra
                       f"{100 * ratio:g} %: too faint to shape the PSF")
         faint |= low
     return faint, why.astype(str)
-
-
-def left_out_record(beads: Beads, reasons: dict[int, str] | None = None,
-                    limit: int = 500) -> dict:
-    """JSON-ready record of the detections not used and why: counts by status and, for
-    up to ``limit`` of them, ``{"position", "status", "why"}``."""
-    reasons = reasons or {}
-    out = np.flatnonzero(~np.isin(beads.status, ("kept", "heldout")))
-    counts: dict[str, int] = {}
-    items = []
-    for i in out:
-        st = str(beads.status[i])
-        counts[st] = counts.get(st, 0) + 1
-        if len(items) < limit:
-            items.append({"position": [round(float(v), 2) for v in beads.positions[i]],
-                          "status": st,
-                          "why": reasons.get(int(i), STATUS_REASONS.get(st, st))})
-    return {"counts": counts, "beads": items}
 
 
 def _basis_remover(psf: np.ndarray, remove: Callable, record: dict):
@@ -569,13 +533,6 @@ def check_bead_diameter(bead_diameter, psf_radius: float) -> float:
             "bead that large is not a point source for these optics. Check the units (the "
             "API takes pixels; the command line and the widgets take nanometres).")
     return d
-
-
-def hot_pixel_record(pixels, limit: int = 10_000) -> dict:
-    """JSON-ready record of the masked hot pixels: their count and (up to ``limit``)
-    ``(row, column)`` positions."""
-    pix = np.zeros((0, 2), int) if pixels is None else np.asarray(pixels).reshape(-1, 2)
-    return {"count": int(len(pix)), "positions": pix[:limit].astype(int).tolist()}
 
 
 estimate_operator = drained(iter_estimate, "estimate_operator", result=attrgetter("operator"),
