@@ -5,6 +5,14 @@ threshold; beads closer than ``r`` to the border or ``2 r`` to another bead are
 rejected, so every kept patch holds one isolated PSF. Here a neighbour is judged by the
 light it adds to the patch (:mod:`~napari_psfspace.core.beads.overlap`), not by a fixed
 distance.
+
+The noise level of the filtered image is its robust (MAD) spread, never below what the
+rounding of an integer image gives (variance 1/12 ADU^2 per pixel): on a nearly constant
+integer background the MAD collapses towards zero and every one-count bump would otherwise
+stand many "noise sd" out. At low counts (integer values, background noise below
+:data:`~napari_psfspace.core.beads.scale.LOW_COUNT_SD` ADU) the filter runs on the
+variance-stabilised image (:func:`~napari_psfspace.core.beads.scale.detection_image`):
+there the noise is skewed and its filtered tail far heavier than its spread says.
 """
 
 from __future__ import annotations
@@ -12,16 +20,21 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy import ndimage as ndi
 
 from ..common import spacing
 from ..common.errors import NoBeadsError
-from ..common.progress import check_halt
 from ..common.validate import as_array, as_image, check_positive, check_psf_radius, check_saturation
 from .log import local_peaks, log_response
+from .maxima import (
+    background_excess,
+    merge_one_psf,
+    merge_secondary_maxima,
+    peak_amplitude,
+    wider_scales,
+)
 from .overlap import NEIGHBOUR_SHARE, patch_shares
 from .saturation import saturated_cores
-from .scale import block_mean, characteristic_scale, detection_image, prepare, spot_scale
+from .scale import detection_image, prepare
 from .spikes import (
     inpaint_pixels,
     is_integer_valued,
@@ -65,18 +78,6 @@ STATUS_MEANING = {
 #: A detection fainter than this fraction of a bead's peak amplitude does not spoil it as a
 #: neighbour (see :func:`flag_unusable`).
 NEIGHBOUR_RATIO = 0.05
-#: Detection moves to the scale of the spots the image shows when that scale is at least
-#: this many times the default ``r / 4`` (rings out of focus; a spot in focus keeps it).
-RESCALE_FACTOR = 1.4
-#: The scale is judged on this many of the strongest maxima at ``r / 4``; with fewer (a
-#: few faint wide spots, each found there as noise on its edge, or not at all) it is
-#: searched over all scales (:func:`~napari_psfspace.core.beads.scale.spot_scale`).
-MIN_SCALE_PEAKS = 16
-#: Where a quarter of the maxima found stand less than this many times the threshold
-#: out, the beads are faint (more stand just below it): wider scales are searched too.
-FAINT_STRENGTH = 2.0
-
-
 @dataclass
 class Beads:
     """Detected beads and why each was kept or rejected.
@@ -219,17 +220,6 @@ def detect_beads(
     Beads
         All detections with their status (kept, saturated, border, neighbour).
 
-    Notes
-    -----
-    The noise level of the filtered image is its robust (MAD) spread, never below what
-    the rounding of an integer image gives (variance 1/12 ADU^2 per pixel): on a nearly
-    constant integer background the MAD collapses towards zero and every one-count bump
-    would otherwise stand many "noise sd" out. At low counts (integer values, background
-    noise below :data:`~napari_psfspace.core.beads.scale.LOW_COUNT_SD` ADU) the filter
-    runs on the variance-stabilised image
-    (:func:`~napari_psfspace.core.beads.scale.detection_image`): there the noise is skewed
-    and its filtered tail far heavier than its spread says.
-
     Raises
     ------
     NoBeadsError
@@ -238,6 +228,31 @@ def detect_beads(
     """
     raw = np.asarray(as_array(image, "image"))
     img = as_image(raw, dtype=np.float32, copies=DETECT_IMAGES)
+    r, threshold, neighbour_ratio, auto_sigma, sigma, border, saturation = _checked(
+            psf_radius, threshold, sigma, saturation, border, neighbour_ratio, raw, img)
+    _check_levels(img)
+    floor, det, spikes, pixel_sd, img = _detection_input(image, hot_pixels, raw, img)
+    resp = log_response(det, sigma, pixel_sd_floor=floor)
+    peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
+    scales = []  # the wider scales that added maxima
+    if auto_sigma:
+        sigma, peaks, resp, scales = wider_scales(raw, img, det, peaks, resp, sigma, r,
+                                                  threshold=threshold, noise_sd=pixel_sd,
+                                                  floor=floor)
+    peaks, strength = _merged_maxima(img, resp, peaks, r, sigma, threshold)
+    amplitude, strength, peaks = _standing_out(threshold, sigma, img, r, pixel_sd, peaks, scales,
+                                               strength)
+    beads = Beads(peaks.astype(np.float64), strength, amplitude=amplitude,
+                  hot_pixels=spikes if hot_pixels else None)
+    flag_unusable(beads, img, r, saturation=saturation, border=border,
+                  min_separation=min_separation, neighbour_ratio=neighbour_ratio,
+                  neighbour_share=neighbour_share)
+    return beads
+
+
+def _checked(psf_radius, threshold, sigma, saturation, border, neighbour_ratio, raw, img):
+    """The settings checked, the defaults from the PSF radius and the dtype; one clear line
+    for a bad value before any work."""
     r = check_psf_radius(psf_radius, img.shape)
     threshold = check_positive(threshold, "threshold")
     neighbour_ratio = check_positive(neighbour_ratio, "neighbour_ratio", allow_zero=True)
@@ -248,7 +263,12 @@ def detect_beads(
     saturation = check_saturation(saturation)
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
+    return r, threshold, neighbour_ratio, auto_sigma, sigma, border, saturation
 
+
+def _check_levels(img):
+    """One clear line for an image with no beads to detect: constant, or two levels only (a
+    mask)."""
     if float(img.max()) == float(img.min()):
         raise NoBeadsError(
             f"`image` is constant (every pixel equals {float(img.min()):g}): no beads to "
@@ -263,6 +283,11 @@ def detect_beads(
             "the background and its peak). Pass the raw image."
         )
 
+
+def _detection_input(image, hot_pixels, raw, img):
+    """The image detection runs on (hot pixels found and inpainted, once per image in a
+    ``scale.reusing`` block), its pixels' noise, the hot pixels, the image the filter runs
+    on and its noise floor."""
     if hot_pixels:  # found and inpainted (once per image in a `scale.reusing` block)
         prepared = prepare(image)
         img, integer, pixel_sd, spikes = (prepared.image, prepared.integer,
@@ -273,49 +298,12 @@ def detect_beads(
         pixel_sd = pixel_noise_sd(raw, integer=integer)
         spikes = np.zeros((0, 2), np.int64)
         det, _, floor = detection_image(img, integer=integer, noise_sd=pixel_sd)
-    resp = log_response(det, sigma, pixel_sd_floor=floor)
-    peaks = local_peaks(resp, max(1, int(round(r / 2))), threshold)
-    scales = []  # the wider scales that added maxima
-    if auto_sigma:
-        # the scale of the PSF the image shows: a ring out of focus responds at its centre
-        # at a scale near its radius, not at r / 4 (where it is several spots on its edge)
-        if len(peaks) >= MIN_SCALE_PEAKS:  # the scale of the strongest maxima
-            found, _ = characteristic_scale(img, peaks[:MIN_SCALE_PEAKS], sigma, max_sigma=r,
-                                            noise_sd=pixel_sd, threshold=threshold)
-        else:  # faint wide spots stand out only at their own scale: search all scales
-            try:
-                found = spot_scale(raw, threshold=threshold, max_sigma=r).sigma
-            except NoBeadsError:
-                found = sigma
-        wider = []
-        if found >= RESCALE_FACTOR * sigma:
-            sigma = found
-            resp = log_response(det, sigma, pixel_sd_floor=floor)
-            peaks = local_peaks(resp, max(1, int(round(max(r / 2, sigma)))), threshold)
-            wider = [np.sqrt(2.0) * sigma]
-        if len(peaks) == 0 or np.percentile(resp[peaks[:, 0], peaks[:, 1]], 25) < \
-                FAINT_STRENGTH * threshold:
-            # faint beads: the weakest found stand near the threshold, so others stand
-            # just below it; a wider filter (about the whole disk) gains signal to noise
-            wider = [np.sqrt(2.0) * sigma, 2.0 * sigma]
-        for wide in wider:
-            # a faint wide spot stands out most at a scale above the one that locates it
-            # (the filter then matches its whole disk): add what only a coarser scale finds
-            wide = min(wide, float(r))
-            if wide < 1.2 * sigma:
-                continue
-            resp_wide = log_response(det, wide, pixel_sd_floor=floor)
-            sep = max(1, int(round(max(r / 2, wide))))
-            more = local_peaks(resp_wide, sep, threshold)
-            if len(more) and len(peaks):
-                from scipy.spatial import cKDTree
+    return floor, det, spikes, pixel_sd, img
 
-                d, _ = cKDTree(peaks).query(more)
-                more = more[d > sep]
-            if len(more):
-                resp = np.maximum(resp, resp_wide)
-                peaks = np.concatenate([peaks, more]) if len(peaks) else more
-                scales.append(wide)
+
+def _merged_maxima(img, resp, peaks, r, sigma, threshold):
+    """The maxima strongest first, with their strength, those of one PSF merged; one clear
+    line where none reaches the threshold."""
     if len(peaks) == 0:
         raise NoBeadsError(
             f"No beads found: no maximum of the filtered image reaches `threshold` = "
@@ -325,9 +313,16 @@ def detect_beads(
     strength = resp[peaks[:, 0], peaks[:, 1]].astype(np.float64)
     order = np.argsort(-strength, kind="stable")
     peaks, strength = peaks[order], strength[order]
-    peaks, strength = _merge_secondary_maxima(peaks, strength, r)
-    peaks, strength = merge_one_psf(img, peaks, strength, r, sigma)
+    peaks, strength = merge_secondary_maxima(peaks, strength, r)
+    return merge_one_psf(img, peaks, strength, r, sigma)
 
+
+def _standing_out(threshold, sigma, img, r, pixel_sd, peaks, scales, strength):
+    """The maxima that stand ``threshold`` noise sd above their local background, with their
+    strength and amplitude. A maximum of the filter that does not is the gap between dark
+    structures (absorbing blobs on a structured background), not a bead; a faint wide spot
+    stands out only at a wider scale, and there above the upper quartile of its surroundings
+    too (a gap between dark blobs only above their median)."""
     amplitude = peak_amplitude(img, peaks, int(np.ceil(r)))
     # a maximum of the filter that does not stand above the background is the gap
     # between dark structures (absorbing blobs on a structured background), not a bead
@@ -344,156 +339,7 @@ def detect_beads(
             f"`threshold` = {threshold:g} noise sd above the local background (gaps between "
             f"dark structures). Check the image and `psf_radius` = {r:g} px.")
     peaks, strength, amplitude = peaks[above], strength[above], amplitude[above]
-    beads = Beads(peaks.astype(np.float64), strength, amplitude=amplitude,
-                  hot_pixels=spikes if hot_pixels else None)
-    flag_unusable(beads, img, r, saturation=saturation, border=border,
-                  min_separation=min_separation, neighbour_ratio=neighbour_ratio,
-                  neighbour_share=neighbour_share)
-    return beads
-
-
-def background_excess(image: np.ndarray, peaks: np.ndarray, r: float, noise_sd: float,
-                      *, sigma: float | None = None, quantile: float = 50.0) -> np.ndarray:
-    """How far each maximum stands above the local background, in noise sd, shape (M,).
-
-    The image smoothed by a Gaussian of ``sigma / 2`` (``sigma``: the detection's scale,
-    default ``r / 4``; one pixel of a faint wide spot is mostly noise), at the maximum,
-    minus a background map (the median over about ``4.5 r`` of the image binned by
-    ``r / 2``: beads, and dark blobs, cover a minority of it; or another ``quantile`` of
-    it, percent), over the smoothed image's noise ``noise_sd / (sqrt(4 pi) sigma / 2)``.
-    A bead stands out; the gap between dark absorbing blobs is a maximum of the filter
-    only because of what surrounds it, at the level of the background.
-    """
-    if len(peaks) == 0:
-        return np.zeros(0)
-    img = np.asarray(image, np.float32)
-    s = max(0.5, (r / 4.0 if sigma is None else float(sigma)) / 2.0)
-    b = max(1, int(r // 2))
-    small = block_mean(img, b)
-    p = np.rint(np.asarray(peaks, np.float64)).astype(int)
-    iy = np.clip(p[:, 0] // b, 0, small.shape[0] - 1)
-    ix = np.clip(p[:, 1] // b, 0, small.shape[1] - 1)
-    # the quantile of the 9 x 9 binned pixels around each maximum, and its Gaussian-smoothed
-    # value from its own window (the whole image need not be filtered for a few hundred)
-    from .centering import gather_windows
-
-    bg = np.percentile(gather_windows(small, np.column_stack([iy, ix]).astype(np.float64), 4)
-                       .reshape(len(p), -1), quantile, axis=1)
-    half = int(np.ceil(3.0 * s))
-    g = np.exp(-0.5 * (np.arange(-half, half + 1) / s) ** 2)
-    kernel = np.outer(g, g) / g.sum() ** 2
-    win = gather_windows(img, p.astype(np.float64), half)
-    level = np.einsum("kij,ij->k", win.astype(np.float64), kernel) - bg
-    sd = max(float(noise_sd), 1e-12) / (np.sqrt(4.0 * np.pi) * s)
-    return (level / sd).astype(np.float64)
-
-
-def peak_amplitude(image: np.ndarray, peaks: np.ndarray, half: int) -> np.ndarray:
-    """Peak value above the median of the edge of a ``(2 half + 1)`` window, shape (M,)."""
-    from .centering import gather_windows
-
-    if len(peaks) == 0:
-        return np.zeros(0)
-    win = gather_windows(image, np.asarray(peaks, dtype=np.float64), half)
-    edge = np.concatenate([win[:, 0, :], win[:, -1, :], win[:, 1:-1, 0], win[:, 1:-1, -1]],
-                          axis=1)
-    return (win[:, half, half] - np.median(edge, axis=1)).astype(np.float64)
-
-
-def _merge_secondary_maxima(peaks, strength, r):
-    """Drop weak maxima within ``r`` of a much stronger one (rings of one defocused PSF)."""
-    from scipy.spatial import cKDTree
-
-    if len(peaks) < 2:
-        return peaks, strength
-    tree = cKDTree(peaks)
-    drop = np.zeros(len(peaks), dtype=bool)
-    for i, j in sorted(tree.query_pairs(r)):
-        # peaks are sorted by decreasing strength, so i is the stronger one
-        if not drop[i] and strength[j] < 0.5 * strength[i]:
-            drop[j] = True
-    return peaks[~drop], strength[~drop]
-
-
-def merge_one_psf(image: np.ndarray, peaks: np.ndarray, strength: np.ndarray, r: float,
-                  sigma: float, *, saddle: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
-    """Merge maxima that one PSF makes: two maxima within ``2 r`` of each other joined by a
-    path (straight, or around a ring's dark centre) along which the smoothed image stays
-    at least ``saddle`` of the lower one's height above the local background (two arcs of
-    a defocused ring; two separate spots dip towards the background between them). A
-    group becomes one detection at its maxima's strength-weighted mean, with the
-    strongest one's strength.
-
-    Parameters
-    ----------
-    image : ndarray of shape (M, N)
-    peaks : ndarray of shape (K, 2), int
-        Maxima, strongest first.
-    strength : ndarray of shape (K,)
-    r : float
-        PSF radius, pixels.
-    sigma : float
-        Detection scale, pixels (the image is smoothed by it).
-
-    Returns
-    -------
-    peaks, strength
-        The merged maxima (rounded positions), strongest first.
-    """
-    check_halt()
-    from scipy.spatial import cKDTree
-
-    if len(peaks) < 2:
-        return peaks, strength
-    # within the neighbour distance 2 r: a ring wider than the radius suggested for it
-    # (a corner bead's coma) is still one PSF; two beads that close are unusable anyway,
-    # and they are merged only if joined
-    pairs = sorted(cKDTree(peaks).query_pairs(2 * r))
-    if not pairs:
-        return peaks, strength
-    h, w = image.shape
-    half = int(np.ceil(2 * r + 3 * sigma))
-    parent = np.arange(len(peaks))
-
-    def root(i):
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    t = np.linspace(0.0, 1.0, 4 * int(np.ceil(r)) + 1)
-    for i, j in pairs:
-        mid = (peaks[i] + peaks[j]) // 2
-        y0, x0 = max(0, mid[0] - half), max(0, mid[1] - half)
-        win = np.asarray(image[y0:min(h, mid[0] + half + 1), x0:min(w, mid[1] + half + 1)],
-                         np.float64)
-        smooth = ndi.gaussian_filter(win, sigma / 2, mode="nearest")
-        bg = float(np.percentile(smooth, 10))
-        pi, pj = peaks[i] - np.array([y0, x0]), peaks[j] - np.array([y0, x0])
-        line = pi[None, :] * (1 - t[:, None]) + pj[None, :] * t[:, None]
-        along = ndi.map_coordinates(smooth, line.T, order=1, mode="nearest")
-        low = min(along[0], along[-1]) - bg
-        if low <= 0:
-            continue
-        joined = along.min() - bg >= saddle * low  # straight across
-        if not joined:  # or around: two arcs of one ring, its dark centre between them
-            lab, _ = ndi.label(smooth - bg >= saddle * low)
-            joined = lab[tuple(pi)] != 0 and lab[tuple(pi)] == lab[tuple(pj)]
-        if joined:
-            a, b = root(i), root(j)
-            parent[max(a, b)] = min(a, b)
-    groups = np.array([root(i) for i in range(len(peaks))])
-    if len(np.unique(groups)) == len(peaks):
-        return peaks, strength
-    keep = np.unique(groups)
-    out = np.empty((len(keep), 2))
-    for k, g in enumerate(keep):
-        members = groups == g
-        wgt = np.maximum(strength[members], 1e-12)
-        out[k] = (peaks[members] * wgt[:, None]).sum(axis=0) / wgt.sum()
-    st = np.array([strength[groups == g].max() for g in keep])
-    order = np.argsort(-st, kind="stable")
-    return np.rint(out[order]).astype(peaks.dtype), st[order]
+    return amplitude, strength, peaks
 
 
 def flag_unusable(
