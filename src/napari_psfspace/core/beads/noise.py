@@ -267,6 +267,36 @@ def estimate_noise(
     if saturation is None and raw.dtype.kind in "ui":
         saturation = float(np.iinfo(raw.dtype).max)
     lap = _noise_laplacian(img, integer)
+    local, n_level, use = _usable_pixels(mask, saturation, img)
+    means, variances, counts, n_pix = _photon_transfer_points(img, use, local, lap, n_bins,
+                                                              integer)
+    floor_v = QUANTISATION_VARIANCE if integer else 1e-12
+    checks = {"n_levels": int(len(means)),
+              "mean_range": [float(means.min()), float(means.max())] if len(means) else []}
+    if len(means) < 3 or np.ptp(means) <= 1e-9:
+        levels = np.unique(local[use])
+        span = (f"{levels.min():.4g}-{levels.max():.4g} ADU" if len(levels) > 1
+                else f"all at {levels[0]:.4g} ADU")
+        raise NoiseModelError(
+            f"No Poisson signature in `image`: the structure-free pixels' local levels "
+            f"({span}) fill {len(means)} bin(s) of at least 50 pixels, need 3 distinct "
+            "ones: the slope of variance against mean (the gain) cannot be measured. "
+            "Pass the camera's gain, offset and read noise instead.")
+    variances, means, b, a, chi2, z, kept = _fit_line(
+            local, n_level, use, counts, variances, means, floor_v, checks)
+    _check_fit(integer, variances, means, b, a, chi2, z, kept)
+    read = None
+    if offset is not None:
+        r2 = (b + a * offset) / a**2
+        read = float(np.sqrt(max(r2, 0.0)))
+    return NoiseModel(a, b, offset, read, (float(means.min()), float(means.max())),
+                      int(n_pix), kind="photon transfer", checks=checks, min_variance=floor_v)
+
+
+def _usable_pixels(mask, saturation, img):
+    """The structure-free pixels (masked, clipped and saturated ones left out, with a
+    margin), each one's level and the pixels behind it; one clear line where too few are
+    left."""
     bad = _structure_mask(img, 2.0, 4.0)
     if mask is not None:
         m = np.asarray(mask, dtype=bool)
@@ -293,20 +323,13 @@ def estimate_noise(
             f"Too few structure-free pixels to estimate the noise: {np.count_nonzero(use)}, "
             f"need at least 1000.{why} Pass the camera's gain, offset and read noise instead."
         )
-    means, variances, counts, n_pix = _photon_transfer_points(img, use, local, lap, n_bins,
-                                                              integer)
-    floor_v = QUANTISATION_VARIANCE if integer else 1e-12
-    checks = {"n_levels": int(len(means)),
-              "mean_range": [float(means.min()), float(means.max())] if len(means) else []}
-    if len(means) < 3 or np.ptp(means) <= 1e-9:
-        levels = np.unique(local[use])
-        span = (f"{levels.min():.4g}-{levels.max():.4g} ADU" if len(levels) > 1
-                else f"all at {levels[0]:.4g} ADU")
-        raise NoiseModelError(
-            f"No Poisson signature in `image`: the structure-free pixels' local levels "
-            f"({span}) fill {len(means)} bin(s) of at least 50 pixels, need 3 distinct "
-            "ones: the slope of variance against mean (the gain) cannot be measured. "
-            "Pass the camera's gain, offset and read noise instead.")
+    return local, n_level, use
+
+
+def _fit_line(local, n_level, use, counts, variances, means, floor_v, checks):
+    """The line of variance against level, corrected for the levels' own noise: the bins
+    kept, the intercept and gain, the fit's reduced chi-square, the slope's z and the share
+    of the levels' spread that is true variation; the fit's checks recorded."""
     # a bin of pixels without any noise (a constant region a correction left) has no
     # sampling variance to weigh it by: it says nothing of the slope
     noisy = np.isfinite(variances) & (variances > 0) & np.isfinite(means)
@@ -343,6 +366,13 @@ def estimate_noise(
                   level_spread_kept=float(kept),
                   gain_relative_error=float(se_a / a) if a > 0 else None,
                   variance_range=[float(variances.min()), float(variances.max())])
+    return variances, means, b, a, chi2, z, kept
+
+
+def _check_fit(integer, variances, means, b, a, chi2, z, kept):
+    """One clear line where the fit does not measure a gain: no Poisson signature, too
+    little spread of the levels, noise below the rounding, an implausible gain, a variance
+    off the line or not positive."""
     problem = None
     if not np.isfinite(a) or a <= 0 or z < MIN_SLOPE_Z:
         problem = (f"No Poisson signature in `image`: the noise variance does not grow "
@@ -373,12 +403,6 @@ def estimate_noise(
     if problem is not None:
         raise NoiseModelError(problem + ". Pass the camera's gain, offset and read noise "
                               "instead.")
-    read = None
-    if offset is not None:
-        r2 = (b + a * offset) / a**2
-        read = float(np.sqrt(max(r2, 0.0)))
-    return NoiseModel(a, b, offset, read, (float(means.min()), float(means.max())),
-                      int(n_pix), kind="photon transfer", checks=checks, min_variance=floor_v)
 
 
 def background_variance(image, *, mask=None) -> tuple[float, float, float]:
