@@ -170,6 +170,39 @@ def iter_estimate_operator_3d(
     if bead_diameter:
         raise ValueError(f"`bead_diameter` = {bead_diameter!r}: dividing a bead's sphere out "
                          "of a 3D PSF is not implemented yet; give 0 (point sources)")
+    focus, beads, kept = yield from _detect(stack, threshold, vol, r)
+    foci, plane, z_radius, surface, kept, patches, need = yield from _patches_3d(
+            z_radius, n_psf, voxel_size, vol, (depth, h, w), r, focus, beads, kept)
+    if len(kept) < need:  # a bead or a few: one 3D PSF for the whole field, their mean
+        return (yield from _one_psf(stack, vol, beads, patches, kept, foci, surface, plane,
+                                    z_radius, r, threshold, grid_step, voxel_size, focus))
+
+    inside = patches.data_planes(depth)
+    support = (inside[:, None, None]
+               & (radial_distance(patches.size) < patches.r_ext)[None])
+    basis = yield from wait_with_progress(
+        lambda: learn_basis(patches.psf, n_psf, support=support, positions=patches.centers,
+                            z_threshold=z_threshold),
+        Progress("basis", 0.5, "the PCA basis, outliers rejected"))
+    beads.status[kept[~basis.inliers]] = OUTLIER
+    yield Progress("basis", 0.7, f"{basis.n_psf} 3D PSFs from {int(basis.inliers.sum())} "
+                   "beads")
+    gx, gy, cone, coefficients, meta, op = _field_operator(
+            stack, z_radius, smoothing, threshold, grid_step, voxel_size, (depth, h, w), r, focus,
+            beads, foci, plane, surface, patches, basis)
+    yield Progress("fit", 0.9, f"{basis.n_psf} 3D PSFs of {op.kernel_shape[0]} x "
+                   f"{op.kernel_shape[1]} x {op.kernel_shape[2]} voxels from "
+                   f"{meta['n_beads_used']} beads")
+    est = Estimation3D(op, beads, patches, kept, basis, cone, foci, surface)
+    yield from _held_out(stack, smoothing, voxel_size, holdout, (depth, h, w), plane, patches,
+                         basis, gx, gy, coefficients, meta, est)
+    return est
+
+
+def _detect(stack, threshold, vol, r):
+    """The best-focus slice, the beads detected there and centred laterally; the long steps
+    run in a helper thread while this generator keeps answering (Cancel is honoured within a
+    fraction of a second)."""
     # the long steps run in a helper thread while this generator keeps answering
     # (wait_with_progress): Cancel is honoured within a fraction of a second
     focus = yield from wait_with_progress(lambda: best_focus_index(vol),
@@ -181,7 +214,14 @@ def iter_estimate_operator_3d(
     yield Progress("detect", 0.15, f"slice {focus} (best focus): {beads.summary()}")
     kept = centre_beads(img, beads, r)
     yield Progress("centre", 0.3, f"{len(kept)} beads centred laterally")
+    return focus, beads, kept
 
+
+def _patches_3d(z_radius, n_psf, voxel_size, vol, shape, r, focus, beads, kept):
+    """Each bead's focus, the focal surface through them (the beads far off it left out),
+    the plane and depth of the PSFs and the beads' 3D patches registered onto the surface;
+    faint beads left out."""
+    depth, h, w = shape
     peaks = yield from wait_with_progress(
         lambda: bead_peaks(vol, beads.positions[kept], r),
         Progress("patches", 0.35, "each bead's focus"))
@@ -217,20 +257,15 @@ def iter_estimate_operator_3d(
                            f"{max(need, 1)}. {beads.summary()}")
     yield Progress("patches", 0.45, f"{len(kept)} patches of {len(patches.planes)} x "
                    f"{patches.size} x {patches.size} voxels about plane {plane}")
-    if len(kept) < need:  # a bead or a few: one 3D PSF for the whole field, their mean
-        return (yield from _one_psf(stack, vol, beads, patches, kept, foci, surface, plane,
-                                    z_radius, r, threshold, grid_step, voxel_size, focus))
+    return foci, plane, z_radius, surface, kept, patches, need
 
-    inside = patches.data_planes(depth)
-    support = (inside[:, None, None]
-               & (radial_distance(patches.size) < patches.r_ext)[None])
-    basis = yield from wait_with_progress(
-        lambda: learn_basis(patches.psf, n_psf, support=support, positions=patches.centers,
-                            z_threshold=z_threshold),
-        Progress("basis", 0.5, "the PCA basis, outliers rejected"))
-    beads.status[kept[~basis.inliers]] = OUTLIER
-    yield Progress("basis", 0.7, f"{basis.n_psf} 3D PSFs from {int(basis.inliers.sum())} "
-                   "beads")
+
+def _field_operator(stack, z_radius, smoothing, threshold, grid_step, voxel_size, shape, r,
+                    focus, beads, foci, plane, surface, patches, basis):
+    """The operator: the basis' coefficients over the field by a thin-plate spline on a
+    coarse grid, kept in the cone where the beads held out one at a time say so (as for one
+    image), with the metadata."""
+    depth, h, w = shape
     centers = patches.centers[basis.inliers]
     beta = basis.coefficients
     spline = ThinPlateSpline(centers, beta, weights=voronoi_areas(centers, (h, w)),
@@ -258,10 +293,14 @@ def iter_estimate_operator_3d(
     }
     op = ProductConvolution3D(basis.basis, coefficients, shape=(depth, h, w), grid=(gy, gx),
                               plane=plane, voxel_size=voxel_size, metadata=meta)
-    yield Progress("fit", 0.9, f"{basis.n_psf} 3D PSFs of {op.kernel_shape[0]} x "
-                   f"{op.kernel_shape[1]} x {op.kernel_shape[2]} voxels from "
-                   f"{meta['n_beads_used']} beads")
-    est = Estimation3D(op, beads, patches, kept, basis, cone, foci, surface)
+    return gx, gy, cone, coefficients, meta, op
+
+
+def _held_out(stack, smoothing, voxel_size, holdout, shape, plane, patches, basis, gx, gy,
+              coefficients, meta, est):
+    """The field model judged on beads held out of it against one 3D PSF, the beads' mean:
+    never worse than one PSF, the estimate falls back to it where it loses."""
+    depth, h, w = shape
     if holdout and meta["n_beads_used"] >= 2 * FOLDS:
         try:  # a score of the model: it never aborts the estimate
             held = yield from within(iter_heldout_error_3d(est, stack,
@@ -289,7 +328,6 @@ def iter_estimate_operator_3d(
             est.operator = ProductConvolution3D(
                 basis.basis, coefficients, shape=(depth, h, w), grid=(gy, gx), plane=plane,
                 voxel_size=voxel_size, metadata=meta)
-    return est
 
 
 def _one_psf(stack, vol, beads, patches, kept, foci, surface, plane, z_radius, r,
