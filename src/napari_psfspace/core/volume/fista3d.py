@@ -177,6 +177,46 @@ def iter_deblur_3d(
         ``parameters["device"]`` says where it ran, ``parameters["block"]`` the block.
     """
     t0 = time.perf_counter()
+    max_iter, am, y = _checked(stack, operator, max_iter, tol, grid_step, device)
+    z, h, w = y.shape
+    op, block, xp = _operator(operator, z, am, block, rtol)
+    workers = default_workers() if workers is None else workers
+    grid = SmoothGrid((h, w), grid_step)
+    sigma, psf, g1, g2 = _weights(y, operator, grid_step, sparse_weight, smooth_weight)
+    h2 = NORM_MARGIN * float((yield from _power(op, y.shape, workers, xp=xp)))
+    if h2 <= 0:
+        raise ValueError("`operator` is zero: nothing to deblur with")
+    pen = g2 / grid.step ** 2
+    c = BLOCK_SPLIT
+    lips = [(1.0 + c) * h2,
+            (1.0 + 1.0 / c) * h2 * grid.norm2() + 2.0 * pen * LAPLACIAN_NORM ** 2]
+    work = _Work(am.asarray(y) if xp is not np else y, xp)
+    del y
+    solver, synthesis = _solver(op, work, grid, am, xp, g1=g1, pen=pen, lips=lips,
+                                blocked=block is not None, workers=workers, gain=psf.sum())
+    converged = yield from _run(solver, max_iter, tol)
+    u1, nodes = solver.finalize()
+    solver.z = []  # the extrapolated point: a volume the result does not need
+    work.y = work.buf = None  # two volumes the result does not need (the gradient is done)
+    smooth = synthesis(nodes)
+    if xp is not np:  # the result comes back to the host
+        u1, smooth = am.to_host(u1), am.to_host(smooth)
+    if isinstance(op, BlockedOperator3D) and am.gpu:
+        op.release()  # its spectra and plans go back to the device
+    params = {"sparse_weight": g1, "smooth_weight": g2, "grid_step": grid.step,
+              "noise_sd": sigma, "lipschitz": lips, "norm2": h2, "tol": float(tol),
+              "max_iter": max_iter, "restarts": solver.restarts,
+              "kernels": float(op.n_kernels) if block is not None else operator.n_psf,
+              "device": am.name, "block": block,
+              "seconds": round(time.perf_counter() - t0, 3)}
+    return Deblurred3D(u1.astype(np.float32, copy=False),
+                       smooth.astype(np.float32, copy=False),
+                       solver.iterations, converged, params, list(solver.objective))
+
+
+def _checked(stack, operator, max_iter, tol, grid_step, device):
+    """``max_iter``, the array module and the stack in float32, checked; one clear line
+    for a bad value before any work."""
     check_stack(stack, operator, copies=FISTA_VOLUMES)
     max_iter = check_int(max_iter, "max_iter", minimum=1)
     if not (np.isfinite(tol) and tol >= 0):
@@ -188,30 +228,28 @@ def iter_deblur_3d(
     if not isinstance(stack, np.ndarray):  # a lazy stack: its values are read here
         check_finite(y, "stack")
     check_signal(y, "stack")  # no light (zeros, a negated stack): nothing to deblur
-    z, h, w = y.shape
-    xp = np  # the volumes' array module: the device's where they fit there
-    if am.gpu:  # blocks as large as the device's memory allows (device_plan)
-        plan = plan_on_device(operator, z, am.free_bytes(), volumes=FISTA_VOLUMES)
-        block = plan.block
+    return max_iter, am, y
+
+
+def _operator(operator, depth, am, block, rtol):
+    """The operator in blocks (on a GPU, as large as the device's memory allows,
+    :mod:`.device_plan`), the block size and the volumes' array module (the device's
+    where they fit there)."""
+    xp = np
+    if am.gpu:
+        plan = plan_on_device(operator, depth, am.free_bytes(), volumes=FISTA_VOLUMES)
         if plan.volumes_on_device:
             xp = am.xp
-        op = BlockedOperator3D(operator, block=block, rtol=rtol, device=am)
-    else:
-        op = operator if block is None else BlockedOperator3D(operator, block=block,
-                                                                rtol=rtol)
-    workers = default_workers() if workers is None else workers
-    grid = SmoothGrid((h, w), grid_step)
-    ry, rx = grid.ry.toarray(), grid.rx.toarray()  # (H, ny), (W, nx)
-    if xp is not np:
-        ry, rx = am.asarray(ry.astype(np.float32)), am.asarray(rx.astype(np.float32))
+        return BlockedOperator3D(operator, block=plan.block, rtol=rtol, device=am), \
+            plan.block, xp
+    op = operator if block is None else BlockedOperator3D(operator, block=block, rtol=rtol)
+    return op, block, xp
 
-    def synthesis(nodes):
-        return (ry @ nodes) @ rx.T  # (Z, H, W)
 
-    def analysis(g):
-        return (ry.T @ g) @ rx  # (Z, ny, nx)
-
-    # weights
+def _weights(y, operator, grid_step, sparse_weight, smooth_weight):
+    """The background's noise, the PSF at the field's centre, and ``gamma1`` (the
+    universal threshold for the voxels the PSF covers, as in 2-D) and ``gamma2``."""
+    z, h, w = y.shape
     sigma = float(np.median([np.sqrt(background_variance(p)[1])
                              for p in y[:: max(1, z // 8)]]))
     psf = operator.kernel_at((h - 1) / 2, (w - 1) / 2)
@@ -225,27 +263,43 @@ def iter_deblur_3d(
     for name, v in (("sparse_weight", g1), ("smooth_weight", g2)):
         if not (np.isfinite(v) and v >= 0):
             raise ValueError(f"`{name}` must be a finite number >= 0, got {v!r}")
-    h2 = NORM_MARGIN * float((yield from _power(op, y.shape, workers, xp=xp)))
-    if h2 <= 0:
-        raise ValueError("`operator` is zero: nothing to deblur with")
-    pen = g2 / grid.step ** 2
-    c = BLOCK_SPLIT
-    lips = [(1.0 + c) * h2,
-            (1.0 + 1.0 / c) * h2 * grid.norm2() + 2.0 * pen * LAPLACIAN_NORM ** 2]
+    return sigma, psf, g1, g2
+
+
+class _Work:
+    """The data and the buffer of ``H u`` the gradient reads, referenced from here alone,
+    so that both are freed once the iterations are done."""
+
+    def __init__(self, y, xp):
+        self.y = y
+        self.buf = xp.empty_like(y)
+
+
+def _solver(op, work: _Work, grid, am, xp, *, g1, pen, lips, blocked, workers, gain):
+    """The block FISTA over the sparse volume and the background's nodes (plane by
+    plane on the lateral grid), started with no source and the background at the stack's
+    level seen through ``H`` (whose planes sum to about ``gain``); and the nodes'
+    synthesis."""
+    ry, rx = grid.ry.toarray(), grid.rx.toarray()  # (H, ny), (W, nx)
     if xp is not np:
-        y = am.asarray(y)
-    buf = xp.empty_like(y)
+        ry, rx = am.asarray(ry.astype(np.float32)), am.asarray(rx.astype(np.float32))
+
+    def synthesis(nodes):
+        return (ry @ nodes) @ rx.T  # (Z, H, W)
+
+    def analysis(g):
+        return (ry.T @ g) @ rx  # (Z, ny, nx)
 
     def gradient(x):
         u1, nodes = x
         u = synthesis(nodes)
         u += u1
-        if block is None:
+        if not blocked:
             r = op.apply(u, workers=workers)
         else:
-            r = op.apply(u, out=buf, workers=workers)
+            r = op.apply(u, out=work.buf, workers=workers)
         del u  # one volume less while H^T runs: the peak (a 64 x 2048 x 2048 stack)
-        r -= y
+        r -= work.y
         value = 0.5 * float(xp.vdot(r, r))
         g = op.adjoint(r, workers=workers)
         lw = laplacian_3d(nodes)
@@ -266,39 +320,23 @@ def iter_deblur_3d(
 
     solver = BlockFista(gradient, [prox_sparse, prox_smooth], lips,
                         penalty=[penalty_sparse, None], workers=workers)
-    level = max(float(xp.median(y)), 0.0)
-    # start: no source, the background at the stack's level seen through H (whose
-    # planes sum to about 1 per plane of the kernel)
-    gain = max(float(psf.sum()), 1e-12)
-    solver.setup([xp.zeros(y.shape, np.float32),
-                  xp.full((z, *grid.grid_shape), level / gain, np.float32)])
+    level = max(float(xp.median(work.y)), 0.0)
+    gain = max(float(gain), 1e-12)
+    solver.setup([xp.zeros(work.y.shape, np.float32),
+                  xp.full((work.y.shape[0], *grid.grid_shape), level / gain, np.float32)])
+    return solver, synthesis
+
+
+def _run(solver, max_iter, tol):
+    """The solver's iterations, a record after each; whether it converged."""
     run = solver.run(max_iter, tol)
-    converged = False
     while True:
         try:
             it, change = next(run)
         except StopIteration as done:
-            converged = bool(done.value)
-            break
+            return bool(done.value)
         yield Progress("deblur", it / max_iter, f"iteration {it}: iterate change "
                                                 f"{change:.1e}")
-    u1, nodes = solver.finalize()
-    solver.z = []  # the extrapolated point: a volume the result does not need
-    buf = y = None  # two volumes the result does not need (the gradient is done)
-    smooth = synthesis(nodes)
-    if xp is not np:  # the result comes back to the host
-        u1, smooth = am.to_host(u1), am.to_host(smooth)
-    if isinstance(op, BlockedOperator3D) and am.gpu:
-        op.release()  # its spectra and plans go back to the device
-    params = {"sparse_weight": g1, "smooth_weight": g2, "grid_step": grid.step,
-              "noise_sd": sigma, "lipschitz": lips, "norm2": h2, "tol": float(tol),
-              "max_iter": max_iter, "restarts": solver.restarts,
-              "kernels": float(op.n_kernels) if block is not None else operator.n_psf,
-              "device": am.name, "block": block,
-              "seconds": round(time.perf_counter() - t0, 3)}
-    return Deblurred3D(u1.astype(np.float32, copy=False),
-                       smooth.astype(np.float32, copy=False),
-                       solver.iterations, converged, params, list(solver.objective))
 
 
 deblur_3d = drained(iter_deblur_3d, "deblur_3d")
