@@ -199,9 +199,41 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
     -------
     StoreRun
     """
-    from .io import read_stack, write_tiff
-    from .ome_zarr import create_ome_zarr, missing_chunks, open_ome_zarr_output
+    from .io import read_stack
 
+    out, work, parent = _check_paths(output, resume)
+    from .core.common.device import array_module
+
+    am = array_module(device)  # "gpu" without one: one line, before any work
+    stack, info = read_stack(stack_path, lazy=True)
+    if tuple(stack.shape[1:]) != tuple(operator.image_shape[1:]):
+        raise ValueError(f"the stack has slices of {tuple(stack.shape[1:])}, the model acts "
+                         f"on {tuple(operator.image_shape[1:])}")
+    voxel = stack_voxel_size(operator, info, voxel_size=voxel_size,
+                             name=f"the stack {os.fspath(stack_path)!r}")
+    depth = int(stack.shape[0])
+    if tile is None and memory is not None:
+        tile, workers = plan_for_memory(operator, depth, memory, block=block,
+                                        workers=workers)
+    tile = 4 * block if tile is None else tile
+    _check_run(stack, stack_path, out, work, tile, resume)
+    start, background = _starting_point(background, resume, out, parent, stack)
+    os.makedirs(work, exist_ok=True)
+    u = yield from iter_richardson_lucy_3d_exchange(
+        stack, operator, n_iter=n_iter, background=background,
+        start=start, tile=tile, block=block,
+        rtol=rtol, store=work, resume=resume, client=client, workers=workers,
+        device=device)
+    yield Progress("write", 1.0, f"writing {out}")
+    written, total = _write_output(u, out, tuple(stack.shape), info, voxel, n_iter=n_iter,
+                                   tile=tile, resume=resume, workers=workers)
+    shutil.rmtree(work, ignore_errors=True)
+    return StoreRun(tile, n_iter, written, total, background, am.name)
+
+
+def _check_paths(output, resume):
+    """The output and its work folder: the parent folder exists and is writable, a resume
+    has an interrupted run to finish and a new run overwrites nothing."""
     out = os.fspath(output)
     work = work_folder(out)
     parent = os.path.dirname(os.path.abspath(out.rstrip("/\\")))
@@ -225,30 +257,13 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
             if os.path.exists(p) and (zarr_out or p == work):
                 raise ValueError(f"{p!r} exists: remove it, or give --resume to finish "
                                  "an interrupted run")
-    from .core.common.device import array_module
+    return out, work, parent
 
-    am = array_module(device)  # "gpu" without one: one line, before any work
-    stack, info = read_stack(stack_path, lazy=True)
-    if tuple(stack.shape[1:]) != tuple(operator.image_shape[1:]):
-        raise ValueError(f"the stack has slices of {tuple(stack.shape[1:])}, the model acts "
-                         f"on {tuple(operator.image_shape[1:])}")
-    voxel = stack_voxel_size(operator, info, voxel_size=voxel_size,
-                             name=f"the stack {os.fspath(stack_path)!r}")
-    depth = int(stack.shape[0])
-    if tile is None and memory is not None:
-        tile, workers = plan_for_memory(operator, depth, memory, block=block,
-                                        workers=workers)
-    tile = 4 * block if tile is None else tile
-    if resume:
-        for p in (work, out):
-            if os.path.exists(p) and not _writable(p):
-                raise ValueError(f"cannot resume into {p!r}: it is not writable")
-        if zarr_out and os.path.isdir(out):
-            _check_resumed_output(out, tuple(stack.shape), tile)
-    if not np.issubdtype(stack.dtype, np.integer) and not np.issubdtype(stack.dtype,
-                                                                          np.floating):
-        raise ValueError(f"the stack {os.fspath(stack_path)!r} holds {stack.dtype} data; "
-                         "expected intensities (integers or floats)")
+
+def _starting_point(background, resume, out, parent, stack):
+    """The background and the start, from the stack's statistics (a resumed run takes them
+    from its state), and room on disk for the iterates and the output; before anything is
+    written."""
     start = None  # a resumed run takes its background and start from its state
     if not resume:  # the stack's range and the background, before anything is written
         background, mean = stack_statistics(stack, background)  # read once, passed on
@@ -260,19 +275,37 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
             raise ValueError(f"cannot write {out}: the run needs about {need / 1e9:.3g} GB "
                              f"on disk beside it ({DISK_VOLUMES} float32 volumes: the "
                              f"iterates and the output), {free / 1e9:.3g} GB are free")
-    os.makedirs(work, exist_ok=True)
-    u = yield from iter_richardson_lucy_3d_exchange(
-        stack, operator, n_iter=n_iter, background=background,
-        start=start, tile=tile, block=block,
-        rtol=rtol, store=work, resume=resume, client=client, workers=workers,
-        device=device)
-    yield Progress("write", 1.0, f"writing {out}")
+    return start, background
+
+
+def _check_run(stack, stack_path, out, work, tile, resume):
+    """A resumed run can write where the interrupted one did, into an output of its
+    stack's shape and tiles; the stack holds intensities."""
+    zarr_out = is_zarr_path(out)
+    if resume:
+        for p in (work, out):
+            if os.path.exists(p) and not _writable(p):
+                raise ValueError(f"cannot resume into {p!r}: it is not writable")
+        if zarr_out and os.path.isdir(out):
+            _check_resumed_output(out, tuple(stack.shape), tile)
+    if not np.issubdtype(stack.dtype, np.integer) and not np.issubdtype(stack.dtype,
+                                                                          np.floating):
+        raise ValueError(f"the stack {os.fspath(stack_path)!r} holds {stack.dtype} data; "
+                         "expected intensities (integers or floats)")
+
+
+def _write_output(u, out, shape, info, voxel, *, n_iter, tile, resume, workers):
+    """The iterate written out: into the OME-Zarr output (created, or the interrupted one
+    reopened) only the chunks missing, chunks of one plane and one tile's lateral size, each
+    in one tile of the iterate, read once for all the chunks it holds, a tile at a time on
+    each thread; or as one TIFF. Returns the chunks written and their total."""
+    from .io import write_tiff
+    from .ome_zarr import create_ome_zarr, missing_chunks, open_ome_zarr_output
+
     written = total = 1
-    if zarr_out:
-        # chunks of one plane and one tile's lateral size: each lies in one tile of the
-        # iterate, which is read once for all the chunks it holds
+    if is_zarr_path(out):
         arr = (open_ome_zarr_output(out) if resume and os.path.isdir(out) else
-               create_ome_zarr(out, tuple(stack.shape), voxel_size=voxel, chunk=tile))
+               create_ome_zarr(out, shape, voxel_size=voxel, chunk=tile))
         todo = missing_chunks(arr, out)
         total = int(np.prod([-(-n // c) for n, c in zip(arr.shape, arr.chunks,
                                                           strict=True)]))
@@ -284,6 +317,7 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
             by_tile.setdefault((tile_y, tile_x), []).append(idx)
         starts_y = np.cumsum((0,) + u.chunks[1])
         starts_x = np.cumsum((0,) + u.chunks[2])
+
         def write_tile(item) -> None:
             (ty, tx), chunks = item
             y0, y1 = int(starts_y[ty]), int(starts_y[ty + 1])
@@ -304,8 +338,7 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
                    pixel_size=info.pixel_size if voxel is None else voxel[2],
                    z_spacing=None if voxel is None else voxel[0], metadata={"deblur3d": {
                        "method": "rl", "iterations": n_iter, "tile": tile}})
-    shutil.rmtree(work, ignore_errors=True)
-    return StoreRun(tile, n_iter, written, total, background, am.name)
+    return written, total
 
 
 deblur_to_store = drained(iter_deblur_to_store, "deblur_to_store")
