@@ -305,6 +305,31 @@ def identify_operator(
         An image of another shape than the family's, a radius giving another patch size,
         bad bead positions, or no usable bead.
     """
+    max_iter, found_beads, patches = _patches(image, family, beads, psf_radius, threshold,
+                                              max_iter)
+    c, sd, scores, left, shapes, patches = _checked_beads(family, amplitude_range, prior, patches)
+    op, found = _identify(family, c, patches.centers, sd, prior=prior,
+                          amplitude_range=amplitude_range, max_iter=max_iter)
+    own = (_few_dimensions(family, found, c, patches.centers, amplitude_range) if prior
+           else _paper(family, found, c))
+    warning, meta = _record(family, prior, found_beads, patches, c, scores, left, shapes, op, own)
+    # many beads: no worse than the image's own estimate from them (held-out judgement)
+    choice = judge_against_own(patches, c, family, prior=prior, sd=sd,
+                               amplitude_range=amplitude_range, max_iter=max_iter)
+    meta["identification"]["choice"] = None if choice is None else choice.to_dict()
+    if choice is not None and choice.weight < 1.0:
+        own_op = own_estimate(patches, family.shape, grid_step=family.grid_step)
+        if own_op is not None:
+            op = blend(op, own_op, choice.weight)
+    if warning:
+        warnings.warn(warning, IdentificationWarning, stacklevel=2)
+    return ProductConvolution(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
+                              metadata=meta)
+
+
+def _patches(image, family, beads, psf_radius, threshold, max_iter):
+    """The image's bead patches at the family's patch size; one clear line for a bad value,
+    another shape or no usable bead."""
     check_instance(family, OperatorFamily, "family",
                    "Learn a family with estimate_family, or load one with "
                    "load_family; a single image's operator needs no identification.")
@@ -330,6 +355,14 @@ def identify_operator(
         raise ValueError(f"`psf_radius` = {r:g} px gives {patches.psf.shape[1]} px patches; "
                          f"the family's PSFs are {size} px: use the family's radius "
                          f"({family.metadata.get('psf_radius')})")
+    return max_iter, found_beads, patches
+
+
+def _checked_beads(family, amplitude_range, prior, patches):
+    """The beads' coefficients on the family's basis and their noise; with the prior, the
+    beads the family cannot explain left out (:mod:`.bead_check`) and the noise as the
+    family measured it on its own beads (its shot noise, centring and background beyond the
+    background's noise)."""
     c = coefficients_on(patches.psf, family.basis)  # (P, I)
     sd = patches.noise / patches.flux  # per-pixel noise of the sum-1 patches
     left, scores = [], np.full(len(c), np.nan)
@@ -345,10 +378,12 @@ def identify_operator(
         # centring and background beyond the background's noise; the check above keeps
         # the yardstick it was calibrated with)
         sd = sd * float((family.metadata.get("dimensions") or {}).get("noise_factor", 1.0))
-    op, found = _identify(family, c, patches.centers, sd, prior=prior,
-                          amplitude_range=amplitude_range, max_iter=max_iter)
-    own = (_few_dimensions(family, found, c, patches.centers, amplitude_range) if prior
-           else _paper(family, found, c))
+    return c, sd, scores, left, shapes, patches
+
+
+def _record(family, prior, found_beads, patches, c, scores, left, shapes, op, own):
+    """The identification's record: how well the operator fits the beads it kept, its spread
+    and where one more bead would help, the beads left out and the warning (None, or why)."""
     fit = heldout_residuals(op, patches)  # on the beads it was identified from
     model_error = median_beyond_noise(fit.residual, fit.noise_floor)
     bound = warn_bound(family)
@@ -375,15 +410,4 @@ def identify_operator(
         "shapes": shapes.tolist(),
         "n_beads": int(len(c)), "n_space": family.n_space,
         "enough_beads": bool(len(c) >= 5), "beads_table": found_beads.summary}}
-    # many beads: no worse than the image's own estimate from them (held-out judgement)
-    choice = judge_against_own(patches, c, family, prior=prior, sd=sd,
-                               amplitude_range=amplitude_range, max_iter=max_iter)
-    meta["identification"]["choice"] = None if choice is None else choice.to_dict()
-    if choice is not None and choice.weight < 1.0:
-        own_op = own_estimate(patches, family.shape, grid_step=family.grid_step)
-        if own_op is not None:
-            op = blend(op, own_op, choice.weight)
-    if warning:
-        warnings.warn(warning, IdentificationWarning, stacklevel=2)
-    return ProductConvolution(op.basis, op.coefficients, shape=op.image_shape, grid=op.grid,
-                              metadata=meta)
+    return warning, meta
