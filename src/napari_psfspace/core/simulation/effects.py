@@ -2,6 +2,80 @@
 (:data:`EFFECTS`): illumination fall-off, fixed-pattern column offsets, hot pixels, a
 compressive response, companions, bead sizes, background structure, drift and a
 defocus gradient; their parameters are checked and drawn here.
+
+The keys of ``effects`` of :func:`~.scene.simulate_beads` (``r`` below is
+``truth.psf_radius``):
+
+``"illumination": s`` (``0 < s < 1``) or ``(s, (row, col))``
+    Non-uniform excitation ``I = 1 - s rho^2`` (``rho``: distance to
+    the centre over the distance from the centre to the farthest
+    corner, so ``I >= 1 - s``) multiplying the bead amplitudes (at
+    each bead) and the smooth background. The centre is the field
+    centre shifted by a random fraction (up to 20 %) of the field, or
+    ``(row, col)`` pixels. Truth: ``illumination_centre``,
+    ``illumination_map`` (H, W) float32, ``illumination_factors`` (M,).
+``"row_offsets": sd``, ``"column_offsets": sd`` (ADU)
+    Fixed-pattern offsets, normal with standard deviation ``sd``, per
+    row / column, added to the ADU image after the noise. Truth:
+    ``row_offset_values`` (H,), ``column_offset_values`` (W,).
+``"hot_pixels": n`` (int), a fraction of the pixels (float < 1), or ``(n, (lo, hi))``
+    Distinct random pixels with an extra dark signal uniform in
+    [20 %, 100 %] of the median expected bead peak (ADU) (with
+    ``(lo, hi)``: uniform in ``lo``-``hi`` times the brightest expected
+    bead peak, e.g. ``(0.001, (1, 5))`` for an sCMOS without dark-frame
+    correction; ``n`` a count or a fraction), added
+    (noiseless) to the ADU image after the noise. Truth:
+    ``hot_pixels`` (the count), ``hot_pixel_positions`` (n, 2) int
+    ``(row, col)``, ``hot_pixel_values`` (n,) ADU.
+``"saturation": level`` (ADU, above ``offset``, below the dtype max)
+    The final image is clipped at ``level`` (rounded down for
+    integer dtypes). Truth: ``saturation`` (the level),
+    ``saturated_pixels`` (number of pixels at the level).
+``"nonlinearity": c`` (``0 < c <= 0.5``)
+    Compressive response ``e (1 - c e / e_ref)`` applied to the
+    expected electrons before the shot noise, with ``e_ref`` the
+    brightest expected pixel (a bead peak, background included), which
+    loses the fraction ``c``; increasing up to ``e_ref / (2 c) >=
+    e_ref`` and held constant beyond, so monotone. Truth:
+    ``nonlinearity_reference`` (``e_ref``, electrons).
+``"neighbours": f`` (``0 < f <= 1``) or a dict ``fraction``, ``distance_px``, ``amplitude``
+    ``round(f M)`` random beads get a companion at a distance uniform
+    in ``[0.6 r, 1.6 r]`` (or ``distance_px``) in a random direction,
+    amplitude uniform in [0.3, 1] (or ``amplitude``) times the bead's
+    (before illumination), same diameter,
+    rendered with the PSF at its own position (the minimum
+    separation is violated on purpose). ``truth.positions`` stays
+    the primary beads. Truth: ``companion_positions`` (K, 2),
+    ``companion_amplitudes`` (K,) photons, ``companion_of`` (K,)
+    index of the primary bead.
+``"bead_size": d`` or ``(d_min, d_max)`` (µm)
+    Beads are uniform spheres of diameter ``d`` (or uniform in
+    ``[d_min, d_max]``, with amplitude times ``d^3 / E[d^3]``): the
+    optical PSF convolved with the projected sphere. Truth:
+    ``bead_size`` ``(d_min, d_max)``, ``bead_diameters`` (M,) µm,
+    ``companion_diameters`` (K,) with ``"neighbours"``.
+``"drift": (dy, dx)`` (pixels)
+    Linear sample motion during the exposure: each bead image is the
+    PSF averaged along the segment from ``-(dy, dx) / 2`` to
+    ``+(dy, dx) / 2`` about its (mid-exposure) position. Truth:
+    ``drift``; :meth:`SimulationTruth.observed_psf_at` includes it.
+``"background_structure": a`` (photons)
+    Additive sum of Gaussian blobs of peak ``a``, sigma uniform in
+    ``[0.3 r, 0.6 r]``, uniform centres, about one per ``(3 r)^2``
+    pixels (structure at the scale of a bead patch that an order-2
+    polynomial per patch does not describe). Not illuminated. Truth:
+    ``background_structure_map`` (H, W) float32.
+
+Invalid keys or values raise ValueError. The randomness of each effect
+comes from its own child of the seeded generator
+(:meth:`numpy.random.Generator.spawn`, one per key of ``EFFECTS`` in
+that order), so effects draw nothing from the main stream: positions,
+amplitude factors and smooth background equal those of
+``effects=None``, each effect's realisation does not depend on the
+other effects, and effects that do not change the expected photons
+(offsets, hot pixels, saturation) leave the noise realisation
+unchanged. ``effects=None`` (or ``{}``) is bit-identical to not
+passing it.
 """
 
 from __future__ import annotations

@@ -4,7 +4,9 @@ PSFs (:mod:`.optics`, :mod:`.aberrations`), adds the background, the effects ask
 :class:`~.truth.SimulationTruth`.
 
 Model: eq. (6) of Debarnot, Escande, Mangeat & Weiss, "Learning low-dimensional models
-of microscopes", section 3.1.1 (see :mod:`.optics`).
+of microscopes", section 3.1.1 (see :mod:`.optics`). Each bead is rendered with the exact
+PSF at its own position (Zernike coefficients evaluated there) and sub-pixel offset, on a
+window of radius ``RENDER_RADIUS_FACTOR * psf_radius`` (clipped at the image border).
 """
 
 from __future__ import annotations
@@ -88,89 +90,16 @@ def simulate_beads(
         Output dtype. Integer dtypes are rounded and clipped to their range;
         float dtypes are neither.
     seed : int, Generator or None
-        Seed of the single :func:`numpy.random.default_rng` used for
-        everything (positions, amplitudes, background, noise).
+        Seed of the one generator of everything (positions, amplitudes, background, noise).
     psf_energy : float
         Energy fraction defining ``truth.psf_radius``.
     bead_photons : array_like of shape (n_beads,), optional
-        Total photons of each bead, instead of drawing them uniformly from
-        ``amplitude`` (e.g. a log-normal brightness spread,
-        :mod:`~napari_psfspace.core.simulation.scene_set`).
+        Total photons of each bead instead of ``amplitude``'s (e.g. a log-normal spread).
     effects : Mapping[str, Any] or None
-        Effects beyond the PSF model to inject, each key switching one on
-        (``r`` below is ``truth.psf_radius``); all recorded in
-        ``truth.effects``:
-
-        ``"illumination": s`` (``0 < s < 1``) or ``(s, (row, col))``
-            Non-uniform excitation ``I = 1 - s rho^2`` (``rho``: distance to
-            the centre over the distance from the centre to the farthest
-            corner, so ``I >= 1 - s``) multiplying the bead amplitudes (at
-            each bead) and the smooth background. The centre is the field
-            centre shifted by a random fraction (up to 20 %) of the field, or
-            ``(row, col)`` pixels. Truth: ``illumination_centre``,
-            ``illumination_map`` (H, W) float32, ``illumination_factors`` (M,).
-        ``"row_offsets": sd``, ``"column_offsets": sd`` (ADU)
-            Fixed-pattern offsets, normal with standard deviation ``sd``, per
-            row / column, added to the ADU image after the noise. Truth:
-            ``row_offset_values`` (H,), ``column_offset_values`` (W,).
-        ``"hot_pixels": n`` (int), a fraction of the pixels (float < 1), or ``(n, (lo, hi))``
-            Distinct random pixels with an extra dark signal uniform in
-            [20 %, 100 %] of the median expected bead peak (ADU) (with
-            ``(lo, hi)``: uniform in ``lo``-``hi`` times the brightest expected
-            bead peak, e.g. ``(0.001, (1, 5))`` for an sCMOS without dark-frame
-            correction; ``n`` a count or a fraction), added
-            (noiseless) to the ADU image after the noise. Truth:
-            ``hot_pixels`` (the count), ``hot_pixel_positions`` (n, 2) int
-            ``(row, col)``, ``hot_pixel_values`` (n,) ADU.
-        ``"saturation": level`` (ADU, above ``offset``, below the dtype max)
-            The final image is clipped at ``level`` (rounded down for
-            integer dtypes). Truth: ``saturation`` (the level),
-            ``saturated_pixels`` (number of pixels at the level).
-        ``"nonlinearity": c`` (``0 < c <= 0.5``)
-            Compressive response ``e (1 - c e / e_ref)`` applied to the
-            expected electrons before the shot noise, with ``e_ref`` the
-            brightest expected pixel (a bead peak, background included), which
-            loses the fraction ``c``; increasing up to ``e_ref / (2 c) >=
-            e_ref`` and held constant beyond, so monotone. Truth:
-            ``nonlinearity_reference`` (``e_ref``, electrons).
-        ``"neighbours": f`` (``0 < f <= 1``) or a dict ``fraction``, ``distance_px``, ``amplitude``
-            ``round(f M)`` random beads get a companion at a distance uniform
-            in ``[0.6 r, 1.6 r]`` (or ``distance_px``) in a random direction,
-            amplitude uniform in [0.3, 1] (or ``amplitude``) times the bead's
-            (before illumination), same diameter,
-            rendered with the PSF at its own position (the minimum
-            separation is violated on purpose). ``truth.positions`` stays
-            the primary beads. Truth: ``companion_positions`` (K, 2),
-            ``companion_amplitudes`` (K,) photons, ``companion_of`` (K,)
-            index of the primary bead.
-        ``"bead_size": d`` or ``(d_min, d_max)`` (µm)
-            Beads are uniform spheres of diameter ``d`` (or uniform in
-            ``[d_min, d_max]``, with amplitude times ``d^3 / E[d^3]``): the
-            optical PSF convolved with the projected sphere. Truth:
-            ``bead_size`` ``(d_min, d_max)``, ``bead_diameters`` (M,) µm,
-            ``companion_diameters`` (K,) with ``"neighbours"``.
-        ``"drift": (dy, dx)`` (pixels)
-            Linear sample motion during the exposure: each bead image is the
-            PSF averaged along the segment from ``-(dy, dx) / 2`` to
-            ``+(dy, dx) / 2`` about its (mid-exposure) position. Truth:
-            ``drift``; :meth:`SimulationTruth.observed_psf_at` includes it.
-        ``"background_structure": a`` (photons)
-            Additive sum of Gaussian blobs of peak ``a``, sigma uniform in
-            ``[0.3 r, 0.6 r]``, uniform centres, about one per ``(3 r)^2``
-            pixels (structure at the scale of a bead patch that an order-2
-            polynomial per patch does not describe). Not illuminated. Truth:
-            ``background_structure_map`` (H, W) float32.
-
-        Invalid keys or values raise ValueError. The randomness of each effect
-        comes from its own child of the seeded generator
-        (:meth:`numpy.random.Generator.spawn`, one per key of ``EFFECTS`` in
-        that order), so effects draw nothing from the main stream: positions,
-        amplitude factors and smooth background equal those of
-        ``effects=None``, each effect's realisation does not depend on the
-        other effects, and effects that do not change the expected photons
-        (offsets, hot pixels, saturation) leave the noise realisation
-        unchanged. ``effects=None`` (or ``{}``) is bit-identical to not
-        passing it.
+        Effects beyond the PSF model to inject, each key switching one on (the keys and
+        their values: :mod:`.effects`); all recorded in ``truth.effects``. Each effect
+        draws from its own child of the seeded generator: ``effects=None`` (or ``{}``)
+        is bit-identical to not passing it. Invalid keys or values raise ValueError.
 
     Returns
     -------
@@ -189,13 +118,29 @@ def simulate_beads(
     ValueError
         If the beads cannot be placed with the requested separation/border,
         or for an unknown effect or an invalid effect value.
-
-    Notes
-    -----
-    Each bead is rendered with the exact PSF at its own position (Zernike
-    coefficients evaluated there) and sub-pixel offset, on a window of radius
-    ``RENDER_RADIUS_FACTOR * psf_radius`` (clipped at the image border).
     """
+    (shape, n_beads, optics, aberrations, amp_range, bg_range, (gain, offset, read_noise, dtype),
+     effect_params) = _checked(shape, n_beads, aberrations, optics, amplitude, background, gain,
+                               offset, read_noise, dtype, seed, psf_energy, effects)
+    rng = np.random.default_rng(seed)
+    psf_radius = field_psf_radius(aberrations, optics, shape, psf_energy)
+    border = float(psf_radius if border is None else border)
+    min_separation = float(2.5 * psf_radius if min_separation is None else min_separation)
+    positions = place_beads(rng, shape, n_beads, min_separation, border)
+    amp_range, amplitudes = _amplitudes(n_beads, bead_photons, amp_range, rng)
+    bg = smooth_background(rng, shape, *bg_range)
+    if effect_params:
+        return _simulate_with_effects(rng, effect_params, shape, positions, amplitudes, bg,
+                                      aberrations, optics, amp_range, gain, offset,
+                                      read_noise, dtype, psf_radius)
+    return _plain(shape, aberrations, optics, gain, offset, read_noise, dtype, rng, psf_radius,
+                  positions, amplitudes, bg)
+
+
+def _checked(shape, n_beads, aberrations, optics, amplitude, background, gain, offset, read_noise,
+             dtype, seed, psf_energy, effects):
+    """The arguments checked (one clear line for a bad value before any work), the defaults
+    filled in."""
     shape = check_shape(shape)
     # the photon image, its noise and the camera's: about six float64 images
     check_memory(6 * 8.0 * shape[0] * shape[1], f"`shape` {shape}: a {shape[0]} x {shape[1]} "
@@ -212,13 +157,12 @@ def simulate_beads(
     effect_params = check_effects(effects, shape, dtype, offset)
     if not 0.0 < psf_energy < 1.0:
         raise ValueError(f"psf_energy must be in (0, 1), got {psf_energy!r}")
-    rng = np.random.default_rng(seed)
+    return (shape, n_beads, optics, aberrations, amp_range, bg_range,
+            (gain, offset, read_noise, dtype), effect_params)
 
-    psf_radius = field_psf_radius(aberrations, optics, shape, psf_energy)
-    border = float(psf_radius if border is None else border)
-    min_separation = float(2.5 * psf_radius if min_separation is None else min_separation)
 
-    positions = place_beads(rng, shape, n_beads, min_separation, border)
+def _amplitudes(n_beads, bead_photons, amp_range, rng):
+    """Each bead's photons (drawn uniformly from ``amp_range``, or given) and their range."""
     if bead_photons is None:
         amplitudes = rng.uniform(*amp_range, size=n_beads)
     else:
@@ -229,25 +173,12 @@ def simulate_beads(
                              f"numbers, got shape {np.shape(bead_photons)}")
         if n_beads:
             amp_range = (float(amplitudes.min()), float(amplitudes.max()))
-    bg = smooth_background(rng, shape, *bg_range)
-    if effect_params:
-        return _simulate_with_effects(
-            rng,
-            effect_params,
-            shape,
-            positions,
-            amplitudes,
-            bg,
-            aberrations,
-            optics,
-            amp_range,
-            gain,
-            offset,
-            read_noise,
-            dtype,
-            psf_radius,
-        )
+    return amp_range, amplitudes
 
+
+def _plain(shape, aberrations, optics, gain, offset, read_noise, dtype, rng, psf_radius, positions,
+           amplitudes, bg):
+    """The scene without effects: the beads rendered on the background, the camera, the truth."""
     photons = bg.astype(np.float64)
     peaks = render_beads(
         photons, positions, amplitudes, aberrations, optics, RENDER_RADIUS_FACTOR * psf_radius
@@ -299,7 +230,54 @@ def _simulate_with_effects(
     rngs = dict(zip(EFFECTS, spawn(rng, len(EFFECTS)), strict=True))
     fx: dict[str, Any] = {}
     n = len(positions)
-    amplitudes = amplitudes.astype(np.float64)
+    all_pos, all_amp, all_diam, background, drift = _scene_effects(
+            params, shape, positions, amplitudes.astype(np.float64), bg, psf_radius, rngs, fx)
+    photons = background.copy()
+    peaks = render_beads(
+        photons,
+        all_pos,
+        all_amp,
+        aberrations,
+        optics,
+        RENDER_RADIUS_FACTOR * psf_radius,
+        all_diam,
+        drift,
+    )[:n]
+    amplitudes = all_amp[:n]
+
+    if "nonlinearity" in params:
+        e_ref = float(photons.max())
+        photons = nonlinear(photons, params["nonlinearity"], e_ref)
+        fx.update(nonlinearity=params["nonlinearity"], nonlinearity_reference=e_ref)
+    adu = camera_adu(rng, photons, gain, offset, read_noise)
+    image = _camera_effects(adu, params, rngs, fx, shape, amplitudes, peaks, aberrations,
+                            optics, amp_range, gain, dtype)
+
+    peak = amplitudes * peaks
+    centres = np.clip(np.rint(positions).astype(int), 0, np.array(shape) - 1)
+    local_bg = background[centres[:, 0], centres[:, 1]]
+    truth = SimulationTruth(
+        shape=shape,
+        positions=positions,
+        amplitudes=amplitudes,
+        background=background.astype(np.float32),
+        optics=optics,
+        aberrations=aberrations,
+        gain=float(gain),
+        offset=float(offset),
+        read_noise=float(read_noise),
+        psf_radius=psf_radius,
+        peak_snr=peak / np.sqrt(peak + local_bg + read_noise**2),
+        effects=fx,
+    )
+    return image, truth
+
+
+def _scene_effects(params, shape, positions, amplitudes, bg, psf_radius, rngs, fx):
+    """The scene's effects before rendering: bead sizes (amplitude factors), companions,
+    illumination (beads and smooth background), background structure, drift; each recorded
+    in ``fx``."""
+    n = len(positions)
     diameters = None
     if "bead_size" in params:
         diameters, factors = bead_diameters(rngs["bead_size"], n, params["bead_size"])
@@ -351,25 +329,13 @@ def _simulate_with_effects(
     drift = params.get("drift")
     if drift is not None:
         fx["drift"] = drift
+    return all_pos, all_amp, all_diam, background, drift
 
-    photons = background.copy()
-    peaks = render_beads(
-        photons,
-        all_pos,
-        all_amp,
-        aberrations,
-        optics,
-        RENDER_RADIUS_FACTOR * psf_radius,
-        all_diam,
-        drift,
-    )[:n]
-    amplitudes = all_amp[:n]
 
-    if "nonlinearity" in params:
-        e_ref = float(photons.max())
-        photons = nonlinear(photons, params["nonlinearity"], e_ref)
-        fx.update(nonlinearity=params["nonlinearity"], nonlinearity_reference=e_ref)
-    adu = camera_adu(rng, photons, gain, offset, read_noise)
+def _camera_effects(adu, params, rngs, fx, shape, amplitudes, peaks, aberrations, optics,
+                    amp_range, gain, dtype):
+    """The camera's effects on the ADU image after the noise: row and column offsets, hot
+    pixels, saturation; then digitised."""
     if "row_offsets" in params:
         rows = fixed_pattern(rngs["row_offsets"], shape[0], params["row_offsets"])
         adu += rows[:, None]
@@ -396,22 +362,4 @@ def _simulate_with_effects(
         rounded = np.rint(adu) if np.issubdtype(dtype, np.integer) else adu
         fx.update(saturation=level, saturated_pixels=int(np.count_nonzero(rounded >= level)))
     image = digitise(adu, dtype, level)
-
-    peak = amplitudes * peaks
-    centres = np.clip(np.rint(positions).astype(int), 0, np.array(shape) - 1)
-    local_bg = background[centres[:, 0], centres[:, 1]]
-    truth = SimulationTruth(
-        shape=shape,
-        positions=positions,
-        amplitudes=amplitudes,
-        background=background.astype(np.float32),
-        optics=optics,
-        aberrations=aberrations,
-        gain=float(gain),
-        offset=float(offset),
-        read_noise=float(read_noise),
-        psf_radius=psf_radius,
-        peak_snr=peak / np.sqrt(peak + local_bg + read_noise**2),
-        effects=fx,
-    )
-    return image, truth
+    return image
