@@ -214,3 +214,51 @@ def test_beads_that_disagree_on_their_wings_keep_the_plane(monkeypatch):
     monkeypatch.setattr(background, "OWN_WINGS", False)
     plane = ring_background(image, centers, r, 1.2 * r, size)
     np.testing.assert_array_equal(with_wings, plane)
+
+
+def test_the_rings_noise_is_read_from_how_often_a_level_is_left():
+    """``rounding_noise`` against rounded Gaussian noise of known sd: within 10 % where
+    both tails hold at least 1 % of the 40,000 pixels (each share's standard error is
+    then under 5 % of it, and a quantile's error under 2 % of sd), an upper estimate
+    where one tail is empty (its share is floored at half a pixel's)."""
+    from scipy.stats import norm
+
+    from napari_psfspace.core.beads.background import rounding_noise
+
+    rng = np.random.default_rng(11)
+    for sd in (0.15, 0.3, 0.6, 2.0):
+        for delta in (0.0, 0.2, 0.4):
+            vals = np.round(7.0 + delta + rng.normal(0.0, sd, (100, 400)))
+            got = rounding_noise(vals, np.ones(vals.shape, bool), 1.0)
+            both = min(norm.sf((0.5 - delta) / sd), norm.sf((0.5 + delta) / sd)) >= 0.01
+            if both:
+                assert abs(got / sd - 1.0) < 0.1, (sd, delta, got)
+            else:
+                assert got > 0.9 * sd, (sd, delta, got)
+    # the step's unit: the same noise on a lattice of step 0.25 reads a quarter of it
+    vals = np.round(7.2 + rng.normal(0.0, 0.6, (100, 400)))
+    one = rounding_noise(vals, np.ones(vals.shape, bool), 1.0)
+    quarter = rounding_noise(0.25 * vals + 3.0, np.ones(vals.shape, bool), 0.25)
+    assert abs(quarter - 0.25 * one) <= 1e-12 * one
+
+
+def test_noise_far_below_a_step_keeps_the_plane(monkeypatch):
+    """Airy beads on an 8-bit camera at 20 photons an ADU: the background's noise is
+    0.14 of a step, so the rings read the rounding's level and the wings' fall-off is
+    rounded away. The plane alone is kept, to the last digit; with the rule off, the
+    wings' fit moves it (the test can fail)."""
+    from napari_psfspace.core.beads import background
+
+    shape, r = (160, 160), 10.0
+    centers = np.array([[50.3, 49.6], [50.0, 110.2], [110.4, 50.1], [109.7, 109.8]])
+    rng = np.random.default_rng(2)
+    photons = _airy_beads(shape, centers, first_zero=2.5, flux=4e4) + 4.6
+    image = np.round(10.0 + 0.05 * rng.poisson(photons) + rng.normal(0.0, 0.09, shape))
+    size = patch_size(r)
+    kept = ring_background(image, centers, r, 1.2 * r, size)
+    monkeypatch.setattr(background, "OWN_WINGS", False)
+    plane = ring_background(image, centers, r, 1.2 * r, size)
+    np.testing.assert_array_equal(kept, plane)
+    monkeypatch.setattr(background, "OWN_WINGS", True)
+    monkeypatch.setattr(background, "SUBSTEP_SD", 0.0)
+    assert not np.array_equal(ring_background(image, centers, r, 1.2 * r, size), plane)

@@ -16,11 +16,18 @@ Two ways, both linear least squares:
   per cent of an in-focus PSF's light lies between 1.2 and 1.6 radii): they are fitted
   with the plane, as a fall-off with the cube of the distance (the envelope of an
   aperture's diffraction) scaled by the bead's light, its scale one for the image.
+
+A camera whose noise is far below one of its steps (a few photons of background at 20
+photons an ADU, say) rounds most of a ring to one level: the level read there is the
+rounding's, off the true one by up to half a step, and the wings' faint fall-off is
+rounded away. Such an image (:func:`rounding_noise` under :data:`SUBSTEP_SD` of a step)
+keeps the plane alone.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import ndtri
 
 from .centering import gather_windows
 from .window import radial_distance
@@ -132,6 +139,13 @@ WING_POWER = 3.0
 #: lower confidence bound, so that an image whose beads disagree keeps the plane alone.
 WING_Z = 2.0
 
+#: An image whose rings' noise (:func:`rounding_noise`) is under this many of its value
+#: steps keeps the plane alone. Rounding a level with Gaussian noise of ``sigma`` steps
+#: moves its mean by up to ``exp(-2 pi**2 sigma**2) / pi`` of a step: 0.09 at a quarter
+#: step (0.002 at half a step), as much as the wings' own level on the ring, which the
+#: fit could then not tell from the rounding.
+SUBSTEP_SD = 0.25
+
 
 def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: float,
                     size: int, *, outer: float | None = None, neighbours=None
@@ -193,14 +207,16 @@ def ring_background(image: np.ndarray, centers: np.ndarray, r: float, r_ext: flo
     step = value_step(image)
     frac = centers - base
     full = np.stack([np.ones(yy.size), xx.ravel(), yy.ravel()], axis=1)
-    if OWN_WINGS:  # (r_ext / rho)**WING_POWER on each bead's ring, rho from its centre
+    wings = OWN_WINGS and not (
+        step > 0 and rounding_noise(wins[:, ring], use > 0, step) < SUBSTEP_SD * step)
+    if wings:  # (r_ext / rho)**WING_POWER on each bead's ring, rho from its centre
         dist = np.hypot((d[None, :, None] - frac[:, :1, None]),
                         (d[None, None, :] - frac[:, 1:, None])).reshape(len(centers), -1)
         falloff = (r_ext / dist[:, ring]) ** WING_POWER
     wing = np.zeros_like(vals)
     keep = use > 0
     for _ in range(RING_PASSES):  # fitted again without the pixels far from the plane
-        if OWN_WINGS:
+        if wings:
             wing = _own_wings(wins, seen, coef, full, ring, falloff, vals, use * keep)
             coef = _planes(design, vals - wing, use * keep)
         res = np.where(use > 0, vals - wing - coef @ design.T, np.nan)
@@ -242,6 +258,43 @@ def _own_wings(wins, seen, coef, full, ring, falloff, vals, use):
     se = float(np.sqrt(np.sum((ab - c * aa) ** 2))) / den
     c = max(c - WING_Z * se, 0.0)
     return c * shape
+
+
+def rounding_noise(values: np.ndarray, use: np.ndarray, step: float) -> float:
+    """The noise's standard deviation on rings of a quantised image, in image units, read
+    from how often a value leaves its ring's level.
+
+    Parameters
+    ----------
+    values : ndarray of shape (K, n)
+        Each ring's pixels as recorded (on the image's lattice of levels).
+    use : ndarray of shape (K, n), bool
+        The pixels in the image.
+    step : float
+        The lattice's step (:func:`value_step`), > 0.
+
+    Returns
+    -------
+    float
+        ``step / (a + b)``, where ``a`` and ``b`` are the normal quantiles of the shares
+        ``p_up`` and ``p_down`` of pixels more than half a step above and below their ring's
+        median (pooled over the rings; each at least half a pixel's share, at most a half).
+        A Gaussian of sd ``sigma`` about a level ``delta`` off its step's centre gives
+        ``(step / 2 - delta) / sigma = a`` and ``(step / 2 + delta) / sigma = b``. A ring's
+        tilt, structure and wings add to both shares: an upper estimate.
+    """
+    vals = np.where(use, np.asarray(values, np.float64), np.nan)
+    rows = use.any(axis=1)
+    if not rows.any():
+        return float("inf")
+    vals = vals[rows]
+    level = np.nanmedian(vals, axis=1, keepdims=True)
+    n = int(np.count_nonzero(use[rows]))
+    lo, hi = 0.5 / n, 0.5
+    p_up = min(max(np.count_nonzero(vals > level + step / 2) / n, lo), hi)
+    p_down = min(max(np.count_nonzero(vals < level - step / 2) / n, lo), hi)
+    a, b = -ndtri(p_up), -ndtri(p_down)  # upper-tail normal quantiles
+    return float(step / (a + b)) if a + b > 0 else float("inf")
 
 
 def value_step(image: np.ndarray, *, sample: int = 65536) -> float:
