@@ -167,38 +167,11 @@ def check_effects(
     inf = np.inf
     for key, value in effects.items():
         if key == "illumination":
-            if np.isscalar(value):
-                out[key] = (_scalar(key, value, 0.0, 1.0, open_high=True), None)
-            else:
-                try:
-                    strength, centre = value
-                except (TypeError, ValueError):
-                    raise ValueError(
-                        f"effect {key!r}: expected s or (s, (row, col)), got {value!r}"
-                    ) from None
-                out[key] = (_scalar(key, strength, 0.0, 1.0, open_high=True), _pair(key, centre))
+            out[key] = _illumination(key, value)
         elif key in ("row_offsets", "column_offsets", "background_structure"):
             out[key] = _scalar(key, value, 0.0, inf, open_low=False, open_high=True)
         elif key == "hot_pixels":
-            factors = None
-            if isinstance(value, (tuple, list)):  # (count or fraction, (low, high))
-                try:
-                    value, factors = value
-                except (TypeError, ValueError):
-                    raise ValueError(f"effect {key!r}: expected n, a fraction, or (n or "
-                                     f"fraction, (low, high)), got {value!r}") from None
-                factors = _pair(key, factors)
-                if not 0 < factors[0] <= factors[1]:
-                    raise ValueError(f"effect {key!r}: need 0 < low <= high, got {factors}")
-            if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
-                count = int(value)
-            else:
-                count = round(_scalar(key, value, 0.0, 1.0, open_high=True) * shape[0] * shape[1])
-            if not 0 <= count <= shape[0] * shape[1]:
-                raise ValueError(
-                    f"effect {key!r}: count must lie in [0, {shape[0] * shape[1]}], got {value!r}"
-                )
-            out[key] = count if factors is None else (count, factors)
+            out[key] = _hot_pixels(key, value, shape)
         elif key == "saturation":
             top = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else inf
             level = _scalar(key, value, offset, top, open_high=True)
@@ -206,25 +179,7 @@ def check_effects(
         elif key == "nonlinearity":
             out[key] = _scalar(key, value, 0.0, 0.5)
         elif key == "neighbours":
-            if isinstance(value, dict):
-                unknown = sorted(set(value) - {"fraction", "distance_px", "amplitude"})
-                if unknown or "fraction" not in value:
-                    raise ValueError(f"effect {key!r}: a dict needs 'fraction' and may hold "
-                                     f"'distance_px', 'amplitude'; got keys {sorted(value)}")
-                dist = value.get("distance_px")
-                if dist is not None:
-                    dist = _pair(key, dist)
-                    if not 0 < dist[0] <= dist[1]:
-                        raise ValueError(f"effect {key!r}: need 0 < distance_px low <= high, "
-                                         f"got {value['distance_px']!r}")
-                amp = _pair(key, value.get("amplitude", _COMPANION_AMPLITUDE))
-                if not 0 < amp[0] <= amp[1]:
-                    raise ValueError(f"effect {key!r}: need 0 < amplitude low <= high, got "
-                                     f"{value.get('amplitude')!r}")
-                out[key] = {"fraction": _scalar(key, value["fraction"], 0.0, 1.0),
-                            "distance_px": dist, "amplitude": amp}
-            else:
-                out[key] = _scalar(key, value, 0.0, 1.0)
+            out[key] = _neighbours(key, value)
         elif key == "bead_size":
             low, high = (value, value) if np.isscalar(value) else _pair(key, value)
             low = _scalar(key, low, 0.0, inf, open_low=False, open_high=True)
@@ -235,6 +190,67 @@ def check_effects(
         elif key == "drift":
             out[key] = _pair(key, value)
     return out
+
+
+def _illumination(key: str, value: Any) -> tuple[float, tuple[float, float] | None]:
+    """``s`` or ``(s, (row, col))``: the fall-off's strength and its centre (None: the
+    image's)."""
+    if np.isscalar(value):
+        return _scalar(key, value, 0.0, 1.0, open_high=True), None
+    try:
+        strength, centre = value
+    except (TypeError, ValueError):
+        raise ValueError(
+            f"effect {key!r}: expected s or (s, (row, col)), got {value!r}"
+        ) from None
+    return _scalar(key, strength, 0.0, 1.0, open_high=True), _pair(key, centre)
+
+
+def _hot_pixels(key: str, value: Any, shape: tuple[int, int]):
+    """A count or a fraction of the pixels, optionally with the range ``(low, high)`` of
+    their factors: the count, or ``(count, (low, high))``."""
+    factors = None
+    if isinstance(value, (tuple, list)):  # (count or fraction, (low, high))
+        try:
+            value, factors = value
+        except (TypeError, ValueError):
+            raise ValueError(f"effect {key!r}: expected n, a fraction, or (n or "
+                             f"fraction, (low, high)), got {value!r}") from None
+        factors = _pair(key, factors)
+        if not 0 < factors[0] <= factors[1]:
+            raise ValueError(f"effect {key!r}: need 0 < low <= high, got {factors}")
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        count = int(value)
+    else:
+        count = round(_scalar(key, value, 0.0, 1.0, open_high=True) * shape[0] * shape[1])
+    if not 0 <= count <= shape[0] * shape[1]:
+        raise ValueError(
+            f"effect {key!r}: count must lie in [0, {shape[0] * shape[1]}], got {value!r}"
+        )
+    return count if factors is None else (count, factors)
+
+
+def _neighbours(key: str, value: Any):
+    """A fraction of the beads given a companion, or a dict of ``fraction`` and optionally
+    ``distance_px`` and ``amplitude`` (each a range ``(low, high)``)."""
+    if not isinstance(value, dict):
+        return _scalar(key, value, 0.0, 1.0)
+    unknown = sorted(set(value) - {"fraction", "distance_px", "amplitude"})
+    if unknown or "fraction" not in value:
+        raise ValueError(f"effect {key!r}: a dict needs 'fraction' and may hold "
+                         f"'distance_px', 'amplitude'; got keys {sorted(value)}")
+    dist = value.get("distance_px")
+    if dist is not None:
+        dist = _pair(key, dist)
+        if not 0 < dist[0] <= dist[1]:
+            raise ValueError(f"effect {key!r}: need 0 < distance_px low <= high, "
+                             f"got {value['distance_px']!r}")
+    amp = _pair(key, value.get("amplitude", _COMPANION_AMPLITUDE))
+    if not 0 < amp[0] <= amp[1]:
+        raise ValueError(f"effect {key!r}: need 0 < amplitude low <= high, got "
+                         f"{value.get('amplitude')!r}")
+    return {"fraction": _scalar(key, value["fraction"], 0.0, 1.0),
+            "distance_px": dist, "amplitude": amp}
 
 
 def illumination_map(
