@@ -13,6 +13,7 @@ from .common import COUNT, INDEX, NON_NEGATIVE, existing, progress_printer
 def run(args) -> int:
     from ..core.common.device import array_module
     from ..core.common.progress import run_with_progress
+    from ..core.model.operator import load_operator
     from ..core.restore import iter_deblur
     from ..io import read_image
 
@@ -21,7 +22,7 @@ def run(args) -> int:
     image, info = read_image(args.image, index=args.slice)
     t0 = time.perf_counter()
     op = (_identified(args, option, image, t0) if args.family is not None
-          else _loaded(args.model))
+          else load_operator(args.model))
     gen = iter_deblur(image, op, sparse_weight=args.sparse_weight,
                       smooth_weight=args.smooth_weight, max_iter=args.max_iter,
                       debias=args.refit_amplitudes, device=device)
@@ -68,12 +69,6 @@ def _checked(args):
     if args.beads:
         existing(args.beads, "--beads")
     return out, option
-
-
-def _loaded(path):
-    from ..core.model.operator import load_operator
-
-    return load_operator(path)
 
 
 def _identified(args, option, image, t0):
