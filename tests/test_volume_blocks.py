@@ -244,3 +244,20 @@ def test_the_accelerated_iteration_heads_for_plain_rl_sooner():
     d = lambda v: np.linalg.norm(v - far) / np.linalg.norm(far)  # noqa: E731
     assert np.isfinite(fast).all() and fast.min() >= 0
     assert d(fast) < 0.8 * d(plain), (d(fast), d(plain))
+
+
+def test_the_adjoint_on_a_region_is_the_whole_adjoint_there_and_zero_elsewhere():
+    """A tile's adjoint computes only the blocks that meet it: on the region it is the
+    whole adjoint to the bit (the same blocks, the same sums), elsewhere zero; the
+    blocks that cut the region's edge count as meeting it."""
+    op = _operator(shape=(6, 50, 44))
+    v = np.random.default_rng(4).standard_normal(op.image_shape).astype(np.float32)
+    b = BlockedOperator3D(op, block=16, rtol=0.0)
+    whole = b.adjoint(v, workers=2)
+    region = (10, 37, 5, 30)  # cuts blocks on every side
+    part = b.adjoint(v, workers=2, region=region)
+    inside = (slice(None), slice(10, 37), slice(5, 30))
+    assert np.array_equal(part[inside], whole[inside])
+    met = np.zeros(op.image_shape[1:], bool)
+    met[0:48, 0:32] = True  # the 16 px blocks that meet rows 10-36, columns 5-29
+    assert np.all(part[:, ~met] == 0) and np.array_equal(part[:, met], whole[:, met])

@@ -105,9 +105,9 @@ def stack_voxel_size(operator: ProductConvolution3D, info, *,
     return voxel
 
 
-#: float32 volumes a run writes beside its output: the stack, H^T 1, the ratio and two
-#: iterates in the work folder, and the output.
-DISK_VOLUMES = 6
+#: float32 volumes a run writes: the stack, H^T 1 and two iterates in the work folder,
+#: and the output.
+DISK_VOLUMES = 5
 
 
 def _writable(path: str) -> bool:
@@ -219,16 +219,38 @@ def iter_deblur_to_store(stack_path: str | os.PathLike, operator: ProductConvolu
     _check_run(stack, stack_path, out, work, tile, resume)
     start, background = _starting_point(background, resume, out, parent, stack)
     os.makedirs(work, exist_ok=True)
+    final = None
+    last_by_this_run = not resume or _iterations_done(work) < n_iter
+    if is_zarr_path(out):  # the last iteration writes its tiles into it as it makes them
+        from .ome_zarr import create_ome_zarr
+
+        if not os.path.isdir(out):
+            create_ome_zarr(out, tuple(stack.shape), voxel_size=voxel, chunk=tile)
+        final = os.path.join(out, "0")
     u = yield from iter_richardson_lucy_3d_exchange(
         stack, operator, n_iter=n_iter, background=background,
         start=start, tile=tile, block=block,
         rtol=rtol, store=work, resume=resume, client=client, workers=workers,
-        device=device)
+        device=device, output=final)
     yield Progress("write", 1.0, f"writing {out}")
     written, total = _write_output(u, out, tuple(stack.shape), info, voxel, n_iter=n_iter,
                                    tile=tile, resume=resume, workers=workers)
+    if final is not None and last_by_this_run:
+        written = total  # the last iteration wrote every chunk
     shutil.rmtree(work, ignore_errors=True)
     return StoreRun(tile, n_iter, written, total, background, am.name)
+
+
+def _iterations_done(work: str) -> int:
+    """The iterations an interrupted run's ``state.json`` says are done (0 where it has
+    none or cannot be read: the iterations' own check then says why in one line)."""
+    import json
+
+    try:
+        with open(os.path.join(work, "state.json"), encoding="utf-8") as f:
+            return int(json.load(f)["done"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return 0
 
 
 def _check_paths(output, resume):
@@ -295,17 +317,18 @@ def _check_run(stack, stack_path, out, work, tile, resume):
 
 
 def _write_output(u, out, shape, info, voxel, *, n_iter, tile, resume, workers):
-    """The iterate written out: into the OME-Zarr output (created, or the interrupted one
-    reopened) only the chunks missing, chunks of one plane and one tile's lateral size, each
-    in one tile of the iterate, read once for all the chunks it holds, a tile at a time on
-    each thread; or as one TIFF. Returns the chunks written and their total."""
+    """The iterate written out: into the OME-Zarr output (the last iteration has written
+    every chunk of it; a run interrupted before this step, by an earlier version, may have
+    left some to write) only the chunks missing, chunks of one plane and one tile's lateral
+    size, each in one tile of the iterate, read once for all the chunks it holds, a tile
+    at a time on each thread; or as one TIFF. Returns the chunks written by this run
+    (the last iteration's included) and their total."""
     from .io import write_tiff
-    from .ome_zarr import create_ome_zarr, missing_chunks, open_ome_zarr_output
+    from .ome_zarr import missing_chunks, open_ome_zarr_output
 
     written = total = 1
     if is_zarr_path(out):
-        arr = (open_ome_zarr_output(out) if resume and os.path.isdir(out) else
-               create_ome_zarr(out, shape, voxel_size=voxel, chunk=tile))
+        arr = open_ome_zarr_output(out)
         todo = missing_chunks(arr, out)
         total = int(np.prod([-(-n // c) for n, c in zip(arr.shape, arr.chunks,
                                                           strict=True)]))

@@ -282,33 +282,34 @@ class BlockedOperator3D(ImageOperator):
                              f"{self.image_shape[2]}), got shape {arr.shape}")
         return arr
 
-    def _iter_run(self, fn, workers: int | None, halt: threading.Event
-                  ) -> Generator[float, None, None]:
-        """``fn(j)`` for every block, on ``workers`` threads (default: the cores), each
+    def _iter_run(self, fn, workers: int | None, halt: threading.Event,
+                  blocks: list[int] | None = None) -> Generator[float, None, None]:
+        """``fn(j)`` for every block (or the ``blocks`` listed), on ``workers`` threads
+        (default: the cores), each
         FFT on one thread (blocks are independent, and numpy and the FFT release the
         GIL), in waves of one block a thread; yields the fraction of blocks done after
         each wave and every :data:`TICK` seconds while one runs. A caller that stops it
         (closes the generator) sets ``halt``, which ``fn`` reads between two kernels:
         the blocks under way end within one FFT."""
+        order = list(range(len(self.blocks))) if blocks is None else list(blocks)
+        total = max(len(order), 1)
         n = default_workers() if workers is None or workers < 1 else int(workers)
-        n = 1 if self.am.gpu else min(n, len(self.blocks))
-        total = len(self.blocks)
+        n = 1 if self.am.gpu else max(min(n, len(order)), 1)
         if n <= 1:
-            for j in range(total):
+            for k, j in enumerate(order):
                 fn(j)
-                yield (j + 1) / total
+                yield (k + 1) / total
             return
         with (blas_limit(),  # the blocks' small products: no BLAS threads beside them
               ThreadPoolExecutor(max_workers=n, thread_name_prefix="psfspace-block") as pool):
             try:
-                for start in range(0, total, n):
-                    futures = [pool.submit(fn, j)
-                               for j in range(start, min(start + n, total))]
+                for start in range(0, len(order), n):
+                    futures = [pool.submit(fn, j) for j in order[start:start + n]]
                     while wait(futures, timeout=TICK)[1]:
                         yield start / total
                     for f in futures:
                         f.result()
-                    yield min(start + n, total) / total
+                    yield min(start + n, len(order)) / total
             except GeneratorExit:
                 halt.set()  # the blocks under way stop at their next kernel
                 raise
@@ -377,7 +378,8 @@ class BlockedOperator3D(ImageOperator):
         return out
 
     def adjoint(self, v: ArrayLike | None = None, *, workers: int | None = None,
-                multiply_into: np.ndarray | None = None) -> np.ndarray:
+                multiply_into: np.ndarray | None = None,
+                region: tuple[int, int, int, int] | None = None) -> np.ndarray:
         """``H^T v`` (float32), block by block (overlap-save).
         If ``v`` is omitted, the adjoint operator itself (``self.H``), as scipy's and
         pylops' ``adjoint()`` give it.
@@ -390,13 +392,20 @@ class BlockedOperator3D(ImageOperator):
         multiply_into : ndarray of shape (Z, H, W), float32, optional
             When given, ``multiply_into *= H^T v`` in place (the Richardson-Lucy update)
             and it is returned; it must not be ``v``.
+        region : (y0, y1, x0, x1), optional
+            Only the blocks that meet these rows and columns are computed (a tile's
+            output from its window: each block's ``H^T v`` needs ``v`` on the block and
+            a ring of ``P // 2`` only, so the tile's values are exact); the output is
+            zero on the others (left as it was with ``multiply_into``).
         """
         if v is None:
             return self.H
-        return _drain(self.iter_adjoint(v, workers=workers, multiply_into=multiply_into))
+        return _drain(self.iter_adjoint(v, workers=workers, multiply_into=multiply_into,
+                                        region=region))
 
     def iter_adjoint(self, v: ArrayLike, *, workers: int | None = None,
-                     multiply_into: np.ndarray | None = None
+                     multiply_into: np.ndarray | None = None,
+                     region: tuple[int, int, int, int] | None = None
                      ) -> Generator[float, None, np.ndarray]:
         """Generator form of :meth:`adjoint` (yields as :meth:`iter_apply`)."""
         arr = self._check(v, "v")
@@ -404,12 +413,20 @@ class BlockedOperator3D(ImageOperator):
         am, xp = self.am, self.am.xp
         if multiply_into is not None:
             out = multiply_into
+        elif region is not None:
+            out = np.zeros((z, h, w), np.float32) if _on_host(arr) else \
+                xp.zeros((z, h, w), np.float32)
         else:
             out = np.empty((z, h, w), np.float32) if _on_host(arr) else \
                 xp.empty((z, h, w), np.float32)
         c = self.operator.kernel_shape[1] // 2
         halt = threading.Event()
         self._prepare(z)
+        chosen = None
+        if region is not None:
+            ry0, ry1, rx0, rx1 = (int(r) for r in region)
+            chosen = [j for j, b in enumerate(self.blocks)
+                      if b.y0 < ry1 and b.y1 > ry0 and b.x0 < rx1 and b.x1 > rx0]
 
         def one(j: int) -> None:
             b = self.blocks[j]
@@ -443,7 +460,7 @@ class BlockedOperator3D(ImageOperator):
             else:
                 out[:, b.y0:b.y1, b.x0:b.x1] *= acc
 
-        yield from self._iter_run(one, workers, halt)
+        yield from self._iter_run(one, workers, halt, chosen)
         return out
 
 

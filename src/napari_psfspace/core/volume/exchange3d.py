@@ -7,16 +7,20 @@ its own kernels (compressed from the block's own maps, so they depend on nothing
 own block's kernels; ``H^T v`` likewise reads ``v`` within ``P // 2``. So a tile gets
 exact values of both from a window of the tile and a ring of ``P // 2`` pixels, when the
 window's blocks are the field's blocks cut by the window, each with its whole block's
-kernels (``BlockedOperator3D(window=...)``). One iteration is two passes over the tiles,
-each tile's window overlapping its neighbours by the ring::
+kernels (``BlockedOperator3D(window=...)``). One iteration is::
 
-    r = y / max(H u + b, tiny)                    u on each tile's window
-    u = max(u * H^T r / max(H^T 1, tiny max(H^T 1)), 0)    r on each tile's window
+    r = y / max(H u + b, tiny)
+    u = max(u * H^T r / max(H^T 1, tiny max(H^T 1)), 0)
 
-with ``u`` and ``r`` held between the passes in memory (``persist``: the threads' or a
-``dask.distributed`` cluster's; ``dask.array.map_overlap`` assembles each window from the
-neighbouring chunks) or in a Zarr store (``store``: the volume larger than memory; each
-tile a task reading its window from the store, :mod:`.exchange_store`). Every voxel
+In memory (``persist``: the threads' or a ``dask.distributed`` cluster's), it is two
+passes over the tiles, each tile's window overlapping its neighbours by the ring
+(``dask.array.map_overlap`` assembles each window from the neighbouring chunks), with
+``u`` and ``r`` held between them. In a work folder (``store``: the volume larger than
+memory, :mod:`.exchange_store`), it is one pass: each tile's task reads ``u`` on the tile
+and two rings, makes ``r`` on the tile and one ring, and ``u`` on the tile; only ``u``
+goes through the files. The adjoint's tile needs only the blocks that meet it (each
+block's ``H^T r`` reads ``r`` on the block and the ring); the apply's needs the ring's
+blocks too, their light reaching into the tile. Every voxel
 then follows the same arithmetic as
 :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d` on the whole volume
 with the same blocks, up to the order of float32 additions: the tiles leave no seam.
@@ -41,7 +45,6 @@ from ..common.twins import drained
 from ..common.validate import check_background, check_int, check_positive
 from .blocks3d import BLOCK, RTOL, BlockedOperator3D
 from .deconvolve3d import TINY, check_stack, stack_statistics
-from .exchange_store import STORE_CHUNK
 from .operator3d import ProductConvolution3D
 from .tiles3d import tile_sizes
 
@@ -60,15 +63,16 @@ def ring_width(operator: ProductConvolution3D) -> int:
 
 def task_bytes(operator: ProductConvolution3D, depth: int, tile: int, block: int) -> int:
     """Memory one tile's pass holds at its peak, bytes (a bound: ``bench/run.py
-    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 2
-    ring)`` wide, six volumes of it in float32 (the window read or assembled from the
-    neighbouring chunks, the product, its trimmed copy, and the tile's data, iterate and
-    norm in the elementwise step), the window's maps in float64 and
+    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 4
+    ring)`` wide (an iteration in a work folder reads ``u`` two rings beyond the tile),
+    six volumes of it in float32 (the window read or assembled from the neighbouring
+    chunks, the product, its trimmed copy, and the tile's data, iterate and norm in the
+    elementwise step), the window's maps in float64 and
     float32, and spectra of a whole block's FFT shape: the basis's ``I`` twice over (the
     whole blocks' and those cut by the window's edge), a block's kernels (at most ``I``)
     and two buffers."""
     n, p, _ = operator.kernel_shape
-    side = tile + 2 * ring_width(operator)
+    side = tile + 4 * ring_width(operator)
     fz = scipy.fft.next_fast_len(depth + n // 2, real=True)
     fl = scipy.fft.next_fast_len(block + p - 1, real=True)
     spectrum = fz * fl * (fl // 2 + 1) * 8
@@ -127,10 +131,11 @@ def plan_for_memory(operator: ProductConvolution3D, depth: int, memory: float, *
         tile += block
     while tile > block and -(-h // tile) * -(-w // tile) < workers:
         tile -= block  # every thread a tile
-    # as few tiles as that size needs along each axis, of equal sizes (no thread is left
-    # with a sliver while the others wait), in whole store chunks
+    # as few tiles as that size needs along each axis, of near sizes (no thread is left
+    # with a sliver while the others wait), in whole blocks (a block cut by a tile's edge
+    # would take two smaller FFTs)
     even = max(-(-n // -(-n // tile)) for n in (h, w))
-    return min(tile, -(-even // STORE_CHUNK) * STORE_CHUNK), workers
+    return min(tile, -(-even // block) * block), workers
 
 
 def write_state(store, state: dict) -> None:
@@ -193,12 +198,20 @@ class WindowTask:
 
     def __call__(self, window: np.ndarray, block_info=None) -> np.ndarray:
         _, iy, ix = block_info[0]["chunk-location"]
-        return self.product(window, max(self.starts_y[iy] - self.ring, 0),
-                            max(self.starts_x[ix] - self.ring, 0))
+        _, h, w = self.operator.image_shape
+        ty0, tx0 = self.starts_y[iy], self.starts_x[ix]
+        ty1 = self.starts_y[iy + 1] if iy + 1 < len(self.starts_y) else h
+        tx1 = self.starts_x[ix + 1] if ix + 1 < len(self.starts_x) else w
+        y0, x0 = max(ty0 - self.ring, 0), max(tx0 - self.ring, 0)
+        return self.product(window, y0, x0, tile=(ty0 - y0, ty1 - y0, tx0 - x0, tx1 - x0))
 
-    def product(self, window: np.ndarray, y0: int, x0: int) -> np.ndarray:
+    def product(self, window: np.ndarray, y0: int, x0: int,
+                tile: tuple[int, int, int, int] | None = None) -> np.ndarray:
         """The product on ``window`` (Z, h, w) whose top-left pixel is ``(y0, x0)`` of the
-        field; float32 on the host, the window's shape."""
+        field; float32 on the host, the window's shape. Where ``tile`` (rows and columns
+        of the window) is given, only its values are used: the adjoint then computes the
+        blocks that meet it alone (the apply needs every block, the ring's light reaching
+        into the tile)."""
         am = self.module()
         # each block is used once a pass: no spectra kept beyond it
         blocked = BlockedOperator3D(self.operator, block=self.block, rtol=self.rtol,
@@ -210,7 +223,7 @@ class WindowTask:
         if am.gpu and am.free_bytes() > DEVICE_VOLUMES * data.nbytes:
             data = am.asarray(data)  # the window on the device, its blocks read there
         out = (blocked.apply(data, workers=1) if self.kind == "apply" else
-               blocked.adjoint(data, workers=1))
+               blocked.adjoint(data, workers=1, region=tile))
         return out if isinstance(out, np.ndarray) else am.to_host(out)
 
 
@@ -229,6 +242,7 @@ def iter_richardson_lucy_3d_exchange(
     client=None,
     workers: int | None = None,
     device: str | ArrayModule = "cpu",
+    output: str | os.PathLike | None = None,
 ) -> Generator[Progress, None, object]:
     """Space-varying Richardson-Lucy on lateral tiles that exchange their margins at
     every iteration (the module's notes): the whole volume's result, tile by tile.
@@ -252,11 +266,11 @@ def iter_richardson_lucy_3d_exchange(
         The blocked operator's block size and kernel tolerance
         (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`).
     store : str or os.PathLike, optional
-        A folder where the iterates are written between the passes (Zarr arrays
-        ``data``, the stack in float32 cut in tiles, ``norm``, ``ratio``, ``u0``, ``u1``,
-        and ``state.json``, the iterations done, written after each: ``u`` alternates
-        between two arrays so that the last finished iterate is whole while the next is
-        written; the ratio is made again from it on a resume, so one array holds it);
+        A folder where the iterates are written between the passes (float32 ``.npy``
+        files :class:`~.exchange_store.RawVolume`: ``data``, the stack clipped at 0,
+        ``norm``, ``u0``, ``u1``, and ``state.json``, the iterations done, written after
+        each: ``u`` alternates between two files so that the last finished iterate is
+        whole while the next is written);
         the result is then the last iterate there, a lazy dask array.
     resume : bool
         Continue from the store's last finished iteration (its settings must be these;
@@ -269,6 +283,11 @@ def iter_richardson_lucy_3d_exchange(
         Where each tile's blocks run (:mod:`~napari_psfspace.core.common.device`). On a
         GPU the local threads run one tile at a time; on a cluster each worker process
         finds its own device (one a worker: ``dask-cuda``'s ``LocalCUDACluster``).
+    output : str or os.PathLike, optional
+        With ``store``: the path of a Zarr array of the stack's shape, every chunk in
+        one tile, that the last iteration writes each tile into as it makes it (a
+        result written without reading it back). A resumed run that redoes the last
+        iteration writes it again.
 
     Yields
     ------
@@ -290,9 +309,12 @@ def iter_richardson_lucy_3d_exchange(
         raise ValueError(f"`rtol` must be a finite number >= 0, got {rtol!r}")
     if resume and store is None:
         raise ValueError("`resume` needs the `store` of the interrupted run")
+    if output is not None and store is None:
+        raise ValueError("`output` needs a `store` (the tiles write it from there)")
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     z, h, w = stack.shape
-    settings = {"shape": [z, h, w], "tile": tile, "block": block, "rtol": float(rtol)}
+    settings = {"shape": [z, h, w], "tile": tile, "block": block, "rtol": float(rtol),
+                "arrays": "npy"}
     done, u0, b = yield from _starting_point(stack, background, start, store, resume, settings)
     rows, cols, tasks, config = _tasks(operator, (h, w), tile, block, rtol, client, workers,
                                        device, am)
@@ -302,7 +324,7 @@ def iter_richardson_lucy_3d_exchange(
     with blas_limit() if client is None else contextlib.nullcontext():
         return (yield from _iterate(stack, tasks, store, rows, cols, settings, config,
                                     client, done=done, n_iter=n_iter, background=b,
-                                    start=u0))
+                                    start=u0, output=output))
 
 
 def _starting_point(stack, background, start, store, resume, settings):
@@ -349,7 +371,7 @@ def _tasks(operator, shape, tile, block, rtol, client, workers, device, am):
 
 
 def _iterate(stack, tasks, store, rows, cols, settings, config, client, *, done, n_iter,
-             background, start):
+             background, start, output=None):
     """The iterations, in the store or in memory (the passes' dask tasks)."""
     import dask
     import dask.array as da
@@ -360,7 +382,7 @@ def _iterate(stack, tasks, store, rows, cols, settings, config, client, *, done,
     if store is not None:
         return (yield from _iterate_in_store(
             stack, tasks, store, rows, cols, settings, config, done=done, n_iter=n_iter,
-            background=b, start=u0))
+            background=b, start=u0, output=output))
 
     def product(arr, kind):
         return arr.map_overlap(tasks[kind], depth={0: 0, 1: ring, 2: ring}, boundary="none",
@@ -392,12 +414,12 @@ def _iterate(stack, tasks, store, rows, cols, settings, config, client, *, done,
 
 
 def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done, n_iter,
-                      background, start):
+                      background, start, output=None):
     """The iterations with the arrays in the store, a task a tile reading its window
     from it (:mod:`.exchange_store`); returns the last iterate, a lazy dask array."""
     import dask.array as da
 
-    from .exchange_store import TilePass, open_array, run_pass, store_chunk, write_data
+    from .exchange_store import TilePass, open_array, run_pass, write_data
 
     z, h, w = settings["shape"]
     edges_y = [(int(a), int(a + n)) for a, n in zip(np.cumsum((0,) + rows)[:-1], rows,
@@ -408,33 +430,31 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
     folder = os.fspath(store)
 
     def one_pass(kind, target, **kw):
-        task = TilePass(kind, tasks["apply" if kind == "ratio" else "adjoint"], folder,
-                        edges_y, edges_x, target=target, **kw)
-        run_pass(task, *grid, config)
+        run_pass(TilePass(kind, tasks, folder, edges_y, edges_x, target=target, **kw),
+                 *grid, config)
 
     if not done:
-        chunk = store_chunk(settings["tile"], max(h, w))
-        for name in ("data", "norm", "ratio", "u0", "u1"):
-            open_array(folder, name, (z, h, w), chunk, create=True)
+        for name in ("data", "norm", "u0", "u1"):
+            open_array(folder, name, (z, h, w))
         yield Progress("setup", 0.0, "the stack into the store, a tile at a time")
         write_data(stack, folder, edges_y, edges_x,
                    workers=config.get("num_workers") or 1)
         yield Progress("setup", 0.0, "H^T 1")
         one_pass("norm", "norm")
-    top = float(da.from_zarr(os.path.join(folder, "norm")).max().compute(**config))
+    chunks = ((z,), tuple(rows), tuple(cols))
+    top = float(da.from_array(open_array(folder, "norm"), chunks=chunks, asarray=False)
+                .max().compute(**config))
     floor = TINY * max(top, 1.0)
     for k in range(done, n_iter):
         previous = None if k == 0 else f"u{(k - 1) % 2}"
-        one_pass("ratio", "ratio", source=previous, start=start, background=background)
-        yield Progress("iteration", (k + 0.5) / n_iter,
-                       f"iteration {k + 1} of {n_iter}: H u on every tile")
-        one_pass("update", f"u{k % 2}", source="ratio", factor=previous, start=start,
-                 floor=floor)
+        one_pass("iterate", f"u{k % 2}", source=previous, start=start,
+                 background=background, floor=floor,
+                 also=output if k == n_iter - 1 else None)
         write_state(store, {**settings, "done": k + 1, "background": background,
                             "start": start})
         yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
-    last = da.from_zarr(os.path.join(folder, f"u{(n_iter - 1) % 2}"))
-    return last.rechunk(((z,), tuple(rows), tuple(cols)))
+    return da.from_array(open_array(folder, f"u{(n_iter - 1) % 2}"), chunks=chunks,
+                         asarray=False)
 
 
 richardson_lucy_3d_exchange = drained(iter_richardson_lucy_3d_exchange,

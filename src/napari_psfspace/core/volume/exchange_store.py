@@ -1,17 +1,20 @@
-"""The passes of the exchanging tiles over a Zarr store: each tile a task that reads its
-own window from the store and writes its own tile back.
+"""The passes of the exchanging tiles over a work folder: each tile a task that reads its
+own window from the folder and writes its own tile back.
 
-With the iterates in a store (a volume larger than memory), a pass holds nothing but
+With the iterates in a folder (a volume larger than memory), a pass holds nothing but
 the tasks running: a tile's task reads the window it needs (the tile and a ring of
-``P // 2``) straight from the store, computes, and writes the tile's chunks; no task
-shares a chunk with another, and none waits for another's. The memory a pass holds is
-then the tasks' at once (:func:`~.exchange3d.task_bytes`), whatever the volume's size:
-a volume larger than the machine takes longer, not more memory.
+``P // 2``) straight from the folder, computes, and writes its tile; no task writes
+another's voxels, and none waits for another's. The memory a pass holds is then the
+tasks' at once (:func:`~.exchange3d.task_bytes`), whatever the volume's size: a volume
+larger than the machine takes longer, not more memory.
 
-The store's arrays are chunked ``(Z, C, C)`` with ``C`` = :data:`STORE_CHUNK` dividing the
-tile, so that a window reads little beyond itself (a ring of ``P // 2`` from the
-neighbouring tiles' chunks), and every chunk lies in one tile (each written by one task,
-whole: Zarr writes it to a temporary file renamed into place).
+Each array of the folder is a float32 ``.npy`` file (:class:`RawVolume`), read and
+written by region through a mapping opened for that access alone: a region costs a copy
+to or from the page cache, with no codec and no chunk bookkeeping between the threads,
+and the process holds no more of the file than the region it copies (a mapping's pages
+count in its resident memory until it is closed). The files are scratch: the
+run's ``state.json`` names the last iteration whose iterate is whole (``u`` alternates
+between two files), and a resumed run makes the others again.
 """
 
 from __future__ import annotations
@@ -22,65 +25,89 @@ import numpy as np
 
 from .deconvolve3d import TINY
 
-#: Lateral chunk of the store's arrays, pixels, where it divides the tile (else the
-#: tile): a window of a tile ``T`` reads at most ``(T + 2 ring + 2 C)²`` pixels. Smaller
-#: chunks read less beyond the window but cost Zarr more calls a chunk; this size took
-#: the least time a pass on 64-plane stacks (``bench/run.py deblur3d_scale``).
-STORE_CHUNK = 128
+
+class RawVolume:
+    """A float32 volume ``(Z, H, W)`` in an uncompressed ``.npy`` file, read and written
+    by region (``vol[region]``, ``vol[region] = values``) through a mapping opened for
+    each access; picklable (a path), so a cluster's workers open it where it lies. It
+    has ``shape``, ``dtype`` and ``ndim``: ``dask.array.from_array`` reads it."""
+
+    def __init__(self, path: str | os.PathLike, shape=None) -> None:
+        self.path = os.fspath(path)
+        if shape is not None:  # a new file, sparse until written
+            mm = np.lib.format.open_memmap(self.path, mode="w+", dtype=np.float32,
+                                           shape=tuple(int(v) for v in shape))
+            del mm
+        with open(self.path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read = (np.lib.format.read_array_header_1_0 if version == (1, 0) else
+                    np.lib.format.read_array_header_2_0)
+            found, fortran, dtype = read(f)
+            self.offset = f.tell()
+        if fortran or np.dtype(dtype) != np.float32 or len(found) != 3:
+            raise ValueError(f"{self.path!r} is not a float32 volume (Z, H, W) in C order")
+        self.shape, self.dtype, self.ndim = tuple(found), np.dtype(np.float32), 3
+
+    def _map(self, mode: str) -> np.memmap:
+        return np.memmap(self.path, dtype=np.float32, mode=mode, offset=self.offset,
+                         shape=self.shape)
+
+    def __getitem__(self, region) -> np.ndarray:
+        mm = self._map("r")
+        try:
+            return np.array(mm[region], dtype=np.float32)
+        finally:
+            del mm  # unmapped: the copy is all this process holds
+
+    def __setitem__(self, region, values) -> None:
+        mm = self._map("r+")
+        try:
+            mm[region] = values  # into the page cache; the kernel writes it back
+        finally:
+            del mm  # unmapped: the pages written leave this process
 
 
-def store_chunk(tile: int, side: int) -> int:
-    """The store's lateral chunk for tiles of ``tile`` px on a field ``side`` px wide:
-    :data:`STORE_CHUNK`, halved down to 16 px while it does not divide the tile or is
-    over a quarter of it (a window then reads at most half a tile beyond itself); the
-    tile itself where no such chunk divides it."""
-    c = STORE_CHUNK
-    while c > 16 and (tile % c or 4 * c > tile):
-        c //= 2
-    return c if tile % c == 0 else min(int(tile), int(side))
-
-
-def open_array(store, name: str, shape, chunk: int, *, create: bool):
-    """The float32 array ``name`` in ``store`` (Zarr v2, uncompressed: an iterate's
-    float32 noise does not compress, and it is read once a pass), chunked
-    ``(Z, chunk, chunk)``, every chunk written even where it is all zeros."""
-    import zarr
-
-    path = os.path.join(os.fspath(store), name)
-    if create:
-        return zarr.create_array(path, shape=tuple(shape), dtype="float32",
-                                 chunks=(shape[0], min(chunk, shape[1]),
-                                         min(chunk, shape[2])),
-                                 fill_value=0, compressors=None, zarr_format=2,
-                                 overwrite=True, config={"write_empty_chunks": True})
-    return zarr.open_array(path, mode="r+").with_config({"write_empty_chunks": True})
+def open_array(store, name: str, shape=None) -> RawVolume:
+    """The float32 volume ``name`` of the work folder ``store``: created (sparse) where
+    ``shape`` is given, else the one there."""
+    return RawVolume(os.path.join(os.fspath(store), name), shape)
 
 
 class TilePass:
     """One pass over the tiles, as a picklable task of one tile ``(iy, ix)`` (a cluster
-    runs it where the store is):
+    runs it where the folder is); ``tasks`` holds the "apply" and "adjoint"
+    :class:`~.exchange3d.WindowTask`:
 
-    - "norm": ``H^T 1`` into ``target``;
-    - "ratio": ``y / max(H u + b, tiny)`` into ``target``, ``u`` the array ``source``;
-    - "update": ``max(u H^T r / max(norm, floor), 0)`` into ``target``, ``r`` the array
-      ``source`` and ``u`` the array ``factor``.
+    - "norm": ``H^T 1`` on the tile into ``target``;
+    - "iterate": one Richardson-Lucy iteration of the tile, from ``u`` (the array
+      ``source``) on the tile and two rings::
+
+          r = y / max(H u + b, tiny)                 on the tile and one ring
+          u' = max(u H^T r / max(norm, floor), 0)    on the tile
+
+      into ``target``, and into the Zarr array at the path ``also`` where one is given
+      (the run's output, written as the last iteration makes it). ``H u`` on a ring
+      needs ``u`` a ring further, and ``H^T r`` on the tile needs ``r`` a ring beyond it:
+      the tile's values are the whole volume's, and the ratio never leaves the task.
 
     An iterate named None is the constant ``start`` (the first iteration's)."""
 
-    def __init__(self, kind: str, window_task, store, edges_y, edges_x, *,
-                 target: str, source: str | None = None, factor: str | None = None,
-                 start: float = 0.0, background: float = 0.0, floor: float = TINY) -> None:
-        self.kind, self.task, self.store = kind, window_task, os.fspath(store)
+    def __init__(self, kind: str, tasks: dict, store, edges_y, edges_x, *,
+                 target: str, source: str | None = None, start: float = 0.0,
+                 background: float = 0.0, floor: float = TINY,
+                 also: str | os.PathLike | None = None) -> None:
+        self.kind, self.tasks, self.store = kind, dict(tasks), os.fspath(store)
         self.edges_y, self.edges_x = list(edges_y), list(edges_x)
-        self.target, self.source, self.factor = target, source, factor
+        self.target, self.source = target, source
         self.start, self.background, self.floor = float(start), float(background), float(floor)
+        self.also = None if also is None else os.fspath(also)
         self._arrays: dict = {}
 
     def __getstate__(self) -> dict:
         return {**self.__dict__, "_arrays": {}}  # a worker opens its own
 
     def _read(self, name: str | None, region: tuple) -> np.ndarray:
-        z = self.task.operator.image_shape[0]
+        z = self.tasks["adjoint"].operator.image_shape[0]
         if name is None:  # the constant start, or the ones of H^T 1
             value = 1.0 if self.kind == "norm" else self.start
             return np.full((z, region[1].stop - region[1].start,
@@ -90,29 +117,60 @@ class TilePass:
     def _open(self, name: str):
         arr = self._arrays.get(name)
         if arr is None:
-            arr = self._arrays[name] = open_array(self.store, name, None, 0, create=False)
+            arr = self._arrays[name] = open_array(self.store, name)
         return arr
 
-    def __call__(self, iy: int, ix: int) -> None:
+    def _around(self, iy: int, ix: int, rings: int) -> tuple[slice, slice, slice]:
+        """The tile and ``rings`` rings around it, clipped to the field."""
         (ty0, ty1), (tx0, tx1) = self.edges_y[iy], self.edges_x[ix]
-        _, h, w = self.task.operator.image_shape
-        ring = self.task.ring
-        wy0, wy1 = max(ty0 - ring, 0), min(ty1 + ring, h)
-        wx0, wx1 = max(tx0 - ring, 0), min(tx1 + ring, w)
-        tile = (slice(None), slice(ty0, ty1), slice(tx0, tx1))
-        inner = (slice(None), slice(ty0 - wy0, ty1 - wy0), slice(tx0 - wx0, tx1 - wx0))
-        window = self._read(self.source, (slice(None), slice(wy0, wy1), slice(wx0, wx1)))
-        out = self.task.product(window, wy0, wx0)[inner]
-        del window
-        if self.kind == "ratio":
-            out += np.float32(self.background)
-            np.maximum(out, np.float32(TINY), out=out)
-            np.divide(self._read("data", tile), out, out=out)
-        elif self.kind == "update":
-            out *= self._read(self.factor, tile)
+        _, h, w = self.tasks["adjoint"].operator.image_shape
+        d = rings * self.tasks["adjoint"].ring
+        return (slice(None), slice(max(ty0 - d, 0), min(ty1 + d, h)),
+                slice(max(tx0 - d, 0), min(tx1 + d, w)))
+
+    @staticmethod
+    def _within(inner: tuple, outer: tuple) -> tuple[slice, slice, slice]:
+        """``inner``'s place in an array that holds ``outer``."""
+        return (slice(None),) + tuple(slice(i.start - o.start, i.stop - o.start)
+                                      for i, o in zip(inner[1:], outer[1:], strict=True))
+
+    def _adjoint_on_tile(self, v: np.ndarray, where: tuple, tile: tuple) -> np.ndarray:
+        """``H^T`` of ``v`` (held on ``where``) on ``tile``."""
+        inner = self._within(tile, where)
+        box = (inner[1].start, inner[1].stop, inner[2].start, inner[2].stop)
+        return self.tasks["adjoint"].product(v, where[1].start, where[2].start,
+                                             tile=box)[inner]
+
+    def __call__(self, iy: int, ix: int) -> None:
+        tile = self._around(iy, ix, 0)
+        if self.kind == "norm":
+            where = self._around(iy, ix, 1)
+            out = self._adjoint_on_tile(self._read(None, where), where, tile)
+        else:
+            outer, ring = self._around(iy, ix, 2), self._around(iy, ix, 1)
+            u = self._read(self.source, outer)
+            forward = self.tasks["apply"].product(u, outer[1].start, outer[2].start)
+            ratio = np.ascontiguousarray(forward[self._within(ring, outer)])
+            del forward
+            ratio += np.float32(self.background)
+            np.maximum(ratio, np.float32(TINY), out=ratio)
+            np.divide(self._read("data", ring), ratio, out=ratio)
+            out = self._adjoint_on_tile(ratio, ring, tile)
+            del ratio
+            out *= u[self._within(tile, outer)]
+            del u
             out /= np.maximum(self._read("norm", tile), np.float32(self.floor))
             np.maximum(out, np.float32(0), out=out)
-        self._open(self.target)[tile] = np.ascontiguousarray(out, dtype=np.float32)
+        out = np.ascontiguousarray(out, dtype=np.float32)
+        self._open(self.target)[tile] = out
+        if self.also is not None:
+            also = self._arrays.get(self.also)
+            if also is None:
+                import zarr
+
+                also = self._arrays[self.also] = zarr.open_array(
+                    self.also, mode="r+").with_config({"write_empty_chunks": True})
+            also[tile] = out
 
 
 def write_data(stack, store, edges_y, edges_x, *, workers: int) -> None:
@@ -120,7 +178,7 @@ def write_data(stack, store, edges_y, edges_x, *, workers: int) -> None:
     (each tile read from ``stack``, a dask array read lazily or an ndarray)."""
     import dask
 
-    arr = open_array(store, "data", None, 0, create=False)
+    arr = open_array(store, "data")
 
     def one(ys, xs) -> None:
         part = stack[:, ys[0]:ys[1], xs[0]:xs[1]]
@@ -134,12 +192,18 @@ def write_data(stack, store, edges_y, edges_x, *, workers: int) -> None:
 
 
 def run_pass(task: TilePass, n_y: int, n_x: int, config: dict) -> None:
-    """Every tile's task of a pass, as dask tasks (threads, or the cluster's)."""
+    """Every tile's task of a pass, as dask tasks (threads, or the cluster's), the
+    largest tiles first (the field's last row and column may be narrower: started last,
+    they fill the gaps the others leave)."""
     import dask
 
-    jobs = [dask.delayed(task, pure=False)(iy, ix) for iy in range(n_y) for ix in range(n_x)]
+    def area(t):
+        (y0, y1), (x0, x1) = task.edges_y[t[0]], task.edges_x[t[1]]
+        return -(y1 - y0) * (x1 - x0)
+
+    order = sorted(((iy, ix) for iy in range(n_y) for ix in range(n_x)), key=area)
+    jobs = [dask.delayed(task, pure=False)(iy, ix) for iy, ix in order]
     dask.compute(*jobs, **config)
 
 
-__all__ = ["STORE_CHUNK", "TilePass", "open_array", "run_pass", "store_chunk",
-           "write_data"]
+__all__ = ["RawVolume", "TilePass", "open_array", "run_pass", "write_data"]
