@@ -191,7 +191,7 @@ def test_a_disk_too_small_for_the_iterates_is_refused_before_any_work(files, cap
     capsys.readouterr()
     assert _cli(d, "-o", str(d / "out.zarr"), "--tile", "32") == 2
     err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "5 float32 volumes" in err, err
+    assert len(err.splitlines()) == 1 and "6 float32 volumes" in err, err
     assert not (d / "out.zarr").exists() and not (d / "out.zarr.iterates").exists()
     monkeypatch.setattr(shutil, "disk_usage", lambda p: usage(need, 0, need))
     assert _cli(d, "-o", str(d / "out.zarr"), "--tile", "32") == 0

@@ -105,9 +105,9 @@ def stack_voxel_size(operator: ProductConvolution3D, info, *,
     return voxel
 
 
-#: float32 volumes a run writes: the stack, H^T 1 and two iterates in the work folder,
-#: and the output.
-DISK_VOLUMES = 5
+#: float32 volumes a run writes: the stack, H^T 1, the ratio and two iterates in the work
+#: folder, and the output.
+DISK_VOLUMES = 6
 
 
 def _writable(path: str) -> bool:

@@ -12,15 +12,14 @@ kernels (``BlockedOperator3D(window=...)``). One iteration is::
     r = y / max(H u + b, tiny)
     u = max(u * H^T r / max(H^T 1, tiny max(H^T 1)), 0)
 
-In memory (``persist``: the threads' or a ``dask.distributed`` cluster's), it is two
-passes over the tiles, each tile's window overlapping its neighbours by the ring
-(``dask.array.map_overlap`` assembles each window from the neighbouring chunks), with
-``u`` and ``r`` held between them. In a work folder (``store``: the volume larger than
-memory, :mod:`.exchange_store`), it is one pass: each tile's task reads ``u`` on the tile
-and two rings, makes ``r`` on the tile and one ring, and ``u`` on the tile; only ``u``
-goes through the files. The adjoint's tile needs only the blocks that meet it (each
-block's ``H^T r`` reads ``r`` on the block and the ring); the apply's needs the ring's
-blocks too, their light reaching into the tile. Every voxel
+It is two passes over the tiles, each tile's window overlapping its neighbours by the
+ring, with ``u`` and ``r`` held between them in memory (``persist``: the threads' or a
+``dask.distributed`` cluster's; ``dask.array.map_overlap`` assembles each window from
+the neighbouring chunks) or in a work folder (``store``: the volume larger than memory;
+each tile a task reading its window from the folder's files, :mod:`.exchange_store`).
+The adjoint's tile needs only the blocks that meet it (each block's ``H^T r`` reads
+``r`` on the block and the ring); the apply's needs the ring's blocks too, their light
+reaching into the tile. Every voxel
 then follows the same arithmetic as
 :func:`~napari_psfspace.core.volume.deconvolve3d.richardson_lucy_3d` on the whole volume
 with the same blocks, up to the order of float32 additions: the tiles leave no seam.
@@ -63,16 +62,15 @@ def ring_width(operator: ProductConvolution3D) -> int:
 
 def task_bytes(operator: ProductConvolution3D, depth: int, tile: int, block: int) -> int:
     """Memory one tile's pass holds at its peak, bytes (a bound: ``bench/run.py
-    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 4
-    ring)`` wide (an iteration in a work folder reads ``u`` two rings beyond the tile),
-    six volumes of it in float32 (the window read or assembled from the neighbouring
+    deblur3d_scale`` measures the whole run's peak against it): its window ``(tile + 2
+    ring)`` wide, six volumes of it in float32 (the window read or assembled from the neighbouring
     chunks, the product, its trimmed copy, and the tile's data, iterate and norm in the
     elementwise step), the window's maps in float64 and
     float32, and spectra of a whole block's FFT shape: the basis's ``I`` twice over (the
     whole blocks' and those cut by the window's edge), a block's kernels (at most ``I``)
     and two buffers."""
     n, p, _ = operator.kernel_shape
-    side = tile + 4 * ring_width(operator)
+    side = tile + 2 * ring_width(operator)
     fz = scipy.fft.next_fast_len(depth + n // 2, real=True)
     fl = scipy.fft.next_fast_len(block + p - 1, real=True)
     spectrum = fz * fl * (fl // 2 + 1) * 8
@@ -268,9 +266,10 @@ def iter_richardson_lucy_3d_exchange(
     store : str or os.PathLike, optional
         A folder where the iterates are written between the passes (float32 ``.npy``
         files :class:`~.exchange_store.RawVolume`: ``data``, the stack clipped at 0,
-        ``norm``, ``u0``, ``u1``, and ``state.json``, the iterations done, written after
-        each: ``u`` alternates between two files so that the last finished iterate is
-        whole while the next is written);
+        ``norm``, ``ratio``, ``u0``, ``u1``, and ``state.json``, the iterations done,
+        written after each: ``u`` alternates between two files so that the last finished
+        iterate is whole while the next is written; the ratio is made again from it on a
+        resume, so one file holds it);
         the result is then the last iterate there, a lazy dask array.
     resume : bool
         Continue from the store's last finished iteration (its settings must be these;
@@ -434,7 +433,7 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
                  *grid, config)
 
     if not done:
-        for name in ("data", "norm", "u0", "u1"):
+        for name in ("data", "norm", "ratio", "u0", "u1"):
             open_array(folder, name, (z, h, w))
         yield Progress("setup", 0.0, "the stack into the store, a tile at a time")
         write_data(stack, folder, edges_y, edges_x,
@@ -447,9 +446,11 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
     floor = TINY * max(top, 1.0)
     for k in range(done, n_iter):
         previous = None if k == 0 else f"u{(k - 1) % 2}"
-        one_pass("iterate", f"u{k % 2}", source=previous, start=start,
-                 background=background, floor=floor,
-                 also=output if k == n_iter - 1 else None)
+        one_pass("ratio", "ratio", source=previous, start=start, background=background)
+        yield Progress("iteration", (k + 0.5) / n_iter,
+                       f"iteration {k + 1} of {n_iter}: H u on every tile")
+        one_pass("update", f"u{k % 2}", source="ratio", factor=previous, start=start,
+                 floor=floor, also=output if k == n_iter - 1 else None)
         write_state(store, {**settings, "done": k + 1, "background": background,
                             "start": start})
         yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")

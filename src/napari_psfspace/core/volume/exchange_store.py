@@ -79,26 +79,22 @@ class TilePass:
     :class:`~.exchange3d.WindowTask`:
 
     - "norm": ``H^T 1`` on the tile into ``target``;
-    - "iterate": one Richardson-Lucy iteration of the tile, from ``u`` (the array
-      ``source``) on the tile and two rings::
-
-          r = y / max(H u + b, tiny)                 on the tile and one ring
-          u' = max(u H^T r / max(norm, floor), 0)    on the tile
-
-      into ``target``, and into the Zarr array at the path ``also`` where one is given
-      (the run's output, written as the last iteration makes it). ``H u`` on a ring
-      needs ``u`` a ring further, and ``H^T r`` on the tile needs ``r`` a ring beyond it:
-      the tile's values are the whole volume's, and the ratio never leaves the task.
+    - "ratio": ``y / max(H u + b, tiny)`` on the tile into ``target``, ``u`` the array
+      ``source`` read on the tile and a ring;
+    - "update": ``max(u H^T r / max(norm, floor), 0)`` on the tile into ``target``, ``r``
+      the array ``source`` read on the tile and a ring and ``u`` the array ``factor``;
+      and into the Zarr array at the path ``also`` where one is given (the run's
+      output, written as the last iteration makes it: no second reading of it).
 
     An iterate named None is the constant ``start`` (the first iteration's)."""
 
     def __init__(self, kind: str, tasks: dict, store, edges_y, edges_x, *,
-                 target: str, source: str | None = None, start: float = 0.0,
-                 background: float = 0.0, floor: float = TINY,
+                 target: str, source: str | None = None, factor: str | None = None,
+                 start: float = 0.0, background: float = 0.0, floor: float = TINY,
                  also: str | os.PathLike | None = None) -> None:
         self.kind, self.tasks, self.store = kind, dict(tasks), os.fspath(store)
         self.edges_y, self.edges_x = list(edges_y), list(edges_x)
-        self.target, self.source = target, source
+        self.target, self.source, self.factor = target, source, factor
         self.start, self.background, self.floor = float(start), float(background), float(floor)
         self.also = None if also is None else os.fspath(also)
         self._arrays: dict = {}
@@ -142,23 +138,19 @@ class TilePass:
                                              tile=box)[inner]
 
     def __call__(self, iy: int, ix: int) -> None:
-        tile = self._around(iy, ix, 0)
-        if self.kind == "norm":
-            where = self._around(iy, ix, 1)
-            out = self._adjoint_on_tile(self._read(None, where), where, tile)
+        tile, where = self._around(iy, ix, 0), self._around(iy, ix, 1)
+        window = self._read(self.source, where)
+        if self.kind == "ratio":
+            out = self.tasks["apply"].product(window, where[1].start, where[2].start)
+            out = out[self._within(tile, where)]
+            out += np.float32(self.background)
+            np.maximum(out, np.float32(TINY), out=out)
+            np.divide(self._read("data", tile), out, out=out)
         else:
-            outer, ring = self._around(iy, ix, 2), self._around(iy, ix, 1)
-            u = self._read(self.source, outer)
-            forward = self.tasks["apply"].product(u, outer[1].start, outer[2].start)
-            ratio = np.ascontiguousarray(forward[self._within(ring, outer)])
-            del forward
-            ratio += np.float32(self.background)
-            np.maximum(ratio, np.float32(TINY), out=ratio)
-            np.divide(self._read("data", ring), ratio, out=ratio)
-            out = self._adjoint_on_tile(ratio, ring, tile)
-            del ratio
-            out *= u[self._within(tile, outer)]
-            del u
+            out = self._adjoint_on_tile(window, where, tile)
+        del window
+        if self.kind == "update":
+            out *= self._read(self.factor, tile)
             out /= np.maximum(self._read("norm", tile), np.float32(self.floor))
             np.maximum(out, np.float32(0), out=out)
         out = np.ascontiguousarray(out, dtype=np.float32)
