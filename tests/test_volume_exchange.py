@@ -190,22 +190,24 @@ def test_in_memory_refuses_a_stack_over_the_memory_available(monkeypatch):
         richardson_lucy_3d(stack, op, n_iter=1, block=16)
 
 
-def test_a_raw_volume_is_a_npy_file_written_and_read_by_boxes(tmp_path):
-    """The work folder's arrays: a float32 ``.npy`` (numpy reads it), every box written
-    is read back, the rest reads 0; a file that is not a float32 volume is named."""
+def test_a_raw_volume_is_written_and_read_by_boxes_across_its_chunks(tmp_path):
+    """The work folder's arrays: a float32 ``.npy`` of lateral chunks (numpy reads it),
+    every box written is read back across the chunks it meets, the field's padding and
+    the rest read 0; a file that is not this volume's is named."""
     from napari_psfspace.core.volume.exchange_store import RawVolume
 
-    vol = RawVolume(tmp_path / "v", (3, 20, 30))
+    vol = RawVolume(tmp_path / "v", (3, 20, 30), 8, create=True)
     rng = np.random.default_rng(0)
     a = rng.random((3, 7, 11)).astype(np.float32)
     vol[:, 2:9, 5:16] = a
     vol[:, 9:20, :] = 2.0
     want = np.zeros((3, 20, 30), np.float32)
     want[:, 2:9, 5:16], want[:, 9:, :] = a, 2.0
-    assert np.array_equal(np.load(tmp_path / "v"), want)
-    again = RawVolume(tmp_path / "v")
-    assert again.shape == (3, 20, 30) and np.array_equal(again[:, 1:10, 4:17],
-                                                         want[:, 1:10, 4:17])
-    np.save(tmp_path / "d.npy", np.zeros((3, 4, 5)))
-    with pytest.raises(ValueError, match="is not a float32 volume"):
-        RawVolume(tmp_path / "d.npy")
+    chunks = np.load(tmp_path / "v")  # (3, 4, 3, 8, 8): the field padded to 24 x 32
+    assert chunks.shape == (3, 4, 3, 8, 8)
+    assert np.array_equal(chunks[1, 2][:, 0:4, 0:4], want[:, 8:12, 16:20])
+    again = RawVolume(tmp_path / "v", (3, 20, 30), 8)
+    assert np.array_equal(again[:, :, :], want)
+    assert np.array_equal(again[1:3, 1:10, 4:17], want[1:3, 1:10, 4:17])
+    with pytest.raises(ValueError, match="is not a float32 volum"):
+        RawVolume(tmp_path / "v", (3, 20, 30), 16)

@@ -264,8 +264,8 @@ def iter_richardson_lucy_3d_exchange(
         The blocked operator's block size and kernel tolerance
         (:class:`~napari_psfspace.core.volume.blocks3d.BlockedOperator3D`).
     store : str or os.PathLike, optional
-        A folder where the iterates are written between the passes (float32 ``.npy``
-        files :class:`~.exchange_store.RawVolume`: ``data``, the stack clipped at 0,
+        A folder where the iterates are written between the passes (float32 files of
+        lateral chunks, :class:`~.exchange_store.RawVolume`: ``data``, the stack clipped at 0,
         ``norm``, ``ratio``, ``u0``, ``u1``, and ``state.json``, the iterations done,
         written after each: ``u`` alternates between two files so that the last finished
         iterate is whole while the next is written; the ratio is made again from it on a
@@ -313,7 +313,7 @@ def iter_richardson_lucy_3d_exchange(
     am = array_module(device)  # "gpu" without CuPy or a device: one line, no work done
     z, h, w = stack.shape
     settings = {"shape": [z, h, w], "tile": tile, "block": block, "rtol": float(rtol),
-                "arrays": "npy"}
+                "arrays": "npy chunks"}
     done, u0, b = yield from _starting_point(stack, background, start, store, resume, settings)
     rows, cols, tasks, config = _tasks(operator, (h, w), tile, block, rtol, client, workers,
                                        device, am)
@@ -418,7 +418,7 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
     from it (:mod:`.exchange_store`); returns the last iterate, a lazy dask array."""
     import dask.array as da
 
-    from .exchange_store import TilePass, open_array, run_pass, write_data
+    from .exchange_store import TilePass, open_array, run_pass, store_chunk, write_data
 
     z, h, w = settings["shape"]
     edges_y = [(int(a), int(a + n)) for a, n in zip(np.cumsum((0,) + rows)[:-1], rows,
@@ -428,20 +428,23 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
     grid = (len(rows), len(cols))
     folder = os.fspath(store)
 
+    chunk = store_chunk(settings["tile"], max(h, w))
+
     def one_pass(kind, target, **kw):
-        run_pass(TilePass(kind, tasks, folder, edges_y, edges_x, target=target, **kw),
-                 *grid, config)
+        run_pass(TilePass(kind, tasks, folder, edges_y, edges_x, target=target, chunk=chunk,
+                          **kw), *grid, config)
 
     if not done:
         for name in ("data", "norm", "ratio", "u0", "u1"):
-            open_array(folder, name, (z, h, w))
+            open_array(folder, name, (z, h, w), chunk, create=True)
         yield Progress("setup", 0.0, "the stack into the store, a tile at a time")
-        write_data(stack, folder, edges_y, edges_x,
+        write_data(stack, folder, edges_y, edges_x, chunk=chunk,
                    workers=config.get("num_workers") or 1)
         yield Progress("setup", 0.0, "H^T 1")
         one_pass("norm", "norm")
     chunks = ((z,), tuple(rows), tuple(cols))
-    top = float(da.from_array(open_array(folder, "norm"), chunks=chunks, asarray=False)
+    top = float(da.from_array(open_array(folder, "norm", (z, h, w), chunk), chunks=chunks,
+                              asarray=False)
                 .max().compute(**config))
     floor = TINY * max(top, 1.0)
     for k in range(done, n_iter):
@@ -454,8 +457,8 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
         write_state(store, {**settings, "done": k + 1, "background": background,
                             "start": start})
         yield Progress("iteration", (k + 1) / n_iter, f"iteration {k + 1} of {n_iter}")
-    return da.from_array(open_array(folder, f"u{(n_iter - 1) % 2}"), chunks=chunks,
-                         asarray=False)
+    return da.from_array(open_array(folder, f"u{(n_iter - 1) % 2}", (z, h, w), chunk),
+                         chunks=chunks, asarray=False)
 
 
 richardson_lucy_3d_exchange = drained(iter_richardson_lucy_3d_exchange,

@@ -8,11 +8,13 @@ another's voxels, and none waits for another's. The memory a pass holds is then 
 tasks' at once (:func:`~.exchange3d.task_bytes`), whatever the volume's size: a volume
 larger than the machine takes longer, not more memory.
 
-Each array of the folder is a float32 ``.npy`` file (:class:`RawVolume`), read and
-written by region through a mapping opened for that access alone: a region costs a copy
-to or from the page cache, with no codec and no chunk bookkeeping between the threads,
-and the process holds no more of the file than the region it copies (a mapping's pages
-count in its resident memory until it is closed). The files are scratch: the
+Each array of the folder is one float32 file of lateral chunks ``(Z, C, C)``, each
+chunk one run of bytes (:class:`RawVolume`), read and written by box through a mapping
+of each chunk opened for that access alone: a box costs a copy to or from the page
+cache, with no codec and no bookkeeping between the threads (Zarr's took more time than
+the copies), and the process holds no more of the file than the chunks it copies (a
+mapping's pages count in its resident memory until it is closed). ``C`` divides the
+tile, so every chunk lies in one tile and is written by one task. The files are scratch: the
 run's ``state.json`` names the last iteration whose iterate is whole (``u`` alternates
 between two files), and a resumed run makes the others again.
 """
@@ -25,18 +27,48 @@ import numpy as np
 
 from .deconvolve3d import TINY
 
+#: Lateral chunk of the work folder's files, pixels, where it divides the tile (else the
+#: tile): a window of a tile ``T`` reads at most ``(T + 2 ring + 2 C)²`` pixels. A chunk
+#: is ``Z x C x C`` float32 in one run of bytes, so a window read from disk (a volume
+#: larger than the page cache) reads whole runs, not one short row per page.
+STORE_CHUNK = 128
+
+
+def store_chunk(tile: int, side: int) -> int:
+    """The work files' lateral chunk for tiles of ``tile`` px on a field ``side`` px wide:
+    :data:`STORE_CHUNK`, halved down to 16 px while it does not divide the tile or is
+    over a quarter of it (a window then reads at most half a tile beyond itself); the
+    tile itself where no such chunk divides it."""
+    c = STORE_CHUNK
+    while c > 16 and (tile % c or 4 * c > tile):
+        c //= 2
+    return c if tile % c == 0 else min(int(tile), int(side))
+
 
 class RawVolume:
-    """A float32 volume ``(Z, H, W)`` in an uncompressed ``.npy`` file, read and written
-    by region (``vol[region]``, ``vol[region] = values``) through a mapping opened for
-    each access; picklable (a path), so a cluster's workers open it where it lies. It
-    has ``shape``, ``dtype`` and ``ndim``: ``dask.array.from_array`` reads it."""
+    """A float32 volume ``(Z, H, W)`` in one uncompressed file of lateral chunks: a
+    ``.npy`` of shape ``(ceil(H / C), ceil(W / C), Z, C, C)`` (the field padded to whole
+    chunks), read and written by box (``vol[region]``, ``vol[region] = values``)
+    through a mapping of each chunk the box meets, opened for that access alone: a copy
+    to or from the page cache, no codec, and the process holds no more of the file than
+    the chunks it copies. Picklable (a path), so a cluster's workers open it where it
+    lies; it has ``shape``, ``dtype`` and ``ndim``: ``dask.array.from_array`` reads it.
 
-    def __init__(self, path: str | os.PathLike, shape=None) -> None:
+    Two tasks may write at once where no chunk holds voxels of both (each chunk lies in
+    one tile: :func:`store_chunk` divides the tile)."""
+
+    def __init__(self, path: str | os.PathLike, shape, chunk: int, *,
+                 create: bool = False) -> None:
         self.path = os.fspath(path)
-        if shape is not None:  # a new file, sparse until written
+        self.shape = tuple(int(v) for v in shape)
+        self.chunk = c = int(chunk)
+        self.dtype, self.ndim = np.dtype(np.float32), 3
+        z, h, w = self.shape
+        self.grid = (-(-h // c), -(-w // c))
+        layout = (*self.grid, z, c, c)
+        if create:  # sparse until written
             mm = np.lib.format.open_memmap(self.path, mode="w+", dtype=np.float32,
-                                           shape=tuple(int(v) for v in shape))
+                                           shape=layout)
             del mm
         with open(self.path, "rb") as f:
             version = np.lib.format.read_magic(f)
@@ -44,33 +76,64 @@ class RawVolume:
                     np.lib.format.read_array_header_2_0)
             found, fortran, dtype = read(f)
             self.offset = f.tell()
-        if fortran or np.dtype(dtype) != np.float32 or len(found) != 3:
-            raise ValueError(f"{self.path!r} is not a float32 volume (Z, H, W) in C order")
-        self.shape, self.dtype, self.ndim = tuple(found), np.dtype(np.float32), 3
+        if fortran or np.dtype(dtype) != np.float32 or tuple(found) != layout:
+            raise ValueError(f"{self.path!r} is not a float32 volume {self.shape} in chunks "
+                             f"of {c} px: it holds {np.dtype(dtype)} {tuple(found)}")
 
-    def _map(self, mode: str) -> np.memmap:
-        return np.memmap(self.path, dtype=np.float32, mode=mode, offset=self.offset,
-                         shape=self.shape)
+    def _boxes(self, region):
+        """For each chunk the box meets: its index, the box's part in the chunk and in
+        an array of the box's shape."""
+        if not isinstance(region, tuple):
+            region = (region,)
+        region = region + (slice(None),) * (3 - len(region))
+        box = tuple(range(n)[r] if isinstance(r, slice) else None
+                    for r, n in zip(region, self.shape, strict=True))
+        if any(b is None or b.step != 1 for b in box):
+            raise ValueError(f"a RawVolume is read and written by boxes of slices, got "
+                             f"{region!r}")
+        zs, ys, xs = box
+        c = self.chunk
+        parts = []
+        for i in range(ys.start // c, -(-ys.stop // c)):
+            y0, y1 = max(ys.start, i * c), min(ys.stop, (i + 1) * c)
+            for j in range(xs.start // c, -(-xs.stop // c)):
+                x0, x1 = max(xs.start, j * c), min(xs.stop, (j + 1) * c)
+                parts.append(((i, j),
+                              (slice(zs.start, zs.stop), slice(y0 - i * c, y1 - i * c),
+                               slice(x0 - j * c, x1 - j * c)),
+                              (slice(None), slice(y0 - ys.start, y1 - ys.start),
+                               slice(x0 - xs.start, x1 - xs.start))))
+        return (len(zs), len(ys), len(xs)), parts
+
+    def _map(self, index, mode: str) -> np.memmap:
+        z, c = self.shape[0], self.chunk
+        at = self.offset + (index[0] * self.grid[1] + index[1]) * z * c * c * 4
+        return np.memmap(self.path, dtype=np.float32, mode=mode, offset=at,
+                         shape=(z, c, c))
 
     def __getitem__(self, region) -> np.ndarray:
-        mm = self._map("r")
-        try:
-            return np.array(mm[region], dtype=np.float32)
-        finally:
+        shape, parts = self._boxes(region)
+        out = np.empty(shape, np.float32)
+        for index, inside, there in parts:
+            mm = self._map(index, "r")
+            out[there] = mm[inside]
             del mm  # unmapped: the copy is all this process holds
+        return out
 
     def __setitem__(self, region, values) -> None:
-        mm = self._map("r+")
-        try:
-            mm[region] = values  # into the page cache; the kernel writes it back
-        finally:
-            del mm  # unmapped: the pages written leave this process
+        shape, parts = self._boxes(region)
+        values = np.broadcast_to(np.asarray(values, dtype=np.float32), shape)
+        for index, inside, there in parts:
+            mm = self._map(index, "r+")
+            mm[inside] = values[there]  # into the page cache; the kernel writes it back
+            del mm
 
 
-def open_array(store, name: str, shape=None) -> RawVolume:
-    """The float32 volume ``name`` of the work folder ``store``: created (sparse) where
-    ``shape`` is given, else the one there."""
-    return RawVolume(os.path.join(os.fspath(store), name), shape)
+def open_array(store, name: str, shape, chunk: int, *, create: bool = False) -> RawVolume:
+    """The float32 volume ``name`` of the work folder ``store`` (shape ``(Z, H, W)``, in
+    lateral chunks of ``chunk`` px): created (sparse) with ``create``, else the one
+    there."""
+    return RawVolume(os.path.join(os.fspath(store), name), shape, chunk, create=create)
 
 
 class TilePass:
@@ -91,8 +154,9 @@ class TilePass:
     def __init__(self, kind: str, tasks: dict, store, edges_y, edges_x, *,
                  target: str, source: str | None = None, factor: str | None = None,
                  start: float = 0.0, background: float = 0.0, floor: float = TINY,
-                 also: str | os.PathLike | None = None) -> None:
+                 also: str | os.PathLike | None = None, chunk: int) -> None:
         self.kind, self.tasks, self.store = kind, dict(tasks), os.fspath(store)
+        self.chunk = int(chunk)
         self.edges_y, self.edges_x = list(edges_y), list(edges_x)
         self.target, self.source, self.factor = target, source, factor
         self.start, self.background, self.floor = float(start), float(background), float(floor)
@@ -113,7 +177,8 @@ class TilePass:
     def _open(self, name: str):
         arr = self._arrays.get(name)
         if arr is None:
-            arr = self._arrays[name] = open_array(self.store, name)
+            arr = self._arrays[name] = open_array(
+                self.store, name, self.tasks["adjoint"].operator.image_shape, self.chunk)
         return arr
 
     def _around(self, iy: int, ix: int, rings: int) -> tuple[slice, slice, slice]:
@@ -165,12 +230,12 @@ class TilePass:
             also[tile] = out
 
 
-def write_data(stack, store, edges_y, edges_x, *, workers: int) -> None:
+def write_data(stack, store, edges_y, edges_x, *, chunk: int, workers: int) -> None:
     """The stack in float32, clipped at 0, into the store's ``data``, a tile at a time
     (each tile read from ``stack``, a dask array read lazily or an ndarray)."""
     import dask
 
-    arr = open_array(store, "data")
+    arr = open_array(store, "data", stack.shape, chunk)
 
     def one(ys, xs) -> None:
         part = stack[:, ys[0]:ys[1], xs[0]:xs[1]]
@@ -198,4 +263,5 @@ def run_pass(task: TilePass, n_y: int, n_x: int, config: dict) -> None:
     dask.compute(*jobs, **config)
 
 
-__all__ = ["RawVolume", "TilePass", "open_array", "run_pass", "write_data"]
+__all__ = ["RawVolume", "STORE_CHUNK", "TilePass", "open_array", "run_pass", "store_chunk",
+           "write_data"]
