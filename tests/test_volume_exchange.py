@@ -201,11 +201,15 @@ def test_a_raw_volume_is_written_and_read_by_boxes_across_its_chunks(tmp_path):
     a = rng.random((3, 7, 11)).astype(np.float32)
     vol[:, 2:9, 5:16] = a
     vol[:, 9:20, :] = 2.0
+    b = rng.random((3, 16, 16)).astype(np.float32)
+    vol[:, 0:16, 8:24] = b  # four whole chunks: one run of bytes each, no mapping
     want = np.zeros((3, 20, 30), np.float32)
     want[:, 2:9, 5:16], want[:, 9:, :] = a, 2.0
+    want[:, 0:16, 8:24] = b
     chunks = np.load(tmp_path / "v")  # (3, 4, 3, 8, 8): the field padded to 24 x 32
     assert chunks.shape == (3, 4, 3, 8, 8)
     assert np.array_equal(chunks[1, 2][:, 0:4, 0:4], want[:, 8:12, 16:20])
+    assert np.array_equal(chunks[0, 1], b[:, 0:8, 0:8])
     again = RawVolume(tmp_path / "v", (3, 20, 30), 8)
     assert np.array_equal(again[:, :, :], want)
     assert np.array_equal(again[1:3, 1:10, 4:17], want[1:3, 1:10, 4:17])

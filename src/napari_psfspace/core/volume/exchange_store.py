@@ -105,28 +105,54 @@ class RawVolume:
                                slice(x0 - xs.start, x1 - xs.start))))
         return (len(zs), len(ys), len(xs)), parts
 
+    def _at(self, index) -> int:
+        z, c = self.shape[0], self.chunk
+        return self.offset + (index[0] * self.grid[1] + index[1]) * z * c * c * 4
+
     def _map(self, index, mode: str) -> np.memmap:
         z, c = self.shape[0], self.chunk
-        at = self.offset + (index[0] * self.grid[1] + index[1]) * z * c * c * 4
-        return np.memmap(self.path, dtype=np.float32, mode=mode, offset=at,
+        return np.memmap(self.path, dtype=np.float32, mode=mode, offset=self._at(index),
                          shape=(z, c, c))
+
+    def _whole(self, inside) -> bool:
+        """Whether a chunk's part is the whole chunk (one run of bytes in the file)."""
+        return all(s.start == 0 and s.stop == n for s, n in
+                   zip(inside, (self.shape[0], self.chunk, self.chunk), strict=True))
 
     def __getitem__(self, region) -> np.ndarray:
         shape, parts = self._boxes(region)
         out = np.empty(shape, np.float32)
-        for index, inside, there in parts:
-            mm = self._map(index, "r")
-            out[there] = mm[inside]
-            del mm  # unmapped: the copy is all this process holds
+        with open(self.path, "rb", buffering=0) as f:
+            for index, inside, there in parts:
+                if self._whole(inside):  # one read of its run of bytes, no mapping
+                    run = np.empty((shape[0], self.chunk, self.chunk), np.float32)
+                    f.seek(self._at(index))
+                    if f.readinto(memoryview(run).cast("B")) != run.nbytes:
+                        raise OSError(f"{self.path!r} is shorter than its header says")
+                    out[there] = run
+                    continue
+                mm = self._map(index, "r")
+                out[there] = mm[inside]
+                del mm  # unmapped: the copy is all this process holds
         return out
 
     def __setitem__(self, region, values) -> None:
         shape, parts = self._boxes(region)
         values = np.broadcast_to(np.asarray(values, dtype=np.float32), shape)
-        for index, inside, there in parts:
-            mm = self._map(index, "r+")
-            mm[inside] = values[there]  # into the page cache; the kernel writes it back
-            del mm
+        fd = os.open(self.path, os.O_WRONLY)
+        try:
+            for index, inside, there in parts:
+                if self._whole(inside):
+                    # the run of bytes written whole: the kernel need not read the old
+                    # pages first, as a mapping's write to a page not in memory does
+                    run = np.ascontiguousarray(values[there])
+                    os.pwrite(fd, memoryview(run).cast("B"), self._at(index))
+                    continue
+                mm = self._map(index, "r+")
+                mm[inside] = values[there]  # into the page cache; the kernel writes it back
+                del mm
+        finally:
+            os.close(fd)
 
 
 def open_array(store, name: str, shape, chunk: int, *, create: bool = False) -> RawVolume:
