@@ -190,6 +190,40 @@ def test_in_memory_refuses_a_stack_over_the_memory_available(monkeypatch):
         richardson_lucy_3d(stack, op, n_iter=1, block=16)
 
 
+def test_the_stack_is_read_by_its_own_chunks_once_each(tmp_path):
+    """A dask stack of chunks narrower than a tile is read a whole chunk at a time, each
+    once (a compressed chunk is not decompressed once a tile it meets), in slabs of
+    whole z chunks no larger than a tile; the store's data is the stack clipped at 0.
+    Chunks larger than a tile are read by the tiles."""
+    import dask.array as da
+
+    from napari_psfspace.core.volume.exchange_store import _read_boxes, open_array, write_data
+
+    rng = np.random.default_rng(1)
+    stack = (rng.random((6, 40, 50)) - 0.2).astype(np.float32)
+    lazy = da.from_array(stack, chunks=(1, 16, 16))
+    edges_y, edges_x = [(0, 24), (24, 40)], [(0, 24), (24, 48), (48, 50)]
+    boxes = _read_boxes(lazy, edges_y, edges_x)
+    seen = np.zeros(stack.shape, int)
+    z_ends, y_ends, x_ends = ({0, *np.cumsum(c).tolist()} for c in lazy.chunks)
+    for zs, ys, xs in boxes:
+        seen[slice(*zs), slice(*ys), slice(*xs)] += 1
+        assert set(zs) <= z_ends and set(ys) <= y_ends and set(xs) <= x_ends
+        assert (zs[1] - zs[0]) * 16 * 16 <= 6 * 24 * 24  # a tile's volume at most
+    assert np.all(seen == 1)
+    assert len(boxes) < lazy.numblocks[0] * lazy.numblocks[1] * lazy.numblocks[2]
+    big = da.from_array(stack, chunks=(6, 40, 50))
+    assert _read_boxes(big, edges_y, edges_x) == [((0, 6), ys, xs) for ys in edges_y
+                                                  for xs in edges_x]
+    for source in (lazy, stack):
+        folder = tmp_path / str(type(source).__name__)
+        folder.mkdir()
+        open_array(folder, "data", stack.shape, 8, create=True)
+        write_data(source, folder, edges_y, edges_x, chunk=8, workers=2)
+        got = open_array(folder, "data", stack.shape, 8)[:, :, :]
+        assert np.array_equal(got, np.clip(stack, 0, None))
+
+
 def test_a_raw_volume_is_written_and_read_by_boxes_across_its_chunks(tmp_path):
     """The work folder's arrays: a float32 ``.npy`` of lateral chunks (numpy reads it),
     every box written is read back across the chunks it meets, the field's padding and
@@ -203,9 +237,12 @@ def test_a_raw_volume_is_written_and_read_by_boxes_across_its_chunks(tmp_path):
     vol[:, 9:20, :] = 2.0
     b = rng.random((3, 16, 16)).astype(np.float32)
     vol[:, 0:16, 8:24] = b  # four whole chunks: one run of bytes each, no mapping
+    vol[1:3, 0:8, 24:30] = 3.0  # planes of a chunk cut by the field's edge
+    vol[1:2, 8:16, 16:24] = 4.0  # a plane of a whole chunk: a run of bytes
     want = np.zeros((3, 20, 30), np.float32)
     want[:, 2:9, 5:16], want[:, 9:, :] = a, 2.0
     want[:, 0:16, 8:24] = b
+    want[1:3, 0:8, 24:30], want[1:2, 8:16, 16:24] = 3.0, 4.0
     chunks = np.load(tmp_path / "v")  # (3, 4, 3, 8, 8): the field padded to 24 x 32
     assert chunks.shape == (3, 4, 3, 8, 8)
     assert np.array_equal(chunks[1, 2][:, 0:4, 0:4], want[:, 8:12, 16:20])
@@ -213,5 +250,6 @@ def test_a_raw_volume_is_written_and_read_by_boxes_across_its_chunks(tmp_path):
     again = RawVolume(tmp_path / "v", (3, 20, 30), 8)
     assert np.array_equal(again[:, :, :], want)
     assert np.array_equal(again[1:3, 1:10, 4:17], want[1:3, 1:10, 4:17])
+    assert np.array_equal(again[1:3, 8:16, 8:24], want[1:3, 8:16, 8:24])
     with pytest.raises(ValueError, match="is not a float32 volum"):
         RawVolume(tmp_path / "v", (3, 20, 30), 16)

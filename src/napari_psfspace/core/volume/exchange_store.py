@@ -114,19 +114,24 @@ class RawVolume:
         return np.memmap(self.path, dtype=np.float32, mode=mode, offset=self._at(index),
                          shape=(z, c, c))
 
-    def _whole(self, inside) -> bool:
-        """Whether a chunk's part is the whole chunk (one run of bytes in the file)."""
-        return all(s.start == 0 and s.stop == n for s, n in
-                   zip(inside, (self.shape[0], self.chunk, self.chunk), strict=True))
+    def _run(self, index, inside) -> int | None:
+        """Where a chunk's part starts in the file where it is one run of bytes (whole
+        laterally: a slab of planes of the chunk), else None."""
+        zs, ys, xs = inside
+        c = self.chunk
+        if (ys.start, ys.stop, xs.start, xs.stop) != (0, c, 0, c):
+            return None
+        return self._at(index) + zs.start * c * c * 4
 
     def __getitem__(self, region) -> np.ndarray:
         shape, parts = self._boxes(region)
         out = np.empty(shape, np.float32)
         with open(self.path, "rb", buffering=0) as f:
             for index, inside, there in parts:
-                if self._whole(inside):  # one read of its run of bytes, no mapping
+                at = self._run(index, inside)
+                if at is not None:  # one read of its run of bytes, no mapping
                     run = np.empty((shape[0], self.chunk, self.chunk), np.float32)
-                    f.seek(self._at(index))
+                    f.seek(at)
                     if f.readinto(memoryview(run).cast("B")) != run.nbytes:
                         raise OSError(f"{self.path!r} is shorter than its header says")
                     out[there] = run
@@ -142,11 +147,14 @@ class RawVolume:
         fd = os.open(self.path, os.O_WRONLY)
         try:
             for index, inside, there in parts:
-                if self._whole(inside):
+                at = self._run(index, inside)
+                if at is not None:
                     # the run of bytes written whole: the kernel need not read the old
                     # pages first, as a mapping's write to a page not in memory does
-                    run = np.ascontiguousarray(values[there])
-                    os.pwrite(fd, memoryview(run).cast("B"), self._at(index))
+                    run = memoryview(np.ascontiguousarray(values[there])).cast("B")
+                    done = 0
+                    while done < run.nbytes:  # a write may take part of the bytes
+                        done += os.pwrite(fd, run[done:], at + done)
                     continue
                 mm = self._map(index, "r+")
                 mm[inside] = values[there]  # into the page cache; the kernel writes it back
@@ -256,21 +264,52 @@ class TilePass:
             also[tile] = out
 
 
+def _read_boxes(stack, edges_y, edges_x) -> list[tuple]:
+    """The boxes ``(zs, ys, xs)`` the stack is read by: for a dask array whose chunks
+    are no larger than a tile's volume, its own chunks laterally and slabs of whole
+    chunks in z up to a tile's volume (each compressed chunk read once, where a tile
+    narrower than a chunk would read it once a tile); else the tiles, whole in z."""
+    z = stack.shape[0]
+    tiles = [((0, z), ys, xs) for ys in edges_y for xs in edges_x]
+    chunks = getattr(stack, "chunks", None)
+    if chunks is None or not isinstance(chunks[0], tuple):
+        return tiles
+    tile_volume = z * max(b - a for a, b in edges_y) * max(b - a for a, b in edges_x)
+
+    def edges(sizes):
+        ends = np.cumsum((0,) + tuple(sizes))
+        return list(zip(ends[:-1].tolist(), ends[1:].tolist(), strict=True))
+
+    lateral = max(chunks[1]) * max(chunks[2])
+    if max(chunks[0]) * lateral > tile_volume:
+        return tiles
+    slabs, z0, n = [], 0, 0
+    for a, b in edges(chunks[0]):  # whole z chunks, up to a tile's volume a slab
+        if n and (n + b - a) * lateral > tile_volume:
+            slabs.append((z0, a))
+            z0, n = a, 0
+        n += b - a
+    slabs.append((z0, z))
+    return [(zs, ys, xs) for ys in edges(chunks[1]) for xs in edges(chunks[2])
+            for zs in slabs]
+
+
 def write_data(stack, store, edges_y, edges_x, *, chunk: int, workers: int) -> None:
-    """The stack in float32, clipped at 0, into the store's ``data``, a tile at a time
-    (each tile read from ``stack``, a dask array read lazily or an ndarray)."""
+    """The stack in float32, clipped at 0, into the store's ``data``, a box at a time
+    (:func:`_read_boxes`; ``stack`` a dask array read lazily, or an ndarray)."""
     import dask
 
     arr = open_array(store, "data", stack.shape, chunk)
 
-    def one(ys, xs) -> None:
-        part = stack[:, ys[0]:ys[1], xs[0]:xs[1]]
+    def one(zs, ys, xs) -> None:
+        box = (slice(*zs), slice(*ys), slice(*xs))
+        part = stack[box]
         if hasattr(part, "compute"):
             part = part.compute(scheduler="sync")
         part = np.asarray(part, dtype=np.float32)
-        arr[:, ys[0]:ys[1], xs[0]:xs[1]] = np.clip(part, 0, None, out=part)
+        arr[box] = np.clip(part, 0, None, out=part)
 
-    jobs = [dask.delayed(one)(ys, xs) for ys in edges_y for xs in edges_x]
+    jobs = [dask.delayed(one)(*b) for b in _read_boxes(stack, edges_y, edges_x)]
     dask.compute(*jobs, scheduler="threads", num_workers=workers)
 
 
