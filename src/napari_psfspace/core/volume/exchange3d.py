@@ -437,7 +437,7 @@ def _iterate_in_store(stack, tasks, store, rows, cols, settings, config, *, done
     if not done:
         for name in ("data", "norm", "ratio", "u0", "u1"):
             open_array(folder, name, (z, h, w), chunk, create=True)
-        yield Progress("setup", 0.0, "the stack into the store, a tile at a time")
+        yield Progress("setup", 0.0, "the stack into the store, a chunk at a time")
         write_data(stack, folder, edges_y, edges_x, chunk=chunk,
                    workers=config.get("num_workers") or 1)
         yield Progress("setup", 0.0, "H^T 1")
