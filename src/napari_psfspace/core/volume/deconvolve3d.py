@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..common.device import array_module
+from ..common.heap import kept_heap
 from ..common.progress import Progress
 from ..common.threads import default_workers
 from ..common.twins import drained
@@ -272,6 +273,15 @@ def iter_richardson_lucy_3d(
     n_iter, am = _checked(stack, operator, n_iter, stop, accelerate, device)
     b, mean = stack_statistics(stack, background)  # its refusals before any progress
     yield Progress("setup", 0.0, f"background {b:.4g}, mean {mean:.4g}")
+    with kept_heap():  # the blocks' temporaries reuse the heap (common.heap)
+        return (yield from _run(stack, operator, b, mean, am, n_iter=n_iter, start=start,
+                                stop=stop, accelerate=accelerate, block=block, rtol=rtol,
+                                workers=workers))
+
+
+def _run(stack, operator, b, mean, am, *, n_iter, start, stop, accelerate, block, rtol,
+         workers):
+    """The iterations of :func:`iter_richardson_lucy_3d` on checked arguments."""
     v = _Volumes()  # the volumes, held once: each freed as soon as it is no longer needed
     v.data = yield from _float32_copy(stack)
     yield Progress("setup", 0.0, "blocks and their kernels")

@@ -317,10 +317,13 @@ def iter_richardson_lucy_3d_exchange(
     done, u0, b = yield from _starting_point(stack, background, start, store, resume, settings)
     rows, cols, tasks, config = _tasks(operator, (h, w), tile, block, rtol, client, workers,
                                        device, am)
+    from ..common.heap import kept_heap
     from ..common.threads import blas_limit
 
-    # tiles on the local threads: no BLAS threads beside them
-    with blas_limit() if client is None else contextlib.nullcontext():
+    # tiles on the local threads: no BLAS threads beside them, and the heap kept between
+    # their temporaries (a cluster's workers keep their own: TilePass)
+    with blas_limit() if client is None else contextlib.nullcontext(), \
+            kept_heap() if client is None else contextlib.nullcontext():
         return (yield from _iterate(stack, tasks, store, rows, cols, settings, config,
                                     client, done=done, n_iter=n_iter, background=b,
                                     start=u0, output=output))

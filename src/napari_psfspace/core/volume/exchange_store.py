@@ -237,6 +237,9 @@ class TilePass:
                                              tile=box)[inner]
 
     def __call__(self, iy: int, ix: int) -> None:
+        from ..common.heap import keep_heap_in_worker
+
+        keep_heap_in_worker()  # a cluster's worker process: its heap kept for its tasks
         tile, where = self._around(iy, ix, 0), self._around(iy, ix, 1)
         window = self._read(self.source, where)
         if self.kind == "ratio":
