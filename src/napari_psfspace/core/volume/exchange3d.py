@@ -400,6 +400,8 @@ def _iterate(stack, tasks, store, rows, cols, settings, config, client, *, done,
     y = stack.rechunk(chunks) if lazy else da.from_array(np.asarray(stack), chunks=chunks)
     y = da.clip(y.astype(np.float32), 0, None)
     with dask.config.set(config):
+        if client is not None:  # the stack sent to the cluster once, not in every graph
+            y = hold(y)
         yield Progress("setup", 0.0, "H^T 1")
         norm = hold(product(da.ones((z, h, w), np.float32, chunks=chunks), "adjoint"))
         u = da.full((z, h, w), np.float32(u0), dtype=np.float32, chunks=chunks)
