@@ -9,8 +9,10 @@ deblur's CPU time (``perf``), and two processes doing it at once scale worse tha
 FFTs do.
 
 :func:`kept_heap` raises both thresholds for the length of a run, so freed blocks below
-32 MB (glibc's largest threshold on 64-bit) are reused from the heap; on leaving it puts
-the defaults back and returns the free memory to the system (``malloc_trim``). Where a
+32 MB (glibc's largest threshold on 64-bit) are reused from the heap; on leaving it
+returns the free memory to the system (``malloc_trim``) and sets the trim threshold to
+twice the mmap threshold, where glibc's own rule puts it once large blocks have been
+freed (the mmap threshold stays at 32 MB, where that rule lets it rise). Where a
 run's tasks execute in a worker process of their own (a dask cluster's),
 :func:`keep_heap_in_worker` sets the thresholds once for that process's life. Elsewhere
 than glibc both do nothing.
@@ -27,14 +29,14 @@ from collections.abc import Iterator
 
 #: ``mallopt`` parameters (glibc's ``malloc.h``).
 M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
-#: glibc's default mmap and trim thresholds, bytes.
-DEFAULT_THRESHOLD = 128 * 1024
 #: The mmap threshold during a run: glibc's largest on 64-bit (``4 * 1024 * 1024 *
 #: sizeof(long)``); blocks above it are mapped whatever is asked.
 KEPT_MMAP_THRESHOLD = 32 * 1024 * 1024
 #: The trim threshold during a run: the largest ``mallopt`` takes (a C int); the free top
 #: of the heap is kept up to it.
 KEPT_TRIM_THRESHOLD = 2**31 - 1
+#: The trim threshold after a run: twice the mmap threshold, as glibc's own rule sets it.
+AFTER_TRIM_THRESHOLD = 2 * KEPT_MMAP_THRESHOLD
 
 _lock = threading.Lock()
 _depth = 0
@@ -64,8 +66,9 @@ def _keep(libc) -> None:
 @contextlib.contextmanager
 def kept_heap() -> Iterator[None]:
     """A context in which freed blocks under 32 MB stay in the process's heap for the next
-    allocation (module docstring); nested and concurrent uses share one setting, undone
-    when the last leaves, the free memory then returned to the system."""
+    allocation (module docstring); nested and concurrent uses share one setting. When the
+    last leaves, the heap's free memory goes back to the system and the trim threshold
+    to glibc's steady value."""
     global _depth
     libc = _glibc()
     if libc is None:
@@ -81,8 +84,7 @@ def kept_heap() -> Iterator[None]:
         with _lock:
             _depth -= 1
             if _depth == 0 and not _worker_kept:
-                libc.mallopt(M_MMAP_THRESHOLD, DEFAULT_THRESHOLD)
-                libc.mallopt(M_TRIM_THRESHOLD, DEFAULT_THRESHOLD)
+                libc.mallopt(M_TRIM_THRESHOLD, AFTER_TRIM_THRESHOLD)
                 libc.malloc_trim(0)
 
 
