@@ -7,7 +7,7 @@ only by its bead's distance from the field's focal surface
 (:mod:`~napari_psfspace.core.volume.focal_surface`), so that a focus a plane higher
 because of field curvature or a tilted slide stays in the patch, and the model keeps it.
 
-Each plane of a patch is cut by cubic-spline re-sampling at the bead's sub-pixel centre,
+Each plane of a patch is cut by the 2D patches' spline re-sampling at the bead's sub-pixel centre,
 its background (an order-2 polynomial fitted outside the PSF radius ``r``, plane by
 plane: a background that changes with depth is followed) removed and the bump window of
 the 2D patches applied. A patch is divided by the bead's flux per plane (the mean of its
