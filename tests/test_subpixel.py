@@ -58,9 +58,10 @@ def test_a_whole_pixel_centre_is_the_pixels_themselves():
 
 def test_the_patches_spline_is_near_exact_on_a_smooth_psf():
     """The patches' spline (order 5) against the cubic on a Gaussian of sd 2.5 px: a
-    spline of order ``n`` errs by about ``(w / pi) ** (n + 1)`` at frequency ``w``, so the
-    quintic's error is a power of ``w / pi`` (about 0.2 where this Gaussian's spectrum
-    still holds 1 % of its peak) below the cubic's: at least ten times smaller, and under
+    spline of order ``n`` errs by about ``(w / pi) ** (n + 1)`` at frequency ``w``. The
+    errors come from where the spectrum ``exp(-(w sd)**2 / 2)`` times that power peaks,
+    ``w = sqrt(n + 1) / sd``: ``w / pi`` about 0.25 to 0.3, so the quintic's two more
+    powers make its error about ten times smaller than the cubic's at least, and under
     3e-5 of the peak."""
     sd = 2.5
     rng = np.random.default_rng(25)
